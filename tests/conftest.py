@@ -1,0 +1,40 @@
+"""Shared fixtures: paths to the real test data in ``../shared/data``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """``../shared/data`` (the real HDRs and glTF scenes, see its README)."""
+    if not SHARED_DATA.is_dir():
+        pytest.fail(f"real test data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+def _read_hdr(path: Path) -> np.ndarray:
+    import OpenImageIO as oiio  # tests may read files directly; the library uses imageio.py
+
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error:
+        raise RuntimeError(buf.geterror())
+    return np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)[..., :3]
+
+
+@pytest.fixture(scope="session")
+def venice_latlong(shared_data: Path) -> np.ndarray:
+    """Venice sunset, (512, 1024, 3) float32 lat-long, linear radiance."""
+    return _read_hdr(shared_data / "hdr" / "venice_sunset_1k.hdr")
+
+
+@pytest.fixture(scope="session")
+def studio_latlong(shared_data: Path) -> np.ndarray:
+    """Studio small 03, (512, 1024, 3) float32 lat-long, linear radiance."""
+    return _read_hdr(shared_data / "hdr" / "studio_small_03_1k.hdr")
