@@ -36,14 +36,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
-    "roughness_to_alpha",
-    "level_roughness",
-    "roughness_to_lod",
-    "ggx_ndf",
     "ggx_kernel",
     "ggx_kernel_integral",
+    "ggx_ndf",
+    "level_roughness",
     "phong_kernel",
     "phong_kernel_integral",
+    "roughness_to_alpha",
+    "roughness_to_lod",
 ]
 
 #: Below this alpha the GGX lobe is treated as a delta (level 0 is a copy).
@@ -89,11 +89,18 @@ def ggx_kernel(cos_theta: ArrayLike, alpha: ArrayLike) -> NDArray[np.float64]:
     return ggx_ndf(n_dot_h, alpha) * np.maximum(c, 0.0) * 0.25
 
 
+@lru_cache(maxsize=1)
+def _gauss_legendre(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.setflags(write=False)
+    w.setflags(write=False)
+    return x, w
+
+
 @lru_cache(maxsize=256)
 def _ggx_integral(alpha: float) -> float:
-    # Substitute p = (pi/4) s^2-ish concentration near 0 for small alpha: integrate in
-    # t = atan(tan(p) / alpha) which maps the lobe's width to O(1).
-    x, w = np.polynomial.legendre.leggauss(512)
+    # Integrate in t = atan(tan(p) / alpha), which maps the lobe's width to O(1) for any alpha.
+    x, w = _gauss_legendre(512)
     t_max = np.arctan(np.tan(np.pi / 4) / alpha)
     t = 0.5 * t_max * (x + 1.0)
     wt = 0.5 * t_max * w
@@ -116,7 +123,7 @@ def ggx_kernel_integral(alpha: float) -> float:
 def phong_kernel(cos_theta: ArrayLike, exponent: float) -> NDArray[np.float64]:
     """Cosine-power lobe ``max(0, R . w)^P``."""
     c = np.asarray(cos_theta, dtype=np.float64)
-    return np.maximum(c, 0.0) ** float(exponent)
+    return np.where(c > 0.0, np.maximum(c, 0.0) ** float(exponent), 0.0)
 
 
 def phong_kernel_integral(exponent: float) -> float:

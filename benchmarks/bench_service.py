@@ -1,0 +1,223 @@
+"""Load benchmark of the map service: ``/sh`` and ``/maps`` next to the bare ``/healthz``.
+
+Starts ``service.main.run`` (one uvicorn worker, as ``probegrid serve`` does) on 127.0.0.1 in a
+subprocess, serving ``--store`` or, without it, a synthetic store written with
+:class:`probegrid.store.StoreWriter` (8 x 4 x 8 probes, 16^2 diffuse cubes, a 64^2 GGX chain,
+distance moments). A minimal asyncio HTTP/1.1 keep-alive load generator (raw sockets, so the
+client costs far less than the server) then sends, per endpoint, ``--requests`` requests over
+``--connections`` connections after a warm-up:
+
+* ``bare``: ``GET /healthz``, a fixed small JSON document from the same app (the reference);
+* ``sh``: ``GET /v1/grids/G/sh?x=&y=&z=`` at positions spread over the grid box;
+* ``sh+normal``: the same with ``nx, ny, nz`` (DDGI visibility weights);
+* ``maps``: ``GET /v1/grids/G/maps/diffuse?...&format=npy`` (the 16^2 diffuse cube).
+
+It prints p50 / p99 latency and requests per second per endpoint and their ratios to the bare
+endpoint (the figures; targets: ``sh`` p50 <= 1.5x and throughput >= 0.7x, ``maps`` p50 <= 2x),
+then the server's resident memory before and after ``--rss-requests`` more mixed requests
+(the issue's figure is 100000; the default is bounded for a shared machine).
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_service.py [--store S.probes] [--requests 2000]
+        [--connections 4] [--rss-requests 20000] [--max-seconds 300]
+
+Loopback only; every phase is bounded in requests and in time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+from probegrid.conventions import conventions
+from probegrid.cubemap import mip_sizes
+from probegrid.grid import GridSpec
+from probegrid.store import ArraySpec, StoreWriter, open_store
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def synthetic_store(path: Path) -> Path:
+    """A store of random positive maps (8 x 4 x 8 probes, 16^2 diffuse, 64^2 GGX chain)."""
+    grid = GridSpec.from_counts((0.0, 0.0, 0.0), (7.0, 3.0, 7.0), (8, 4, 8))
+    rng = np.random.default_rng(0)
+    p = grid.n_probes
+    arrays = {"sh": rng.random((p, 9, 3)).astype(np.float32),
+              "diffuse": rng.random((p, 6, 16, 16, 3)).astype(np.float32)}
+    for k, n in enumerate(mip_sizes(64)):
+        arrays[f"specular_{k}"] = rng.random((p, 6, n, n, 3)).astype(np.float32)
+    moments = np.empty((p, 6, 8, 8, 2), np.float32)
+    moments[..., 0] = rng.uniform(0.5, 3.0, (p, 6, 8, 8))
+    moments[..., 1] = moments[..., 0] ** 2 + 0.05
+    arrays["moments"] = moments
+    arrays["valid"] = np.ones(p, bool)
+    arrays["positions"] = grid.positions().astype(np.float32)
+    specs = {k: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str) for k, a in arrays.items()}
+    writer = StoreWriter.create(path, arrays=specs, grid=grid, conventions=conventions(),
+                                scene_hash="bench-synthetic", bake={"synthetic": True})
+    writer.write(np.arange(p), arrays)
+    writer.finish(quality={})
+    return path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def start_server(store: Path, port: int, log: Path) -> subprocess.Popen[bytes]:
+    code = ("import sys; from service.main import run; "
+            "run([sys.argv[1]], host='127.0.0.1', port=int(sys.argv[2]), workers=1, "
+            "log_level='warning')")
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    with open(log, "wb") as out:
+        return subprocess.Popen([sys.executable, "-c", code, str(store), str(port)],
+                                stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO)
+
+
+# ------------------------------------------------------------------------------ load generator
+async def _read_response(reader: asyncio.StreamReader) -> int:
+    head = await reader.readuntil(b"\r\n\r\n")
+    status = int(head[9:12])
+    length = 0
+    for line in head.split(b"\r\n")[1:]:
+        if line[:15].lower() == b"content-length:":
+            length = int(line[15:])
+    if length:
+        await reader.readexactly(length)
+    return status
+
+
+async def _connection(port: int, paths: list[bytes], start: int, step: int, count: int,
+                      latencies: list[float], statuses: dict[int, int], deadline: float) -> None:
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    try:
+        for k in range(count):
+            if time.monotonic() > deadline:
+                break
+            path = paths[(start + k * step) % len(paths)]
+            t0 = time.perf_counter()
+            writer.write(b"GET " + path + b" HTTP/1.1\r\nHost: bench\r\n\r\n")
+            status = await _read_response(reader)
+            latencies.append(time.perf_counter() - t0)
+            statuses[status] = statuses.get(status, 0) + 1
+    finally:
+        writer.close()
+        await writer.wait_closed()
+
+
+async def load(port: int, paths: list[bytes], requests: int, connections: int,
+               max_seconds: float) -> dict[str, float]:
+    """Send ``requests`` GETs over ``connections`` keep-alive connections; latency stats."""
+    latencies: list[float] = []
+    statuses: dict[int, int] = {}
+    per = -(-requests // connections)
+    deadline = time.monotonic() + max_seconds
+    t0 = time.perf_counter()
+    await asyncio.gather(*(
+        _connection(port, paths, c, connections, per, latencies, statuses, deadline)
+        for c in range(connections)))
+    wall = time.perf_counter() - t0
+    lat = np.array(latencies) * 1e3
+    if set(statuses) != {200}:
+        raise RuntimeError(f"unexpected statuses {statuses}")
+    return {"n": float(lat.size), "p50_ms": float(np.percentile(lat, 50)),
+            "p99_ms": float(np.percentile(lat, 99)), "rps": lat.size / wall}
+
+
+def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray) -> dict[str, list[bytes]]:
+    rng = np.random.default_rng(1)
+    pts = lo + rng.random((512, 3)) * (hi - lo)
+    nrm = rng.normal(size=(512, 3))
+
+    def q(p: np.ndarray) -> str:
+        return f"x={p[0]:.6f}&y={p[1]:.6f}&z={p[2]:.6f}"
+
+    return {
+        "bare": [b"/healthz"],
+        "sh": [f"/v1/grids/{grid}/sh?{q(p)}".encode() for p in pts],
+        "sh+normal": [f"/v1/grids/{grid}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}&nz={n[2]:.4f}"
+                      .encode() for p, n in zip(pts, nrm, strict=True)],
+        "maps": [f"/v1/grids/{grid}/maps/diffuse?{q(p)}&format=npy".encode() for p in pts],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--store", type=Path, help="store to serve (default: synthetic)")
+    parser.add_argument("--requests", type=int, default=2000, help="requests per endpoint")
+    parser.add_argument("--connections", type=int, default=4, help="keep-alive connections")
+    parser.add_argument("--rss-requests", type=int, default=20000,
+                        help="mixed requests between the two memory readings")
+    parser.add_argument("--max-seconds", type=float, default=300.0,
+                        help="time bound of each phase")
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
+        store = args.store or synthetic_store(Path(tmp) / "bench.probes")
+        grid = open_store(store).grid
+        name = store.name.removesuffix(".probes")
+        port = free_port()
+        proc = start_server(store, port, Path(tmp) / "server.log")
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                try:
+                    socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                    break
+                except OSError:
+                    if proc.poll() is not None or time.monotonic() > deadline:
+                        raise RuntimeError((Path(tmp) / "server.log").read_text()) from None
+                    time.sleep(0.1)
+            paths = endpoint_paths(name, grid.lo, grid.hi)
+            results: dict[str, dict[str, float]] = {}
+            for key, p in paths.items():
+                asyncio.run(load(port, p, min(300, args.requests), args.connections, 30))
+                results[key] = asyncio.run(load(port, p, args.requests, args.connections,
+                                                args.max_seconds))
+            print(f"{args.requests} requests per endpoint over {args.connections} connections, "
+                  f"one uvicorn worker, store {store.name} ({grid.label})")
+            print(f"{'endpoint':<11}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
+                  f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}")
+            bare = results["bare"]
+            for key, r in results.items():
+                r.update(p50_ratio=r["p50_ms"] / bare["p50_ms"],
+                         p99_ratio=r["p99_ms"] / bare["p99_ms"], rps_ratio=r["rps"] / bare["rps"])
+                print(f"{key:<11}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
+                      f"{r['p50_ratio']:8.2f}{r['p99_ratio']:8.2f}{r['rps_ratio']:8.2f}")
+
+            server = psutil.Process(proc.pid)
+            mixed = paths["sh"] + paths["sh+normal"] + paths["maps"]
+            asyncio.run(load(port, mixed, 2000, args.connections, args.max_seconds))
+            rss0 = server.memory_info().rss
+            t0 = time.perf_counter()
+            asyncio.run(load(port, mixed, args.rss_requests, args.connections, args.max_seconds))
+            rss1 = server.memory_info().rss
+            print(f"server RSS {rss0 / 2**20:.1f} MiB -> {rss1 / 2**20:.1f} MiB after "
+                  f"{args.rss_requests} more mixed requests ({time.perf_counter() - t0:.0f} s): "
+                  f"{(rss1 - rss0) / 2**20:+.1f} MiB")
+            results["rss"] = {"before_mib": rss0 / 2**20, "after_mib": rss1 / 2**20,
+                              "requests": float(args.rss_requests)}
+            if args.json:
+                args.json.write_text(json.dumps(results, indent=2))
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
+
+
+if __name__ == "__main__":
+    main()

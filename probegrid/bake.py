@@ -1,0 +1,441 @@
+"""``probegrid bake``: a probe grid of a scene, multi-bounce, into a memory-mappable store.
+
+Stages (each a pass over the whole grid on the executor, each resumable):
+
+1. **classify** -- every probe shoots ``6 x 8^2`` rays; a probe whose rays hit backfaces more
+   than ``invalid_threshold`` of the time is inside geometry (the RTXGI classifier's test, 25 %
+   by default). With ``relocate``, an invalid probe is moved to the nearest point of a small
+   lattice within ``relocate_fraction`` of a cell that passes the test; otherwise it stays
+   invalid and every reader gives it zero weight.
+2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.render`)
+   with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
+   projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``.
+3. **final** (bounce B) -- the same render, then per probe: SH coefficients, the diffuse cube
+   (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the distance
+   moments and, optionally, the raw incoming cube, written to the store.
+
+So ``bounces = B`` gives light that has bounced B times off the scene's surfaces (a furnace box
+reads ``Le (1 - rho^(B+1)) / (1 - rho)``). The store's manifest records the settings, the scene
+and environment hash, the conventions and the quality figures. A killed bake leaves only
+``.partial``/``.work`` directories, which never load as a store, and the same command resumes
+from the probes it finished. Results depend only on the settings and seed, not on the executor,
+the number of workers or the batch size.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from probegrid import sh
+from probegrid.conventions import conventions
+from probegrid.environment import Environment
+from probegrid.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.grid import GridSpec
+from probegrid.render import IndirectField, ProbeRenderer, RenderSettings
+from probegrid.scene import Scene
+from probegrid.store import ArraySpec, ProbeStore, StoreWriter, open_store, partial_path
+
+__all__ = ["BakeSettings", "BakeReport", "bake", "store_arrays", "environment_hash"]
+
+ProgressFn = Callable[[str, Progress, int], None]
+
+
+class BakeSettings(BaseModel):
+    """Everything that decides the bits of a bake (stored in the manifest, checked on resume)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    face_size: int = Field(default=32, ge=2, le=512)
+    samples: int = Field(default=1, ge=1, le=1024)
+    seed: int = Field(default=0, ge=0)
+    bounces: int = Field(default=2, ge=0, le=16)
+    diffuse_size: int = Field(default=8, ge=1, le=128)
+    specular_levels: int | None = Field(default=None, ge=1, le=10)
+    moments_size: int = Field(default=8, ge=1, le=64)
+    direct: bool = True
+    store_incoming: bool = False
+    invalid_threshold: float = Field(default=0.25, gt=0, le=1)
+    relocate: bool = True
+    relocate_fraction: float = Field(default=0.45, ge=0, lt=0.5)
+    ray_offset: float | None = Field(default=None, gt=0)
+    batch_size: int = Field(default=8, ge=1, le=4096)
+
+    def levels(self) -> int:
+        full = int(np.log2(self.face_size)) + 1
+        if self.face_size & (self.face_size - 1):
+            raise ValueError(f"face_size must be a power of two, got {self.face_size}")
+        if self.specular_levels is not None and self.specular_levels > full:
+            raise ValueError(f"a {self.face_size}^2 cube has at most {full} mip levels")
+        return self.specular_levels or full
+
+    def render_settings(self, scene: Scene, grid: GridSpec) -> RenderSettings:
+        extent = float(np.linalg.norm(np.ptp(np.vstack([scene.bounds, grid.lo, grid.hi]), axis=0)))
+        return RenderSettings(
+            face_size=self.face_size,
+            samples=self.samples,
+            seed=self.seed,
+            moments_size=min(self.moments_size, self.face_size),
+            direct=self.direct,
+            ray_offset=self.ray_offset or max(extent, 1e-6) * 1e-5,
+            max_distance=max(extent, 1e-6) * 2.0,
+        )
+
+
+def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
+    """The arrays of a store baked with ``settings`` (name -> per-probe shape and dtype)."""
+    n, d = settings.face_size, settings.diffuse_size
+    m = min(settings.moments_size, n)
+    arrays = {
+        "sh": ArraySpec((9, 3), "float32", "radiance SH coefficients L_lm, index l(l+1)+m, RGB"),
+        "diffuse": ArraySpec((6, d, d, 3), "float32", "diffuse cube: irradiance / pi"),
+        "valid": ArraySpec((), "bool", "probe is not inside geometry"),
+        "positions": ArraySpec((3,), "float64", "probe position (moved if relocated), world"),
+        "moments": ArraySpec((6, m, m, 2), "float32",
+                             "mean distance and mean squared distance per direction"),
+        "backface_fraction": ArraySpec((), "float32", "fraction of rays hitting backfaces"),
+        "sh_min": ArraySpec((3,), "float32", "minimum over the sphere of SH irradiance / pi"),
+    }
+    for k in range(settings.levels()):
+        s = n >> k
+        r = k / (settings.levels() - 1) if settings.levels() > 1 else 0.0
+        arrays[f"specular_{k}"] = ArraySpec(
+            (6, s, s, 3), "float32", f"GGX prefiltered radiance, roughness {r:.4g}"
+        )
+    if settings.store_incoming:
+        arrays["incoming"] = ArraySpec((6, n, n, 3), "float32", "incoming radiance cube")
+    return arrays
+
+
+def environment_hash(env: Environment) -> str:
+    """Content hash of an environment (part of the store's scene hash)."""
+    h = hashlib.sha256()
+    h.update(repr((env.intensity, env.rotation, env.color.tolist())).encode())
+    if env.faces is not None:
+        h.update(np.ascontiguousarray(env.faces, dtype="<f4").tobytes())
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------ worker side
+@dataclass(frozen=True, eq=False)
+class _Context:
+    """Per-bake-stage worker context: pickled once per worker, ``setup`` builds the BVH."""
+
+    scene: Scene
+    environment: Environment
+    render: RenderSettings
+    settings: BakeSettings
+    grid: GridSpec
+    positions: NDArray[np.float64] | None = None
+    valid: NDArray[np.bool_] | None = None
+    previous_sh: NDArray[np.float64] | None = None
+    previous_moments: NDArray[np.float32] | None = None
+
+    def setup(self) -> _State:
+        field = None
+        if self.previous_sh is not None:
+            assert self.positions is not None and self.valid is not None
+            field = IndirectField(self.grid, self.previous_sh, self.valid, self.positions,
+                                  self.previous_moments)
+        return _State(ProbeRenderer(self.scene, self.environment, self.render), self, field)
+
+
+@dataclass
+class _State:
+    renderer: ProbeRenderer
+    ctx: _Context
+    field: IndirectField | None
+
+
+def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
+    """Lattice offsets in [-1, 1]^3 (without 0), nearest first, ties in a fixed order."""
+    k = np.arange(-steps, steps + 1) / steps
+    g = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
+    g = g[np.any(g != 0, axis=1)]
+    order = np.lexsort((g[:, 2], g[:, 1], g[:, 0], np.linalg.norm(g, axis=1)))
+    return g[order]
+
+
+def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    ctx = state.ctx
+    lattice = ctx.grid.positions()[batch]
+    frac = state.renderer.backface_fraction(lattice)
+    pos = lattice.copy()
+    valid = frac <= ctx.settings.invalid_threshold
+    rays = len(batch) * 6 * 64
+    if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
+        cell = np.where(np.array(ctx.grid.counts) > 1, ctx.grid.cell_size, 0.0)
+        offsets = _relocation_offsets() * (ctx.settings.relocate_fraction * cell)
+        offsets = offsets[np.any(offsets != 0, axis=1)]
+        for j in np.flatnonzero(~valid):  # loop over invalid probes, not rays
+            cand = lattice[j] + offsets
+            f = state.renderer.backface_fraction(cand)
+            rays += len(cand) * 6 * 64
+            ok = np.flatnonzero(f <= ctx.settings.invalid_threshold)
+            if ok.size:
+                pos[j] = cand[ok[0]]
+                frac[j] = f[ok[0]]
+                valid[j] = True
+    return {"positions": pos, "valid": valid, "backface_fraction": frac, "rays": rays}
+
+
+def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    ctx = state.ctx
+    assert ctx.positions is not None
+    res = state.renderer.render(ctx.positions[batch], batch, field=state.field)
+    coeffs = np.stack([sh.project_cube(c) for c in res.incoming])  # (B, 9, 3), per probe
+    return {"sh": coeffs, "moments": res.moments, "rays": res.rays}
+
+
+def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    from probegrid import diffuse, seams, specular
+
+    ctx = state.ctx
+    st = ctx.settings
+    assert ctx.positions is not None and ctx.valid is not None
+    res = state.renderer.render(ctx.positions[batch], batch, field=state.field)
+    levels = st.levels()
+    out: dict[str, Any] = {
+        "positions": ctx.positions[batch],
+        "valid": ctx.valid[batch],
+        "moments": res.moments,
+        "rays": res.rays,
+    }
+    sh_l, dif, sh_min, energy, seam = [], [], [], [], []
+    spec: list[list[NDArray[np.float32]]] = [[] for _ in range(levels)]
+    for cube in res.incoming:  # per probe: results must not depend on the batch
+        coeffs = sh.project_cube(cube)
+        sh_l.append(coeffs)
+        vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
+        sh_min.append(vmin / np.pi)
+        d = diffuse.diffuse_exact(cube, st.diffuse_size)
+        dif.append(d)
+        chain = specular.ggx_prefilter(cube, levels=levels)
+        for k, lv in enumerate(chain):
+            spec[k].append(lv)
+        energy.append(_integral(d) / max(_integral(cube), 1e-30))
+        seam.append(seams.seam_score(d))
+    out["sh"] = np.stack(sh_l).astype(np.float32)
+    out["sh_min"] = np.stack(sh_min).astype(np.float32)
+    out["diffuse"] = np.stack(dif)
+    for k in range(levels):
+        out[f"specular_{k}"] = np.stack(spec[k])
+    if st.store_incoming:
+        out["incoming"] = res.incoming
+    out["backface_fraction"] = res.backface_fraction.astype(np.float32)
+    out["_energy"] = np.array(energy)
+    out["_seam"] = np.array(seam)
+    return out
+
+
+def _integral(cube: NDArray[np.float32]) -> float:
+    from probegrid.cubemap import texel_solid_angles
+
+    return float(np.einsum("fij,fijc->", texel_solid_angles(cube.shape[1]), cube))
+
+
+# ------------------------------------------------------------------------------ driver
+@dataclass
+class BakeReport:
+    """What a bake did: the store, timing and throughput, quality figures."""
+
+    store: ProbeStore
+    seconds: float
+    rays: int
+    probes: int
+    resumed_probes: int
+    quality: dict[str, Any]
+
+    def summary(self) -> str:
+        q = self.quality
+        return "\n".join([
+            f"baked {self.probes} probes ({self.store.grid.label}) into {self.store.path}/ in "
+            f"{self.seconds:.1f} s, {self.rays / max(self.seconds, 1e-9) / 1e6:.2f} Mrays/s"
+            + (f" ({self.resumed_probes} probes resumed)" if self.resumed_probes else ""),
+            f"  invalid probes: {q['invalid_probes']} (relocated {q['relocated_probes']}); "
+            f"backface rays {q['backface_ray_fraction']:.3%}",
+            f"  energy (diffuse / incoming): worst |1 - ratio| {q['energy_max_error']:.2e}; "
+            f"SH min irradiance/pi {q['sh_min_irradiance_over_pi']:.4g}; "
+            f"seam score {q['seam_score_mean']:.2e}",
+        ])
+
+
+def _jsonable(obj: Any) -> Any:
+    import json
+
+    return json.loads(json.dumps(obj))
+
+
+def _work_dir(store_path: Path) -> Path:
+    return store_path.with_name(store_path.name + ".work")
+
+
+def _run_stage(
+    name: str,
+    path: Path,
+    arrays: dict[str, ArraySpec],
+    fn: Callable[[_State, NDArray[np.int64]], dict[str, Any]],
+    ctx: _Context,
+    executor: Executor,
+    plan: dict[str, Any],
+    scene_hash: str,
+    on_progress: ProgressFn | None,
+    totals: dict[str, Any],
+    *,
+    overwrite: bool = False,
+    intermediate: bool = True,
+    extra: Callable[[NDArray[np.int64], dict[str, Any]], None] | None = None,
+) -> tuple[StoreWriter | ProbeStore, int]:
+    """Run one stage into a (resumable) store; returns the writer (unfinished) and probes resumed.
+
+    A finished intermediate stage of the same bake (same scene hash and plan) is reused.
+    """
+    grid = ctx.grid
+    if intermediate and path.exists():
+        done = open_store(path)
+        if done.manifest.scene_hash != scene_hash or done.manifest.bake != _jsonable(plan):
+            raise ValueError(
+                f"{path.parent} holds an interrupted bake with other settings or another scene; "
+                "pass --overwrite to start again"
+            )
+        return done, grid.n_probes
+    writer = StoreWriter.create_or_resume(
+        path, arrays=arrays, grid=grid, conventions=conventions(), scene_hash=scene_hash,
+        bake=plan, overwrite=overwrite, durable=False,
+    )
+    resumed = writer.n_done
+    batches = make_batches(grid.n_probes, batch_size=ctx.settings.batch_size, done=writer.done)
+    started = time.perf_counter()
+
+    def progress(p: Progress) -> None:
+        if on_progress is not None:
+            on_progress(name, p, totals["rays"])
+
+    for batch, result in executor.map(fn, ctx, batches, progress=progress):
+        totals["rays"] += int(result.pop("rays"))
+        if extra is not None:
+            extra(batch, result)
+        writer.write(batch, {k: v for k, v in result.items() if not k.startswith("_")})
+    totals["seconds"][name] = time.perf_counter() - started
+    return writer, resumed
+
+
+def bake(
+    scene: Scene,
+    grid: GridSpec,
+    out: str | Path,
+    *,
+    settings: BakeSettings | None = None,
+    environment: Environment | None = None,
+    executor: Executor | None = None,
+    progress: ProgressFn | None = None,
+    overwrite: bool = False,
+) -> BakeReport:
+    """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
+
+    Resumes an interrupted bake of the same scene and settings. ``executor`` defaults to the
+    calling process (:class:`~probegrid.executors.InlineExecutor`); the CLI passes local
+    processes or a Dask cluster.
+    """
+    st = settings or BakeSettings()
+    env = environment or Environment()
+    ex = executor or InlineExecutor(check_pickle=False)
+    out = Path(out)
+    if not out.name.endswith(".probes"):
+        raise ValueError(f"the store name must end in .probes, got {out.name!r}")
+    if out.exists() and not overwrite:
+        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+    st.levels()  # validate
+    render = st.render_settings(scene, grid)
+    scene_hash = hashlib.sha256(
+        (scene.content_hash() + environment_hash(env)).encode()
+    ).hexdigest()
+    plan = {"settings": st.model_dump(), "environment": env.describe(),
+            "render": {"ray_offset": render.ray_offset, "max_distance": render.max_distance,
+                       "moments_size": render.moments_size}}
+    work = _work_dir(out)
+    if overwrite:  # start again: drop any interrupted bake of this store
+        shutil.rmtree(work, ignore_errors=True)
+        shutil.rmtree(partial_path(out), ignore_errors=True)
+    work.mkdir(parents=True, exist_ok=True)
+    totals: dict[str, Any] = {"rays": 0, "seconds": {}}
+    t0 = time.perf_counter()
+    base = _Context(scene, env, render, st, grid)
+
+    # 1. classify
+    cls_arrays = {
+        "positions": ArraySpec((3,), "float64", "probe position"),
+        "valid": ArraySpec((), "bool", "probe is outside geometry"),
+        "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
+    }
+    w, resumed = _run_stage("classify", work / "classify.probes", cls_arrays, _classify_task,
+                            base, ex, plan, scene_hash, progress, totals)
+    cls_store = w.finish() if isinstance(w, StoreWriter) else w
+    positions = np.array(cls_store["positions"])
+    valid = np.array(cls_store["valid"])
+    lattice = grid.positions()
+    relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
+
+    # 2. bounces
+    m = render.moments_size
+    prev_sh = prev_mom = None
+    for k in range(st.bounces):
+        ctx = _Context(scene, env, render, st, grid, positions, valid, prev_sh, prev_mom)
+        arrays = {"sh": ArraySpec((9, 3), "float64", "radiance SH of this bounce"),
+                  "moments": ArraySpec((6, m, m, 2), "float32", "distance moments")}
+        w, _ = _run_stage(f"bounce {k + 1}/{st.bounces + 1}", work / f"bounce{k}.probes",
+                          arrays, _bounce_task, ctx, ex, plan, scene_hash, progress, totals)
+        bstore = w.finish() if isinstance(w, StoreWriter) else w
+        prev_sh = np.array(bstore["sh"])
+        prev_mom = np.array(bstore["moments"])
+
+    # 3. final
+    energy = np.full(grid.n_probes, np.nan)
+    seam = np.full(grid.n_probes, np.nan)
+
+    def keep(batch: NDArray[np.int64], result: dict[str, Any]) -> None:
+        energy[batch] = result["_energy"]
+        seam[batch] = result["_seam"]
+
+    ctx = _Context(scene, env, render, st, grid, positions, valid, prev_sh, prev_mom)
+    w, resumed = _run_stage(f"bounce {st.bounces + 1}/{st.bounces + 1} (final)", out,
+                            store_arrays(st), _final_task, ctx, ex, plan, scene_hash, progress,
+                            totals, overwrite=overwrite, intermediate=False, extra=keep)
+    assert isinstance(w, StoreWriter)
+    # quality over every probe (resumed ones included): recompute from the stored arrays
+    dif = w.array("diffuse")
+    sh_min = w.array("sh_min")
+    back = w.array("backface_fraction")
+    missing = np.isnan(energy)
+    if missing.any():
+        from probegrid import seams
+
+        for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
+            seam[i] = seams.seam_score(np.asarray(dif[i]))
+    valid_e = energy[~np.isnan(energy)]
+    quality = {
+        "invalid_probes": int(np.count_nonzero(~valid)),
+        "relocated_probes": relocated,
+        "backface_ray_fraction": float(np.mean(back)),
+        "energy_max_error": float(np.max(np.abs(1 - valid_e))) if valid_e.size else None,
+        "energy_check": "solid-angle integral of each probe's diffuse map over that of its "
+                        "incoming cube (1 for a correct, energy-conserving filter)",
+        "sh_min_irradiance_over_pi": float(np.min(sh_min)),
+        "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
+        "seam_score_mean": float(np.nanmean(seam)),
+        "rays": int(totals["rays"]),
+        "stage_seconds": {k: round(v, 3) for k, v in totals["seconds"].items()},
+    }
+    store = w.finish(quality=quality)
+    shutil.rmtree(work, ignore_errors=True)
+    seconds = time.perf_counter() - t0
+    return BakeReport(store, seconds, int(totals["rays"]), grid.n_probes, resumed, quality)

@@ -1,0 +1,372 @@
+"""``probegrid filter``: one HDR environment in; diffuse, specular, SH, DFG LUT and a manifest out.
+
+The job, in order: read the environment (any layout :mod:`probegrid.layouts` knows, or six face
+files), check it for non-finite pixels (an error with their count unless ``clamp`` is given),
+resample it to a cube without aliasing, and compute
+
+* the diffuse map (irradiance / pi) by the exact clamped-cosine integral or through 9 SH
+  coefficients (:mod:`probegrid.diffuse`),
+* the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
+  (:mod:`probegrid.specular`),
+* the 9 radiance SH coefficients (:mod:`probegrid.sh`) and the minimum irradiance they imply,
+* the split-sum DFG lookup table (:mod:`probegrid.dfg`),
+
+then applies the seam export mode to every map and level and writes the maps, ``sh.json``, the
+LUT, PNG previews and, last, ``manifest.json``. Every image file is written atomically and the
+manifest of an earlier run in the same directory is removed first, so an interrupted run never
+leaves a manifest: a directory with a manifest holds a finished job.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from probegrid import __version__
+from probegrid.conventions import conventions
+from probegrid.cubemap import texel_solid_angles
+
+__all__ = ["FilterResult", "FilterSettings", "energy_ratio", "run_filter", "write_json_atomic"]
+
+Progress = Callable[[str], None]
+
+
+class FilterSettings(BaseModel):
+    """Options of ``probegrid filter`` (see ``probegrid filter --help``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    layout: Literal["auto", "equirect", "angular", "hcross", "vcross", "faces"] = "auto"
+    size: int | None = Field(default=None, ge=1, le=4096)
+    diffuse_size: int = Field(default=32, ge=1, le=1024)
+    diffuse_method: Literal["sh", "exact"] = "exact"
+    specular_levels: int | None = Field(default=None, ge=1, le=16)
+    samples: int | None = Field(default=None, ge=1, le=65536)
+    sh_window: Literal["none", "hanning", "lanczos", "gauss", "auto"] = "none"
+    sh_window_width: float | None = Field(default=None, gt=0)
+    format: Literal["exr", "hdr"] = "exr"
+    half: bool = True
+    output_layout: Literal["faces", "hcross", "vcross", "equirect"] = "faces"
+    seam: Literal["none", "average", "border"] = "none"
+    clamp: float | None = Field(default=None, gt=0)
+    lut_size: int = Field(default=128, ge=2, le=1024)
+    previews: bool = True
+
+
+@dataclass
+class FilterResult:
+    """What a filter run wrote: the output directory and the manifest's content."""
+
+    out_dir: Path
+    manifest: dict[str, Any]
+    files: list[dict[str, Any]] = field(default_factory=list)
+
+    def summary(self) -> str:
+        """A few lines for the terminal: where things are and the quality figures."""
+        q = self.manifest["quality"]
+        kinds: dict[str, int] = {}
+        count = 0
+        for f in self.files:
+            kinds[f["kind"]] = kinds.get(f["kind"], 0) + 1
+            count += len(f["path"]) if isinstance(f["path"], list) else 1
+        lines = [
+            f"wrote {count + 1} files to {self.out_dir}/: "
+            + ", ".join(f"{v} {k} {'map' if k in ('diffuse', 'specular') else 'file'}"
+                        + ("s" if v > 1 else "") for k, v in sorted(kinds.items()))
+            + ", manifest.json",
+            f"  manifest:  {self.out_dir / 'manifest.json'}",
+            (
+                f"  SH:        {self.out_dir / 'sh.json'}  (min irradiance/pi over the sphere "
+                f"{_fmt3(q['sh_min_irradiance_over_pi'])})"
+            ),
+            (
+                f"  energy:    diffuse/input {q['energy']['diffuse']:.4f}, specular/input "
+                f"{min(q['energy']['specular']):.4f}..{max(q['energy']['specular']):.4f}"
+            ),
+        ]
+        previews = [f["path"] for f in self.files if f["kind"] == "preview"]
+        if previews:
+            lines.append("  previews:  " + ", ".join(str(self.out_dir / p) for p in previews))
+        return "\n".join(lines)
+
+
+def _fmt3(v: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON through a temporary file and ``os.replace`` (never a half-written file)."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2, allow_nan=False)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
+    """Ratio of the solid-angle integrals (summed over channels) of two cubes of any sizes.
+
+    A diffuse map (irradiance / pi) and every level of a normalised specular filter integrate to
+    the same value as the radiance they came from (the kernels are symmetric and normalised), so
+    this ratio is 1 for a correct filter.
+    """
+    def integral(a: NDArray[np.floating]) -> float:
+        w = texel_solid_angles(a.shape[1])
+        return float(np.einsum("fij,fijc->", w, a.astype(np.float64)))
+
+    r = integral(ref)
+    return integral(out) / r if r != 0 else float("nan")
+
+
+def _load_environment(
+    paths: Sequence[Path], settings: FilterSettings, progress: Progress
+) -> tuple[NDArray[np.float32], str, int]:
+    """Read, check and resample the environment; returns (cube, layout, nonfinite count)."""
+    from probegrid import imageio, layouts
+
+    paths = [Path(p) for p in paths]
+    layout = settings.layout
+    if len(paths) == 6 and layout in ("auto", "faces"):
+        images = [imageio.read_image(p) for p in paths]
+        shapes = {im.shape for im in images}
+        if len(shapes) != 1 or images[0].shape[0] != images[0].shape[1]:
+            raise ValueError(
+                "six face files must be square images of one size, got "
+                + ", ".join(f"{im.shape[1]}x{im.shape[0]}" for im in images)
+            )
+        source = np.stack(images)
+        layout = "faces"
+    elif len(paths) == 1:
+        if layout == "faces":
+            raise ValueError("layout 'faces' needs six face files (+X, -X, +Y, -Y, +Z, -Z)")
+        source = imageio.read_image(paths[0])
+        if layout == "auto":
+            layout = layouts.detect_layout(source.shape[0], source.shape[1])
+    else:
+        raise ValueError(f"give one environment image or six face files, got {len(paths)} files")
+
+    bad = int(np.count_nonzero(~np.isfinite(source)))
+    if bad:
+        if settings.clamp is None:
+            pixels = int(np.count_nonzero(~np.isfinite(source).all(axis=-1)))
+            raise ValueError(
+                f"{paths[0]}: {pixels} pixels have non-finite values (NaN or inf); "
+                "pass --clamp to replace them"
+            )
+        progress(f"replacing {bad} non-finite values (NaN -> 0, inf -> clamp)")
+    if settings.clamp is not None:
+        source = np.nan_to_num(source, nan=0.0, posinf=settings.clamp, neginf=0.0)
+        source = np.clip(source, 0.0, settings.clamp)
+    elif (source < 0).any():
+        progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
+
+    if layout == "faces":
+        n = settings.size or int(source.shape[1])
+    else:
+        n = settings.size or layouts.default_face_size(source.shape[0], source.shape[1], layout)
+    progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube")
+    cube = layouts.to_cube(source, layout, n)
+    return cube, layout, bad
+
+
+def run_filter(
+    env: Sequence[str | os.PathLike[str]] | str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    settings: FilterSettings | None = None,
+    *,
+    progress: Progress | None = None,
+) -> FilterResult:
+    """Run the whole filter job; see the module docstring. Returns what was written.
+
+    Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
+    for bad input, before anything is written to ``out_dir``.
+    """
+    from probegrid import dfg, diffuse, imageio, seams, sh, specular
+
+    settings = settings or FilterSettings()
+    say: Progress = progress or (lambda _m: None)
+    paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
+    out = Path(out_dir)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    cube, in_layout, nonfinite = _load_environment([Path(p) for p in paths], settings, say)
+    n = cube.shape[1]
+    sizes_ok = n & (n - 1) == 0
+    if not sizes_ok and settings.specular_levels not in (None, 1):
+        raise ValueError(f"a specular mip chain needs a power-of-two cube size, got {n}")
+    levels = settings.specular_levels or (int(np.log2(n)) + 1 if sizes_ok else 1)
+    if levels > int(np.log2(n)) + 1:
+        raise ValueError(f"a {n}^2 cube has at most {int(np.log2(n)) + 1} mip levels, got {levels}")
+    timings["read"] = time.perf_counter() - t0
+
+    # --- compute everything before touching the output directory -----------------------
+    t = time.perf_counter()
+    coeffs = sh.project_cube(cube)
+    irr_min, irr_min_dir = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
+    timings["sh"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method})")
+    if settings.diffuse_method == "exact":
+        diff = diffuse.diffuse_exact(cube, settings.diffuse_size)
+        window_used = "none"
+    else:
+        width = settings.sh_window_width
+        if settings.sh_window not in ("none", "auto") and width is None:
+            raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
+        diff = sh.diffuse_cube(coeffs, settings.diffuse_size, window=settings.sh_window,
+                               width=width)
+        window_used = settings.sh_window
+    timings["diffuse"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say(f"GGX specular chain: {levels} levels from {n}^2")
+    spec_kwargs: dict[str, Any] = {"levels": levels}
+    if settings.samples is not None:
+        spec_kwargs["samples"] = settings.samples
+    spec = specular.ggx_prefilter(cube, **spec_kwargs)
+    timings["specular"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    lut = dfg.dfg_lut(settings.lut_size)
+    timings["dfg"] = time.perf_counter() - t
+
+    energy = {
+        "diffuse": energy_ratio(diff, cube),
+        "specular": [energy_ratio(lv, cube) for lv in spec],
+    }
+    diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
+    spec_out = seams.apply_seam_mode(list(spec), settings.seam)
+    seam_scores = {
+        "diffuse": float(seams.seam_score(diff_out if settings.seam != "border" else diff)),
+        "specular": [float(seams.seam_score(lv)) for lv in
+                     (spec_out if settings.seam != "border" else spec)],
+    }
+
+    # --- write ----------------------------------------------------------------------------
+    out.mkdir(parents=True, exist_ok=True)
+    manifest_path = out / "manifest.json"
+    if manifest_path.exists():
+        manifest_path.unlink()  # an interrupted run must not leave an old manifest behind
+    t = time.perf_counter()
+    conv = conventions()
+    attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
+    files: list[dict[str, Any]] = []
+    ext = settings.format
+    dtype = "half" if (settings.half and ext == "exr") else ("rgbe" if ext == "hdr" else "float")
+    write_layout = settings.output_layout
+    if settings.seam == "border" and write_layout != "faces":
+        raise ValueError("seam mode 'border' writes (n+2)^2 faces; use --output-layout faces")
+
+    def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
+        written = imageio.write_cube(
+            out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
+            metadata={**attrs, "probegrid:kind": meta["kind"]},
+        )
+        rel = [str(Path(p).relative_to(out)) for p in written]
+        files.append({
+            "path": rel[0] if len(rel) == 1 else rel,
+            "layout": write_layout,
+            "face_size": int(faces.shape[1]),
+            "format": ext,
+            "dtype": dtype,
+            "seam": settings.seam,
+            **meta,
+        })
+
+    say("writing maps")
+    write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
+               content="irradiance / pi", method=settings.diffuse_method, sh_window=window_used)
+    for k, lv in enumerate(spec_out):
+        r = k / (levels - 1) if levels > 1 else 0.0
+        write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
+
+    sh_doc = {
+        "coefficients": [[float(x) for x in row] for row in coeffs],
+        "basis": conv["sh_basis"],
+        "constants": conv["sh_constants"],
+        "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm Y_lm(n), "
+                   "A = (pi, 2pi/3, pi/4)",
+        "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+        "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
+    }
+    write_json_atomic(out / "sh.json", sh_doc)
+    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                  "layout": None, "format": "json"})
+
+    lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
+    imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                        metadata={**attrs, "probegrid:kind": "lut"})
+    files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
+                  "layout": "x = N.V (columns), y = perceptual roughness (rows)",
+                  "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
+                  "size": settings.lut_size})
+
+    if settings.previews:
+        say("writing previews")
+        exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
+        for name, faces in (("input", cube), ("diffuse", diff)):
+            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure)
+            files.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
+                          "level": None, "roughness": None, "layout": "hcross",
+                          "format": "png"})
+        sheet = _specular_sheet(spec)
+        imageio.write_preview_png(out / "preview_specular.png", sheet, exposure=exposure)
+        files.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
+                      "level": None, "roughness": None,
+                      "layout": "hcross per level, level 0 at the top", "format": "png"})
+    timings["write"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+
+    manifest = {
+        "format": "probegrid.filter",
+        "format_version": 1,
+        "probegrid_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "input": {"paths": [str(p) for p in paths], "layout": in_layout,
+                  "nonfinite_values_replaced": nonfinite, "cube_size": n},
+        "settings": settings.model_dump(),
+        "conventions": conv,
+        "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
+                     "roughness": [k / (levels - 1) if levels > 1 else 0.0
+                                   for k in range(levels)]},
+        "quality": {
+            "sh_min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+            "energy": energy,
+            "seam_score": seam_scores,
+        },
+        "timings_s": {k: round(v, 4) for k, v in timings.items()},
+        "files": files,
+    }
+    write_json_atomic(manifest_path, manifest)
+    return FilterResult(out, manifest, files)
+
+
+def _specular_sheet(levels: Sequence[NDArray[np.float32]]) -> NDArray[np.float32]:
+    """Every specular level as a horizontal cross, nearest-upsampled to one size, stacked."""
+    from probegrid import layouts
+
+    n = min(int(levels[0].shape[1]), 64)
+    rows = []
+    for lv in levels:
+        m = int(lv.shape[1])
+        if m >= n:
+            step = m // n
+            faces = lv[:, ::step, ::step][:, :n, :n]
+        else:
+            rep = n // m
+            faces = np.repeat(np.repeat(lv, rep, axis=1), rep, axis=2)
+        rows.append(layouts.faces_to_cross(faces, "hcross"))
+    return np.concatenate(rows, axis=0)

@@ -1,0 +1,651 @@
+"""Reading and writing environment images: the only module that imports OpenImageIO.
+
+Reading
+-------
+:func:`read_image` returns ``(H, W, 3)`` float32 *linear* Rec.709 RGB, row 0 at the top, from
+``.hdr`` (Radiance RGBE), ``.exr``, ``.pfm``, ``.tif`` / ``.tiff``, ``.png`` and ``.jpg`` /
+``.jpeg``. Pixel data stored as floating point (half / float, and RGBE) is taken as linear.
+Pixel data stored as integers (8- or 16-bit PNG, JPEG, integer TIFF) is taken as sRGB-encoded
+and decoded with the exact piecewise sRGB EOTF of IEC 61966-2-1::
+
+    L = V / 12.92                         if V <= 0.04045
+    L = ((V + 0.055) / 1.055) ** 2.4      otherwise
+
+A one-channel image is repeated into RGB; of two channels (grey + alpha) the first is
+repeated; channels after the third (alpha, ...) are dropped, with alpha read *unassociated*
+(the stored colour, not colour times alpha).
+
+Every failure raises :class:`ImageError` (a ``ValueError``) with a one-line message that starts
+with the file name: missing file, unsupported extension, a file the format's reader rejects,
+and a *truncated* file (OpenImageIO's error state after reading, plus a check that the number
+of values returned is ``H W C``; a short read is never returned as partial data).
+
+:func:`read_environment` reads one image in any :mod:`probegrid.layouts` layout (detected from
+the aspect ratio by default) or six face files (order ``+X, -X, +Y, -Y, +Z, -Z``) and
+resamples it, anti-aliased, to a cube map.
+
+Writing
+-------
+Every writer is *atomic*: the image is written to a hidden temporary file in the destination
+directory (``.<name>.<random>.tmp<ext>``, same extension so OpenImageIO picks the same
+format), flushed to disk, and only then renamed over the destination with :func:`os.replace`.
+An interrupted or failed run leaves either the old file or the complete new one, never half a
+file; :func:`write_cube` writes all its files before renaming any of them. Formats:
+
+* ``.exr``: half (default) or float32, ZIP compression; carries string metadata.
+* ``.tif`` / ``.tiff``: half or float32 (no metadata).
+* ``.hdr``: Radiance RGBE (8-bit shared exponent: ~1 % precision relative to the pixel's
+  largest channel; negative and non-finite values become 0).
+* ``.pfm``: float32.
+* ``.png``: 8-bit sRGB-encoded (the OETF inverse to the EOTF above, values clipped to
+  ``[0, 1]``, NaN -> 0), for previews of display-referred data. Use
+  :func:`tonemap_preview` / :func:`write_preview_png` for HDR previews.
+
+Face files of :func:`write_cube` are named ``<stem>_px``, ``_nx``, ``_py``, ``_ny``, ``_pz``,
+``_nz`` plus the extension (:data:`FACE_SUFFIXES`); other layouts write ``<stem>.<ext>``.
+
+Previews
+--------
+:func:`tonemap_preview` maps linear radiance to display sRGB bytes: scale by ``2**exposure``
+(default: automatic, the *key* 0.18 over the log-average luminance, Reinhard et al. 2002),
+apply Narkowicz's ACES filmic fit per channel, then the sRGB OETF.
+
+References
+----------
+* IEC 61966-2-1:1999, sRGB transfer functions.
+* G. Ward, "Real pixels", Graphics Gems II, 1991 (RGBE).
+* E. Reinhard et al., "Photographic tone reproduction for digital images", SIGGRAPH 2002.
+* K. Narkowicz, "ACES filmic tone mapping curve", 2015.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Final, Literal, get_args
+
+import numpy as np
+import OpenImageIO as oiio
+from numpy.typing import ArrayLike, NDArray
+
+from probegrid.cubemap import check_cube, texel_solid_angles
+from probegrid.layouts import (
+    LAYOUTS,
+    Layout,
+    default_face_size,
+    detect_layout,
+    from_cube,
+    to_cube,
+)
+
+__all__ = [
+    "cube_exposure",
+    "FACE_SUFFIXES",
+    "READ_EXTENSIONS",
+    "WRITE_EXTENSIONS",
+    "CubeFormat",
+    "CubeLayout",
+    "ImageError",
+    "clamp_radiance",
+    "count_nonfinite",
+    "linear_to_srgb",
+    "read_environment",
+    "read_image",
+    "read_metadata",
+    "srgb_to_linear",
+    "tonemap_preview",
+    "write_cube",
+    "write_image",
+    "write_preview_png",
+]
+
+
+class ImageError(ValueError):
+    """An image file cannot be read or written; the message is one line naming the file."""
+
+
+#: Extensions :func:`read_image` accepts (lower case).
+READ_EXTENSIONS: Final[tuple[str, ...]] = (
+    ".hdr", ".exr", ".pfm", ".tif", ".tiff", ".png", ".jpg", ".jpeg",
+)
+#: Extensions :func:`write_image` accepts (lower case).
+WRITE_EXTENSIONS: Final[tuple[str, ...]] = (".exr", ".hdr", ".pfm", ".tif", ".tiff", ".png")
+#: File-name suffixes of the six faces, in face order.
+FACE_SUFFIXES: Final[tuple[str, ...]] = ("_px", "_nx", "_py", "_ny", "_pz", "_nz")
+
+CubeLayout = Literal["faces", "hcross", "vcross", "equirect"]
+CubeFormat = Literal["exr", "hdr"]
+_CUBE_LAYOUTS: Final[tuple[str, ...]] = get_args(CubeLayout)
+_CUBE_FORMATS: Final[tuple[str, ...]] = get_args(CubeFormat)
+
+#: Rec.709 / sRGB luminance weights.
+_LUMA: Final[NDArray[np.float64]] = np.array([0.2126, 0.7152, 0.0722])
+_KEY: Final[float] = 0.18
+
+
+# --------------------------------------------------------------------------------------------
+# Transfer functions
+
+
+def srgb_to_linear(encoded: ArrayLike) -> NDArray[np.float32]:
+    """The sRGB EOTF (IEC 61966-2-1): encoded ``[0, 1]`` values to linear, float32."""
+    v = np.asarray(encoded, dtype=np.float64)
+    lin = np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
+    return lin.astype(np.float32)
+
+
+def linear_to_srgb(linear: ArrayLike) -> NDArray[np.float32]:
+    """The inverse sRGB EOTF: linear values clipped to ``[0, 1]`` (NaN -> 0), encoded, float32."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, dtype=np.float64), nan=0.0), 0.0, 1.0)
+    enc = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+    return enc.astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+
+
+def _one_line(text: str) -> str:
+    parts = [p.strip() for p in str(text).splitlines() if p.strip()]
+    return "; ".join(parts) if parts else "unknown error"
+
+
+def _check_readable(path: str | os.PathLike[str]) -> Path:
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext not in READ_EXTENSIONS:
+        raise ImageError(
+            f"{p}: unsupported image extension {ext or '(none)'!r}; "
+            f"readable: {', '.join(READ_EXTENSIONS)}."
+        )
+    if not p.exists():
+        raise ImageError(f"{p}: no such file.")
+    if not p.is_file():
+        raise ImageError(f"{p}: not a regular file.")
+    return p
+
+
+def _open(p: Path) -> oiio.ImageInput:
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(p), config)
+    if inp is None:
+        raise ImageError(f"{p}: cannot read image ({_one_line(oiio.geterror())}).")
+    return inp
+
+
+def read_image(path: str | os.PathLike[str]) -> NDArray[np.float32]:
+    """Read an image as linear RGB.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.hdr``, ``.exr``, ``.pfm``, ``.tif``, ``.tiff``, ``.png``, ``.jpg`` or ``.jpeg``.
+
+    Returns
+    -------
+    (H, W, 3) float32
+        Linear RGB, row 0 at the top (integer-coded files decoded from sRGB).
+
+    Raises
+    ------
+    ImageError
+        Missing, unsupported, unreadable or truncated file (one line naming the file).
+    """
+    p = _check_readable(path)
+    inp = _open(p)
+    try:
+        spec = inp.spec()
+        h, w, c, depth = spec.height, spec.width, spec.nchannels, spec.depth
+        if h < 1 or w < 1 or c < 1 or depth != 1 or spec.deep:
+            raise ImageError(
+                f"{p}: not a flat 2-D image (width {w}, height {h}, depth {depth}, "
+                f"{c} channels{', deep' if spec.deep else ''})."
+            )
+        integer = spec.format.basetype not in (oiio.BASETYPE.HALF, oiio.BASETYPE.FLOAT,
+                                               oiio.BASETYPE.DOUBLE)
+        data = inp.read_image(0, 0, 0, c, oiio.FLOAT)
+        error = inp.geterror() if inp.has_error else ""
+    finally:
+        inp.close()
+    if data is None or error:
+        raise ImageError(f"{p}: truncated or corrupt image data ({_one_line(error)}).")
+    a = np.asarray(data, dtype=np.float32)
+    if a.size != h * w * c:
+        raise ImageError(
+            f"{p}: truncated image: read {a.size} values, expected {h * w * c} ({w}x{h}x{c})."
+        )
+    a = a.reshape(h, w, c)
+    rgb = np.repeat(a[..., :1], 3, axis=-1) if c < 3 else a[..., :3]
+    return srgb_to_linear(rgb) if integer else np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def read_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The string attributes stored in an image file's header (e.g. an EXR's metadata).
+
+    Returns
+    -------
+    dict
+        Attribute name -> value, string-typed attributes only.
+    """
+    p = _check_readable(path)
+    inp = _open(p)
+    try:
+        attribs = inp.spec().extra_attribs
+        return {a.name: str(a.value) for a in attribs if a.type == oiio.TypeString}
+    finally:
+        inp.close()
+
+
+def count_nonfinite(image: ArrayLike) -> int:
+    """Number of pixels (or texels) with at least one NaN or infinite channel.
+
+    Parameters
+    ----------
+    image : (..., C) float
+        The last axis holds the channels.
+    """
+    a = np.asarray(image)
+    if a.ndim == 0:
+        raise ValueError("count_nonfinite needs an array with a channel axis, got a scalar.")
+    return int(np.count_nonzero(~np.isfinite(a).all(axis=-1)))
+
+
+def clamp_radiance(image: ArrayLike, maximum: float) -> NDArray[np.float32]:
+    """Clamp radiance to ``[0, maximum]``: NaN and -inf become 0, +inf becomes ``maximum``.
+
+    Returns
+    -------
+    float32 array of the input's shape.
+    """
+    m = float(maximum)
+    if not np.isfinite(m) or m <= 0:
+        raise ValueError(f"the clamp must be a positive finite number, got {maximum!r}.")
+    a = np.asarray(image, dtype=np.float32)
+    return np.clip(np.nan_to_num(a, nan=0.0, posinf=m, neginf=0.0), 0.0, m).astype(np.float32)
+
+
+def read_environment(
+    paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    *,
+    layout: Layout | Literal["auto"] = "auto",
+    size: int | None = None,
+    clamp: float | None = None,
+) -> NDArray[np.float32]:
+    """Read an environment as a cube map of linear radiance.
+
+    Parameters
+    ----------
+    paths : path or sequence of 1 or 6 paths
+        One image in any layout of :mod:`probegrid.layouts`, or six face images (square, same
+        size) in the order ``+X, -X, +Y, -Y, +Z, -Z``.
+    layout : {"auto", "equirect", "angular", "hcross", "vcross", "faces"}
+        ``"auto"`` detects a single image's layout from its aspect ratio
+        (:func:`probegrid.layouts.detect_layout`) and means ``"faces"`` for six files.
+    size : int, optional
+        Output face size; default :func:`probegrid.layouts.default_face_size` of the source
+        (e.g. 1024 x 512 equirect -> 256).
+    clamp : float, optional
+        If given, source pixels are clamped to ``[0, clamp]`` (NaN -> 0, +inf -> clamp) before
+        resampling. If not, a source with non-finite pixels raises :class:`ImageError` giving
+        their number.
+
+    Returns
+    -------
+    (6, n, n, 3) float32
+        Each texel the solid-angle mean radiance of the source (:func:`layouts.to_cube`).
+    """
+    if isinstance(paths, (str, os.PathLike)):
+        plist = [Path(paths)]
+    else:
+        plist = [Path(p) for p in paths]
+    if layout != "auto" and layout not in LAYOUTS:
+        raise ValueError(
+            f"unknown layout {layout!r}; choose one of 'auto', "
+            f"{', '.join(repr(x) for x in LAYOUTS)}."
+        )
+    if size is not None and (
+        not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 1
+    ):
+        raise ValueError(f"size must be a positive integer, got {size!r}.")
+    if len(plist) == 6:
+        if layout not in ("auto", "faces"):
+            raise ValueError(f"six files are six faces; layout {layout!r} needs one file.")
+        images = [_read_checked(p, clamp) for p in plist]
+        shapes = {im.shape for im in images}
+        first = images[0].shape
+        if len(shapes) != 1 or first[0] != first[1]:
+            desc = ", ".join(f"{p.name} {im.shape[1]}x{im.shape[0]}" for p, im in
+                             zip(plist, images, strict=True))
+            raise ImageError(f"the six face files must be square and equal in size: {desc}.")
+        source: NDArray[np.float32] = np.stack(images)
+        lay: Layout = "faces"
+        h, w = first[:2]
+    elif len(plist) == 1:
+        if layout == "faces":
+            raise ValueError("layout 'faces' needs six files (+X, -X, +Y, -Y, +Z, -Z).")
+        source = _read_checked(plist[0], clamp)
+        h, w = source.shape[:2]
+        if layout == "auto":
+            try:
+                lay = detect_layout(h, w)
+            except ValueError as exc:
+                raise ImageError(f"{plist[0]}: {exc}") from None
+        else:
+            lay = layout
+    else:
+        raise ValueError(f"give one environment image or six face files, got {len(plist)} paths.")
+    n = default_face_size(h, w, lay) if size is None else size
+    try:
+        return to_cube(source, lay, n)
+    except ValueError as exc:
+        if isinstance(exc, ImageError) or len(plist) != 1:
+            raise
+        raise ImageError(f"{plist[0]}: {exc}") from None
+
+
+def _read_checked(p: Path, clamp: float | None) -> NDArray[np.float32]:
+    image = read_image(p)
+    if clamp is not None:
+        return clamp_radiance(image, clamp)
+    bad = count_nonfinite(image)
+    if bad:
+        raise ImageError(
+            f"{p}: {bad} non-finite pixel{'s' if bad != 1 else ''} (NaN or infinite); "
+            "give a clamp to replace them."
+        )
+    return image
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+def _prepare(p: Path, image: ArrayLike, half: bool) -> tuple[NDArray, str]:
+    """Array and OpenImageIO pixel type to write ``image`` to ``p``."""
+    ext = p.suffix.lower()
+    if ext not in WRITE_EXTENSIONS:
+        raise ImageError(
+            f"{p}: unsupported output extension {ext or '(none)'!r}; "
+            f"writable: {', '.join(WRITE_EXTENSIONS)}."
+        )
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[0] < 1 or a.shape[1] < 1 or a.shape[2] not in (1, 3):
+        raise ValueError(f"an image to write must have shape (H, W), (H, W, 1) or (H, W, 3), "
+                         f"got {np.shape(image)}.")
+    if ext == ".png":
+        if a.dtype == np.uint8:
+            return np.ascontiguousarray(a), "uint8"
+        enc = np.rint(linear_to_srgb(a) * 255.0).astype(np.uint8)
+        return enc, "uint8"
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if ext == ".hdr" and a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=-1)
+    if ext in (".exr", ".tif", ".tiff") and half:
+        return a, "half"
+    return a, "float"
+
+
+def _write_tmp(p: Path, data: NDArray, pixel_type: str, metadata: Mapping[str, str]) -> Path:
+    """Write ``data`` to a temporary sibling of ``p`` and flush it; return the temporary path."""
+    directory = p.parent
+    if not directory.is_dir():
+        raise ImageError(f"{p}: the directory {directory} does not exist.")
+    if p.is_dir():
+        raise ImageError(f"{p}: is a directory, cannot write an image over it.")
+    tmp = directory / f".{p.stem}.{secrets.token_hex(6)}.tmp{p.suffix}"
+    try:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise ImageError(f"{p}: cannot create a writer ({_one_line(oiio.geterror())}).")
+        h, w, c = data.shape
+        spec = oiio.ImageSpec(w, h, c, pixel_type)
+        ext = p.suffix.lower()
+        if ext == ".exr":
+            spec.attribute("compression", "zip")
+            for key, value in metadata.items():
+                spec.attribute(str(key), str(value))
+        elif ext in (".tif", ".tiff"):
+            spec.attribute("tiff:write_exif", 0)  # libtiff fails on an empty Exif directory
+        ok = out.open(str(tmp), spec) and out.write_image(data)
+        ok = out.close() and ok
+        if not ok or out.has_error:
+            raise ImageError(f"{p}: cannot write image ({_one_line(out.geterror())}).")
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def _write_all(items: Sequence[tuple[Path, NDArray, str]], metadata: Mapping[str, str]) -> None:
+    """Write every item to a temporary file, then rename them all into place."""
+    tmps: list[Path] = []
+    try:
+        for p, data, pixel_type in items:
+            tmps.append(_write_tmp(p, data, pixel_type, metadata))
+    except BaseException:
+        for t in tmps:
+            t.unlink(missing_ok=True)
+        raise
+    done = 0
+    try:
+        for t, (p, _, _) in zip(tmps, items, strict=True):
+            os.replace(t, p)
+            done += 1
+    except OSError as exc:
+        for t in tmps[done:]:
+            t.unlink(missing_ok=True)
+        raise ImageError(f"{items[done][0]}: cannot replace the file ({exc.strerror}).") from None
+
+
+def _check_metadata(metadata: Mapping[str, str] | None) -> Mapping[str, str]:
+    if metadata is None:
+        return {}
+    if not isinstance(metadata, Mapping) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in metadata.items()
+    ):
+        raise ValueError("metadata must be a mapping of str attribute names to str values.")
+    return metadata
+
+
+def write_image(
+    path: str | os.PathLike[str],
+    image: ArrayLike,
+    *,
+    half: bool = True,
+    metadata: Mapping[str, str] | None = None,
+) -> Path:
+    """Write one image atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.exr``, ``.hdr``, ``.pfm``, ``.tif``, ``.tiff`` or ``.png``; its directory must exist.
+    image : (H, W), (H, W, 1) or (H, W, 3) float
+        Linear values (a ``uint8`` array for ``.png`` is written as is: already encoded).
+    half : bool
+        Half-float EXR / TIFF (default) instead of float32; ignored by other formats.
+    metadata : mapping of str to str, optional
+        String attributes stored in an EXR header (other formats have no place for them and
+        ignore them).
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    p = Path(path)
+    data, pixel_type = _prepare(p, image, half)
+    _write_all([(p, data, pixel_type)], _check_metadata(metadata))
+    return p
+
+
+def write_cube(
+    path_stem: str | os.PathLike[str],
+    faces: ArrayLike,
+    *,
+    layout: CubeLayout = "faces",
+    fmt: CubeFormat = "exr",
+    half: bool = True,
+    metadata: Mapping[str, str] | None = None,
+) -> list[Path]:
+    """Write a cube map atomically as six face files, a cross or an equirect image.
+
+    Parameters
+    ----------
+    path_stem : str or Path
+        Output name without extension: ``<stem>_px.<fmt>``... for ``"faces"``, else
+        ``<stem>.<fmt>``.
+    faces : (6, n, n, 3) float
+    layout : {"faces", "hcross", "vcross", "equirect"}
+        Equirect images have :func:`probegrid.layouts.from_cube`'s default size ``4n x 2n``.
+    fmt : {"exr", "hdr"}
+    half : bool
+        Half-float EXR (default) or float32.
+    metadata : mapping of str to str, optional
+        EXR header attributes (ignored for ``"hdr"``).
+
+    Returns
+    -------
+    list of Path
+        The written files (six, in face order, for ``"faces"``).
+    """
+    if layout not in _CUBE_LAYOUTS:
+        raise ValueError(
+            f"unknown cube layout {layout!r}; choose one of "
+            f"{', '.join(repr(x) for x in _CUBE_LAYOUTS)}."
+        )
+    if fmt not in _CUBE_FORMATS:
+        raise ValueError(
+            f"unknown cube format {fmt!r}; choose one of "
+            f"{', '.join(repr(x) for x in _CUBE_FORMATS)}."
+        )
+    a = check_cube(faces, name="faces")
+    stem = str(path_stem)
+    if layout == "faces":
+        images: list[tuple[Path, NDArray]] = [
+            (Path(f"{stem}{suffix}.{fmt}"), a[f]) for f, suffix in enumerate(FACE_SUFFIXES)
+        ]
+    else:
+        images = [(Path(f"{stem}.{fmt}"), from_cube(a, layout))]
+    items = [(p, *_prepare(p, im, half)) for p, im in images]
+    _write_all(items, _check_metadata(metadata))
+    return [p for p, _ in images]
+
+
+# --------------------------------------------------------------------------------------------
+# Previews
+
+
+def _aces_filmic(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    # Narkowicz 2015 fit of the ACES RRT + ODT, input in scene-linear (mid grey 0.18 -> 0.27).
+    return np.clip((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
+
+
+def _auto_exposure(rgb: NDArray[np.float64], weights: NDArray[np.float64] | None) -> float:
+    """Stops that bring the (weighted) log-average luminance of finite pixels to 0.18."""
+    lum = rgb @ _LUMA
+    ok = np.isfinite(lum)
+    if weights is None:
+        weights = np.ones_like(lum)
+    wts = np.where(ok, weights, 0.0)
+    if wts.sum() <= 0:
+        return 0.0
+    logavg = np.exp((wts * np.log(1e-4 + np.maximum(np.where(ok, lum, 0.0), 0.0))).sum()
+                    / wts.sum())
+    return float(np.log2(_KEY / logavg))
+
+
+def cube_exposure(faces: ArrayLike) -> float:
+    """Automatic exposure (stops) of a cube map: its solid-angle-weighted log-average luminance
+    maps to the key 0.18 (as :func:`tonemap_preview` does for images)."""
+    cube = check_cube(faces, name="cube")
+    w = np.broadcast_to(texel_solid_angles(cube.shape[1])[..., None], cube.shape[:3] + (1,))
+    return _auto_exposure(cube[..., :3].reshape(-1, 3).astype(np.float64), w.reshape(-1))
+
+
+def tonemap_preview(image: ArrayLike, *, exposure: float | None = None) -> NDArray[np.uint8]:
+    """Tone-map linear radiance to 8-bit display sRGB.
+
+    Parameters
+    ----------
+    image : (..., 3) float
+        Linear RGB radiance.
+    exposure : float, optional
+        Exposure in stops (the radiance is multiplied by ``2**exposure``). Default: automatic,
+        so that the log-average luminance (``exp(mean(log(1e-4 + Y)))`` over finite pixels,
+        Rec.709 ``Y``) maps to the key 0.18.
+
+    Returns
+    -------
+    (..., 3) uint8
+        ACES-filmic (Narkowicz fit) tone-mapped, sRGB-encoded. NaN and negative values show
+        black, +inf white.
+    """
+    a = np.asarray(image, dtype=np.float64)
+    if a.ndim < 1 or a.shape[-1] != 3:
+        raise ValueError(f"image must have shape (..., 3), got {a.shape}.")
+    if exposure is None:
+        exposure = _auto_exposure(a.reshape(-1, 3), None)
+    elif not np.isfinite(exposure):
+        raise ValueError(f"exposure must be a finite number of stops, got {exposure!r}.")
+    x = np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=0.0) * 2.0 ** float(exposure)
+    mapped = np.where(np.isinf(x), 1.0, _aces_filmic(np.where(np.isinf(x), 0.0, np.maximum(x, 0))))
+    return np.rint(linear_to_srgb(mapped) * 255.0).astype(np.uint8)
+
+
+def write_preview_png(
+    path: str | os.PathLike[str],
+    image_or_cube: ArrayLike,
+    *,
+    layout: Literal["hcross", "vcross", "equirect", "angular"] = "hcross",
+    exposure: float | None = None,
+) -> Path:
+    """Write a tone-mapped 8-bit PNG preview of an image or a cube map (atomically).
+
+    Parameters
+    ----------
+    path : str or Path
+        Must end in ``.png``.
+    image_or_cube : (H, W, 3) or (6, n, n, 3) float
+        Linear radiance. A cube is laid out in ``layout`` (cross cells without a face black) and
+        its automatic exposure is computed from the texels weighted by solid angle.
+    layout : {"hcross", "vcross", "equirect", "angular"}
+        Layout of a cube's preview (ignored for an image).
+    exposure : float, optional
+        Stops, as in :func:`tonemap_preview`; default automatic.
+
+    Returns
+    -------
+    Path
+    """
+    p = Path(path)
+    if p.suffix.lower() != ".png":
+        raise ValueError(f"a preview must be a .png file, got {p.name!r}.")
+    allowed = ("hcross", "vcross", "equirect", "angular")
+    if layout not in allowed:
+        raise ValueError(
+            f"unknown preview layout {layout!r}; choose one of {', '.join(map(repr, allowed))}."
+        )
+    a = np.asarray(image_or_cube, dtype=np.float32)
+    if a.ndim == 4:
+        cube = check_cube(a, name="cube")
+        if cube.shape[3] != 3:
+            raise ValueError(f"a preview cube must have 3 channels, got {cube.shape[3]}.")
+        if exposure is None:
+            exposure = cube_exposure(cube)
+        a = from_cube(cube, layout)
+    elif a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(
+            f"a preview needs an (H, W, 3) image or a (6, n, n, 3) cube, got {a.shape}."
+        )
+    return write_image(p, tonemap_preview(a, exposure=exposure))

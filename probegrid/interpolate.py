@@ -1,0 +1,570 @@
+"""Probes at any position: blending weights of the surrounding probes and the blended probe data.
+
+A point of a probe grid (:mod:`probegrid.grid`) takes its lighting from the 8 probes at the corners
+of its cell. Every quantity a probe stores -- SH coefficients, diffuse map, each specular level,
+incoming cube -- is blended with the *same* weights, so everything a client asks about one point is
+consistent; and since every map lookup is linear in the map, looking up a blended map equals
+blending the probes' lookups (which is how :meth:`ProbeField.shade` works, without building
+blended cubes).
+
+Weights
+-------
+For a point ``p`` (clamped onto the grid box and flagged *outside* when it was not in it) with
+trilinear weights ``t_c`` of its cell's corners ``c = 0..7`` (:meth:`GridSpec.corners`):
+
+* **Without a normal**: ``w_c = t_c v_c / sum_c' t_c' v_c'`` with ``v_c`` 1 for a valid probe and
+  0 for an invalid one (inside geometry). Affine functions of position stored at the probes are
+  reproduced exactly inside a cell whose probes are all valid.
+* **With a surface normal ``n``** (DDGI, Majercik et al. 2019, section 5.2 and its listing 1):
+  ``w_c = t_c v_c s_c / sum_c' t_c' v_c' s_c'`` with the shading factor ``s_c`` built as
+
+  1. *normal-facing term* ``b = ((dot(d_c, n) + 1) / 2)^2 + 0.2``, ``d_c`` the unit direction from
+     ``p`` to probe ``c``'s (possibly moved) position (``d_c = 0``, i.e. ``b = 0.45``, when ``p`` is
+     at the probe). Probes behind the surface keep a small weight so a thin grid still lights it.
+  2. *Chebyshev visibility* from the probe's distance moments (``moments``: mean distance ``mu`` and
+     mean squared distance ``m2`` of the first hit in each direction, a small cube per probe),
+     looked up with a seamless bilinear filter in the direction ``q - x_c`` from the probe at
+     ``x_c`` to the biased point ``q = p + normal_bias * n``, at distance ``r = |q - x_c|``::
+
+         var  = |m2 - mu^2|
+         cheb = 1                                   if r <= mu
+                (var / (var + (r - mu)^2))^3        otherwise
+
+     (the one-sided Chebyshev bound on the probability that the probe sees ``q``, cubed to
+     sharpen it as in DDGI). A probe whose moments say "surface at 0.1 in this direction" gets
+     ``cheb ~ 0`` for a point behind that surface: light does not leak through walls.
+  3. ``s = max(b cheb, 1e-6)``, then crushed below 0.2: ``s <- s^3 / 0.2^2`` when ``s < 0.2``
+     (DDGI's "crush threshold", which removes the residual light of mostly-occluded probes while
+     keeping the weights positive and continuous).
+
+  Without stored moments only the normal-facing term applies. The bias (``normal_bias``, in units
+  of the smallest cell size, default 0.1) moves the tested point off the surface so a probe does
+  not shadow the very surface it sees.
+
+Every factor is a continuous function of the point (the moment lookup is seamless bilinear), and
+across a cell face only the 4 shared corners have non-zero trilinear weight, so the weights, and
+everything blended with them, are continuous everywhere the denominator is non-zero: no popping.
+A point whose weighted corners are all invalid gets all-zero weights and ``unlit = True``.
+
+Array names (the grid store's, :mod:`probegrid.store`)
+------------------------------------------------------
+``sh (P, 9, 3)``, ``diffuse (P, 6, n, n, 3)``, ``specular_<k> (P, 6, n_k, n_k, 3)`` for levels
+``k = 0..L-1`` (perceptual roughness ``k / (L - 1)``), optional ``incoming (P, 6, m, m, 3)``,
+``valid (P,)``, ``positions (P, 3)`` (probe positions, possibly moved off the lattice) and
+``moments (P, 6, m, m, 2)``. Only the probes indexed are read from the memory maps.
+
+References
+----------
+* Z. Majercik, J.-P. Guertin, D. Nowrouzezahrai, M. McGuire, "Dynamic Diffuse Global Illumination
+  with Ray-Traced Irradiance Fields", JCGT 8(2), 2019 (weights, Chebyshev test, crush threshold).
+* W. Donnelly, A. Lauritzen, "Variance Shadow Maps", I3D 2006 (the Chebyshev visibility bound).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import cached_property, lru_cache
+from typing import Any, Final, Literal, get_args
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from probegrid.cubemap import CubeMap, direction_to_face_uv
+from probegrid.grid import GridSpec
+from probegrid.lobes import roughness_to_lod
+from probegrid.seams import border_sources
+from probegrid.shading import reflect, shade_split_sum
+from probegrid.store import ProbeStore
+
+__all__ = [
+    "MAP_KINDS",
+    "MapKind",
+    "ProbeField",
+    "ProbeWeights",
+    "blend",
+    "blend_lookup",
+    "probe_weights",
+]
+
+MapKind = Literal["diffuse", "specular", "incoming"]
+#: The cube-map kinds a store may hold, in the order of :data:`MapKind`.
+MAP_KINDS: Final[tuple[str, ...]] = get_args(MapKind)
+
+#: Constants of the DDGI weights (see the module docstring).
+NORMAL_TERM_FLOOR: Final[float] = 0.2
+MIN_WEIGHT: Final[float] = 1e-6
+CRUSH_THRESHOLD: Final[float] = 0.2
+DEFAULT_NORMAL_BIAS: Final[float] = 0.1
+
+#: Bytes of gathered probe data per blending chunk (bounds the temporaries).
+_CHUNK_BYTES: Final[int] = 1 << 25
+_SPECULAR_RE = re.compile(r"^specular_(\d+)$")
+
+
+@dataclass(frozen=True)
+class ProbeWeights:
+    """Which probes a set of points blends, and with what weights.
+
+    Attributes
+    ----------
+    indices : (n, 8) int64
+        Linear indices of each point's cell corners (corner order of :mod:`probegrid.grid`).
+    weights : (n, 8) float64
+        Blending weights, >= 0, summing to 1 (all 0 where ``unlit``).
+    points : (n, 3) float64
+        The points, clamped onto the grid box.
+    outside : (n,) bool
+        The point lay outside the grid box and was clamped.
+    unlit : (n,) bool
+        No valid probe carries weight: every corner with non-zero trilinear weight is invalid.
+    """
+
+    indices: NDArray[np.int64]
+    weights: NDArray[np.float64]
+    points: NDArray[np.float64]
+    outside: NDArray[np.bool_]
+    unlit: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return int(self.indices.shape[0])
+
+
+def _points(points: ArrayLike, name: str) -> NDArray[np.float64]:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim == 1:
+        p = p[None]
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3) or (3,), got {np.shape(points)}.")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} must be finite (no nan or inf components).")
+    return p
+
+
+def _unit_rows(v: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+    """Rows scaled to unit length, robust to huge or tiny components; zero rows are an error."""
+    scale = np.max(np.abs(v), axis=-1, keepdims=True)
+    if np.any(scale == 0):
+        raise ValueError(f"{name} must be non-zero vectors.")
+    s = v / scale
+    return s / np.linalg.norm(s, axis=-1, keepdims=True)
+
+
+def _safe_unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit vectors, 0 for (near-)zero ones."""
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.where(norm > 1e-300, v / np.where(norm > 1e-300, norm, 1.0), 0.0)
+
+
+def probe_weights(
+    grid: GridSpec,
+    points: ArrayLike,
+    *,
+    valid: ArrayLike | None = None,
+    normals: ArrayLike | None = None,
+    probe_positions: ArrayLike | None = None,
+    moments: ArrayLike | None = None,
+    normal_bias: float = DEFAULT_NORMAL_BIAS,
+) -> ProbeWeights:
+    """Blending weights of the 8 probes around each point (see the module docstring).
+
+    Parameters
+    ----------
+    grid : GridSpec
+    points : (n, 3) or (3,) float
+        World positions, finite; points outside the box are clamped onto it and flagged.
+    valid : (P,) bool, optional
+        Probe validity; default all valid.
+    normals : (n, 3) or (3,) float, optional
+        Surface normals (any non-zero length) for the DDGI weights; ``None`` gives plain
+        trilinear weights renormalised over valid probes.
+    probe_positions : (P, 3) float, optional
+        Actual probe positions (moved probes); default the lattice. Used with ``normals`` only.
+    moments : (P, 6, m, m, 2) float, optional
+        Distance moments ``(mean, mean square)`` per direction, for the Chebyshev test (used with
+        ``normals`` only).
+    normal_bias : float
+        Offset of the visibility test point along the normal, in units of the smallest cell
+        size, finite and >= 0.
+
+    Returns
+    -------
+    ProbeWeights
+    """
+    p = _points(points, "points")
+    if not (np.isfinite(normal_bias) and normal_bias >= 0):
+        raise ValueError(f"normal_bias must be finite and >= 0, got {normal_bias!r}.")
+    indices, trilinear, outside = grid.corners(p)
+    clamped = np.minimum(np.maximum(p, grid.bounds_min), grid.bounds_max)
+    w = trilinear
+    if valid is not None:
+        w = w * np.asarray(valid, dtype=bool)[indices]
+    if normals is not None:
+        n = _unit_rows(_points(normals, "normals"), "normals")
+        if n.shape[0] != p.shape[0]:
+            raise ValueError(
+                f"normals must have one row per point: {n.shape[0]} normals for {p.shape[0]} "
+                f"points."
+            )
+        w = w * _shading_factor(grid, indices, clamped, n, probe_positions, moments, normal_bias)
+    total = w.sum(axis=1)
+    unlit = total <= 0
+    if unlit.any():
+        total[unlit] = 1.0  # and their weights are all 0
+    w = w / total[:, None]
+    return ProbeWeights(indices=indices, weights=w, points=clamped, outside=outside, unlit=unlit)
+
+
+def _shading_factor(
+    grid: GridSpec,
+    indices: NDArray[np.int64],
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    probe_positions: ArrayLike | None,
+    moments: ArrayLike | None,
+    normal_bias: float,
+) -> NDArray[np.float64]:
+    """DDGI's per-corner factor ``s`` (n, 8): normal-facing term, Chebyshev test, crush."""
+    if probe_positions is None:
+        _, ny, nz = grid.counts
+        ijk = (indices // (ny * nz), (indices // nz) % ny, indices % nz)
+        xc = np.stack([grid.axis_coordinates(a)[ijk[a]] for a in range(3)], axis=-1)
+    else:
+        xc = np.asarray(probe_positions, dtype=np.float64)[indices]  # (n, 8, 3)
+    to_probe = _safe_unit(xc - points[:, None, :])
+    facing = ((np.einsum("nci,ni->nc", to_probe, normals) + 1.0) * 0.5) ** 2 + NORMAL_TERM_FLOOR
+    s = facing
+    if moments is not None:
+        m = np.asarray(moments) if not isinstance(moments, np.ndarray) else moments
+        if m.ndim != 5 or m.shape[1] != 6 or m.shape[2] != m.shape[3] or m.shape[4] != 2:
+            raise ValueError(f"moments must have shape (P, 6, m, m, 2), got {m.shape}.")
+        cells = grid.cell_size[np.array(grid.counts) > 1]
+        bias = normal_bias * (float(cells.min()) if cells.size else 0.0)
+        q = points + bias * normals
+        offset = q[:, None, :] - xc  # probe -> biased point
+        r = np.linalg.norm(offset, axis=-1)
+        mom = _probe_bilinear(m, indices.reshape(-1), offset.reshape(-1, 3)).reshape(
+            *indices.shape, 2
+        )
+        mean, mean_sq = mom[..., 0], mom[..., 1]
+        var = np.abs(mean_sq - mean * mean)
+        excess = np.maximum(r - mean, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cheb = np.where(excess > 0, var / (var + excess * excess), 1.0)
+        s = s * np.where(r <= mean, 1.0, np.nan_to_num(cheb, nan=0.0) ** 3)
+    s = np.maximum(s, MIN_WEIGHT)
+    return np.where(s < CRUSH_THRESHOLD, s * s * s / (CRUSH_THRESHOLD * CRUSH_THRESHOLD), s)
+
+
+# ------------------------------------------------------------------------------ seamless lookups
+@lru_cache(maxsize=32)
+def _border_table(n: int) -> NDArray[np.intp]:
+    """``(6 (n + 2)^2, 3)`` flat indices into ``6 n^2`` of the real texels each bordered texel
+    of :func:`probegrid.seams.add_border` averages (three copies of one texel except at corners)."""
+    face, row, col = border_sources(n)
+    table = ((face * n + row) * n + col).reshape(-1, 3).astype(np.intp)
+    table.setflags(write=False)
+    return table
+
+
+def _bilinear_taps(directions: NDArray[np.float64], n: int) -> tuple[NDArray, NDArray]:
+    """Seamless bilinear footprint of directions on an ``n x n``-face cube.
+
+    The same filter as :meth:`probegrid.sampling.CubeSampler.bilinear` (bordered faces, see
+    :mod:`probegrid.sampling`), expressed as taps into the *unbordered* cube so it can gather from
+    many probes' cubes at once: each of the 4 bordered texels of the footprint is the mean of 3
+    real texels.
+
+    Returns
+    -------
+    taps : (K, 12) intp
+        Flat texel indices into ``6 n^2``.
+    weights : (K, 12) float64
+        Summing to 1 per direction.
+    """
+    face, u, v = direction_to_face_uv(directions)
+    m = n + 2
+    x = (u + 1.0) * (0.5 * n) + 0.5  # bordered texel coordinate, in [0.5, n + 0.5]
+    y = (v + 1.0) * (0.5 * n) + 0.5
+    x0 = np.minimum(np.floor(x), n)
+    y0 = np.minimum(np.floor(y), n)
+    fx, fy = x - x0, y - y0
+    base = (face * m + y0.astype(np.intp)) * m + x0.astype(np.intp)
+    corners = base[:, None] + np.array([0, 1, m, m + 1], dtype=np.intp)  # (K, 4)
+    w4 = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
+    taps = _border_table(n)[corners].reshape(-1, 12)
+    return taps, np.repeat(w4 / 3.0, 3, axis=-1)
+
+
+def _probe_bilinear(
+    cubes: NDArray[Any], probes: NDArray[np.int64], directions: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Seamless bilinear lookup of cube ``probes[k]`` of ``cubes (P, 6, n, n, C)`` at
+    ``directions[k]``; returns ``(K, C)`` float64. Reads only the taps' texels."""
+    n, c = cubes.shape[2], cubes.shape[4]
+    taps, w = _bilinear_taps(directions, n)
+    flat = cubes.reshape(cubes.shape[0], 6 * n * n, c)
+    vals = flat[probes[:, None], taps].astype(np.float64)  # (K, 12, C)
+    return np.einsum("kt,ktc->kc", w, vals)
+
+
+# ------------------------------------------------------------------------------ blending
+def _chunk_rows(row_bytes: int) -> int:
+    return max(1, _CHUNK_BYTES // max(1, 8 * row_bytes))
+
+
+def blend(array: NDArray[Any], weights: ProbeWeights, *, dtype: type = np.float64) -> NDArray:
+    """Blend a per-probe array with the weights: ``out[i] = sum_c weights[i, c] array[idx[i, c]]``.
+
+    Parameters
+    ----------
+    array : (P, ...) array
+        Any per-probe array (typically a read-only memory map of a store array); only the
+        indexed probes are read, in chunks of points that bound the temporaries.
+    weights : ProbeWeights
+    dtype : numpy float type
+        Result type (the sum is in float64).
+
+    Returns
+    -------
+    (n, ...) array of ``dtype``
+    """
+    n = len(weights)
+    shape = array.shape[1:]
+    size = int(np.prod(shape, dtype=np.int64))
+    out = np.empty((n, size), dtype=dtype)
+    step = _chunk_rows(size * 8)
+    for i in range(0, n, step):
+        j = min(i + step, n)
+        w = weights.weights[i:j]
+        vals = np.take(array, weights.indices[i:j].ravel(), axis=0).reshape(j - i, 8, size)
+        unused = w <= 0
+        if unused.any():  # unused probes (invalid ones may hold anything) contribute nothing
+            vals = vals.astype(np.float64)
+            vals[unused] = 0.0
+        out[i:j] = np.matmul(w[:, None, :], vals)[:, 0]
+    return out.reshape(n, *shape)
+
+
+def blend_lookup(
+    levels: Sequence[NDArray[Any]],
+    weights: ProbeWeights,
+    directions: ArrayLike,
+    *,
+    lod: ArrayLike = 0.0,
+) -> NDArray[np.float64]:
+    """Seamless (tri)linear lookups of the blended cube of each point, without building it.
+
+    ``out[i] = sum_c weights[i, c] lookup(levels of probe idx[i, c], directions[i], lod[i])``,
+    which equals a lookup of the blended cube because a lookup is linear in the texels. The
+    filter is :class:`probegrid.sampling.CubeSampler`'s: seamless bilinear per level, lerped
+    between levels ``floor(lod)`` and ``floor(lod) + 1`` (``lod`` clamped to the chain).
+
+    Parameters
+    ----------
+    levels : sequence of (P, 6, n_k, n_k, C) arrays
+        A per-probe mip chain (one array for a single-level map).
+    weights : ProbeWeights
+        For ``n`` points.
+    directions : (n, 3) float
+        Lookup directions, any non-zero length.
+    lod : float or (n,) float
+        Fractional mip level, finite.
+
+    Returns
+    -------
+    (n, C) float64
+    """
+    n = len(weights)
+    d = np.asarray(directions, dtype=np.float64).reshape(n, 3)
+    lod_a = np.broadcast_to(np.asarray(lod, dtype=np.float64), (n,))
+    if not np.all(np.isfinite(lod_a)):
+        raise ValueError("lod must be finite.")
+    top = len(levels) - 1
+    lod_a = np.clip(lod_a, 0.0, top)
+    l0 = np.floor(lod_a).astype(np.intp)
+    t = lod_a - l0
+    l1 = np.minimum(l0 + 1, top)
+    c = levels[0].shape[-1]
+    out = np.zeros((n, c), dtype=np.float64)
+    rows, cols = np.nonzero(weights.weights > 0)
+    w_pair = weights.weights[rows, cols]
+    probes = weights.indices[rows, cols]
+    for k, cubes in enumerate(levels):  # loop over mip levels
+        wk = np.where(l0[rows] == k, 1.0 - t[rows], 0.0) + np.where(l1[rows] == k, t[rows], 0.0)
+        sel = np.nonzero(wk > 0)[0]
+        if sel.size == 0:
+            continue
+        vals = _probe_bilinear(cubes, probes[sel], d[rows[sel]])
+        np.add.at(out, rows[sel], vals * (w_pair[sel] * wk[sel])[:, None])
+    return out
+
+
+# ------------------------------------------------------------------------------ stores
+class ProbeField:
+    """Interpolation over one grid store: weights at points, blended SH and maps, shading.
+
+    Parameters
+    ----------
+    store : ProbeStore
+        An open store (its arrays stay memory-mapped; only the probes a query needs are read).
+    normal_bias : float
+        See :func:`probe_weights`.
+
+    Attributes
+    ----------
+    grid : GridSpec
+    kinds : tuple of str
+        Map kinds the store holds, among ``"diffuse"``, ``"specular"``, ``"incoming"``.
+    specular_levels : int
+        Levels of the specular chain (0 if none).
+    """
+
+    def __init__(self, store: ProbeStore, *, normal_bias: float = DEFAULT_NORMAL_BIAS) -> None:
+        if not (np.isfinite(normal_bias) and normal_bias >= 0):
+            raise ValueError(f"normal_bias must be finite and >= 0, got {normal_bias!r}.")
+        self.store = store
+        self.grid: GridSpec = store.grid
+        self.normal_bias = float(normal_bias)
+        names = set(store.names)
+        spec = sorted(int(m.group(1)) for s in names if (m := _SPECULAR_RE.match(s)))
+        if spec != list(range(len(spec))):
+            raise ValueError(
+                f"store {store.path.name} has specular levels {spec}; they must be 0..L-1."
+            )
+        self._specular = [f"specular_{k}" for k in spec]
+        self.specular_levels = len(spec)
+        self.kinds: tuple[str, ...] = tuple(
+            k for k in MAP_KINDS if (k == "specular" and spec) or (k != "specular" and k in names)
+        )
+
+    def __repr__(self) -> str:
+        return f"ProbeField({self.store!r}, kinds={self.kinds})"
+
+    def _array(self, name: str) -> NDArray[Any] | None:
+        return self.store.arrays[name] if name in self.store.manifest.arrays else None
+
+    @cached_property
+    def _visibility(self) -> tuple[NDArray[np.bool_] | None, NDArray[Any] | None,
+                                   NDArray[Any] | None]:
+        """``valid`` (in memory: P bytes), ``positions`` and ``moments`` (maps), mapped once."""
+        valid = self._array("valid")
+        return (None if valid is None else np.array(valid, dtype=bool),
+                self._array("positions"), self._array("moments"))
+
+    def map_levels(self, kind: MapKind) -> int:
+        """Number of levels of a map kind (1 for diffuse and incoming)."""
+        self._check_kind(kind)
+        return self.specular_levels if kind == "specular" else 1
+
+    def map_size(self, kind: MapKind, level: int = 0) -> int:
+        """Face size of a map kind's level."""
+        return int(self._level(kind, level).shape[2])
+
+    def _check_kind(self, kind: str) -> None:
+        if kind not in self.kinds:
+            raise ValueError(
+                f"this store has no {kind!r} maps; it has {', '.join(map(repr, self.kinds))}."
+            )
+
+    def _level(self, kind: MapKind, level: int) -> NDArray[Any]:
+        levels = self.map_levels(kind)
+        if not isinstance(level, (int, np.integer)) or isinstance(level, bool) or not (
+            0 <= level < levels
+        ):
+            raise ValueError(
+                f"level must be an integer in 0..{levels - 1} for {kind} maps, got {level!r}."
+            )
+        name = self._specular[level] if kind == "specular" else kind
+        return self.store.arrays[name]
+
+    def weights(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> ProbeWeights:
+        """:func:`probe_weights` with the store's validity, probe positions and moments."""
+        valid, positions, moments = self._visibility
+        return probe_weights(
+            self.grid,
+            points,
+            valid=valid,
+            normals=normals,
+            probe_positions=positions,
+            moments=moments,
+            normal_bias=self.normal_bias,
+        )
+
+    def sh(self, weights: ProbeWeights) -> NDArray[np.float64]:
+        """``(n, 9, 3)`` float64 blended SH radiance coefficients."""
+        return blend(self.store.arrays["sh"], weights)
+
+    def cube(self, weights: ProbeWeights, kind: MapKind, *, level: int = 0) -> NDArray[np.float32]:
+        """``(n, 6, s, s, 3)`` float32 blended cube of one map kind and level."""
+        return blend(self._level(kind, level), weights, dtype=np.float32)
+
+    def cubemap(self, weights: ProbeWeights, kind: MapKind) -> list[CubeMap]:
+        """Blended maps of every point as :class:`CubeMap` s (all levels for specular)."""
+        levels = [self.cube(weights, kind, level=k) for k in range(self.map_levels(kind))]
+        return [CubeMap(tuple(lv[i] for lv in levels), kind=kind) for i in range(len(weights))]
+
+    def shade(
+        self,
+        points: ArrayLike,
+        normals: ArrayLike,
+        views: ArrayLike,
+        *,
+        albedo: ArrayLike,
+        roughness: ArrayLike,
+        f0: ArrayLike,
+        dfg: ArrayLike,
+    ) -> tuple[NDArray[np.float32], ProbeWeights]:
+        """Split-sum shading of surface points with the blended probe maps.
+
+        ``out = kd Diffuse[N] + ks Prefiltered[R, roughness (L - 1)]`` with ``kd = albedo (1 - s)``,
+        ``ks = s = F0 A + B`` exactly as :func:`probegrid.shading.shade_split_sum` (whose
+        formula is used: the two factors are obtained by shading unit maps), and the lookups of
+        the blended maps done per probe (:func:`blend_lookup`). The weights use the normals
+        (DDGI visibility).
+
+        Parameters
+        ----------
+        points, normals, views : (n, 3) float
+            Positions, normals and surface-to-eye vectors (any non-zero length).
+        albedo, f0 : (n, 3) or (3,) float
+        roughness : (n,) or scalar float in [0, 1]
+        dfg : (S, S, 2) float
+            :func:`probegrid.dfg.dfg_lut`.
+
+        Returns
+        -------
+        rgb : (n, 3) float32
+        weights : ProbeWeights
+        """
+        if "diffuse" not in self.kinds or "specular" not in self.kinds:
+            raise ValueError("shading needs a store with diffuse and specular maps.")
+        p = _points(points, "points")
+        nrm = _points(normals, "normals")
+        v = _points(views, "views")
+        if not nrm.shape[0] == v.shape[0] == p.shape[0]:
+            raise ValueError("points, normals and views must have the same number of rows.")
+        w = self.weights(p, normals=nrm)
+        alb = np.broadcast_to(np.asarray(albedo, dtype=np.float64), p.shape)
+        spec_f0 = np.broadcast_to(np.asarray(f0, dtype=np.float64), p.shape)
+        r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), p.shape[:1])
+        # shade_split_sum is linear in its two lookups: with unit maps in channels 0-2 (diffuse)
+        # and 3-5 (specular) it returns the factors kd and ks of each lookup.
+        unit_d = np.zeros((6, 1, 1, 6), np.float32)
+        unit_d[..., :3] = 1.0
+        factors = shade_split_sum(
+            nrm, v,
+            albedo=np.concatenate([alb, alb], axis=-1),
+            roughness=r,
+            f0=np.concatenate([spec_f0, spec_f0], axis=-1),
+            diffuse=unit_d,
+            specular_levels=[1.0 - unit_d],
+            dfg=dfg,
+        ).astype(np.float64)
+        diffuse = blend_lookup([self.store.arrays["diffuse"]], w, nrm)
+        levels = [self.store.arrays[name] for name in self._specular]
+        lod = roughness_to_lod(r, len(levels))
+        prefiltered = blend_lookup(levels, w, reflect(v, nrm), lod=lod)
+        rgb = factors[:, :3] * diffuse + factors[:, 3:] * prefiltered
+        return rgb.astype(np.float32), w

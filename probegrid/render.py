@@ -1,0 +1,386 @@
+"""Rendering the IncomingLight cube of a scene at probe positions, by ray casting through Embree.
+
+For each probe, one ray per texel sample leaves the probe position; the texel holds the mean
+radiance its rays bring back (:class:`RenderSettings.samples` rays per texel, jittered inside
+the texel by a seeded, deterministic pattern and weighted by the cube's area element
+``(1 + u^2 + v^2)^(-3/2)``, so the texel value estimates the mean radiance over its solid angle).
+
+What a ray brings back
+----------------------
+* A miss: the environment (:mod:`probegrid.environment`).
+* A hit on the front of a surface (the geometric normal faces the ray; double-sided materials
+  have no back): the outgoing radiance of a Lambertian surface,
+
+      L = emission + albedo / pi * (E_direct(x, n) + E_indirect(x, n))
+
+  with ``E_direct`` the irradiance of the punctual lights (:mod:`probegrid.lights`: candela,
+  lux and the glTF range window), each checked with a shadow ray, and ``E_indirect`` the
+  irradiance of the *previous bounce's* probe grid at the hit, interpolated with the
+  leak-free weights of :func:`probegrid.interpolate.probe_weights` (normal-facing term and
+  Chebyshev visibility from the distance moments) and evaluated from each probe's 9 SH
+  coefficients at the normal (Ramamoorthi & Hanrahan 2001). Bounce 0 has no indirect term, so
+  after ``k`` bounces a closed furnace box of albedo rho and emission Le reads
+  ``Le (1 - rho^(k+1)) / (1 - rho)``.
+* A hit on the back of a single-sided surface: black, and counted. A probe most of whose rays
+  hit backfaces is inside geometry (:func:`backface_fraction`).
+
+Punctual lights are deltas no ray can hit. Unless ``direct=False``, each probe receives the
+direct light of every light it sees (a shadow ray from the probe) folded into its incoming cube
+by :func:`probegrid.lights.splat_delta`, which spreads it over the texels around the light's
+direction so the cube's solid-angle integral carries exactly the irradiance ``I / d^2`` (with the
+spec's falloff); every filter then sees it. ``direct=False`` leaves it out, for engines that
+light directly at run time.
+
+Visibility moments
+------------------
+Every probe also records, per texel of a small ``moments_size`` cube, the solid-angle-weighted
+mean distance and mean squared distance to the first hit of its rays (misses count as
+``max_distance``), the inputs of DDGI's Chebyshev test (Majercik et al. 2019).
+
+Determinism
+-----------
+A probe's jitter comes from :func:`probegrid.executors.probe_rng` (its seed and linear index),
+rays are traced independently and every reduction is done per probe, so a probe's result does
+not depend on which batch or process rendered it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid import sh
+from probegrid.cubemap import direction_to_texel, face_uv_to_direction, texel_to_uv
+from probegrid.environment import Environment
+from probegrid.executors import probe_rng
+from probegrid.grid import GridSpec
+from probegrid.interpolate import probe_weights
+from probegrid.lights import incident_many, splat_delta
+from probegrid.raytrace import RayTracer
+from probegrid.scene import Scene
+
+__all__ = [
+    "IndirectField",
+    "ProbeRenderer",
+    "RenderResult",
+    "RenderSettings",
+    "sample_pattern",
+]
+
+# R2 low-discrepancy sequence (Roberts 2018): the plastic number's inverse powers.
+_PLASTIC = 1.32471795724474602596
+_R2 = np.array([1.0 / _PLASTIC, 1.0 / _PLASTIC**2])
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How a probe's incoming cube is rendered.
+
+    Attributes
+    ----------
+    face_size : int
+        Face size of the incoming cube.
+    samples : int
+        Rays per texel. 1 shoots through the texel centre; more are an R2 low-discrepancy
+        pattern with a per-probe random shift (Cranley-Patterson rotation).
+    seed : int
+        Bake seed; a probe's randomness depends on it and the probe's index only.
+    moments_size : int
+        Face size of the visibility-moments cube.
+    direct : bool
+        Fold the punctual lights' direct light into the probe's cube.
+    ray_offset : float
+        Distance rays start off a surface (shadow rays, metres).
+    max_distance : float
+        Distance recorded for misses in the moments.
+    """
+
+    face_size: int = 32
+    samples: int = 1
+    seed: int = 0
+    moments_size: int = 8
+    direct: bool = True
+    ray_offset: float = 1e-4
+    max_distance: float = 1e3
+
+    def __post_init__(self) -> None:
+        for name in ("face_size", "samples", "moments_size"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.face_size % self.moments_size:
+            raise ValueError(
+                f"moments_size {self.moments_size} must divide face_size {self.face_size}"
+            )
+        if not (self.ray_offset > 0 and np.isfinite(self.ray_offset)):
+            raise ValueError(f"ray_offset must be > 0, got {self.ray_offset}")
+        if not (self.max_distance > 0 and np.isfinite(self.max_distance)):
+            raise ValueError(f"max_distance must be > 0, got {self.max_distance}")
+
+
+def sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
+    NDArray[np.float64], NDArray[np.float64]
+]:
+    """Ray directions of one probe and their weights within their texels.
+
+    Returns
+    -------
+    directions : (6, n, n, s, 3) float64
+        Unit directions, ``s = settings.samples`` per texel.
+    weights : (6, n, n, s) float64
+        Area-element weights normalised to sum to 1 over each texel's samples.
+    """
+    n, s = settings.face_size, settings.samples
+    if s == 1:
+        jitter = np.array([[0.5, 0.5]])
+    else:
+        shift = probe_rng(settings.seed, probe_index).random(2)
+        jitter = np.mod(0.5 + np.arange(1, s + 1)[:, None] * _R2[None, :] + shift, 1.0)
+    k = np.arange(n, dtype=np.float64)
+    # continuous texel coordinates of each sample: (n, s) for columns (x) and rows (y)
+    cx = k[:, None] - 0.5 + jitter[None, :, 0]
+    cy = k[:, None] - 0.5 + jitter[None, :, 1]
+    u = texel_to_uv(cx, n)[None, :, :]  # (1, n_col, s)
+    v = texel_to_uv(cy, n)[:, None, :]  # (n_row, 1, s)
+    u, v = np.broadcast_arrays(u, v)  # (n, n, s), [row, col, sample]
+    d = face_uv_to_direction(np.arange(6)[:, None, None, None], u[None], v[None])
+    norm = np.linalg.norm(d, axis=-1)
+    w = norm**-3  # (1 + u^2 + v^2)^(-3/2)
+    w = w / w.sum(axis=-1, keepdims=True)
+    return d / norm[..., None], w
+
+
+@dataclass(frozen=True, eq=False)
+class IndirectField:
+    """Irradiance of the previous bounce's probe grid at surface points.
+
+    Attributes
+    ----------
+    grid : GridSpec
+    sh : (P, 9, 3) float64
+        Radiance SH coefficients of every probe.
+    valid : (P,) bool
+    positions : (P, 3) float64
+        Probe positions (possibly moved).
+    moments : (P, 6, m, m, 2) float32 or None
+        Distance moments for the Chebyshev visibility test.
+    """
+
+    grid: GridSpec
+    sh: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+    positions: NDArray[np.float64]
+    moments: NDArray[np.float32] | None = None
+
+    @cached_property
+    def _irradiance_coeffs(self) -> NDArray[np.float64]:
+        # (P, 9, 3) irradiance coefficients A_l L_lm
+        return np.moveaxis(sh.irradiance_coefficients(np.moveaxis(self.sh, 1, 0)), 0, 1)
+
+    def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64]
+                   ) -> NDArray[np.float64]:
+        """Irradiance (lux, RGB) at ``points (n, 3)`` with unit ``normals (n, 3)``; ``(n, 3)``."""
+        if len(points) == 0:
+            return np.zeros((0, 3))
+        pw = probe_weights(
+            self.grid, points, valid=self.valid, normals=normals,
+            probe_positions=self.positions, moments=self.moments,
+        )
+        basis = sh.sh_basis(normals)  # (n, 9)
+        coeffs = self._irradiance_coeffs[pw.indices]  # (n, 8, 9, 3)
+        per_probe = np.einsum("nk,nckj->ncj", basis, coeffs)  # (n, 8, 3)
+        e = np.einsum("nc,ncj->nj", pw.weights, per_probe)
+        return np.maximum(e, 0.0)
+
+
+@dataclass
+class RenderResult:
+    """A batch of rendered probes.
+
+    Attributes
+    ----------
+    incoming : (B, 6, n, n, 3) float32
+        Incoming radiance cubes (with the direct light folded in unless disabled).
+    moments : (B, 6, m, m, 2) float32
+        Mean distance and mean squared distance per moments texel.
+    backface_fraction : (B,) float64
+        Fraction of primary rays that hit the back of a single-sided surface.
+    rays : int
+        Rays cast (primary and shadow).
+    """
+
+    incoming: NDArray[np.float32]
+    moments: NDArray[np.float32]
+    backface_fraction: NDArray[np.float64]
+    rays: int
+
+
+class ProbeRenderer:
+    """Renders incoming cubes of one scene (build once per process: it owns the BVH)."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        environment: Environment | None = None,
+        settings: RenderSettings | None = None,
+        *,
+        tracer: RayTracer | None = None,
+    ) -> None:
+        self.scene = scene
+        self.environment = environment or Environment()
+        self.settings = settings or RenderSettings()
+        self.tracer = tracer or RayTracer.from_scene(scene)
+        self._env = self.environment.sampler()
+        self._double_sided = scene.double_sided
+        n, m = self.settings.face_size, self.settings.moments_size
+        f, r, c = np.meshgrid(np.arange(6), np.arange(n), np.arange(n), indexing="ij")
+        k = n // m
+        bins = (f * m + r // k) * m + c // k  # moments texel of every incoming texel
+        self._moment_bins = np.repeat(bins.reshape(-1), self.settings.samples)
+        from probegrid.cubemap import texel_solid_angles
+
+        self._texel_sa = np.repeat(texel_solid_angles(n).reshape(-1), self.settings.samples)
+
+    # -- shading -------------------------------------------------------------------------
+
+    def _direct_irradiance(self, pos: NDArray[np.float64], nrm: NDArray[np.float64]
+                           ) -> tuple[NDArray[np.float64], int]:
+        """Irradiance of the punctual lights at surface points, with shadow rays."""
+        lights = self.scene.lights
+        if not lights or len(pos) == 0:
+            return np.zeros((len(pos), 3)), 0
+        dirs, e_perp, dist = incident_many(lights, pos)  # (h, L, 3), (h, L, 3), (h, L)
+        cos = np.einsum("hli,hi->hl", dirs, nrm)
+        lit = (cos > 0) & (e_perp.max(axis=-1) > 0)
+        hi, li = np.nonzero(lit)
+        eps = self.settings.ray_offset
+        tmax = np.where(np.isfinite(dist[hi, li]), dist[hi, li] - eps, np.inf)
+        blocked = self.tracer.occluded(pos[hi] + eps * nrm[hi], dirs[hi, li], tmax, tmin=eps)
+        vis = np.zeros(lit.shape)
+        vis[hi, li] = ~blocked
+        e = np.einsum("hl,hlj->hj", cos * vis, e_perp)
+        return e, len(hi)
+
+    def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
+               field: IndirectField | None) -> tuple[NDArray[np.float32], NDArray[np.float64],
+                                                     NDArray[np.bool_], int]:
+        """Radiance, hit distance and backface flag of rays ``(N, 3)`` from ``origins (N, 3)``."""
+        hits = self.tracer.intersect(origins, dirs)
+        radiance = np.zeros((len(dirs), 3), dtype=np.float32)
+        miss = hits.prim_id < 0
+        if miss.any() and not self.environment.is_black:
+            radiance[miss] = self._env.radiance(dirs[miss])
+        hit = np.flatnonzero(~miss)
+        back = np.zeros(len(dirs), dtype=bool)
+        rays = len(dirs)
+        if hit.size:
+            prim = hits.prim_id[hit]
+            surf = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
+            nrm = surf.normal
+            facing = np.einsum("hi,hi->h", nrm, dirs[hit])
+            two = self._double_sided[prim]
+            is_back = (facing > 0) & ~two
+            nrm = np.where((facing > 0)[:, None], -nrm, nrm)  # shade the side the ray sees
+            back[hit] = is_back
+            front = ~is_back
+            fh = np.flatnonzero(front)
+            pos = surf.position[fh]
+            n_f = nrm[fh]
+            e, shadow_rays = self._direct_irradiance(pos, n_f)
+            rays += shadow_rays
+            if field is not None:
+                e = e + field.irradiance(pos, n_f)
+            lo = surf.emission[fh] + surf.albedo[fh] / np.pi * e
+            radiance[hit[fh]] = lo.astype(np.float32)
+        t = np.where(miss, self.settings.max_distance,
+                     np.minimum(hits.t, self.settings.max_distance))
+        return radiance, t, back, rays
+
+    # -- probes --------------------------------------------------------------------------
+
+    def render(
+        self,
+        positions: NDArray[np.float64],
+        indices: NDArray[np.int64],
+        *,
+        field: IndirectField | None = None,
+    ) -> RenderResult:
+        """Render the incoming cubes of probes at ``positions (B, 3)`` with linear ``indices``."""
+        st = self.settings
+        n, s, m = st.face_size, st.samples, st.moments_size
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        b = len(pos)
+        patterns = [sample_pattern(st, int(i)) for i in idx]
+        dirs = np.stack([p[0].reshape(-1, 3) for p in patterns])  # (B, R, 3)
+        wts = np.stack([p[1].reshape(-1) for p in patterns])  # (B, R)
+        nr = dirs.shape[1]
+        origins = np.repeat(pos, nr, axis=0)
+        radiance, t, back, rays = self._shade(origins, dirs.reshape(-1, 3), field)
+        radiance = radiance.reshape(b, 6, n, n, s, 3)
+        w = wts.reshape(b, 6, n, n, s, 1)
+        incoming = (radiance * w).sum(axis=4, dtype=np.float64).astype(np.float32)
+        t = t.reshape(b, nr)
+        backfrac = back.reshape(b, nr).mean(axis=1)
+
+        moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
+        sa = self._texel_sa * wts.reshape(b, nr)  # solid angle carried by each ray
+        for j in range(b):  # per probe: the reductions must not depend on the batch
+            den = np.bincount(self._moment_bins, weights=sa[j], minlength=6 * m * m)
+            mu = np.bincount(self._moment_bins, weights=sa[j] * t[j], minlength=6 * m * m)
+            m2 = np.bincount(self._moment_bins, weights=sa[j] * t[j] ** 2, minlength=6 * m * m)
+            moments[j, ..., 0] = (mu / den).reshape(6, m, m)
+            moments[j, ..., 1] = (m2 / den).reshape(6, m, m)
+
+        if st.direct and self.scene.lights:
+            rays += self._splat_direct(pos, incoming)
+        return RenderResult(incoming, moments, backfrac, rays)
+
+    def _splat_direct(self, pos: NDArray[np.float64], incoming: NDArray[np.float32]) -> int:
+        """Fold each visible punctual light into the probes' cubes (in place); returns rays."""
+        dirs, e_perp, dist = incident_many(self.scene.lights, pos)  # (B, L, ...)
+        bi, li = np.nonzero(e_perp.max(axis=-1) > 0)
+        if bi.size == 0:
+            return 0
+        eps = self.settings.ray_offset
+        tmax = np.where(np.isfinite(dist[bi, li]), dist[bi, li] - eps, np.inf)
+        blocked = self.tracer.occluded(pos[bi], dirs[bi, li], tmax, tmin=eps)
+        for j in np.unique(bi[~blocked]):  # loop over probes, not rays
+            sel = (bi == j) & ~blocked
+            incoming[j] = splat_delta(incoming[j], dirs[bi[sel], li[sel]], e_perp[bi[sel], li[sel]])
+        return len(bi)
+
+    def backface_fraction(self, positions: NDArray[np.float64], *, face_size: int = 8
+                          ) -> NDArray[np.float64]:
+        """Fraction of ``6 face_size^2`` texel-centre rays from each point that hit a backface.
+
+        A cheap test for probes inside geometry; ``positions (B, 3)``, returns ``(B,)``.
+        """
+        from probegrid.cubemap import texel_directions
+
+        d = texel_directions(face_size).reshape(-1, 3)
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        hits = self.tracer.intersect(np.repeat(pos, len(d), axis=0), np.tile(d, (len(pos), 1)))
+        prim = hits.prim_id
+        hit = prim >= 0
+        back = np.zeros(len(prim), dtype=bool)
+        if hit.any():
+            p = prim[hit]
+            nrm = self.scene.triangle_normals[p]
+            facing = np.einsum("hi,hi->h", nrm, np.tile(d, (len(pos), 1))[hit])
+            back[hit] = (facing > 0) & ~self._double_sided[p]
+        return back.reshape(len(pos), -1).mean(axis=1)
+
+
+def project_sh_per_probe(incoming: NDArray[np.float32]) -> NDArray[np.float64]:
+    """SH radiance coefficients ``(B, 9, 3)`` of incoming cubes ``(B, 6, n, n, 3)``, per probe."""
+    return np.stack([sh.project_cube(c).astype(np.float64) for c in incoming])
+
+
+def probe_direction_texels(directions: NDArray[np.float64], n: int) -> NDArray[np.intp]:
+    """Flat texel index ``(f * n + row) * n + col`` of directions (helper for tests)."""
+    f, r, c = direction_to_texel(directions, n)
+    return (f * n + r) * n + c

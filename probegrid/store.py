@@ -1,0 +1,1004 @@
+"""The grid store: a directory of memory-mappable per-probe arrays with a versioned manifest.
+
+Layout
+------
+A finished store is one directory, by convention ``NAME.probes/``::
+
+    NAME.probes/
+        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 1
+        sh.npy              one .npy file per array, named after the array
+        diffuse.npy
+        ...
+
+Every array is *per probe*: its first axis is the probe's linear index (``(i * ny + j) * nz + k``,
+see :mod:`probegrid.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6, n, n, 3) float16``,
+``valid (P,) bool``. The files are plain NumPy ``.npy`` (format 1.0/2.0, C order, little-endian,
+dtype kinds bool / int / uint / float), so any reader can memory-map them; :func:`open_store`
+maps them read-only (``np.load(mmap_mode="r")``, i.e. ``MAP_SHARED`` + ``PROT_READ``), so many
+reader processes share the same page-cache pages and touch only the probes they index. The
+manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape and a
+description; the reader refuses a store whose files disagree with it in size, shape or dtype.
+
+The manifest also carries the conventions record (built by :mod:`probegrid.conventions`; the store
+treats it as opaque JSON), the grid (:class:`probegrid.grid.GridSpec`), the bake settings, the
+scene's content hash, per-bake quality figures, the creation time and the probegrid version.
+
+Atomic, resumable writes
+------------------------
+:class:`StoreWriter` never writes into ``NAME.probes`` itself. A bake works in
+``NAME.probes.partial/``:
+
+1. ``create`` preallocates every array with ``np.lib.format.open_memmap`` (sparse files), an
+   all-false done mask ``_done.npy (P,) bool``, and last the bake plan ``_bake.json`` (grid,
+   arrays, bake settings, scene hash, conventions), written atomically. A ``.partial`` directory
+   without ``_bake.json`` is an interrupted start and holds nothing worth keeping.
+2. ``write(indices, values)`` stores a batch into the maps, ``msync``s them, and only *then* sets
+   and ``msync``s the batch's entries of the done mask, so a probe marked done always has its data
+   on disk, whenever the process dies. (``durable=False`` skips the ``msync``s: stores to shared
+   maps outlive a killed process in program order, so this still holds for a killed process,
+   not for an OS crash.)
+3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, writes
+   ``manifest.json`` atomically (temporary file, ``fsync``, ``os.replace``, ``fsync`` of the
+   directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
+   (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``: it is
+   renamed aside, the new one renamed in, the old one deleted; readers that still map the old
+   files keep valid maps).
+
+Nothing in a ``.partial`` directory ever loads: :func:`open_store` refuses a ``.partial`` name, a
+directory holding a bake plan, one without a valid manifest, and arrays that disagree with the
+manifest. ``resume`` reopens the partial directory, checks that the grid, arrays, bake settings,
+scene hash and conventions are the ones it was started with, and carries on: ``remaining()`` lists
+the probes still to bake. A bake killed during ``finish`` after the manifest was written resumes
+straight into the final rename. One writer at a time: the partial directory is ``flock``-ed.
+
+All failures of the store raise :class:`StoreError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import math
+import os
+import re
+import shutil
+import threading
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Final, Literal, Self
+
+import numpy as np
+from numpy.typing import ArrayLike, DTypeLike, NDArray
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator, model_validator
+
+from probegrid import __version__
+from probegrid.grid import GridSpec
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "SUPPORTED_FORMAT_VERSIONS",
+    "ArrayInfo",
+    "ArraySpec",
+    "ProbeStore",
+    "StoreError",
+    "StoreManifest",
+    "StoreWriter",
+    "open_store",
+    "partial_path",
+    "partial_progress",
+    "read_manifest",
+]
+
+FORMAT_NAME: Final = "probegrid.store"
+#: Version of the store layout and manifest schema written by this module.
+FORMAT_VERSION: Final = 1
+#: Versions :func:`open_store` reads.
+SUPPORTED_FORMAT_VERSIONS: Final = frozenset({1})
+
+MANIFEST_FILE: Final = "manifest.json"
+PLAN_FILE: Final = "_bake.json"  # partial directories only
+DONE_FILE: Final = "_done.npy"  # partial directories only
+PARTIAL_SUFFIX: Final = ".partial"
+
+_NAME_RE = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
+_DTYPE_KINDS = "biuf"
+
+
+class StoreError(ValueError):
+    """A grid store cannot be read, written or resumed (one-line message)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(" ".join(str(message).split()))
+
+
+# ---------------------------------------------------------------------------- array declarations
+def _check_name(name: str) -> str:
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise ValueError(
+            f"array name must be 1-64 characters of a-z, 0-9 and _, starting with a letter, "
+            f"got {name!r}"
+        )
+    return name
+
+
+def _check_dtype(dtype: DTypeLike) -> str:
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"unknown dtype {dtype!r}") from None
+    if dt.kind not in _DTYPE_KINDS or dt.byteorder == ">" or dt.shape or dt.names:
+        raise ValueError(
+            f"array dtype must be a little-endian bool, int, uint or float scalar, got {dt}"
+        )
+    return dt.str
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Declaration of one per-probe array for :meth:`StoreWriter.create`.
+
+    Attributes
+    ----------
+    shape : tuple of int >= 1
+        Shape of one probe's entry (the store array is ``(P, *shape)``); ``()`` for a scalar.
+    dtype : str
+        NumPy dtype; normalised to its ``dtype.str`` (e.g. ``"<f2"``, ``"|b1"``).
+    description : str
+        Words for the manifest (what it holds, units).
+    """
+
+    shape: tuple[int, ...]
+    dtype: str
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        shape = tuple(self.shape)
+        if not all(
+            isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1 for n in shape
+        ):
+            raise ValueError(f"per-probe shape must be positive integers, got {self.shape!r}")
+        object.__setattr__(self, "shape", tuple(int(n) for n in shape))
+        object.__setattr__(self, "dtype", _check_dtype(self.dtype))
+        if not isinstance(self.description, str):
+            raise TypeError(f"description must be a string, got {self.description!r}")
+
+
+class ArrayInfo(BaseModel):
+    """Manifest entry of one array: file name, dtype string, full shape ``(P, ...)``, words."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    file: str
+    dtype: str
+    shape: tuple[int, ...]
+    description: str = ""
+
+    @field_validator("dtype")
+    @classmethod
+    def _dtype(cls, v: str) -> str:
+        if _check_dtype(v) != v:
+            raise ValueError(f"dtype must be a numpy dtype string such as '<f4', got {v!r}")
+        return v
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if len(v) < 1 or min(v) < 1:
+            raise ValueError(f"array shape must be (P, ...) with positive sizes, got {v}")
+        return v
+
+    @property
+    def nbytes(self) -> int:
+        """Size of the array's data in bytes."""
+        return math.prod(self.shape) * np.dtype(self.dtype).itemsize
+
+
+class _Plan(BaseModel):
+    """What a bake writes; persisted in a partial directory and checked on resume."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: Literal["probegrid.store"] = FORMAT_NAME
+    format_version: int = FORMAT_VERSION
+    probegrid_version: str = __version__
+    bake_started: datetime
+    conventions: dict[str, Any]
+    grid: GridSpec
+    bake: dict[str, Any]
+    scene_hash: str
+    arrays: dict[str, ArrayInfo]
+
+    @model_validator(mode="after")
+    def _arrays_match_grid(self) -> _Plan:
+        if not self.arrays:
+            raise ValueError("a store needs at least one array")
+        for name, info in self.arrays.items():
+            _check_name(name)
+            if info.file != f"{name}.npy":
+                raise ValueError(f"array {name!r} must live in {name}.npy, not {info.file!r}")
+            if info.shape[0] != self.grid.n_probes:
+                raise ValueError(
+                    f"array {name!r} has {info.shape[0]} entries for a grid of "
+                    f"{self.grid.n_probes} probes"
+                )
+        return self
+
+
+class StoreManifest(_Plan):
+    """The ``manifest.json`` of a finished store.
+
+    Attributes
+    ----------
+    format, format_version : "probegrid.store", int
+        Layout identifier and version (see :data:`SUPPORTED_FORMAT_VERSIONS`).
+    probegrid_version : str
+        Version of probegrid that wrote the store.
+    created, bake_started : datetime (UTC)
+    conventions : dict
+        The conventions record (:func:`probegrid.conventions.conventions`).
+    grid : GridSpec
+    bake : dict
+        Bake settings (face size, bounces, samples, seed, ...).
+    scene_hash : str
+        Content hash of the scene (and environment) the store was baked from.
+    quality : dict
+        Per-bake quality figures (furnace error, SH minimum, seam score, invalid probes, ...).
+    arrays : dict of str -> ArrayInfo
+    """
+
+    created: datetime
+    quality: dict[str, Any]
+
+
+# ---------------------------------------------------------------------------- JSON helpers
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, (np.generic, np.ndarray)):
+        return obj.tolist()
+    if isinstance(obj, BaseModel):
+        return obj.model_dump(mode="json")
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
+
+
+def _jsonable(obj: Any, what: str) -> dict[str, Any]:
+    """A JSON-normalised copy of a mapping or pydantic model (tuples become lists)."""
+    if isinstance(obj, BaseModel):
+        obj = obj.model_dump(mode="json")
+    if not isinstance(obj, Mapping):
+        raise TypeError(f"{what} must be a mapping or a pydantic model, got {type(obj).__name__}")
+    try:
+        text = json.dumps(dict(obj), default=_json_default, allow_nan=False, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what} must be JSON-serialisable with finite numbers: {exc}") from None
+    return json.loads(text)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that readers see the old file or the whole new one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _validation_message(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+    return f"{loc}: {str(err['msg']).removeprefix('Value error, ')}{more}"
+
+
+# ---------------------------------------------------------------------------- reading
+def partial_path(path: str | os.PathLike[str]) -> Path:
+    """The working directory ``NAME.probes.partial`` of a bake that will produce ``path``."""
+    p = Path(path)
+    return p.with_name(p.name + PARTIAL_SUFFIX)
+
+
+def _read_npy_header(file: Path) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """Shape, Fortran flag, dtype and data offset of a .npy file (reads the header only)."""
+    with open(file, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+        return shape, fortran, dtype, f.tell()
+
+
+def _check_array_file(directory: Path, name: str, info: ArrayInfo) -> None:
+    file = directory / info.file
+    if not file.is_file():
+        raise StoreError(f"{directory}: array {name!r} is missing its file {info.file}")
+    try:
+        shape, fortran, dtype, offset = _read_npy_header(file)
+    except (OSError, ValueError) as exc:
+        raise StoreError(f"{file} is not a valid .npy file ({exc})") from None
+    if fortran:
+        raise StoreError(f"{file} is in Fortran order; the store needs C order")
+    if dtype.str != info.dtype:
+        raise StoreError(f"{file} has dtype {dtype.str}, the manifest says {info.dtype}")
+    if tuple(shape) != info.shape:
+        raise StoreError(f"{file} has shape {tuple(shape)}, the manifest says {info.shape}")
+    size, expected = file.stat().st_size, offset + info.nbytes
+    if size != expected:
+        state = "truncated" if size < expected else "too long"
+        raise StoreError(f"{file} is {state}: {size} bytes, expected {expected}")
+
+
+def _load_manifest_json(file: Path, model: type[_Plan]) -> Any:
+    try:
+        text = file.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise StoreError(f"cannot read {file}: {exc}") from None
+    try:
+        raw = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise StoreError(f"{file} is not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(raw, dict) or raw.get("format") != FORMAT_NAME:
+        raise StoreError(f"{file} is not a probegrid store manifest (format != {FORMAT_NAME!r})")
+    version = raw.get("format_version")
+    if version not in SUPPORTED_FORMAT_VERSIONS:
+        supported = ", ".join(str(v) for v in sorted(SUPPORTED_FORMAT_VERSIONS))
+        raise StoreError(
+            f"{file} has store format version {version!r}; probegrid {__version__} reads "
+            f"version {supported}"
+        )
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        raise StoreError(f"{file} is invalid: {_validation_message(exc)}") from None
+
+
+def _validate_store_dir(directory: Path, *, allow_partial: bool = False) -> StoreManifest:
+    if not directory.is_dir():
+        raise StoreError(f"{directory} is not a probe store (no such directory)")
+    if not allow_partial and (
+        directory.name.endswith(PARTIAL_SUFFIX) or (directory / PLAN_FILE).exists()
+    ):
+        raise StoreError(f"{directory} is an unfinished bake, not a store; resume or rerun it")
+    manifest_file = directory / MANIFEST_FILE
+    if not manifest_file.is_file():
+        raise StoreError(f"{directory} is not a finished probe store (no {MANIFEST_FILE})")
+    manifest = _load_manifest_json(manifest_file, StoreManifest)
+    for name, info in manifest.arrays.items():
+        _check_array_file(directory, name, info)
+    return manifest
+
+
+def partial_progress(path: str | os.PathLike[str]) -> tuple[int, int] | None:
+    """``(probes done, probes in the grid)`` of the unfinished bake of store ``path``, or None.
+
+    For ``probegrid info`` and progress reports; reads the plan and the done mask (read-only).
+    """
+    partial = partial_path(_final_path(path))
+    if (partial / PLAN_FILE).is_file():
+        plan = _load_manifest_json(partial / PLAN_FILE, _Plan)
+        n = plan.grid.n_probes
+        info = ArrayInfo(file=DONE_FILE, dtype="|b1", shape=(n,))
+        _check_array_file(partial, "done mask", info)
+        return int(np.count_nonzero(np.load(partial / DONE_FILE, mmap_mode="r"))), n
+    if (partial / MANIFEST_FILE).is_file():  # killed during finish: every probe is written
+        n = _load_manifest_json(partial / MANIFEST_FILE, StoreManifest).grid.n_probes
+        return n, n
+    return None
+
+
+def read_manifest(path: str | os.PathLike[str]) -> StoreManifest:
+    """The validated manifest of a finished store (array headers and sizes are checked too)."""
+    return _validate_store_dir(Path(path))
+
+
+class _LazyArrays(Mapping[str, np.memmap]):
+    """Read-only memory maps of a store's arrays, mapped on first access (thread-safe)."""
+
+    def __init__(self, directory: Path, infos: Mapping[str, ArrayInfo]) -> None:
+        self._directory = directory
+        self._infos = dict(infos)
+        self._maps: dict[str, np.memmap] = {}
+        self._lock = threading.Lock()
+
+    def __getitem__(self, name: str) -> np.memmap:
+        arr = self._maps.get(name)
+        if arr is not None:
+            return arr
+        info = self._infos.get(name)
+        if info is None:
+            raise KeyError(name)
+        with self._lock:
+            arr = self._maps.get(name)
+            if arr is None:
+                file = self._directory / info.file
+                try:
+                    arr = np.load(file, mmap_mode="r", allow_pickle=False)
+                except (OSError, ValueError) as exc:
+                    raise StoreError(f"cannot map {file}: {exc}") from None
+                if arr.shape != info.shape or arr.dtype.str != info.dtype:
+                    raise StoreError(f"{file} changed on disk since the store was opened")
+                self._maps[name] = arr
+        return arr
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._infos)
+
+    def __len__(self) -> int:
+        return len(self._infos)
+
+    def mapped(self) -> list[str]:
+        """Names of the arrays mapped so far."""
+        return list(self._maps)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._maps.clear()
+
+
+class ProbeStore:
+    """A finished grid store opened for reading; build it with :func:`open_store`.
+
+    Attributes
+    ----------
+    path : Path
+    manifest : StoreManifest
+    grid : GridSpec
+    arrays : Mapping[str, np.memmap]
+        Read-only memory maps ``(P, ...)``, mapped on first access; index them with probe
+        indices (``store.arrays["sh"][indices]``) to read only those probes' pages.
+    """
+
+    def __init__(self, path: Path, manifest: StoreManifest) -> None:
+        self.path = path
+        self.manifest = manifest
+        self.grid: GridSpec = manifest.grid
+        self.arrays: _LazyArrays = _LazyArrays(path, manifest.arrays)
+
+    def __repr__(self) -> str:
+        names = ", ".join(self.manifest.arrays)
+        return f"ProbeStore({str(self.path)!r}, grid={self.grid.label}, arrays=[{names}])"
+
+    @property
+    def n_probes(self) -> int:
+        """Number of probes ``P``."""
+        return self.grid.n_probes
+
+    @property
+    def names(self) -> list[str]:
+        """Array names in manifest order."""
+        return list(self.manifest.arrays)
+
+    def __getitem__(self, name: str) -> np.memmap:
+        """``store[name]`` is ``store.arrays[name]``; KeyError names the arrays there are."""
+        try:
+            return self.arrays[name]
+        except KeyError:
+            raise KeyError(f"no array {name!r} in {self.path.name} (has {self.names})") from None
+
+    def probe_index(self, i: ArrayLike, j: ArrayLike, k: ArrayLike) -> NDArray[np.int64]:
+        """Linear index ``(i * ny + j) * nz + k`` (see :meth:`GridSpec.probe_index`)."""
+        return self.grid.probe_index(i, j, k)
+
+    def probe(self, index: int) -> dict[str, NDArray[Any]]:
+        """Every array's entry for one probe (read-only views into the maps)."""
+        if not isinstance(index, (int, np.integer)) or not 0 <= index < self.n_probes:
+            raise ValueError(f"probe index must be an integer in 0..{self.n_probes - 1}")
+        return {name: self.arrays[name][int(index)] for name in self.names}
+
+    def close(self) -> None:
+        """Drop this object's maps (views already handed out stay valid until released)."""
+        self.arrays.clear()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_store(path: str | os.PathLike[str]) -> ProbeStore:
+    """Open a finished grid store for reading.
+
+    Validates the manifest (format and version, schema) and every array file's header and size
+    against it; maps nothing until an array is accessed. Raises :class:`StoreError` (one line)
+    for a missing directory, an unfinished bake, a bad manifest or a damaged array file.
+    """
+    p = Path(path)
+    return ProbeStore(p, _validate_store_dir(p))
+
+
+# ---------------------------------------------------------------------------- writing
+def _lock_dir(directory: Path) -> int:
+    """An exclusive, non-blocking ``flock`` on a directory; the fd holds it until closed."""
+    fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise StoreError(f"another process is writing {directory}") from None
+    return fd
+
+
+def _check_target(final: Path, overwrite: bool) -> None:
+    if final.exists() and not overwrite:
+        raise StoreError(f"{final} already exists; pass overwrite=True (--overwrite) to replace it")
+
+
+def _plan_differences(old: _Plan, new: _Plan) -> list[str]:
+    diffs = []
+    if old.grid != new.grid:
+        diffs.append(f"grid ({old.grid.label} {old.grid.bounds_min}..{old.grid.bounds_max} "
+                     f"vs {new.grid.label} {new.grid.bounds_min}..{new.grid.bounds_max})")
+    old_arrays = {n: (a.shape, a.dtype) for n, a in old.arrays.items()}
+    new_arrays = {n: (a.shape, a.dtype) for n, a in new.arrays.items()}
+    if old_arrays != new_arrays:
+        changed = sorted(set(old_arrays) ^ set(new_arrays)) + sorted(
+            n for n in set(old_arrays) & set(new_arrays) if old_arrays[n] != new_arrays[n]
+        )
+        diffs.append(f"arrays ({', '.join(changed)})")
+    if old.scene_hash != new.scene_hash:
+        diffs.append(f"scene_hash ({old.scene_hash[:16]} vs {new.scene_hash[:16]})")
+    if old.bake != new.bake:
+        keys = sorted(
+            k for k in set(old.bake) | set(new.bake) if old.bake.get(k) != new.bake.get(k)
+        )
+        diffs.append(f"bake settings ({', '.join(keys)})")
+    if old.conventions != new.conventions:
+        diffs.append("conventions")
+    return diffs
+
+
+class StoreWriter:
+    """Writes a grid store atomically and resumably (see the module docstring).
+
+    Build it with :meth:`create`, :meth:`resume` or :meth:`create_or_resume`; then ``write``
+    batches and ``finish``. Usable as a context manager: leaving the block without ``finish``
+    (an exception, say) closes the writer and keeps the partial directory for ``resume``.
+    """
+
+    def __init__(
+        self,
+        *,
+        final: Path,
+        plan: _Plan,
+        lock_fd: int,
+        overwrite: bool,
+        durable: bool,
+        maps: dict[str, np.memmap],
+        done_map: np.memmap | None,
+        manifest: StoreManifest | None = None,
+    ) -> None:
+        self._final = final
+        self._partial = partial_path(final)
+        self._plan = plan
+        self._lock_fd: int | None = lock_fd
+        self._overwrite = overwrite
+        self._durable = durable
+        self._maps = maps
+        self._done_map = done_map
+        self._finished_manifest = manifest  # resumed after manifest.json was written
+        self._done = (
+            np.ones(plan.grid.n_probes, dtype=bool) if done_map is None else done_map
+        )
+
+    # ------------------------------------------------------------------ construction
+    @staticmethod
+    def _make_plan(
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None,
+    ) -> _Plan:
+        if not isinstance(grid, GridSpec):
+            raise TypeError(f"grid must be a GridSpec, got {type(grid).__name__}")
+        if not isinstance(scene_hash, str) or not scene_hash:
+            raise ValueError(f"scene_hash must be a non-empty string, got {scene_hash!r}")
+        if not arrays:
+            raise ValueError("a store needs at least one array")
+        infos = {}
+        for name, spec in arrays.items():
+            _check_name(name)
+            if not isinstance(spec, ArraySpec):
+                raise TypeError(f"array {name!r} must be declared with an ArraySpec")
+            infos[name] = ArrayInfo(
+                file=f"{name}.npy",
+                dtype=spec.dtype,
+                shape=(grid.n_probes, *spec.shape),
+                description=spec.description,
+            )
+        conv = _jsonable(conventions, "conventions")
+        if not conv:
+            raise ValueError("conventions must be a non-empty record (probegrid.conventions)")
+        return _Plan(
+            bake_started=datetime.now(UTC),
+            conventions=conv,
+            grid=grid,
+            bake=_jsonable({} if bake is None else bake, "bake settings"),
+            scene_hash=scene_hash,
+            arrays=infos,
+        )
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> StoreWriter:
+        """Start a new bake of the store ``path`` (``NAME.probes``) in ``NAME.probes.partial``.
+
+        Parameters
+        ----------
+        path : path of the finished store
+        arrays : name -> ArraySpec
+            The per-probe arrays every :meth:`write` must fill.
+        grid : GridSpec
+        conventions : mapping or pydantic model
+            The conventions record (JSON-serialisable, non-empty).
+        scene_hash : str
+            Content hash of the scene; ``resume`` refuses a different one.
+        bake : mapping or pydantic model, optional
+            Bake settings (JSON-serialisable); ``resume`` refuses different ones.
+        overwrite : bool
+            Replace an existing store at ``path`` on ``finish`` and discard an unfinished bake
+            in ``NAME.probes.partial``; without it either one is an error.
+        durable : bool
+            ``msync`` the data, then the done mask, after every batch (the default), so the
+            mask never runs ahead of the data even across a power loss or an OS crash. With
+            False, batches stay in the page cache until ``finish``: still safe when the *process*
+            is killed (its writes to shared maps survive it, in order), several times faster on
+            slow disks, but an OS crash may leave probes marked done without their data.
+        """
+        final = _final_path(path)
+        plan = cls._make_plan(
+            arrays=arrays, grid=grid, conventions=conventions, scene_hash=scene_hash, bake=bake
+        )
+        _check_target(final, overwrite)
+        partial = partial_path(final)
+        if partial.exists():
+            has_state = (partial / PLAN_FILE).exists() or (partial / MANIFEST_FILE).exists()
+            if has_state and not overwrite:
+                raise StoreError(
+                    f"an unfinished bake exists at {partial}; resume it or pass overwrite=True"
+                )
+            fd = _lock_dir(partial)  # never delete a directory another writer is using
+            try:
+                shutil.rmtree(partial)
+            finally:
+                os.close(fd)
+        partial.mkdir(parents=True)
+        fd = _lock_dir(partial)
+        try:
+            maps = {}
+            for name, info in plan.arrays.items():
+                file = partial / info.file
+                maps[name] = np.lib.format.open_memmap(
+                    file, mode="w+", dtype=np.dtype(info.dtype), shape=info.shape
+                )
+                _fsync_file(file)
+            done = np.lib.format.open_memmap(
+                partial / DONE_FILE, mode="w+", dtype=np.bool_, shape=(grid.n_probes,)
+            )
+            _fsync_file(partial / DONE_FILE)
+            _atomic_write_text(partial / PLAN_FILE, plan.model_dump_json(indent=2))
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(
+            final=final,
+            plan=plan,
+            lock_fd=fd,
+            overwrite=overwrite,
+            durable=durable,
+            maps=maps,
+            done_map=done,
+        )
+
+    @classmethod
+    def resume(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> StoreWriter:
+        """Continue the unfinished bake of ``path`` from the probes it finished.
+
+        Takes the same arguments as :meth:`create`; the grid, arrays (shapes and dtypes), bake
+        settings, scene hash and conventions must equal those the bake was started with,
+        otherwise a :class:`StoreError` names what differs.
+        """
+        final = _final_path(path)
+        plan = cls._make_plan(
+            arrays=arrays, grid=grid, conventions=conventions, scene_hash=scene_hash, bake=bake
+        )
+        partial = partial_path(final)
+        if not partial.is_dir():
+            raise StoreError(f"no unfinished bake at {partial} to resume")
+        fd = _lock_dir(partial)
+        try:
+            _check_target(final, overwrite)
+            if (partial / PLAN_FILE).is_file():
+                stored: _Plan = _load_manifest_json(partial / PLAN_FILE, _Plan)
+                manifest = None
+            elif (partial / MANIFEST_FILE).is_file():
+                manifest = _validate_store_dir(partial, allow_partial=True)
+                stored = manifest
+            else:
+                raise StoreError(
+                    f"{partial} holds no bake state (interrupted while starting); start again"
+                )
+            diffs = _plan_differences(stored, plan)
+            if diffs:
+                raise StoreError(
+                    f"the unfinished bake at {partial} was started with different "
+                    f"{'; '.join(diffs)}; start again with overwrite=True"
+                )
+            maps: dict[str, np.memmap] = {}
+            done = None
+            if manifest is None:
+                for name, info in stored.arrays.items():
+                    _check_array_file(partial, name, info)
+                    maps[name] = np.load(partial / info.file, mmap_mode="r+")
+                done_info = ArrayInfo(file=DONE_FILE, dtype="|b1", shape=(grid.n_probes,))
+                _check_array_file(partial, "done mask", done_info)
+                done = np.load(partial / DONE_FILE, mmap_mode="r+")
+        except BaseException:
+            os.close(fd)
+            raise
+        return cls(
+            final=final,
+            plan=stored,
+            lock_fd=fd,
+            overwrite=overwrite,
+            durable=durable,
+            maps=maps,
+            done_map=done,
+            manifest=manifest,
+        )
+
+    @classmethod
+    def create_or_resume(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> StoreWriter:
+        """:meth:`resume` when ``NAME.probes.partial`` holds a resumable bake, else :meth:`create`.
+
+        A partial bake started with different settings is an error (as in :meth:`resume`);
+        ``overwrite`` only concerns an existing finished store at ``path``.
+        """
+        kw: dict[str, Any] = {
+            "arrays": arrays,
+            "grid": grid,
+            "conventions": conventions,
+            "scene_hash": scene_hash,
+            "bake": bake,
+            "overwrite": overwrite,
+            "durable": durable,
+        }
+        partial = partial_path(_final_path(path))
+        if (partial / PLAN_FILE).is_file() or (partial / MANIFEST_FILE).is_file():
+            return cls.resume(path, **kw)
+        return cls.create(path, **kw)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def path(self) -> Path:
+        """Path of the finished store (``NAME.probes``)."""
+        return self._final
+
+    @property
+    def partial_path(self) -> Path:
+        """The working directory ``NAME.probes.partial``."""
+        return self._partial
+
+    @property
+    def grid(self) -> GridSpec:
+        return self._plan.grid
+
+    @property
+    def n_probes(self) -> int:
+        return self._plan.grid.n_probes
+
+    @property
+    def array_infos(self) -> dict[str, ArrayInfo]:
+        """The declared arrays (full shapes ``(P, ...)``)."""
+        return dict(self._plan.arrays)
+
+    @property
+    def done(self) -> NDArray[np.bool_]:
+        """``(P,)`` bool copy of the done mask."""
+        return np.array(self._done, dtype=bool)
+
+    @property
+    def n_done(self) -> int:
+        return int(np.count_nonzero(self._done))
+
+    def remaining(self) -> NDArray[np.int64]:
+        """Linear indices of the probes not written yet, ascending, int64."""
+        return np.flatnonzero(~np.asarray(self._done)).astype(np.int64)
+
+    def array(self, name: str) -> NDArray[Any]:
+        """Read-only view of one array as written so far (e.g. for quality figures)."""
+        self._require_open()
+        if self._finished_manifest is not None:
+            return np.load(self._partial / self._plan.arrays[name].file, mmap_mode="r")
+        view = self._maps[name].view(np.ndarray)
+        view.flags.writeable = False
+        return view
+
+    def _require_open(self) -> None:
+        if self._lock_fd is None:
+            raise StoreError(f"the writer of {self._final} is closed")
+
+    # ------------------------------------------------------------------ writing
+    def write(self, indices: ArrayLike, values: Mapping[str, ArrayLike]) -> None:
+        """Store one batch of probes and mark them done (durably, data first).
+
+        Parameters
+        ----------
+        indices : (B,) int
+            Distinct linear probe indices.
+        values : name -> (B, *shape) array
+            Every declared array, castable to its dtype (``same_kind``; e.g. float32 into a
+            float16 array). Everything is checked before anything is written.
+        """
+        self._require_open()
+        idx = np.asarray(indices)
+        if idx.ndim != 1 or (idx.size and not np.issubdtype(idx.dtype, np.integer)):
+            raise ValueError(f"indices must be a 1-D integer array, got {idx.dtype} {idx.shape}")
+        idx = idx.astype(np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.n_probes):
+            raise ValueError(f"probe indices must lie in 0..{self.n_probes - 1}")
+        if np.unique(idx).size != idx.size:
+            raise ValueError("probe indices of a batch must be distinct")
+        missing = sorted(set(self._plan.arrays) - set(values))
+        unknown = sorted(set(values) - set(self._plan.arrays))
+        if missing or unknown:
+            raise ValueError(
+                f"a batch must give exactly the store's arrays; missing {missing}, unknown "
+                f"{unknown}"
+            )
+        checked = {}
+        for name, info in self._plan.arrays.items():
+            v = np.asarray(values[name])
+            want = (idx.size, *info.shape[1:])
+            if v.shape != want:
+                raise ValueError(f"array {name!r} needs shape {want} for this batch, got {v.shape}")
+            if not np.can_cast(v.dtype, info.dtype, casting="same_kind"):
+                raise ValueError(f"array {name!r} is {info.dtype}; cannot store {v.dtype} in it")
+            checked[name] = v
+        if idx.size == 0:
+            return
+        if self._finished_manifest is not None:
+            raise StoreError(f"every probe of {self._partial} is already written; call finish()")
+        for name, v in checked.items():
+            self._maps[name][idx] = v
+        if self._durable:
+            for mm in self._maps.values():
+                mm.flush()  # msync(MS_SYNC): the data is on disk before the mask says so
+        assert self._done_map is not None
+        self._done_map[idx] = True
+        if self._durable:
+            self._done_map.flush()
+
+    def finish(self, *, quality: Mapping[str, Any] | BaseModel | None = None) -> ProbeStore:
+        """Publish the finished store atomically and return it opened for reading.
+
+        Parameters
+        ----------
+        quality : mapping, optional
+            Per-bake quality figures for the manifest (JSON-serialisable). When resuming a bake
+            that was killed during a previous ``finish``, ``None`` keeps the recorded figures.
+        """
+        self._require_open()
+        left = self.n_probes - self.n_done
+        if left:
+            raise StoreError(
+                f"cannot finish {self._final}: {left} of {self.n_probes} probes are not written"
+            )
+        if quality is None and self._finished_manifest is not None:
+            q = self._finished_manifest.quality
+        else:
+            q = _jsonable({} if quality is None else quality, "quality figures")
+        for name, mm in self._maps.items():
+            mm.flush()
+            _fsync_file(self._partial / self._plan.arrays[name].file)
+        self._maps = {}
+        plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
+        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q)
+        _atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
+        self._done = np.ones(self.n_probes, dtype=bool)
+        self._done_map = None
+        for state in (PLAN_FILE, DONE_FILE):
+            (self._partial / state).unlink(missing_ok=True)
+        _fsync_dir(self._partial)
+        _check_target(self._final, self._overwrite)
+        aside = None
+        if self._final.exists():
+            aside = self._final.with_name(f"{self._final.name}.replaced-{os.getpid()}")
+            os.rename(self._final, aside)
+        os.rename(self._partial, self._final)
+        _fsync_dir(self._final.parent)
+        self.close()
+        if aside is not None:
+            shutil.rmtree(aside, ignore_errors=True)
+        return open_store(self._final)
+
+    def close(self) -> None:
+        """Release the maps and the lock without finishing (the partial bake stays resumable)."""
+        for mm in self._maps.values():
+            mm.flush()
+        self._maps = {}
+        if self._done_map is not None:
+            self._done_map.flush()
+            self._done = np.array(self._done_map)
+            self._done_map = None
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        # A writer dropped without close() still releases its lock (as a dead process does).
+        fd = getattr(self, "_lock_fd", None)
+        if fd is not None:
+            os.close(fd)
+            self._lock_fd = None
+
+
+def _final_path(path: str | os.PathLike[str]) -> Path:
+    p = Path(path)
+    if p.name.endswith(PARTIAL_SUFFIX) or not p.name:
+        raise ValueError(f"store path must name the finished store (NAME.probes), got {str(p)!r}")
+    return p
+

@@ -1,0 +1,184 @@
+"""Request dependencies of the routes, as ``Annotated`` aliases.
+
+* :data:`StateDep` -- the app's :class:`ServiceState` (settings, grids, scratch directory, DFG LUT).
+* :data:`SettingsDep` -- its :class:`service.settings.Settings`.
+* :data:`GridDep` -- the :class:`service.registry.ServedGrid` named by the ``{grid}`` path
+  parameter (404 ``not_found`` for a name that is not served).
+* :data:`ProbeQueryDep` -- both of the above at once (:class:`ProbeQuery`), for ``/sh`` and
+  ``/maps``.
+* :data:`PointDep` -- the ``x``, ``y``, ``z`` query parameters (required, finite) and the
+  optional ``nx``, ``ny``, ``nz`` (all three or none, finite, not all zero) as a
+  :class:`PointQuery`.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from fastapi import Depends, Request
+from fastapi import Path as PathParam
+from numpy.typing import NDArray
+from starlette.datastructures import QueryParams
+
+from probegrid.dfg import dfg_lut
+from service.errors import ApiError
+from service.registry import GridRegistry, ServedGrid
+from service.settings import Settings
+
+__all__ = [
+    "DFG_SIZE",
+    "POINT_PARAMETERS",
+    "GridDep",
+    "PointDep",
+    "PointQuery",
+    "ProbeQuery",
+    "ProbeQueryDep",
+    "ServiceState",
+    "SettingsDep",
+    "StateDep",
+]
+
+#: Size of the split-sum DFG table used by ``/shade``.
+DFG_SIZE = 64
+
+
+@dataclass(eq=False)
+class ServiceState:
+    """What one app instance serves; built once by :func:`service.main.create_app`.
+
+    Attributes
+    ----------
+    settings : Settings
+    grids : GridRegistry
+    scratch : Path
+        Private directory for image encoding (see :mod:`service.encoding`).
+    """
+
+    settings: Settings
+    grids: GridRegistry
+    scratch: Path
+    _dfg: NDArray[np.float32] | None = field(default=None, repr=False)
+    _dfg_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def dfg(self) -> NDArray[np.float32]:
+        """The DFG LUT, computed on first use (about half a second) and kept."""
+        if self._dfg is None:
+            with self._dfg_lock:
+                if self._dfg is None:
+                    self._dfg = dfg_lut(DFG_SIZE)
+        return self._dfg
+
+
+async def get_state(request: Request) -> ServiceState:
+    return request.app.state.probegrid
+
+
+StateDep = Annotated[ServiceState, Depends(get_state)]
+
+
+async def get_settings(state: StateDep) -> Settings:
+    return state.settings
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+async def get_grid(
+    grid: Annotated[str, PathParam(description="Name of a served grid (see /v1/grids).")],
+    request: Request,
+) -> ServedGrid:
+    grids = request.app.state.probegrid.grids
+    served = grids.get(grid)
+    if served is None:
+        names = ", ".join(repr(n) for n in grids) or "none"
+        raise ApiError(404, f"There is no grid {grid[:128]!r}; served grids: {names}.")
+    return served
+
+
+GridDep = Annotated[ServedGrid, Depends(get_grid)]
+
+#: OpenAPI description of the query parameters :func:`get_point` reads (routes that depend on
+#: it add these with ``openapi_extra={"parameters": POINT_PARAMETERS}``).
+POINT_PARAMETERS: list[dict[str, object]] = [
+    {"name": c, "in": "query", "required": True, "schema": {"type": "number"},
+     "description": f"World {c} coordinate (finite)."}
+    for c in "xyz"
+] + [
+    {"name": f"n{c}", "in": "query", "required": False, "schema": {"type": "number"},
+     "description": "Surface normal component (finite); give nx, ny and nz together for "
+                    "visibility-aware (DDGI) weights."}
+    for c in "xyz"
+]
+
+
+@dataclass(frozen=True, eq=False)
+class PointQuery:
+    """A query's point: ``position (3,)`` float64 and ``normal (3,)`` float64 or None."""
+
+    position: NDArray[np.float64]
+    normal: NDArray[np.float64] | None
+
+
+def _number(params: QueryParams, name: str) -> float | None:
+    raw = params.get(name)
+    if raw is None:
+        return None
+    try:
+        value = float(raw)
+    except ValueError:
+        raise ApiError(422, f"query {name}: expected a number, got {raw[:40]!r}") from None
+    if not math.isfinite(value):
+        raise ApiError(422, f"query {name}: expected a finite number, got {raw[:40]!r}")
+    return value
+
+
+async def get_point(request: Request) -> PointQuery:
+    """The ``x, y, z`` (required) and ``nx, ny, nz`` (optional, together, non-zero) parameters.
+
+    Parsed here rather than declared as FastAPI ``Query`` parameters because this is the hot
+    path of ``/sh`` and ``/maps``: FastAPI's per-parameter machinery costs several times the
+    interpolation itself. The rules are the same: a missing, non-numeric or non-finite value is
+    a 422 naming the parameter.
+    """
+    q = request.query_params
+    xyz = [_number(q, c) for c in "xyz"]
+    for c, v in zip("xyz", xyz, strict=True):
+        if v is None:
+            raise ApiError(422, f"query {c}: the coordinate is required")
+    n = [_number(q, f"n{c}") for c in "xyz"]
+    normal = None
+    if any(v is not None for v in n):
+        if any(v is None for v in n):
+            raise ApiError(422, "A normal needs all three of nx, ny and nz.")
+        normal = np.array(n, dtype=np.float64)
+        if not normal.any():
+            raise ApiError(422, "The normal (nx, ny, nz) must not be the zero vector.")
+    return PointQuery(position=np.array(xyz, dtype=np.float64), normal=normal)
+
+
+PointDep = Annotated[PointQuery, Depends(get_point)]
+
+
+@dataclass(frozen=True, eq=False)
+class ProbeQuery:
+    """What a probe query (``/sh``, ``/maps``) names: the served grid and the point."""
+
+    grid: ServedGrid
+    point: PointQuery
+
+
+async def get_probe_query(
+    grid: Annotated[str, PathParam(description="Name of a served grid (see /v1/grids).")],
+    request: Request,
+) -> ProbeQuery:
+    """:func:`get_grid` and :func:`get_point` in one dependency (one resolution per request on
+    the hot path)."""
+    return ProbeQuery(grid=await get_grid(grid, request), point=await get_point(request))
+
+
+ProbeQueryDep = Annotated[ProbeQuery, Depends(get_probe_query)]

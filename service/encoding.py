@@ -1,0 +1,142 @@
+"""Response bodies of the map routes, and strong ETags.
+
+Cube formats
+------------
+``format`` x ``layout`` of a ``(6, n, n, 3)`` float32 cube:
+
+========  =========================================  ===========================================
+format    ``layout=faces``                           ``layout=cross``
+========  =========================================  ===========================================
+npy       ``(6, n, n, 3)`` float32 ``.npy``          ``(3n, 4n, 3)`` float32 horizontal cross
+json      ``{"shape", "data"}``, data nested lists   the same for the cross image
+          (non-finite values as ``null``)
+exr       float32 RGB OpenEXR of the six faces       float32 RGB OpenEXR of the cross
+          stacked top to bottom (``6n x n``)
+hdr       Radiance RGBE, same images                 Radiance RGBE of the cross
+png       8-bit sRGB (linear values clamped to       8-bit sRGB of the cross
+          [0, 1], sRGB transfer curve), same images
+========  =========================================  ===========================================
+
+Faces are in the order ``+X, -X, +Y, -Y, +Z, -Z`` with row 0 at the top (:mod:`probegrid.cubemap`);
+the cross is :func:`probegrid.layouts.faces_to_cross` ``"hcross"`` (uncovered cells 0). The exr,
+hdr and png encoders are :func:`probegrid.imageio.write_image`, which writes files: each image is
+written to a fresh file in the service's scratch directory (in ``/dev/shm`` when it exists, so it
+never touches a disk), read back and deleted. Every encoder is deterministic, so the same query
+always returns the same bytes.
+
+ETags
+-----
+A strong ETag is the quoted BLAKE2b-128 hex digest of the body. ``If-None-Match`` is compared
+with the weak comparison of RFC 9110 section 13.1.2 (``W/`` prefixes ignored, ``*`` matches), and a
+match answers ``304 Not Modified`` with the ETag and no body.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import secrets
+import tempfile
+from pathlib import Path
+from typing import Final
+
+import numpy as np
+from fastapi import Request, Response
+from numpy.typing import NDArray
+from pydantic_core import to_json
+
+from probegrid.imageio import write_image
+from probegrid.layouts import faces_to_cross
+
+__all__ = [
+    "MEDIA_TYPES",
+    "conditional_response",
+    "cube_image",
+    "encode_cube",
+    "etag_of",
+    "scratch_directory",
+]
+
+MEDIA_TYPES: Final[dict[str, str]] = {
+    "exr": "image/x-exr",
+    "hdr": "image/vnd.radiance",
+    "png": "image/png",
+    "npy": "application/x-npy",
+    "json": "application/json",
+}
+CACHE_CONTROL: Final = "no-cache"
+
+
+def etag_of(body: bytes) -> str:
+    """Strong ETag of a body: ``"<blake2b-128 hex>"``."""
+    return '"' + hashlib.blake2b(body, digest_size=16).hexdigest() + '"'
+
+
+def _matches(if_none_match: str, etag: str) -> bool:
+    tags = (t.strip() for t in if_none_match.split(","))
+    return any(t == "*" or t.removeprefix("W/") == etag for t in tags)
+
+
+def conditional_response(
+    request: Request, body: bytes, media_type: str, headers: dict[str, str] | None = None
+) -> Response:
+    """``200`` with ``body`` and its strong ETag, or ``304`` if ``If-None-Match`` matches it."""
+    etag = etag_of(body)
+    h = {"ETag": etag, "Cache-Control": CACHE_CONTROL}
+    inm = request.headers.get("if-none-match")
+    if inm is not None and _matches(inm, etag):
+        return Response(status_code=304, headers=h)
+    if headers:
+        h.update(headers)
+    return Response(content=body, media_type=media_type, headers=h)
+
+
+def scratch_directory() -> tempfile.TemporaryDirectory[str]:
+    """A private temporary directory for image encoding (under /dev/shm when available)."""
+    shm = Path("/dev/shm")
+    base = str(shm) if shm.is_dir() and os.access(shm, os.W_OK) else None
+    return tempfile.TemporaryDirectory(prefix="probegrid-service-", dir=base)
+
+
+def cube_image(faces: NDArray[np.float32], layout: str) -> NDArray[np.float32]:
+    """The array a layout serves: ``(6, n, n, 3)`` faces or the ``(3n, 4n, 3)`` cross."""
+    return faces if layout == "faces" else faces_to_cross(faces, "hcross")
+
+
+def _encode_image(image: NDArray[np.float32], fmt: str, scratch: Path) -> bytes:
+    path = scratch / f"{secrets.token_hex(12)}.{fmt}"
+    try:
+        write_image(path, image, half=False)
+        return path.read_bytes()
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def encode_cube(
+    faces: NDArray[np.float32],
+    *,
+    fmt: str,
+    layout: str,
+    scratch: Path,
+    meta: dict[str, object] | None = None,
+) -> bytes:
+    """Encode a ``(6, n, n, 3)`` cube in one of :data:`MEDIA_TYPES`' formats (module docstring).
+
+    ``meta`` is merged into the JSON document (ignored by the other formats).
+    """
+    if fmt not in MEDIA_TYPES:
+        raise ValueError(f"unknown format {fmt!r}; choose one of {', '.join(MEDIA_TYPES)}.")
+    if layout not in ("faces", "cross"):
+        raise ValueError(f"unknown layout {layout!r}; choose 'faces' or 'cross'.")
+    arr = np.ascontiguousarray(cube_image(faces, layout), dtype=np.float32)
+    if fmt == "npy":
+        buf = io.BytesIO()
+        np.save(buf, arr, allow_pickle=False)
+        return buf.getvalue()
+    if fmt == "json":
+        doc = dict(meta or {})
+        doc.update(layout=layout, shape=list(arr.shape), data=arr.tolist())
+        return to_json(doc, inf_nan_mode="null")
+    image = arr if layout == "cross" else arr.reshape(-1, arr.shape[2], arr.shape[3])
+    return _encode_image(image, fmt, scratch)

@@ -1,0 +1,131 @@
+"""Build the probe map service app and run it with uvicorn.
+
+* :func:`create_app` opens the stores (read-only memory maps) and returns the FastAPI app.
+* :func:`app_from_environment` is the app factory of worker processes: it reads the store list
+  and every setting from ``PROBEGRID_*`` variables (:mod:`service.settings`).
+* :func:`run` serves until interrupted; with ``workers > 1`` uvicorn starts that many processes,
+  each building its app through the factory (memory-mapped stores share their pages).
+
+Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
+
+    GET  /healthz
+    GET  /v1/grids
+    GET  /v1/grids/{grid}
+    GET  /v1/grids/{grid}/sh?x=&y=&z=[&nx=&ny=&nz=]
+    GET  /v1/grids/{grid}/maps/{kind}?x=&y=&z=[&nx=&ny=&nz=][&level=][&format=][&layout=]
+    POST /v1/grids/{grid}/shade
+    POST /v1/lights/maps
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+
+from probegrid import __version__
+from service.deps import ServiceState
+from service.encoding import scratch_directory
+from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
+from service.registry import GridRegistry
+from service.routers import grids, health, lights, maps, sh, shade
+from service.settings import Settings, settings_environment
+
+__all__ = ["app_from_environment", "create_app", "run"]
+
+
+def create_app(
+    store_paths: Sequence[str | os.PathLike[str]], settings: Settings | None = None
+) -> FastAPI:
+    """The service app serving the given stores.
+
+    Parameters
+    ----------
+    store_paths : sequence of path
+        Finished grid stores (``NAME.probes`` directories), served as ``NAME``.
+    settings : Settings, optional
+        Limits; default ``Settings()`` (environment variables, then defaults).
+
+    Raises
+    ------
+    probegrid.store.StoreError or ValueError
+        A store cannot be opened, or two stores have the same name.
+    """
+    settings = Settings() if settings is None else settings
+    registry = GridRegistry.open(list(store_paths))
+    scratch = scratch_directory()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        try:
+            yield
+        finally:
+            scratch.cleanup()
+
+    app = FastAPI(
+        title="probegrid map service",
+        version=__version__,
+        description=(
+            "Light-probe grids served at any position: blended SH coefficients and diffuse, "
+            "specular and incoming cube maps, split-sum shading, and analytic maps of dynamic "
+            "lights. Conventions are in each grid's manifest (GET /v1/grids/{grid})."
+        ),
+        lifespan=lifespan,
+    )
+    app.state.probegrid = ServiceState(
+        settings=settings, grids=registry, scratch=Path(scratch.name)
+    )
+    install_error_handlers(app)
+    for module in (health, grids, sh, maps, shade, lights):
+        app.include_router(module.router)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
+    return app
+
+
+def app_from_environment() -> FastAPI:
+    """App factory for uvicorn workers: stores and settings from ``PROBEGRID_*`` variables."""
+    settings = Settings()
+    if not settings.stores:
+        raise ValueError("PROBEGRID_STORES lists no store to serve.")
+    return create_app(settings.stores, settings)
+
+
+def run(
+    store_paths: Sequence[str | os.PathLike[str]],
+    *,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    workers: int = 1,
+    settings: Settings | None = None,
+    log_level: str = "info",
+) -> None:
+    """Serve the stores with uvicorn until interrupted.
+
+    The stores are opened (and checked) here first, so a bad store fails before any worker
+    starts. With ``workers > 1`` each uvicorn worker process builds its app with
+    :func:`app_from_environment` from the ``PROBEGRID_*`` variables set here.
+    """
+    import uvicorn
+
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}.")
+    settings = Settings() if settings is None else settings
+    paths = [Path(p).resolve() for p in store_paths]
+    app = create_app(paths, settings)
+    if workers == 1:
+        uvicorn.run(app, host=host, port=port, log_level=log_level)
+        return
+    env = settings_environment(settings.model_copy(update={"stores": paths}))
+    os.environ.update(env)
+    uvicorn.run(
+        "service.main:app_from_environment",
+        factory=True,
+        host=host,
+        port=port,
+        workers=workers,
+        log_level=log_level,
+    )

@@ -1,0 +1,34 @@
+"""Helpers shared by the probe-query routes (not a router)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from probegrid.grid import GridSpec
+from probegrid.interpolate import ProbeWeights
+
+
+def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dict[str, Any]]:
+    """The probes with non-zero weight for one point, in corner order, as
+    :class:`service.schemas.ProbeUse` dicts."""
+    keep = weights.weights[row] > 0
+    idx = weights.indices[row][keep]
+    _, ny, nz = grid.counts
+    ijk = np.stack([idx // (ny * nz), (idx // nz) % ny, idx % nz], axis=-1).tolist()
+    return [
+        {"index": i, "ijk": c, "weight": w}
+        for i, c, w in zip(idx.tolist(), ijk, weights.weights[row][keep].tolist(), strict=True)
+    ]
+
+
+def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, bool]:
+    """A :class:`service.schemas.QueryFlags` dict."""
+    return {"outside": bool(weights.outside[row]), "unlit": bool(weights.unlit[row]),
+            "visibility": visibility}
+
+
+def probe_header(grid: GridSpec, weights: ProbeWeights) -> str:
+    """``index:weight`` pairs of the probes used, comma separated (a response header)."""
+    return ",".join(f"{p['index']}:{p['weight']!r}" for p in probes_json(grid, weights))

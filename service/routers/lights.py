@@ -1,0 +1,95 @@
+"""``POST /v1/lights/maps``: analytic cube maps of lights that were not baked (dynamic lights).
+
+The maps are :func:`probegrid.lights.light_maps` (diffuse = irradiance / pi, GGX specular chain,
+no shadows). With ``grid``, the grid's blended map at the position is added, so the response is
+"baked + dynamic" lighting there, at the grid's map sizes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from fastapi import APIRouter, Response
+
+from probegrid.cubemap import mip_sizes
+from probegrid.lights import DirectionalLight, Light, PointLight, SpotLight, light_maps
+from service.deps import StateDep
+from service.encoding import MEDIA_TYPES, encode_cube
+from service.errors import ApiError
+from service.routers.maps import _BINARY, check_json_size
+from service.schemas import ErrorOut, LightIn, LightMapsRequest, PointLightIn, SpotLightIn
+
+router = APIRouter(prefix="/v1/lights", tags=["lights"])
+
+
+def to_light(spec: LightIn) -> Light:
+    """The library light of a request's light."""
+    if isinstance(spec, PointLightIn):
+        return PointLight(position=spec.position, color=spec.color, intensity=spec.intensity,
+                          range=spec.range)
+    if isinstance(spec, SpotLightIn):
+        return SpotLight(position=spec.position, direction=spec.direction, color=spec.color,
+                         intensity=spec.intensity, range=spec.range,
+                         inner_cone_angle=spec.inner_cone_angle,
+                         outer_cone_angle=spec.outer_cone_angle)
+    return DirectionalLight(direction=spec.direction, color=spec.color, intensity=spec.intensity)
+
+
+@router.post(
+    "/maps",
+    operation_id="light_maps",
+    response_class=Response,
+    responses={
+        200: _BINARY, 400: {"model": ErrorOut}, 404: {"model": ErrorOut},
+        413: {"model": ErrorOut}, 422: {"model": ErrorOut},
+    },
+)
+def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
+    """Analytic maps of the posted lights at ``position`` (optionally plus a grid's maps)."""
+    settings = state.settings
+    if len(body.lights) > settings.max_lights:
+        raise ApiError(422, f"{len(body.lights)} lights is over the limit of "
+                            f"{settings.max_lights}.")
+    served = None
+    if body.grid is not None:
+        served = state.grids.get(body.grid)
+        if served is None:
+            raise ApiError(404, f"There is no grid {body.grid!r}.")
+        if body.kind not in served.field.kinds:
+            raise ApiError(422, f"Grid {body.grid!r} has no {body.kind} maps.")
+        levels = served.field.map_levels(body.kind)
+        diffuse_size = served.field.map_size("diffuse") if body.kind == "diffuse" else 1
+        specular_size = served.field.map_size("specular") if body.kind == "specular" else 1
+        specular_levels = levels if body.kind == "specular" else 1
+    else:
+        diffuse_size = body.diffuse_size if body.kind == "diffuse" else 1
+        specular_size = body.specular_size if body.kind == "specular" else 1
+        specular_levels = body.specular_levels if body.kind == "specular" else 1
+        biggest = max(body.diffuse_size if body.kind == "diffuse" else body.specular_size, 1)
+        if biggest > settings.max_light_map_size:
+            raise ApiError(422, f"A face size of {biggest} is over the limit of "
+                                f"{settings.max_light_map_size}.")
+        try:
+            levels = len(mip_sizes(specular_size, specular_levels))
+        except ValueError as exc:
+            raise ApiError(422, str(exc)) from None
+    if body.level >= levels:
+        raise ApiError(422, f"level {body.level} is out of range 0..{levels - 1} for "
+                            f"{body.kind} maps.")
+    size = (diffuse_size if body.kind == "diffuse" else specular_size) >> body.level
+    if body.format == "json":
+        check_json_size(6 * size * size * 3, settings.max_json_values)
+    maps = light_maps(
+        [to_light(s) for s in body.lights],
+        np.asarray(body.position, dtype=np.float64),
+        diffuse_size=diffuse_size,
+        specular_size=specular_size,
+        specular_levels=specular_levels,
+    )
+    faces = maps[body.kind].levels[body.level]
+    if served is not None:
+        w = served.field.weights(np.asarray(body.position, dtype=np.float64))
+        faces = faces + served.field.cube(w, body.kind, level=body.level)[0]
+    meta = {"kind": body.kind, "level": body.level, "lights": len(body.lights)}
+    data = encode_cube(faces.astype(np.float32), fmt=body.format, layout=body.layout,
+                       scratch=state.scratch, meta=meta)
+    return Response(content=data, media_type=MEDIA_TYPES[body.format])

@@ -1,0 +1,80 @@
+"""``GET /v1/grids/{grid}/maps/{kind}``: a blended cube map at a position, in several formats."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query, Request, Response
+
+from probegrid.lobes import level_roughness
+from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep
+from service.encoding import MEDIA_TYPES, conditional_response, encode_cube
+from service.errors import ApiError
+from service.routers._common import flags_json, probe_header, probes_json
+from service.schemas import CubeFormat, CubeLayout, ErrorOut
+
+router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
+
+_BINARY = {"content": {t: {} for t in MEDIA_TYPES.values()}, "description": "The map."}
+
+
+def check_json_size(values: int, limit: int) -> None:
+    if values > limit:
+        raise ApiError(
+            422,
+            f"format=json would hold {values} numbers, over the limit of {limit}; "
+            "ask for npy or exr instead.",
+        )
+
+
+@router.get(
+    "/maps/{kind}",
+    operation_id="get_map",
+    response_class=Response,
+    responses={200: _BINARY, 404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    openapi_extra={"parameters": POINT_PARAMETERS},
+)
+def get_map(
+    request: Request,
+    state: StateDep,
+    query: ProbeQueryDep,
+    kind: Annotated[str, Path(description="diffuse, specular or incoming (where stored).")],
+    level: Annotated[int, Query(ge=0, le=64, description="Specular mip level.")] = 0,
+    fmt: Annotated[CubeFormat, Query(alias="format", description="Encoding.")] = "exr",
+    layout: Annotated[CubeLayout, Query(description="Six faces or a horizontal cross.")] = "faces",
+) -> Response:
+    """The cube map of one kind (and specular level) at ``(x, y, z)``, blended from the probes.
+
+    ``faces`` is ``(6, n, n, 3)`` for npy/json and the six faces stacked top to bottom for
+    images; ``cross`` is the horizontal cross. Headers ``X-Probegrid-Probes`` (``index:weight``
+    pairs), ``X-Probegrid-Outside`` and ``X-Probegrid-Unlit`` describe the blend.
+    """
+    grid, point = query.grid, query.point
+    field = grid.field
+    if kind not in field.kinds:
+        have = ", ".join(field.kinds)
+        raise ApiError(404, f"Grid {grid.name!r} has no {kind[:64]!r} maps; it has {have}.")
+    levels = field.map_levels(kind)  # type: ignore[arg-type]
+    if level >= levels:
+        raise ApiError(422, f"level {level} is out of range 0..{levels - 1} for {kind} maps.")
+    if fmt == "json":
+        n = field.map_size(kind, level)  # type: ignore[arg-type]
+        check_json_size(6 * n * n * 3, state.settings.max_json_values)
+    w = field.weights(point.position, normals=point.normal)
+    faces = field.cube(w, kind, level=level)[0]  # type: ignore[arg-type]
+    f = flags_json(w, visibility=point.normal is not None)
+    meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level}
+    headers = {
+        "X-Probegrid-Probes": probe_header(grid.store.grid, w),
+        "X-Probegrid-Outside": str(f["outside"]).lower(),
+        "X-Probegrid-Unlit": str(f["unlit"]).lower(),
+    }
+    if kind == "specular":
+        r = float(level_roughness(level, levels))
+        meta["roughness"] = r
+        headers["X-Probegrid-Roughness"] = repr(r)
+    if fmt == "json":
+        meta["probes"] = probes_json(grid.store.grid, w)
+        meta["flags"] = f
+    body = encode_cube(faces, fmt=fmt, layout=layout, scratch=state.scratch, meta=meta)
+    return conditional_response(request, body, MEDIA_TYPES[fmt], headers)

@@ -1,0 +1,40 @@
+"""``GET /v1/grids/{grid}/sh``: the blended SH radiance coefficients at a position."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from pydantic_core import to_json
+
+from service.deps import POINT_PARAMETERS, ProbeQueryDep
+from service.encoding import conditional_response
+from service.routers._common import flags_json, probes_json
+from service.schemas import ErrorOut, SHOut
+
+router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
+
+
+@router.get(
+    "/sh",
+    response_model=SHOut,
+    operation_id="get_sh",
+    responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+    openapi_extra={"parameters": POINT_PARAMETERS},
+)
+async def get_sh(request: Request, query: ProbeQueryDep) -> Response:
+    """The 9 RGB radiance coefficients at ``(x, y, z)``, blended from the surrounding probes.
+
+    With a normal ``(nx, ny, nz)`` the weights are visibility-aware (DDGI); the response lists the
+    probes used and their weights, and flags a clamped (outside) or unlit position.
+    """
+    grid, point = query.grid, query.point
+    w = grid.field.weights(point.position, normals=point.normal)
+    doc = {  # an SHOut, serialised directly (this is the service's hottest path)
+        "grid": grid.name,
+        "position": point.position.tolist(),
+        "sampled_position": w.points[0].tolist(),
+        "coefficients": grid.field.sh(w)[0].tolist(),
+        "probes": probes_json(grid.store.grid, w),
+        "flags": flags_json(w, visibility=point.normal is not None),
+    }
+    body = to_json(doc, inf_nan_mode="null")
+    return conditional_response(request, body, "application/json")

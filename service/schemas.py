@@ -1,0 +1,241 @@
+"""Request and response models of the probe map service (they define its OpenAPI schema).
+
+Units and conventions are the library's (see ``GET /v1/grids/{grid}``, whose manifest states them
+all): positions in world units (metres, glTF frame, +Y up), radiance in the store's units, linear
+Rec.709 RGB; SH coefficients are radiance ``L_lm`` of real SH bands 0-2 (index ``l(l+1)+m``, no
+Condon-Shortley phase); light intensities follow ``KHR_lights_punctual`` (candela for point and
+spot lights, lux for directional ones).
+
+Every number a client sends is validated here (finite, in range, the right count) so that the
+library is only ever called with arguments it accepts; limits that depend on the settings
+(batch size, number of lights, map sizes) are checked by the routes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+
+__all__ = [
+    "CubeFormat",
+    "CubeLayout",
+    "DirectionalLightIn",
+    "ErrorOut",
+    "GridDetail",
+    "GridList",
+    "GridSummary",
+    "Health",
+    "LightIn",
+    "LightMapsRequest",
+    "Material",
+    "PointLightIn",
+    "ProbeUse",
+    "QueryFlags",
+    "SHOut",
+    "ShadeOut",
+    "ShadeRequest",
+    "SpotLightIn",
+    "SurfacePoint",
+]
+
+CubeFormat = Literal["exr", "hdr", "png", "npy", "json"]
+CubeLayout = Literal["faces", "cross"]
+
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+Color = tuple[
+    Annotated[float, Field(ge=0.0, le=1e6)],
+    Annotated[float, Field(ge=0.0, le=1e6)],
+    Annotated[float, Field(ge=0.0, le=1e6)],
+]
+Reflectance = tuple[Unit, Unit, Unit]
+#: A bounded coordinate: finite and small enough that squares and sums stay finite.
+Coord = Annotated[float, Field(ge=-1e12, le=1e12)]
+Point = tuple[Coord, Coord, Coord]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ------------------------------------------------------------------------------ errors, health
+class ErrorOut(_Model):
+    """Every 4xx (and 503) response body."""
+
+    error: str = Field(description="Machine-readable code, e.g. 'not_found', 'invalid_request'.")
+    message: str = Field(description="One sentence saying what was wrong.")
+    detail: list[dict[str, Any]] | None = Field(
+        default=None, description="Per-field problems of a rejected request, if any."
+    )
+
+
+class Health(_Model):
+    status: Literal["ok"] = "ok"
+    grids: int = Field(description="Number of grids served.")
+
+
+# ------------------------------------------------------------------------------ grids
+class GridSummary(_Model):
+    name: str
+    counts: tuple[int, int, int] = Field(description="Probes per axis (nx, ny, nz).")
+    bounds_min: tuple[float, float, float]
+    bounds_max: tuple[float, float, float]
+    spacing: tuple[float, float, float] = Field(description="Lattice step per axis (0 if 1 probe).")
+    probes: int
+    valid_probes: int
+    kinds: list[str] = Field(description="Map kinds served: diffuse, specular, incoming.")
+    map_sizes: dict[str, list[int]] = Field(description="Face size of each level, per kind.")
+    specular_levels: int = Field(description="Level k holds perceptual roughness k / (levels-1).")
+    visibility: bool = Field(description="Whether distance moments are stored (DDGI weights).")
+    scene_hash: str
+    created: str
+
+
+class GridList(_Model):
+    grids: list[GridSummary]
+
+
+class GridDetail(GridSummary):
+    manifest: dict[str, Any] = Field(
+        description="The store's manifest: conventions, grid, bake settings, quality, arrays."
+    )
+
+
+# ------------------------------------------------------------------------------ probe queries
+class ProbeUse(_Model):
+    index: int = Field(description="Linear probe index (i * ny + j) * nz + k.")
+    ijk: tuple[int, int, int]
+    weight: float = Field(description="Blending weight; the weights of a query sum to 1.")
+
+
+class QueryFlags(_Model):
+    outside: bool = Field(description="The position was outside the grid box and was clamped.")
+    unlit: bool = Field(description="No valid probe carries weight; the result is zero.")
+    visibility: bool = Field(description="A normal was given: DDGI normal and visibility weights.")
+
+
+class SHOut(_Model):
+    grid: str
+    position: tuple[float, float, float] = Field(description="The position asked for.")
+    sampled_position: tuple[float, float, float] = Field(
+        description="Where the probes were blended (the position clamped onto the grid box)."
+    )
+    coefficients: list[tuple[float, float, float]] = Field(
+        description="9 RGB radiance coefficients L_lm, index l(l+1)+m."
+    )
+    probes: list[ProbeUse]
+    flags: QueryFlags
+
+
+# ------------------------------------------------------------------------------ shading
+class Material(_Model):
+    """glTF-style metal/rough inputs of the split-sum shading."""
+
+    albedo: Reflectance = Field(
+        default=(1.0, 1.0, 1.0), description="Lambertian colour: glTF baseColor (1 - metallic)."
+    )
+    f0: Reflectance = Field(default=(0.04, 0.04, 0.04), description="Reflectance at 0 degrees.")
+    roughness: Unit = Field(default=0.5, description="Perceptual roughness (glTF).")
+
+
+class SurfacePoint(_Model):
+    """One point to shade; a material here overrides the request's."""
+
+    position: Point = Field(description="World position.")
+    normal: Point = Field(description="Surface normal (any non-zero length).")
+    view: Point = Field(description="Surface-to-eye vector (any non-zero length).")
+    material: Material | None = None
+
+    @model_validator(mode="after")
+    def _nonzero(self) -> SurfacePoint:
+        for name in ("normal", "view"):
+            if not any(getattr(self, name)):
+                raise ValueError(f"{name} is the zero vector")
+        return self
+
+
+class ShadeRequest(_Model):
+    """Surface points to shade with split-sum IBL from the blended probe maps."""
+
+    points: list[SurfacePoint] = Field(min_length=1)
+    material: Material = Field(default_factory=Material, description="Default material.")
+
+
+class ShadeOut(_Model):
+    grid: str
+    rgb: list[tuple[float, float, float]] = Field(description="Outgoing radiance per point.")
+    outside: list[bool]
+    unlit: list[bool]
+
+
+# ------------------------------------------------------------------------------ lights
+Intensity = Annotated[float, Field(ge=0.0, le=1e12)]
+Range = Annotated[float, Field(gt=0.0, le=1e12)]
+
+
+class PointLightIn(_Model):
+    type: Literal["point"]
+    position: Point
+    color: Color = (1.0, 1.0, 1.0)
+    intensity: Intensity = Field(description="Candela.")
+    range: Range | None = None
+
+
+class SpotLightIn(_Model):
+    type: Literal["spot"]
+    position: Point
+    direction: Point = Field(description="Direction the spot points (world), non-zero.")
+    color: Color = (1.0, 1.0, 1.0)
+    intensity: Intensity = Field(description="Candela inside the inner cone.")
+    range: Range | None = None
+    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2)] = 0.0
+    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2)] = math.pi / 4
+
+    @model_validator(mode="after")
+    def _cone(self) -> SpotLightIn:
+        if not self.inner_cone_angle < self.outer_cone_angle:
+            raise ValueError("inner_cone_angle must be smaller than outer_cone_angle")
+        if not any(self.direction):
+            raise ValueError("direction is the zero vector")
+        return self
+
+
+class DirectionalLightIn(_Model):
+    type: Literal["directional"]
+    direction: Point = Field(description="Direction the light travels (world), non-zero.")
+    color: Color = (1.0, 1.0, 1.0)
+    intensity: Intensity = Field(description="Lux.")
+
+    @model_validator(mode="after")
+    def _direction(self) -> DirectionalLightIn:
+        if not any(self.direction):
+            raise ValueError("direction is the zero vector")
+        return self
+
+
+LightIn = Annotated[
+    PointLightIn | SpotLightIn | DirectionalLightIn, Field(discriminator="type")
+]
+
+FaceSize = Annotated[int, Field(ge=1, le=4096)]
+
+
+class LightMapsRequest(_Model):
+    """Analytic maps of punctual lights seen from a position (no shadows).
+
+    With ``grid``, the grid's blended map at that position is added, and the map sizes are the
+    grid's (``diffuse_size``, ``specular_size`` and ``specular_levels`` are then ignored).
+    """
+
+    position: Point
+    lights: list[LightIn] = Field(min_length=1)
+    kind: Literal["diffuse", "specular"] = "diffuse"
+    level: Annotated[int, Field(ge=0, le=16)] = 0
+    diffuse_size: FaceSize = 16
+    specular_size: FaceSize = Field(default=32, description="Power of two for a full chain.")
+    specular_levels: Annotated[int, Field(ge=1, le=13)] | None = None
+    grid: Annotated[str, Field(max_length=128)] | None = None
+    format: CubeFormat = "npy"
+    layout: CubeLayout = "faces"

@@ -1,0 +1,64 @@
+"""Settings of the probe map service, from keyword arguments or ``PROBEGRID_*`` environment variables.
+
+One :class:`Settings` object configures an app (:func:`service.main.create_app`). Every field can
+also be set from the environment with the prefix ``PROBEGRID_`` (``PROBEGRID_MAX_BATCH=1024``);
+list fields take JSON (``PROBEGRID_STORES='["a.probes", "b.probes"]'``). The limits bound the
+work and memory one request can cause; a request over a limit gets a 4xx JSON error naming it.
+
+:func:`settings_environment` turns a settings object back into those variables, which is how
+:func:`service.main.run` hands its settings and store list to uvicorn worker processes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["ENV_PREFIX", "Settings", "settings_environment"]
+
+ENV_PREFIX = "PROBEGRID_"
+
+
+class Settings(BaseSettings):
+    """Service configuration (immutable).
+
+    Attributes
+    ----------
+    stores : list of Path
+        Store directories to serve when the app is built from the environment (worker processes).
+        :func:`service.main.create_app` takes its stores as an argument instead.
+    max_body_bytes : int
+        Largest request body accepted, in bytes (413 above it).
+    max_batch : int
+        Most points one ``POST /v1/grids/{grid}/shade`` may carry (413 above it).
+    max_lights : int
+        Most lights one ``POST /v1/lights/maps`` may carry (422 above it).
+    max_light_map_size : int
+        Largest face size, in texels, a request may ask analytic light maps for (422 above it).
+    max_json_values : int
+        Most floats a ``format=json`` map response may hold (413 above it; use npy or exr).
+    """
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, extra="ignore")
+
+    stores: list[Path] = Field(default_factory=list)
+    max_body_bytes: int = Field(default=1 << 20, ge=1024)
+    max_batch: int = Field(default=4096, ge=1)
+    max_lights: int = Field(default=16, ge=1)
+    max_light_map_size: int = Field(default=256, ge=1)
+    max_json_values: int = Field(default=1 << 20, ge=1)
+
+
+def settings_environment(settings: Settings) -> dict[str, str]:
+    """The ``PROBEGRID_*`` environment variables that rebuild ``settings`` in another process.
+
+    Returns
+    -------
+    dict of str to str
+        One variable per field, values JSON-encoded (``Settings()`` parses them back).
+    """
+    data = settings.model_dump(mode="json")
+    return {f"{ENV_PREFIX}{k.upper()}": json.dumps(v) for k, v in data.items()}

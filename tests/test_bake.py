@@ -1,0 +1,193 @@
+"""Baking probe grids: furnace, inverse-square law, shadows, invalid probes, determinism across
+executors, and a killed bake that resumes (probegrid.bake, probegrid.render)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from probegrid.bake import BakeSettings, bake
+from probegrid.environment import Environment
+from probegrid.executors import InlineExecutor, LocalExecutor
+from probegrid.grid import GridSpec
+from probegrid.lights import PointLight
+from probegrid.scene import Material, SceneBuilder, box_scene
+from probegrid.sh import K0
+from probegrid.store import StoreError, open_store
+
+FAST = {"face_size": 8, "diffuse_size": 4, "moments_size": 4, "batch_size": 4}
+
+
+def _arrays(store):
+    return {name: np.asarray(store[name]) for name in store.names}
+
+
+@pytest.mark.parametrize("bounces", [0, 1, 2, 3])
+def test_furnace_box_reaches_geometric_series(tmp_path, bounces):
+    rho, le = 0.6, 2.0
+    scene = box_scene((-1, -1, -1), (1, 1, 1), albedo=rho, emission=le, inward=True)
+    grid = GridSpec.from_counts((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), (2, 2, 2))
+    st = BakeSettings(bounces=bounces, **FAST)
+    report = bake(scene, grid, tmp_path / "f.probes", settings=st)
+    expected = le * (1 - rho ** (bounces + 1)) / (1 - rho)
+    s = report.store
+    np.testing.assert_allclose(s["diffuse"], expected, rtol=1e-3)  # 8^2 cosine quadrature
+    for k in range(st.levels()):
+        np.testing.assert_allclose(s[f"specular_{k}"], expected, rtol=2e-5)
+    np.testing.assert_allclose(s["sh"][:, 0], 2 * np.sqrt(np.pi) * expected, rtol=2e-5)
+    np.testing.assert_allclose(s["sh"][:, 1:], 0, atol=2e-5 * expected)
+    assert report.quality["invalid_probes"] == 0
+    assert report.quality["energy_max_error"] < 1e-3
+    assert s.manifest.quality["sh_min_irradiance_over_pi"] == pytest.approx(expected, rel=1e-4)
+
+
+def _lone_light_scene(intensity=10.0, wall=False, light_pos=(0.0, 0.0, 0.0)):
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    # something to trace: a small quad far behind the light (a scene needs triangles)
+    b.add_quad((50, -0.1, -0.1), (0, 0, 0.2), (0, 0.2, 0), material=m)  # faces -X
+    if wall:  # a 4 x 4 wall in the plane x = 1, facing -X (toward the light)
+        b.add_quad((1, -2, -2), (0, 0, 4), (0, 4, 0), material=m)
+    b.add_light(PointLight(light_pos, (1.0, 1.0, 1.0), intensity))
+    return b.build()
+
+
+def test_point_light_inverse_square(tmp_path):
+    intensity = 10.0
+    scene = _lone_light_scene(intensity)
+    grid = GridSpec.from_counts((2, 0, 0), (4, 0, 0), (2, 1, 1))  # probes at d = 2 and 4
+    s = bake(scene, grid, tmp_path / "p.probes",
+             settings=BakeSettings(bounces=0, **{**FAST, "face_size": 16})).store
+    d = np.array([2.0, 4.0])
+    e = intensity / d**2
+    # the cube's integral is the irradiance: L00 = Y00 * E
+    np.testing.assert_allclose(s["sh"][:, 0, :], np.repeat((K0 * e)[:, None], 3, 1), rtol=1e-5)
+    # diffuse texel looking back at the light (-X): irradiance / pi, clamped cosine ~ 1
+    from probegrid.cubemap import direction_to_texel, texel_directions
+
+    f, r, c = (int(a) for a in direction_to_texel(np.array([-1.0, 0.0, 0.0]), 4))
+    cosine = -texel_directions(4)[f, r, c, 0]
+    diffuse_toward = np.asarray(s["diffuse"])[:, f, r, c, 0]
+    np.testing.assert_allclose(diffuse_toward * np.pi, e * cosine, rtol=0.01)
+    assert diffuse_toward[0] / diffuse_toward[1] == pytest.approx(4.0, rel=1e-4)
+
+
+def test_wall_casts_shadow(tmp_path):
+    grid = GridSpec.from_counts((3, 0, 0), (3, 0, 0), (1, 1, 1))
+    lit = bake(_lone_light_scene(), grid, tmp_path / "a.probes",
+               settings=BakeSettings(bounces=0, **FAST)).store
+    shadowed = bake(_lone_light_scene(wall=True), grid, tmp_path / "b.probes",
+                    settings=BakeSettings(bounces=0, **FAST)).store
+    assert lit["sh"][0, 0, 0] == pytest.approx(K0 * 10 / 9, rel=1e-5)
+    assert shadowed["sh"][0, 0, 0] == 0.0
+
+
+def test_direct_light_can_be_left_out(tmp_path):
+    grid = GridSpec.from_counts((3, 0, 0), (3, 0, 0), (1, 1, 1))
+    s = bake(_lone_light_scene(), grid, tmp_path / "n.probes",
+             settings=BakeSettings(bounces=0, direct=False, **FAST)).store
+    assert float(np.abs(s["sh"][0]).max()) == 0.0
+
+
+def test_probe_inside_solid_box_is_invalid(tmp_path):
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    b.add_box((-1, -1, -1), (1, 1, 1), material=m, inward=False)  # a solid box
+    scene = b.build()
+    grid = GridSpec.from_counts((0, 0, 0), (3, 0, 0), (2, 1, 1))  # one inside, one outside
+    st = BakeSettings(bounces=0, relocate=False, **FAST)
+    s = bake(scene, grid, tmp_path / "s.probes", settings=st,
+             environment=Environment(color=(1, 1, 1))).store
+    assert s["valid"].tolist() == [False, True]
+    assert s["backface_fraction"][0] == pytest.approx(1.0)
+    assert s.manifest.quality["invalid_probes"] == 1
+    # relocation moves a probe just inside a wall out of it
+    grid2 = GridSpec.from_counts((0.95, 0, 0), (5.95, 0, 0), (2, 1, 1))  # cell 5: may move 2.25
+    s2 = bake(scene, grid2, tmp_path / "r.probes",
+              settings=BakeSettings(bounces=0, **FAST),
+              environment=Environment(color=(1, 1, 1))).store
+    assert bool(s2["valid"][0]) and s2["positions"][0][0] > 1.0
+    assert s2.manifest.quality["relocated_probes"] == 1
+
+
+def _room_scene():
+    scene = box_scene((-2, 0, -2), (2, 3, 2), albedo=0.5, emission=0.0, inward=True,
+                      lights=(PointLight((0.3, 2.0, 0.2), (1.0, 0.9, 0.8), 20.0),))
+    return scene
+
+
+def test_bake_is_bit_identical_across_executors_and_batches(tmp_path):
+    scene = _room_scene()
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 2, 2))
+    st = BakeSettings(bounces=1, samples=2, seed=7, **FAST)
+    a = _arrays(bake(scene, grid, tmp_path / "inline.probes", settings=st,
+                     executor=InlineExecutor()).store)
+    st2 = st.model_copy(update={"batch_size": 3})
+    with LocalExecutor(2) as ex:
+        b = _arrays(bake(scene, grid, tmp_path / "local.probes", settings=st2, executor=ex).store)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+    assert a["sh"][:, 0].min() > 0  # lit
+
+
+def test_dask_local_cluster_bake_equals_local_bake(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from probegrid.executors import DaskExecutor
+
+    scene = _room_scene()
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 2, 2))
+    st = BakeSettings(bounces=1, samples=2, seed=3, **FAST)
+    local = _arrays(bake(scene, grid, tmp_path / "l.probes", settings=st).store)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        with DaskExecutor(cluster.scheduler_address) as ex:
+            dask = _arrays(bake(scene, grid, tmp_path / "d.probes", settings=st,
+                                executor=ex).store)
+    for k in local:
+        assert np.array_equal(local[k], dask[k]), k
+
+
+def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
+    glb = Path(__file__).resolve().parents[1] / "data" / "sample_room.glb"
+    out = tmp_path / "room.probes"
+    cmd = [sys.executable, "-m", "probegrid.cli", "bake", str(glb), "--out", str(out),
+           "--grid", "4x3x4", "--face-size", "8", "--diffuse-size", "4", "--bounces", "0",
+           "--workers", "1", "--batch-size", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    from probegrid.store import partial_progress
+
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        prog = partial_progress(out) if out.with_name(out.name + ".partial").exists() else None
+        if prog and prog[0] >= 4:
+            break
+        if proc.poll() is not None:
+            pytest.fail("the bake finished before it could be killed")
+        time.sleep(0.05)
+    else:
+        pytest.fail("the bake made no progress")
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    with pytest.raises(StoreError):
+        open_store(out)
+    with pytest.raises(StoreError):
+        open_store(out.with_name(out.name + ".partial"))
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "resumed" in done.stdout
+    fresh = tmp_path / "fresh.probes"
+    cmd2 = [*cmd]
+    cmd2[cmd2.index(str(out))] = str(fresh)
+    assert subprocess.run(cmd2, capture_output=True, timeout=300).returncode == 0
+    a, b = _arrays(open_store(out)), _arrays(open_store(fresh))
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k

@@ -1,0 +1,175 @@
+"""The command line: ``probegrid filter`` outputs and manifest, bad input, interrupted runs,
+``bake`` / ``info`` / ``export`` (probegrid.cli, probegrid.filterjob, probegrid.export)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from probegrid import imageio
+from probegrid.cli import main
+from probegrid.cubemap import texel_solid_angles
+
+REPO = Path(__file__).resolve().parents[1]
+SKY = REPO / "data" / "sample_sky.hdr"
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "probegrid.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def filtered(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("filter")
+    r = run_cli("filter", SKY, "--out", out, "--size", "32", "--diffuse-size", "8",
+                "--seam", "average")
+    assert r.returncode == 0, r.stderr
+    assert "manifest.json" in r.stdout
+    return out
+
+
+def test_filter_writes_every_file_in_the_manifest(filtered):
+    m = json.loads((filtered / "manifest.json").read_text())
+    kinds = {f["kind"] for f in m["files"]}
+    assert kinds == {"diffuse", "specular", "sh", "lut", "preview"}
+    for f in m["files"]:
+        for p in f["path"] if isinstance(f["path"], list) else [f["path"]]:
+            assert (filtered / p).is_file(), p
+    spec = sorted((f for f in m["files"] if f["kind"] == "specular"), key=lambda f: f["level"])
+    assert [f["level"] for f in spec] == list(range(6))  # 32 -> 1
+    assert [f["roughness"] for f in spec] == pytest.approx([k / 5 for k in range(6)])
+    assert [f["face_size"] for f in spec] == [32, 16, 8, 4, 2, 1]
+    conv = m["conventions"]
+    assert conv["cube_face_order"] == ["+X", "-X", "+Y", "-Y", "+Z", "-Z"]
+    assert "irradiance / pi" in conv["diffuse_map"]
+    sh = json.loads((filtered / "sh.json").read_text())
+    assert np.array(sh["coefficients"]).shape == (9, 3)
+    assert all(abs(e - 1) < 0.03 for e in m["quality"]["energy"]["specular"])
+    assert abs(m["quality"]["energy"]["diffuse"] - 1) < 1e-3
+    assert m["quality"]["seam_score"]["diffuse"] < 1e-6  # average mode
+
+
+def test_filter_outputs_read_back_and_carry_conventions(filtered):
+    faces = np.stack([imageio.read_image(filtered / f"diffuse{s}.exr")
+                      for s in imageio.FACE_SUFFIXES])
+    assert faces.shape == (6, 8, 8, 3)
+    meta = imageio.read_metadata(filtered / "diffuse_px.exr")
+    assert json.loads(meta["probegrid:conventions"])["cube_face_order"][0] == "+X"
+    # L00 of sh.json = integral of the input; the diffuse map's mean = the input's mean
+    sh = np.array(json.loads((filtered / "sh.json").read_text())["coefficients"])
+    w = texel_solid_angles(8)[..., None]
+    mean_diffuse = (faces * w).sum((0, 1, 2)) / (4 * np.pi)
+    # mean radiance = L00 * Y00 (the projection of a constant); diffuse conserves it
+    np.testing.assert_allclose(mean_diffuse, sh[0] / (2 * np.sqrt(np.pi)), rtol=2e-3)
+    lut = imageio.read_image(filtered / "dfg_lut.exr")
+    assert lut.shape == (128, 128, 3) and 0 <= lut.min() and lut[..., :2].sum(-1).max() <= 1.0001
+
+
+@pytest.mark.parametrize("layout", ["hcross", "equirect"])
+def test_filter_output_layouts_and_hdr(tmp_path, layout):
+    r = run_cli("filter", SKY, "--out", tmp_path, "--size", "16", "--diffuse-size", "4",
+                "--output-layout", layout, "--format", "hdr", "--no-previews")
+    assert r.returncode == 0, r.stderr
+    img = imageio.read_image(tmp_path / "diffuse.hdr")
+    assert img.shape == ((12, 16, 3) if layout == "hcross" else (8, 16, 3))
+
+
+def test_filter_six_face_files_round_trip(tmp_path, filtered):
+    faces = [filtered / f"specular_m0{s}.exr" for s in imageio.FACE_SUFFIXES]
+    r = run_cli("filter", *faces, "--out", tmp_path, "--diffuse-size", "8", "--no-previews")
+    assert r.returncode == 0, r.stderr
+    m = json.loads((tmp_path / "manifest.json").read_text())
+    assert m["input"]["layout"] == "faces" and m["input"]["cube_size"] == 32
+
+
+def _one_error_line(r: subprocess.CompletedProcess) -> str:
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    lines = [ln for ln in lines if not ln.startswith("libpng")]
+    assert len(lines) == 1 and lines[0].startswith("probegrid: error:"), r.stderr
+    assert "Traceback" not in r.stderr
+    return lines[0]
+
+
+def test_bad_input_gives_one_line_errors(tmp_path):
+    assert "no such file" in _one_error_line(run_cli("filter", tmp_path / "x.hdr", "--out",
+                                                     tmp_path / "o"))
+    trunc = tmp_path / "t.hdr"
+    trunc.write_bytes(SKY.read_bytes()[:2000])
+    assert "truncated" in _one_error_line(run_cli("filter", trunc, "--out", tmp_path / "o"))
+    _one_error_line(run_cli("filter", SKY, "--out", tmp_path / "o", "--layout", "nope"))
+    _one_error_line(run_cli("filter", SKY, "--out", tmp_path / "o", "--size", "-3"))
+    odd = tmp_path / "odd.exr"
+    imageio.write_image(odd, np.ones((10, 17, 3), np.float32))
+    assert "layout" in _one_error_line(run_cli("filter", odd, "--out", tmp_path / "o"))
+    assert not (tmp_path / "o" / "manifest.json").exists()
+
+
+def test_nonfinite_pixels_are_counted_or_clamped(tmp_path):
+    img = np.ones((16, 32, 3), np.float32)
+    img[3, 4, 0] = np.nan
+    img[5, 6] = np.inf
+    bad = tmp_path / "bad.exr"
+    imageio.write_image(bad, img, half=False)
+    line = _one_error_line(run_cli("filter", bad, "--out", tmp_path / "o"))
+    assert "2 pixels" in line and "--clamp" in line
+    r = run_cli("filter", bad, "--out", tmp_path / "o", "--clamp", "10", "--size", "8",
+                "--no-previews")
+    assert r.returncode == 0, r.stderr
+    m = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert m["input"]["nonfinite_values_replaced"] == 4
+
+
+def test_interrupted_filter_leaves_no_manifest(tmp_path, monkeypatch):
+    out = tmp_path / "o"
+    assert main(["filter", str(SKY), "--out", str(out), "--size", "8", "--no-previews"]) == 0
+    assert (out / "manifest.json").exists()
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(imageio, "write_preview_png", interrupt)
+    assert main(["filter", str(SKY), "--out", str(out), "--size", "8"]) == 130
+    assert not (out / "manifest.json").exists()
+    assert not list(out.glob(".*tmp*"))
+
+
+def test_bake_info_export_on_the_sample_room(tmp_path):
+    store = tmp_path / "room.probes"
+    r = run_cli("bake", REPO / "data" / "sample_room.glb", "--out", store, "--grid", "3x2x3",
+                "--face-size", "8", "--diffuse-size", "4", "--bounces", "1",
+                "--environment", SKY, "--store-incoming", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    assert "baked 18 probes" in r.stdout
+    info = run_cli("info", store)
+    assert info.returncode == 0 and "3x2x3 = 18 probes" in info.stdout
+    assert "irradiance / pi" in info.stdout and "specular_3" in info.stdout
+    again = run_cli("bake", REPO / "data" / "sample_room.glb", "--out", store)
+    assert "exists" in _one_error_line(again)
+    exp = tmp_path / "probe"
+    r = run_cli("export", store, "--probe", "1,1,1", "--out", exp, "--layout", "hcross")
+    assert r.returncode == 0, r.stderr
+    m = json.loads((exp / "manifest.json").read_text())
+    assert m["probe"]["ijk"] == [1, 1, 1] and m["probe"]["index"] == 1 * 6 + 1 * 3 + 1
+    assert {f["kind"] for f in m["files"]} == {"diffuse", "specular", "incoming", "sh"}
+    cross = imageio.read_image(exp / "diffuse.exr")
+    assert cross.shape == (12, 16, 3)
+    assert "outside the grid" in _one_error_line(run_cli("export", store, "--probe", "3,0,0",
+                                                         "--out", exp))
+
+
+def test_bad_scenes_give_one_line_errors(tmp_path):
+    glb = tmp_path / "t.glb"
+    glb.write_bytes((REPO / "data" / "sample_room.glb").read_bytes()[:500])
+    _one_error_line(run_cli("bake", glb, "--out", tmp_path / "t.probes"))
+    _one_error_line(run_cli("bake", tmp_path / "none.glb", "--out", tmp_path / "t.probes"))
+    _one_error_line(run_cli("bake", REPO / "data" / "sample_room.glb", "--out",
+                            tmp_path / "t.probes", "--grid", "0x1x1"))
+    _one_error_line(run_cli("bake", REPO / "data" / "sample_room.glb", "--out",
+                            tmp_path / "t.probes", "--scheduler", "tcp://127.0.0.1:9"))

@@ -1,0 +1,315 @@
+"""Tests of the batch executors (probegrid.executors): same bits everywhere, setup once, errors."""
+
+from __future__ import annotations
+
+import os
+import socket
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from probegrid import executors as ex
+
+P = 37  # probes; not a multiple of the batch sizes used below
+SEED = 20240917
+
+
+# ---------------------------------------------------------------------------- task and context
+@dataclass(frozen=True)
+class NoiseContext:
+    """Builds a per-process 'expensive' state once and records every setup() as a file."""
+
+    seed: int
+    log_dir: str
+
+    def setup(self) -> dict:
+        setup_id = uuid.uuid4().hex
+        Path(self.log_dir, f"setup-{os.getpid()}-{setup_id}").touch()
+        # stands in for a BVH: a matrix the tasks use
+        mixing = np.linalg.qr(np.random.default_rng(self.seed).standard_normal((16, 16)))[0]
+        return {"pid": os.getpid(), "setup_id": setup_id, "mixing": mixing, "seed": self.seed}
+
+
+def noise_task(state: dict, batch: np.ndarray) -> dict:
+    """Per-probe random draws keyed by probe index, pushed through the per-process state.
+
+    Row-independent arithmetic on purpose: a BLAS product ``draws @ mixing`` rounds differently
+    for different batch sizes (gemv for one row, blocked gemm for more), which would tie the
+    bits to the batch partition.
+    """
+    draws = np.stack([ex.probe_rng(state["seed"], int(i)).standard_normal(16) for i in batch])
+    mixed = (draws[:, :, None] * state["mixing"][None]).sum(axis=1)
+    values = np.sin(mixed) * np.exp(draws[:, :1])
+    return {"values": values, "pid": state["pid"], "setup_id": state["setup_id"]}
+
+
+def failing_task(state: dict, batch: np.ndarray) -> dict:
+    if 13 in batch:
+        raise ValueError("probe 13 is cursed\nsecond line of detail")
+    return noise_task(state, batch)
+
+
+def dying_task(state: dict, batch: np.ndarray) -> dict:
+    if 13 in batch:
+        os._exit(3)
+    return noise_task(state, batch)
+
+
+@dataclass(frozen=True)
+class BrokenContext:
+    def setup(self) -> dict:
+        raise FileNotFoundError("scene.glb not found")
+
+
+def run_all(executor, context, batches, task=noise_task):
+    out = np.full((P, 16), np.nan)
+    seen: list[tuple[int, str]] = []
+    progress: list[ex.Progress] = []
+    for batch, result in executor.map(task, context, batches, progress=progress.append):
+        out[batch] = result["values"]
+        seen.append((result["pid"], result["setup_id"]))
+    return out, seen, progress
+
+
+def setups_per_pid(log_dir: Path) -> dict[int, int]:
+    counts: dict[int, int] = {}
+    for f in log_dir.iterdir():
+        pid = int(f.name.split("-")[1])
+        counts[pid] = counts.get(pid, 0) + 1
+    return counts
+
+
+@pytest.fixture
+def reference(tmp_path):
+    """The expected values, computed directly, no executor involved."""
+    ctx = NoiseContext(SEED, str(tmp_path))
+    state = ctx.setup()
+    return noise_task(state, np.arange(P))["values"]
+
+
+# ---------------------------------------------------------------------------- helpers
+def test_make_batches():
+    b = ex.make_batches(10, batch_size=4)
+    assert [x.tolist() for x in b] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9]]
+    assert all(x.dtype == np.int64 for x in b)
+    b = ex.make_batches(np.array([9, 3, 5], dtype=np.int32), batch_size=2)
+    assert [x.tolist() for x in b] == [[9, 3], [5]]
+    assert ex.make_batches(np.array([], dtype=np.int64), batch_size=3) == []
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="batch_size"):
+            ex.make_batches(10, batch_size=bad)
+    with pytest.raises(ValueError, match="1-D integer"):
+        ex.make_batches(np.zeros((2, 2), dtype=int), batch_size=1)
+
+
+def test_make_batches_partition_is_resume_stable():
+    done = np.zeros(10, dtype=bool)
+    done[[0, 1, 2, 3, 5]] = True  # block 0 finished; block 1 partly (only after a size change)
+    b = ex.make_batches(10, batch_size=4, done=done)
+    assert [x.tolist() for x in b] == [[4, 6, 7], [8, 9]]
+    full = ex.make_batches(10, batch_size=4)
+    done = np.zeros(10, dtype=bool)
+    done[full[1]] = True
+    assert [x.tolist() for x in ex.make_batches(10, batch_size=4, done=done)] == [
+        full[0].tolist(), full[2].tolist()
+    ]
+    with pytest.raises(ValueError, match=r"\(10,\) bool"):
+        ex.make_batches(10, batch_size=4, done=np.zeros(9, dtype=bool))
+    with pytest.raises(ValueError, match="only accepted with a probe count"):
+        ex.make_batches(np.arange(4), batch_size=2, done=np.zeros(4, dtype=bool))
+
+
+def test_probe_rng_is_seedsequence_spawn():
+    children = np.random.SeedSequence(7).spawn(5)
+    for i in range(5):
+        a = ex.probe_rng(7, i).random(4)
+        b = np.random.default_rng(children[i]).random(4)
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(ex.probe_rng(7, 1).random(4), ex.probe_rng(7, 2).random(4))
+    with pytest.raises(ValueError, match="seed"):
+        ex.probe_rng(-1, 0)
+    with pytest.raises(ValueError, match="probe index"):
+        ex.probe_rng(1, -2)
+
+
+def test_pipeline_bounds_in_flight():
+    """No more than `limit` batches are submitted and not yet handed back."""
+    submitted: list[int] = []
+    handed = [0]
+
+    def submit(order, batch):
+        submitted.append(order)
+        assert len(submitted) - handed[0] <= 3
+        return order
+
+    pipe = ex._Pipeline(
+        submit=submit,
+        wait_first=lambda futs: futs[-1:],  # completes out of order
+        fetch=lambda fut: fut * 10,
+        cancel=lambda futs: None,
+        limit=3,
+        where="test",
+    )
+    batches = ex.make_batches(20, batch_size=2)
+    got = []
+    for batch, result in pipe.run(batches, None):
+        handed[0] += 1
+        got.append((int(batch[0]) // 2, result))
+    assert sorted(got) == [(i, 10 * i) for i in range(10)]
+    assert [g[0] for g in got] != list(range(10))  # really out of order
+
+
+# ---------------------------------------------------------------------------- inline and local
+def test_inline_matches_reference(tmp_path, reference):
+    log = tmp_path / "log"
+    log.mkdir()
+    out, seen, progress = run_all(
+        ex.InlineExecutor(), NoiseContext(SEED, str(log)), ex.make_batches(P, batch_size=5)
+    )
+    np.testing.assert_array_equal(out, reference)
+    assert setups_per_pid(log) == {os.getpid(): 1}
+    assert len({s for _, s in seen}) == 1
+    assert [p.batches_done for p in progress] == list(range(1, 9))
+    assert progress[-1].probes_done == progress[-1].probes_total == P
+    assert progress[-1].eta == 0.0
+
+
+def test_local_two_processes_bit_identical_and_setup_once(tmp_path, reference):
+    log = tmp_path / "log"
+    log.mkdir()
+    with ex.LocalExecutor(2) as executor:
+        assert executor.workers == 2
+        out, seen, progress = run_all(
+            executor, NoiseContext(SEED, str(log)), ex.make_batches(P, batch_size=3)
+        )
+    np.testing.assert_array_equal(out, reference)  # bit for bit
+    counts = setups_per_pid(log)
+    assert len(counts) <= 2 and all(c == 1 for c in counts.values())
+    assert os.getpid() not in counts
+    pids = {pid for pid, _ in seen}
+    assert pids <= set(counts)
+    for pid in pids:  # one state per process
+        assert len({s for p, s in seen if p == pid}) == 1
+    assert progress[-1].probes_done == P and progress[-1].batches_total == 13
+
+
+def test_local_task_error_surfaces(tmp_path):
+    executor = ex.LocalExecutor(2)
+    with pytest.raises(ex.ExecutorError) as info:
+        run_all(executor, NoiseContext(SEED, str(tmp_path)), ex.make_batches(P, batch_size=4),
+                task=failing_task)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert "12..15" in msg and "ValueError: probe 13 is cursed" in msg
+    assert isinstance(info.value.__cause__, ValueError)
+
+
+def test_local_worker_death_surfaces(tmp_path):
+    with pytest.raises(ex.ExecutorError, match="worker process died"):
+        run_all(ex.LocalExecutor(2), NoiseContext(SEED, str(tmp_path)),
+                ex.make_batches(P, batch_size=4), task=dying_task)
+
+
+def test_inline_error_and_pickle_check(tmp_path):
+    with pytest.raises(ex.ExecutorError, match=r"12\.\.15 failed .*ValueError: probe 13"):
+        run_all(ex.InlineExecutor(), NoiseContext(SEED, str(tmp_path)),
+                ex.make_batches(P, batch_size=4), task=failing_task)
+    with pytest.raises(ValueError, match="task function must be picklable"):
+        ex.InlineExecutor().map(lambda s, b: b, NoiseContext(SEED, str(tmp_path)), [[0]])
+    with pytest.raises(TypeError, match="WorkerContext"):
+        ex.InlineExecutor().map(noise_task, object(), [[0]])
+
+
+@pytest.mark.parametrize("executor", [ex.InlineExecutor(), ex.LocalExecutor(2)])
+def test_setup_error_surfaces(executor):
+    with pytest.raises(ex.ExecutorError, match="FileNotFoundError: scene.glb not found"):
+        run_all(executor, BrokenContext(), ex.make_batches(P, batch_size=10))
+
+
+def test_abandoned_iteration_stops_the_pool(tmp_path):
+    it = ex.LocalExecutor(2).map(
+        noise_task, NoiseContext(SEED, str(tmp_path)), ex.make_batches(P, batch_size=1)
+    )
+    batch, _ = next(it)
+    assert batch.size == 1
+    it.close()  # must not hang; pool shut down, pending batches cancelled
+    assert len(list(tmp_path.iterdir())) <= 2
+
+
+def test_executor_arguments():
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="workers"):
+            ex.LocalExecutor(bad)
+    with pytest.raises(ValueError, match="forkserver, spawn"):
+        ex.LocalExecutor(1, start_method="fork")
+    with pytest.raises(ValueError, match="either workers"):
+        ex.make_executor(workers=2, scheduler="tcp://127.0.0.1:1")
+    assert ex.LocalExecutor().workers == ex.default_workers() >= 1
+    assert isinstance(ex.make_executor(workers=1), ex.LocalExecutor)
+    for executor in (ex.InlineExecutor(), ex.LocalExecutor(1)):
+        assert isinstance(executor, ex.Executor)
+    assert isinstance(NoiseContext(1, "."), ex.WorkerContext)
+
+
+# ---------------------------------------------------------------------------- dask
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_dask_unreachable_scheduler_is_one_line():
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    with pytest.raises(ex.ExecutorError) as info:
+        ex.DaskExecutor(address, timeout=1)
+    assert "\n" not in str(info.value) and address in str(info.value)
+    with pytest.raises(ex.ExecutorError, match="cannot connect"):
+        ex.DaskExecutor("nosuchscheme://127.0.0.1:1", timeout=1)
+    with pytest.raises(ValueError, match="scheduler must be"):
+        ex.DaskExecutor("", timeout=1)
+
+
+@pytest.fixture(scope="module")
+def dask_cluster():
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+        worker_dashboard_address=None,
+    )
+    try:
+        yield cluster
+    finally:
+        cluster.close()
+
+
+def test_dask_bit_identical_setup_once_and_errors(tmp_path, reference, dask_cluster):
+    log = tmp_path / "log"
+    log.mkdir()
+    with ex.DaskExecutor(dask_cluster.scheduler_address, timeout=20) as executor:
+        assert executor.workers == 2
+        assert "2 workers" in executor.description
+        out, seen, progress = run_all(
+            executor, NoiseContext(SEED, str(log)), ex.make_batches(P, batch_size=4)
+        )
+        np.testing.assert_array_equal(out, reference)  # bit for bit with inline and local
+        counts = setups_per_pid(log)
+        assert len(counts) <= 2 and all(c == 1 for c in counts.values())
+        for pid in {pid for pid, _ in seen}:
+            assert len({s for p, s in seen if p == pid}) == 1
+        assert progress[-1].probes_done == P
+
+        # a second map call builds its state afresh (new context), once per process again
+        log2 = tmp_path / "log2"
+        log2.mkdir()
+        out2, _, _ = run_all(executor, NoiseContext(SEED, str(log2)), ex.make_batches(P, batch_size=7))
+        np.testing.assert_array_equal(out2, reference)
+        assert all(c == 1 for c in setups_per_pid(log2).values())
+
+        with pytest.raises(ex.ExecutorError) as info:
+            run_all(executor, NoiseContext(SEED, str(log)), ex.make_batches(P, batch_size=4),
+                    task=failing_task)
+        assert "\n" not in str(info.value)
+        assert "ValueError: probe 13 is cursed" in str(info.value)

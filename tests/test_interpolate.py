@@ -1,0 +1,294 @@
+"""Tests of probe blending at arbitrary positions (probegrid.interpolate)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from probe_stores import GRID, linear_arrays, linear_shapes, linear_store, linear_values
+
+from probegrid.cubemap import CubeMap
+from probegrid.dfg import dfg_lut
+from probegrid.grid import GridSpec
+from probegrid.interpolate import (
+    CRUSH_THRESHOLD,
+    ProbeField,
+    _probe_bilinear,
+    blend,
+    blend_lookup,
+    probe_weights,
+)
+from probegrid.sampling import CubeSampler
+from probegrid.shading import shade_split_sum
+
+RNG_SEED = 20240611
+
+
+@pytest.fixture(scope="module")
+def field(tmp_path_factory) -> ProbeField:
+    return ProbeField(linear_store(tmp_path_factory.mktemp("interp") / "linear.probes"))
+
+
+def _inside(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return GRID.lo + rng.random((n, 3)) * (GRID.hi - GRID.lo)
+
+
+# ------------------------------------------------------------------------------ exactness
+def test_linear_field_is_reproduced_exactly_inside_cells(field):
+    pts = _inside(200)
+    w = field.weights(pts)
+    assert not w.outside.any() and not w.unlit.any()
+    np.testing.assert_allclose(w.weights.sum(axis=1), 1.0, rtol=0, atol=1e-14)
+    shapes = linear_shapes()
+    np.testing.assert_allclose(field.sh(w), linear_values("sh", shapes["sh"], pts),
+                               rtol=0, atol=1e-12)
+    for kind, name in (("diffuse", "diffuse"), ("incoming", "incoming")):
+        got = field.cube(w, kind)
+        assert got.dtype == np.float32 and got.shape == (200, *shapes[name])
+        np.testing.assert_allclose(got, linear_values(name, shapes[name], pts), rtol=0, atol=1e-5)
+    for k in range(field.specular_levels):
+        got = field.cube(w, "specular", level=k)
+        want = linear_values(f"specular_{k}", shapes[f"specular_{k}"], pts)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+
+
+def test_probe_positions_give_the_probe_values(field):
+    pos = GRID.positions()
+    w = field.weights(pos)
+    got = field.sh(w)
+    np.testing.assert_array_equal(got, field.store.arrays["sh"][:].astype(np.float64))
+
+
+def test_cubemap_bundles_every_specular_level(field):
+    w = field.weights([0.5, 0.5, 0.5])
+    (cm,) = field.cubemap(w, "specular")
+    assert isinstance(cm, CubeMap) and cm.kind == "specular"
+    assert cm.num_levels == field.specular_levels == 4
+    assert [lv.shape[1] for lv in cm.levels] == [8, 4, 2, 1]
+    assert field.kinds == ("diffuse", "specular", "incoming")
+
+
+# ------------------------------------------------------------------------------ validity
+def test_invalid_probes_get_zero_weight_and_the_rest_renormalise():
+    valid = np.ones(GRID.n_probes, bool)
+    centre = np.array([[0.5, 0.5, 0.5]])  # trilinear 1/8 on every corner of cell (0, 0, 0)
+    idx = GRID.corner_indices(centre)[0]
+    valid[idx[[0, 5]]] = False
+    w = probe_weights(GRID, centre, valid=valid)
+    np.testing.assert_allclose(w.weights[0, [0, 5]], 0.0)
+    np.testing.assert_allclose(np.delete(w.weights[0], [0, 5]), 1.0 / 6.0, rtol=1e-15)
+    # an affine field over the valid probes is no longer exact, but it is their weighted mean
+    values = np.arange(GRID.n_probes, dtype=np.float64)[:, None]
+    assert blend(values, w)[0, 0] == pytest.approx(np.mean(np.delete(idx, [0, 5])))
+
+
+def test_all_corners_invalid_is_flagged_unlit():
+    valid = np.ones(GRID.n_probes, bool)
+    pts = np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 1.5]])
+    valid[GRID.corner_indices(pts[0])] = False
+    w = probe_weights(GRID, pts, valid=valid)
+    assert w.unlit.tolist() == [True, False]
+    assert np.all(w.weights[0] == 0) and w.weights[1].sum() == pytest.approx(1.0)
+    assert np.all(blend(np.ones((GRID.n_probes, 2)), w)[0] == 0)
+
+
+def test_invalid_probe_data_never_leaks_into_the_blend():
+    arrays = linear_arrays()
+    valid = arrays["valid"].copy()
+    valid[0] = False
+    sh = arrays["sh"].astype(np.float64)
+    sh[0] = np.nan  # whatever an invalid probe holds must not matter
+    w = probe_weights(GRID, [[0.25, 0.25, 0.25]], valid=valid)
+    assert np.isfinite(blend(sh, w)).all()
+
+
+# ------------------------------------------------------------------------------ DDGI weights
+LINE = GridSpec.from_counts((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (2, 1, 1))
+
+
+def _per_probe(w) -> np.ndarray:
+    """(n, P) weight of each probe of LINE (corners repeat probe 0 on its single-probe axes)."""
+    out = np.zeros((len(w), LINE.n_probes))
+    for i in range(len(w)):
+        out[i] = np.bincount(w.indices[i], weights=w.weights[i], minlength=LINE.n_probes)
+    return out
+
+
+def _moments(mean: np.ndarray, mean_sq: np.ndarray, m: int = 2) -> np.ndarray:
+    out = np.empty((len(mean), 6, m, m, 2), np.float64)
+    out[..., 0] = np.asarray(mean)[:, None, None, None]
+    out[..., 1] = np.asarray(mean_sq)[:, None, None, None]
+    return out
+
+
+def test_wall_between_probes_removes_that_probes_weight():
+    p = [[0.5, 0.0, 0.0]]
+    n = [[-1.0, 0.0, 0.0]]  # the surface faces probe 0 at x = 0
+    open_ = _moments([100.0, 100.0], [100.0**2 + 1, 100.0**2 + 1])
+    w_open = probe_weights(LINE, p, normals=n, moments=open_)
+    assert _per_probe(w_open)[0, 0] > 0.8  # facing term 1.2 vs 0.2
+    # probe 0 sees a surface at distance 0.1 in every direction (variance 0): a wall
+    wall = _moments([0.1, 100.0], [0.01, 100.0**2 + 1])
+    w = probe_weights(LINE, p, normals=n, moments=wall)
+    assert _per_probe(w)[0, 0] < 1e-12
+    assert _per_probe(w)[0, 1] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_ddgi_weights_match_the_stated_formula():
+    p = [[0.5, 0.0, 0.0]]
+    n = [[-1.0, 0.0, 0.0]]
+    # probe 0: mean 0.4, variance 0.01, point at r = 0.5 -> Chebyshev 0.01 / 0.02 = 0.5, cubed
+    m = _moments([0.4, 100.0], [0.16 + 0.01, 100.0**2 + 1])
+    w = probe_weights(LINE, p, normals=n, moments=m, normal_bias=0.0)
+    s0 = 1.2 * 0.5**3  # facing ((1 + 1) / 2)^2 + 0.2 = 1.2
+    assert s0 < CRUSH_THRESHOLD
+    s0 = s0**3 / CRUSH_THRESHOLD**2  # crushed
+    s1 = 0.2  # facing away: ((-1 + 1) / 2)^2 + 0.2
+    np.testing.assert_allclose(_per_probe(w)[0], [s0 / (s0 + s1), s1 / (s0 + s1)], rtol=1e-12)
+    # the normal bias moves the tested point by 0.1 cell along n, to r = 0.4 = mean: visible
+    w_b = probe_weights(LINE, p, normals=n, moments=m, normal_bias=0.1)
+    np.testing.assert_allclose(_per_probe(w_b)[0], [1.2 / 1.4, 0.2 / 1.4], rtol=1e-12)
+
+
+def test_normal_term_without_moments_and_with_moved_probes():
+    p = [[0.5, 0.0, 0.0]]
+    n = [[0.0, 1.0, 0.0]]  # perpendicular to both probe directions: equal terms 0.45
+    w = probe_weights(LINE, p, normals=n)
+    np.testing.assert_allclose(_per_probe(w)[0], 0.5)
+    moved = np.array([[0.5, 1.0, 0.0], [1.0, 0.0, 0.0]])  # probe 0 moved straight above p
+    w = probe_weights(LINE, p, normals=n, probe_positions=moved)
+    np.testing.assert_allclose(_per_probe(w)[0], [1.2 / 1.65, 0.45 / 1.65], rtol=1e-12)
+
+
+def _random_field(seed: int):
+    rng = np.random.default_rng(seed)
+    grid = GridSpec.from_counts((0.0, 0.0, 0.0), (2.0, 2.0, 2.0), (3, 3, 3))
+    values = rng.normal(size=(grid.n_probes, 5))
+    mean = rng.uniform(0.3, 2.0, size=(grid.n_probes, 6, 3, 3))
+    var = rng.uniform(0.01, 0.2, size=mean.shape)
+    moments = np.stack([mean, mean**2 + var], axis=-1)
+    valid = np.ones(grid.n_probes, bool)
+    valid[4] = False
+    return grid, values, moments, valid
+
+
+def test_no_popping_weights_are_continuous_along_a_line():
+    """Max jump between neighbouring samples shrinks with the step: no discontinuity anywhere,
+    including at cell boundaries and where the probe directions cross cube-face edges."""
+    grid, values, moments, valid = _random_field(1)
+    a, b = np.array([0.05, 0.3, 0.2]), np.array([1.95, 1.7, 1.9])
+    normal = np.array([[0.3, 0.8, -0.5]])
+
+    def max_jump(steps: int) -> float:
+        t = np.linspace(0.0, 1.0, steps)[:, None]
+        pts = a + t * (b - a)
+        w = probe_weights(grid, pts, valid=valid, normals=np.repeat(normal, steps, 0),
+                          moments=moments)
+        f = blend(values, w)
+        return float(np.abs(np.diff(f, axis=0)).max())
+
+    coarse, fine = max_jump(2001), max_jump(20001)
+    assert fine < 0.2 * coarse, (coarse, fine)  # Lipschitz: ~0.1; a jump would stay put
+
+
+def test_continuity_across_a_cell_face_exactly():
+    grid, values, moments, valid = _random_field(2)
+    eps = 1e-9
+    pts = np.array([[1.0 - eps, 0.7, 1.3], [1.0 + eps, 0.7, 1.3]])
+    nrm = np.array([[0.2, -0.9, 0.4]] * 2)
+    w = probe_weights(grid, pts, valid=valid, normals=nrm, moments=moments)
+    f = blend(values, w)
+    np.testing.assert_allclose(f[0], f[1], atol=1e-6)
+    # the two points lie in different cells: different corner sets, same blended result
+    assert not np.array_equal(w.indices[0], w.indices[1])
+
+
+# ------------------------------------------------------------------------------ clamping
+def test_outside_points_are_clamped_and_flagged(field):
+    pts = np.array([[-1.0, 0.5, 0.5], [3.0, 2.0, -4.0], [1.0, 0.5, 1.0]])
+    w = field.weights(pts)
+    assert w.outside.tolist() == [True, True, False]
+    np.testing.assert_array_equal(w.points, [[0.0, 0.5, 0.5], [2.0, 1.0, 0.0], [1.0, 0.5, 1.0]])
+    inside = field.weights(w.points)
+    np.testing.assert_array_equal(w.weights, inside.weights)
+    np.testing.assert_allclose(field.sh(w), linear_values("sh", (9, 3), w.points), atol=1e-12)
+
+
+# ------------------------------------------------------------------------------ lookups
+def test_probe_lookup_is_the_seamless_cube_sampler():
+    rng = np.random.default_rng(3)
+    cubes = rng.normal(size=(4, 6, 5, 5, 2)).astype(np.float32)
+    d = rng.normal(size=(600, 3))
+    d[:100] = np.sign(d[:100])  # cube corners
+    d[100:200, 0] = np.sign(d[100:200, 0]) * np.abs(d[100:200, 1])  # face edges
+    probes = rng.integers(0, 4, size=600)
+    got = _probe_bilinear(cubes, probes, d)
+    for p in range(4):
+        sel = probes == p
+        want = CubeSampler(cubes[p]).bilinear(d[sel])
+        np.testing.assert_allclose(got[sel], want, rtol=1e-5, atol=1e-5)
+
+
+def test_blend_lookup_equals_lookup_of_the_blended_cube(field):
+    pts = _inside(12, seed=4)
+    w = field.weights(pts, normals=np.tile([0.0, 1.0, 0.0], (12, 1)))
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(12, 3))
+    lod = rng.uniform(0, 3, size=12)
+    levels = [field.store.arrays[f"specular_{k}"] for k in range(4)]
+    got = blend_lookup(levels, w, d, lod=lod)
+    blended = [field.cube(w, "specular", level=k) for k in range(4)]
+    for i in range(12):
+        want = CubeSampler([lv[i] for lv in blended]).trilinear(d[i], lod[i])
+        np.testing.assert_allclose(got[i], want, rtol=1e-5, atol=1e-4)
+
+
+def test_shade_equals_split_sum_on_the_blended_maps(field):
+    n = 6
+    rng = np.random.default_rng(5)
+    pts = _inside(n, seed=5)
+    nrm = rng.normal(size=(n, 3))
+    views = rng.normal(size=(n, 3))
+    albedo = rng.uniform(0, 1, size=(n, 3))
+    f0 = np.array([0.04, 0.04, 0.04])
+    rough = rng.uniform(0, 1, size=n)
+    lut = dfg_lut(16, samples=8)
+    rgb, _ = field.shade(pts, nrm, views, albedo=albedo, roughness=rough, f0=f0, dfg=lut)
+    assert rgb.shape == (n, 3) and rgb.dtype == np.float32
+    for i in range(n):
+        wi = field.weights(pts[i], normals=nrm[i])
+        spec = [field.cube(wi, "specular", level=k)[0] for k in range(4)]
+        want = shade_split_sum(nrm[i], views[i], albedo=albedo[i], roughness=rough[i], f0=f0,
+                               diffuse=field.cube(wi, "diffuse")[0], specular_levels=spec, dfg=lut)
+        np.testing.assert_allclose(rgb[i], want, rtol=2e-5, atol=2e-4)
+
+
+# ------------------------------------------------------------------------------ bad input
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"points": [[np.nan, 0.0, 0.0]]}, "finite"),
+        ({"points": [[np.inf, 0.0, 0.0]]}, "finite"),
+        ({"points": [[0.0, 0.0]]}, "shape"),
+        ({"points": [[0.0, 0.0, 0.0]], "normals": [[0.0, 0.0, 0.0]]}, "non-zero"),
+        ({"points": [[0.0, 0.0, 0.0]], "normals": [[1.0, 0.0, 0.0]] * 2}, "one row per point"),
+        ({"points": [[0.0, 0.0, 0.0]], "normal_bias": -1.0}, "normal_bias"),
+    ],
+)
+def test_bad_arguments_raise_value_error(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        probe_weights(GRID, **kwargs)
+
+
+def test_bad_kind_and_level_raise_value_error(field):
+    w = field.weights([0.5, 0.5, 0.5])
+    with pytest.raises(ValueError, match="0..3"):
+        field.cube(w, "specular", level=4)
+    with pytest.raises(ValueError, match="no 'phong' maps"):
+        field.cube(w, "phong")  # type: ignore[arg-type]
+
+
+def test_huge_normals_and_points_stay_finite(field):
+    w = field.weights([[1e300, -1e300, 0.5]], normals=[[1e300, 1e300, 0.0]])
+    assert w.outside[0] and np.isfinite(w.weights).all()
+    assert w.weights.sum() == pytest.approx(1.0)

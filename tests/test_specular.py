@@ -1,0 +1,218 @@
+"""Tests of probegrid.specular: GGX chain (tiered and exact), Phong, references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from probegrid import lobes, specular
+from probegrid.cubemap import texel_directions, texel_solid_angles
+from probegrid.layouts import to_cube
+from probegrid.specular import (
+    ggx_prefilter,
+    ggx_tier_plan,
+    phong_chain,
+    phong_filter,
+    reference_convolution,
+)
+
+
+def _integral(cube: np.ndarray) -> np.ndarray:
+    """Solid-angle integral of each channel."""
+    n = cube.shape[1]
+    return np.einsum("fijc,fij->c", cube.astype(np.float64), texel_solid_angles(n))
+
+
+def _rel(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    return np.abs(x - ref) / np.abs(ref)
+
+
+def _mean_cosine_ggx(alpha: float) -> float:
+    """E[R . w] under the normalised GGX prefilter lobe, by 1-D quadrature in theta."""
+    x, w = np.polynomial.legendre.leggauss(4000)
+    th = 0.25 * np.pi * (x + 1.0)                       # theta in [0, pi/2]: kernel 0 beyond
+    wt = 0.25 * np.pi * w * 2.0 * np.pi * np.sin(th)
+    k = lobes.ggx_kernel(np.cos(th), alpha)
+    return float(np.sum(k * np.cos(th) * wt) / np.sum(k * wt))
+
+
+def _linear_env(n: int, b: np.ndarray) -> np.ndarray:
+    """L(w) = 1 + b . w (per channel: b is (C, 3)), a degree-1 environment."""
+    d = texel_directions(n)
+    return (1.0 + np.einsum("fijd,cd->fijc", d, b)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def venice64(venice_latlong: np.ndarray) -> np.ndarray:
+    return to_cube(venice_latlong, "equirect", 64)
+
+
+@pytest.fixture(scope="module")
+def venice_chain(venice64: np.ndarray) -> list[np.ndarray]:
+    return ggx_prefilter(venice64)
+
+
+# --------------------------------------------------------------------------------------------
+# GGX chain
+
+
+def test_chain_shapes_and_level0_is_bit_exact_copy(venice64: np.ndarray,
+                                                  venice_chain: list[np.ndarray]) -> None:
+    assert [a.shape for a in venice_chain] == [(6, 64 >> k, 64 >> k, 3) for k in range(7)]
+    assert all(a.dtype == np.float32 for a in venice_chain)
+    assert np.array_equal(venice_chain[0], venice64)
+    assert venice_chain[0] is not venice64
+
+
+@pytest.mark.parametrize("channels", [1, 4])
+def test_constant_environment_every_level(channels: int) -> None:
+    value = np.linspace(0.5, 3.0, channels).astype(np.float32)
+    cube = np.broadcast_to(value, (6, 32, 32, channels)).copy()
+    for method in ("tiered", "exact"):
+        chain = ggx_prefilter(cube, levels=4 if method == "exact" else None, method=method)
+        for level in chain:
+            np.testing.assert_allclose(level, np.broadcast_to(value, level.shape), rtol=1e-4)
+
+
+def test_linear_environment_matches_analytic_lobe_mean() -> None:
+    """For L = 1 + b . w the normalised lobe average is 1 + E[cos] b . R (by symmetry)."""
+    b = np.array([[0.3, -0.2, 0.25], [0.0, 0.4, 0.0], [-0.1, 0.1, 0.3]])
+    chain = ggx_prefilter(_linear_env(64, b))
+    for k in range(1, len(chain)):
+        alpha = (k / (len(chain) - 1)) ** 2
+        d = texel_directions(64 >> k)
+        expect = 1.0 + _mean_cosine_ggx(alpha) * np.einsum("fijd,cd->fijc", d, b)
+        # tolerance: the midpoint rule of the 64^2 input for the narrowest lobe
+        np.testing.assert_allclose(chain[k], expect, rtol=2e-3 if k == 1 else 5e-4)
+
+
+def test_tiered_matches_reference_on_real_hdr(venice64: np.ndarray,
+                                              venice_chain: list[np.ndarray]) -> None:
+    """The tiered sum against the brute-force float64 sum over every input texel."""
+    levels = len(venice_chain)
+    worst = []
+    for k in range(1, levels):
+        alpha = (k / (levels - 1)) ** 2
+        ref = reference_convolution(venice64, alpha, 64 >> k)
+        e = _rel(venice_chain[k], ref)
+        worst.append((k, float(np.sqrt(np.mean(e**2))), float(e.max())))
+    for k, rms, mx in worst:
+        assert rms < 5e-3, worst
+        assert mx < 0.1, worst
+
+
+def test_energy_is_conserved(venice64: np.ndarray, venice_chain: list[np.ndarray]) -> None:
+    """A normalised zonal filter keeps the solid-angle integral (up to quadrature error)."""
+    total = _integral(venice64)
+    for level in venice_chain:
+        np.testing.assert_allclose(_integral(level), total, rtol=1e-2)
+
+
+def test_single_bright_texel_matches_reference() -> None:
+    """A delta-like source (one hot texel on a dim background) against the exact sum."""
+    cube = np.full((6, 32, 32, 1), 0.01, dtype=np.float32)
+    cube[4, 13, 20] = 1000.0
+    chain = ggx_prefilter(cube)
+    for k in range(1, len(chain)):
+        alpha = (k / (len(chain) - 1)) ** 2
+        ref = reference_convolution(cube, alpha, 32 >> k)
+        # where the lobe sees the hot texel strongly the error is small...
+        peak = ref > 0.2 * ref.max()
+        assert np.max(_rel(chain[k], ref)[peak]) < 0.03
+        # ...and the total (its energy) is right
+        np.testing.assert_allclose(_integral(chain[k]), _integral(ref), rtol=1e-2)
+
+
+def test_rotating_the_input_rotates_the_output() -> None:
+    """The plans use the cube's symmetries: a symmetric input must give a symmetric output."""
+    rng = np.random.default_rng(3)
+    cube = rng.random((6, 16, 16, 2)).astype(np.float32) ** 4 * 10
+    perm = specular._group_permutations(16)
+    for k in (5, 17, 40):
+        rotated = np.empty_like(cube).reshape(-1, 2)
+        rotated[perm[k]] = cube.reshape(-1, 2)           # texel q moves to S_k(q)
+        rotated = rotated.reshape(cube.shape)
+        a = ggx_prefilter(cube, levels=3)
+        b = ggx_prefilter(rotated, levels=3)
+        for lv, (x, y) in enumerate(zip(a, b)):
+            n = x.shape[1]
+            px = specular._group_permutations(n)[k]
+            moved = np.empty_like(x).reshape(-1, 2)
+            moved[px] = x.reshape(-1, 2)
+            np.testing.assert_allclose(y, moved.reshape(x.shape), rtol=2e-5, atol=1e-6,
+                                       err_msg=f"symmetry {k}, level {lv}")
+
+
+def test_levels_and_size_options() -> None:
+    cube = np.ones((6, 16, 16, 3), dtype=np.float32)
+    chain = ggx_prefilter(cube, levels=3, size=8)
+    assert [a.shape[1] for a in chain] == [8, 4, 2]
+    np.testing.assert_allclose(chain[2], 1.0, rtol=1e-4)
+    assert len(ggx_prefilter(cube, levels=1)) == 1
+
+
+def test_tier_plan_is_cached_and_read_only() -> None:
+    a = ggx_tier_plan(32, 16, 0.1)
+    assert ggx_tier_plan(32, 16, 0.1) is a
+    for st in a:
+        assert not st.weights.flags.writeable
+        assert st.norm.shape == st.weights.shape[:1]
+
+
+def test_bad_arguments() -> None:
+    cube = np.ones((6, 8, 8, 3), dtype=np.float32)
+    with pytest.raises(ValueError, match="method must be one of"):
+        ggx_prefilter(cube, method="fis")  # type: ignore[arg-type]
+    bad = cube.copy()
+    bad[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        ggx_prefilter(bad)
+    with pytest.raises(ValueError, match="power-of-two"):
+        ggx_prefilter(np.ones((6, 6, 6, 3), dtype=np.float32), levels=2)
+    with pytest.raises(ValueError, match="shape"):
+        ggx_prefilter(np.ones((5, 8, 8, 3)))
+    with pytest.raises(ValueError, match="alpha"):
+        reference_convolution(cube, 0.0, 4)
+    with pytest.raises(ValueError, match="exponent"):
+        phong_filter(cube, -1.0, 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Phong and references
+
+
+@pytest.mark.parametrize("exponent", [0.0, 1.0, 8.0, 64.0])
+def test_phong_constant_and_linear(exponent: float) -> None:
+    np.testing.assert_allclose(phong_filter(np.full((6, 16, 16, 2), 2.5), exponent, 8), 2.5,
+                               rtol=1e-6)
+    b = np.array([[0.2, 0.3, -0.4]])
+    out = phong_filter(_linear_env(32, b), exponent, 8)
+    d = texel_directions(8)
+    mean_cos = (exponent + 1.0) / (exponent + 2.0)      # E[cos] of max(0, c)^P
+    expect = 1.0 + mean_cos * np.einsum("fijd,cd->fijc", d, b)
+    np.testing.assert_allclose(out, expect, rtol=3e-3)
+
+
+def test_phong_huge_exponent_tends_to_nearest_texels() -> None:
+    cube = np.random.default_rng(0).random((6, 8, 8, 1)).astype(np.float32)
+    out = phong_filter(cube, 1e7, 8)
+    np.testing.assert_allclose(out, cube, rtol=1e-5)
+    assert np.all(np.isfinite(phong_filter(cube, 1e7, 4)))
+
+
+def test_phong_chain_sizes() -> None:
+    chain = phong_chain(np.ones((6, 16, 16, 3)), [64.0, 16.0, 4.0])
+    assert [a.shape for a in chain] == [(6, 16, 16, 3), (6, 8, 8, 3), (6, 4, 4, 3)]
+
+
+def test_reference_is_normalised_ggx_sum() -> None:
+    """Spot-check one output texel of the reference against an explicit float64 sum."""
+    rng = np.random.default_rng(1)
+    cube = rng.random((6, 8, 8, 2))
+    alpha = 0.3
+    ref = reference_convolution(cube, alpha, 4)
+    r = texel_directions(4)[2, 1, 3]
+    k = lobes.ggx_kernel(texel_directions(8).reshape(-1, 3) @ r, alpha)
+    k *= texel_solid_angles(8).reshape(-1)
+    expect = k @ cube.reshape(-1, 2) / k.sum()
+    np.testing.assert_allclose(ref[2, 1, 3], expect, rtol=1e-12)
