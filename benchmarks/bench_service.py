@@ -4,8 +4,9 @@ Starts ``service.main.run`` (one uvicorn worker, as ``probegrid serve`` does) on
 subprocess, serving ``--store`` or, without it, a synthetic store written with
 :class:`probegrid.store.StoreWriter` (8 x 4 x 8 probes, 16^2 diffuse cubes, a 64^2 GGX chain,
 distance moments). A minimal asyncio HTTP/1.1 keep-alive load generator (raw sockets, so the
-client costs far less than the server) then sends, per endpoint, ``--requests`` requests over
-``--connections`` connections after a warm-up:
+client costs far less than the server) then sends, per endpoint and after a warm-up,
+``--requests`` requests on one connection (latency: p50, p99) and ``--requests`` more over
+``--connections`` concurrent connections (throughput: requests per second):
 
 * ``bare``: ``GET /healthz``, a fixed small JSON document from the same app (the reference);
 * ``sh``: ``GET /v1/grids/G/sh?x=&y=&z=`` at positions spread over the grid box;
@@ -187,10 +188,15 @@ def main() -> None:
             results: dict[str, dict[str, float]] = {}
             for key, p in paths.items():
                 asyncio.run(load(port, p, min(300, args.requests), args.connections, 30))
-                results[key] = asyncio.run(load(port, p, args.requests, args.connections,
-                                                args.max_seconds))
-            print(f"{args.requests} requests per endpoint over {args.connections} connections, "
-                  f"one uvicorn worker, store {store.name} ({grid.label})")
+                one = asyncio.run(load(port, p, args.requests, 1, args.max_seconds))
+                many = asyncio.run(load(port, p, args.requests, args.connections,
+                                        args.max_seconds))
+                results[key] = {"p50_ms": one["p50_ms"], "p99_ms": one["p99_ms"],
+                                "rps": many["rps"], "loaded_p50_ms": many["p50_ms"],
+                                "loaded_p99_ms": many["p99_ms"]}
+            print(f"{args.requests} requests per endpoint and measurement, one uvicorn worker, "
+                  f"store {store.name} ({grid.label}); latency on 1 connection, throughput on "
+                  f"{args.connections}")
             print(f"{'endpoint':<11}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
                   f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}")
             bare = results["bare"]

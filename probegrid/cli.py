@@ -121,16 +121,24 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
         help="run the main job on the bundled sample data",
-        description="Filter the bundled sample sky into out/demo/filter and print what was made.",
+        description=(
+            "Filter the bundled sample sky, bake the bundled sample room into a probe grid "
+            "store (unless it exists), print what was made, then serve the store."
+        ),
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
+    p.add_argument("--no-serve", action="store_true", help="stop after filtering and baking")
+    p.add_argument("--port", type=int, default=8000)
     p.set_defaults(handler=_run_demo)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from probegrid.demo import run_demo
 
-    print(run_demo(args.out, progress=_stderr_progress))
+    print(run_demo(args.out, progress=_stderr_progress), flush=True)
+    if not args.no_serve:
+        print("\nServing the store (Ctrl-C stops):")
+        _serve([args.out / "sample_room.probes"], "127.0.0.1", args.port, 1)
     return 0
 
 
@@ -228,12 +236,46 @@ def _run_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_serve(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="serve probe grid stores over HTTP",
+        description=(
+            "Serve one or more stores (NAME.probes, served as NAME) with uvicorn. Limits come "
+            "from PROBEGRID_* environment variables (see service/settings.py). OpenAPI docs at "
+            "/docs."
+        ),
+    )
+    p.add_argument("stores", nargs="+", type=Path, metavar="STORE")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=_positive_int, default=1, help="uvicorn worker processes")
+    p.set_defaults(handler=_run_serve)
+
+
+def _serve(stores: Sequence[Path], host: str, port: int, workers: int) -> None:
+    # The CLI is the one place in probegrid that reaches the HTTP layer (service/), lazily.
+    from service.main import example_usage, run
+
+    if not 0 < port < 65536:
+        raise ValueError(f"--port must be in 1..65535, got {port}")
+    base = f"http://{host}:{port}"
+    print(f"serving {', '.join(str(s) for s in stores)} at {base} (docs: {base}/docs)")
+    print(example_usage(stores[0], base), flush=True)
+    run(stores, host=host, port=port, workers=workers)
+
+
+def _run_serve(args: argparse.Namespace) -> int:
+    _serve(args.stores, args.host, args.port, args.workers)
+    return 0
+
+
 def _stderr_progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
 _SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
-    _add_filter, _add_bake, _add_info, _add_export, _add_demo,
+    _add_filter, _add_bake, _add_info, _add_export, _add_serve, _add_demo,
 )
 
 

@@ -62,11 +62,12 @@ References
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from typing import Any, Final, Literal, get_args
+from typing import Any, Final, Literal, cast, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -100,10 +101,12 @@ DEFAULT_NORMAL_BIAS: Final[float] = 0.1
 
 #: Bytes of gathered probe data per blending chunk (bounds the temporaries).
 _CHUNK_BYTES: Final[int] = 1 << 25
+#: Points per chunk of :func:`probe_weights` (about 25 MB of visibility temporaries).
+_POINT_CHUNK: Final[int] = 8192
 _SPECULAR_RE = re.compile(r"^specular_(\d+)$")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ProbeWeights:
     """Which probes a set of points blends, and with what weights.
 
@@ -195,11 +198,7 @@ def probe_weights(
     p = _points(points, "points")
     if not (np.isfinite(normal_bias) and normal_bias >= 0):
         raise ValueError(f"normal_bias must be finite and >= 0, got {normal_bias!r}.")
-    indices, trilinear, outside = grid.corners(p)
-    clamped = np.minimum(np.maximum(p, grid.bounds_min), grid.bounds_max)
-    w = trilinear
-    if valid is not None:
-        w = w * np.asarray(valid, dtype=bool)[indices]
+    n = None
     if normals is not None:
         n = _unit_rows(_points(normals, "normals"), "normals")
         if n.shape[0] != p.shape[0]:
@@ -207,7 +206,40 @@ def probe_weights(
                 f"normals must have one row per point: {n.shape[0]} normals for {p.shape[0]} "
                 f"points."
             )
-        w = w * _shading_factor(grid, indices, clamped, n, probe_positions, moments, normal_bias)
+    if moments is not None:
+        shape = np.shape(moments)
+        if len(shape) != 5 or shape[1] != 6 or shape[2] != shape[3] or shape[4] != 2:
+            raise ValueError(f"moments must have shape (P, 6, m, m, 2), got {shape}.")
+    v = None if valid is None else np.asarray(valid, dtype=bool)
+    parts = [
+        _weights(grid, p[i:i + _POINT_CHUNK], v, None if n is None else n[i:i + _POINT_CHUNK],
+                 probe_positions, moments, normal_bias)
+        for i in range(0, max(len(p), 1), _POINT_CHUNK)
+    ]
+    if len(parts) == 1:
+        return parts[0]
+    return ProbeWeights(*(np.concatenate([getattr(w, f) for w in parts]) for f in (
+        "indices", "weights", "points", "outside", "unlit")))
+
+
+def _weights(
+    grid: GridSpec,
+    p: NDArray[np.float64],
+    valid: NDArray[np.bool_] | None,
+    normals: NDArray[np.float64] | None,
+    probe_positions: ArrayLike | None,
+    moments: ArrayLike | None,
+    normal_bias: float,
+) -> ProbeWeights:
+    """:func:`probe_weights` of one chunk of points (arguments checked)."""
+    indices, trilinear, outside = grid.corners(p)
+    clamped = np.minimum(np.maximum(p, grid.bounds_min), grid.bounds_max)
+    w = trilinear
+    if valid is not None:
+        w = w * valid[indices]
+    if normals is not None:
+        w = w * _shading_factor(grid, indices, clamped, normals, probe_positions, moments,
+                                normal_bias)
     total = w.sum(axis=1)
     unlit = total <= 0
     if unlit.any():
@@ -227,18 +259,15 @@ def _shading_factor(
 ) -> NDArray[np.float64]:
     """DDGI's per-corner factor ``s`` (n, 8): normal-facing term, Chebyshev test, crush."""
     if probe_positions is None:
-        _, ny, nz = grid.counts
-        ijk = (indices // (ny * nz), (indices // nz) % ny, indices % nz)
-        xc = np.stack([grid.axis_coordinates(a)[ijk[a]] for a in range(3)], axis=-1)
+        ijk = grid.probe_ijk(indices)  # (n, 8, 3): the lattice positions
+        xc = np.stack([grid.axis_coordinates(a)[ijk[..., a]] for a in range(3)], axis=-1)
     else:
         xc = np.asarray(probe_positions, dtype=np.float64)[indices]  # (n, 8, 3)
     to_probe = _safe_unit(xc - points[:, None, :])
     facing = ((np.einsum("nci,ni->nc", to_probe, normals) + 1.0) * 0.5) ** 2 + NORMAL_TERM_FLOOR
     s = facing
     if moments is not None:
-        m = np.asarray(moments) if not isinstance(moments, np.ndarray) else moments
-        if m.ndim != 5 or m.shape[1] != 6 or m.shape[2] != m.shape[3] or m.shape[4] != 2:
-            raise ValueError(f"moments must have shape (P, 6, m, m, 2), got {m.shape}.")
+        m = moments if isinstance(moments, np.ndarray) else np.asarray(moments)
         cells = grid.cell_size[np.array(grid.counts) > 1]
         bias = normal_bias * (float(cells.min()) if cells.size else 0.0)
         q = points + bias * normals
@@ -332,8 +361,8 @@ def blend(array: NDArray[Any], weights: ProbeWeights, *, dtype: type = np.float6
     """
     n = len(weights)
     shape = array.shape[1:]
-    size = int(np.prod(shape, dtype=np.int64))
-    out = np.empty((n, size), dtype=dtype)
+    size = math.prod(shape)
+    out: NDArray[Any] = np.empty((n, size), dtype=dtype)
     step = _chunk_rows(size * 8)
     for i in range(0, n, step):
         j = min(i + step, n)
@@ -435,8 +464,9 @@ class ProbeField:
             )
         self._specular = [f"specular_{k}" for k in spec]
         self.specular_levels = len(spec)
-        self.kinds: tuple[str, ...] = tuple(
-            k for k in MAP_KINDS if (k == "specular" and spec) or (k != "specular" and k in names)
+        self.kinds: tuple[MapKind, ...] = tuple(
+            cast(MapKind, k) for k in MAP_KINDS
+            if (k == "specular" and spec) or (k != "specular" and k in names)
         )
 
     def __repr__(self) -> str:

@@ -18,36 +18,61 @@ Level ``k`` of ``levels`` has face size ``n >> k`` (or ``size >> k``) and percep
 (the split-sum ``n = v = r`` prefilter of Karis 2013). Level 0 is the input unchanged (a copy; a
 box/solid-angle resample when ``size`` differs from the input).
 
-``method="tiered"`` (default) is a deterministic, *sparse multi-resolution* evaluation of that sum
-(no random or quasi-random samples):
+``method="tiered"`` (default) is a deterministic, *sparse multi-resolution* evaluation of that
+sum (no random or quasi-random samples). Why not importance sampling with filtered lookups
+(Krivanek & Colbert 2008, Filament's ``roughnessFilter``)? In numpy a seamless trilinear lookup
+costs ~300 ns, so the ~50 M lookups of a 128^2 chain at 1024 samples are far too slow, and with
+fewer samples the noise and the mip-footprint bias grow. The same idea -- coarser mips where
+the lobe is smooth -- is applied deterministically instead:
 
-* The GGX lobe has long tails (the energy beyond half-angle ``p`` is ``a^2 / (a^2 + tan^2 p)``:
-  ~4 % beyond 12 degrees at ``r = 1/7``), so truncating it is not an option; neither is a dense
-  product with the full-resolution input (``6 n_k^2 x 6 n^2`` pairs). The kernel is therefore
-  split with smooth radial windows into pieces ``K = sum_t K (W_t - W_{t-1})``, ``W_t(theta)`` = 1
-  for ``theta < rho_t / 2`` and 0 beyond ``rho_t`` (a smoothstep between). Piece ``t`` varies on
-  the angular scale ``rho_t`` and is summed against mip level ``s_t = s_0 + t`` of the input
-  (solid-angle box filtered, :func:`probegrid.cubemap.downsample`), whose texel is
-  ``rho_t / beta``: ``rho_t = beta * 2 / m_t`` for face size ``m_t``. So every piece sees about
-  ``pi beta^2`` source texels per output texel, at a resolution matched to its own smoothness (the
-  idea of prefiltered importance sampling, Krivanek & Colbert 2008, made deterministic and
-  exact on each mip's texels). ``s_0`` is the coarsest level whose texel is at most
-  ``HWHM / gamma`` (HWHM ~= 1.29 alpha for the GGX kernel) and the chain of pieces ends with a
-  dense piece ``K (1 - W_last)`` once the remaining mip is small enough to be summed whole
-  (``6 n_k^2 6 m^2 <= dense_pairs``).
-* The weights depend only on geometry, so they are computed once per (input size, output size,
-  alpha, beta, gamma) into a padded sparse *plan* (``functools.lru_cache``, read-only arrays) and
-  reused: a probe grid filters many cubes of one size. They are computed for the outputs of face
-  ``+X`` only; the cube's symmetry group maps texel centres onto texel centres and preserves
-  angles and solid angles, so the other faces' plans are the same weights with permuted source
-  indices (6 x less work). Candidate source texels of a capped piece are found with 4 x 4 tiles
-  (bounding cones) before the exact per-texel test.
-* Applying a plan is a gather of the concatenated mip texels and a weighted sum, chunked over
-  output texels (temporaries <= ~32 MB).
+* Pieces. The GGX lobe has long tails (the energy beyond half-angle ``p`` is
+  ``a^2 / (a^2 + tan^2 p)``: ~4 % beyond 12 degrees at ``r = 1/7``), so it cannot be truncated,
+  and a dense product with the full-resolution input costs ``6 n_k^2 x 6 n^2`` pairs. The kernel
+  is split with smooth radial windows into pieces ``K = sum_t K (W_t - W_{t-1})``; ``W_t`` is 1
+  for ``theta < rho_t / 2``, 0 beyond ``rho_t``, a smoothstep (in the chord ``|R - w|``) between.
+  Piece ``t`` lives in ``rho_t / 4 <= theta <= rho_t`` and is summed over mip ``s_t = s_0 + t``
+  of the input (:func:`probegrid.cubemap.downsample`), whose texel is ``rho_t / beta``:
+  ``rho_t = beta (2 / m_t) (1 + u^2 + v^2)^(-3/4)`` for mip face size ``m_t``, scaled by the
+  local texel size at the output's face position ``(u, v)`` so that every piece sees about
+  ``pi beta^2`` texels (``beta = 6``) also near cube corners. ``s_0`` is the coarsest mip whose
+  texel is at most ``HWHM / gamma`` (HWHM ~= 1.29 alpha; ``gamma = 3``, clamped to the input).
+  The chain ends with a *dense* piece ``K (1 - W_last)`` over a whole mip once
+  ``(6 g^2)(6 m^2) <= dense_pairs`` (2e7; mips up to 64^2), and a level whose lobe is wide
+  enough is one dense piece.
+* First-order moments. A coarse texel stands for the input texels it covers, whose exact
+  positions matter when one is much brighter (a sun). Each mip texel carries ``P = sum L dOmega``
+  and the first moment ``M = sum L dOmega (w_i - w_q)`` (built exactly from the input), and a
+  piece ``f = K W`` contributes ``f(c_q) P_q + f'(c_q) R . M_q`` -- the first-order Taylor
+  expansion of ``f`` about the texel centre (a dipole term, as in fast multipole methods). This
+  cut the error next to the sun by about 2 x. Input texels are the reference's midpoint nodes
+  and have no moment.
+* Output grids. A piece over mip ``m`` is evaluated on a grid of ``2 m`` (at most the level's
+  size) and interpolated (seamless bilinear, :class:`probegrid.sampling.CubeSampler`): its sum
+  is smooth on the scale of its window. Numerators and the normaliser (the same sum for the
+  constant 1, pure geometry) are interpolated separately and divided at the end, so constants
+  stay exact.
+* Plans. The weights depend only on geometry, so they are computed once per (input size, level
+  size, alpha, beta, gamma) into padded *plans* (:func:`ggx_tier_plan`, ``lru_cache``,
+  read-only arrays) and reused: a probe grid filters many cubes of one size. They are computed
+  only for a fundamental domain of the 48 cube symmetries (signed axis permutations, which map
+  texel centres onto texel centres and keep angles and solid angles): the texels
+  ``i <= j <= n - 1 - i`` of face +X, 1/48 of the outputs. Every other output reuses its
+  representative's row with permuted source indices. Candidate source texels of a windowed piece
+  are found with tiles and bounding cones before the exact test.
+* Applying a plan gathers ``(P, M)`` rows and contracts them with the weights, chunked over
+  outputs (temporaries ~32 MB); dense pieces instead permute the whole mip once per symmetry
+  and use one matrix product. BLAS is limited to one thread during the call (its spin-waiting
+  made runs on the shared 2-core machine 2-10 x slower); ``workers`` threads can filter
+  levels concurrently.
 
-Accuracy against :func:`reference_convolution` (every input texel, float64), measured by
-``benchmarks/bench_filter.py`` on real HDRs at 128^2: see the report there (RMS relative error a
-few 1e-3, largest near the sun, where a coarse mip's texel hides the sun's exact position).
+Accuracy against :func:`reference_convolution` (every input texel, float64) on the real HDRs at
+128^2 (``benchmarks/bench_filter.py``): RMS relative error ~2e-3 (venice) and ~1.5e-2 (studio's
+small bright softboxes) on levels 1-2, max 7-12 % next to the brightest sources; levels 3+ are
+dense and within 1e-3 RMS. Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 %
+(studio) RMS. Memory: the plans (~5 MB at 128^2) and the symmetry table
+(:func:`_chain_permutations`, 25 MB at 128^2, 4 x per doubling). Tests: constant, linear
+(analytic lobe mean), near-delta and real-HDR inputs against the reference, symmetry.
+
 ``method="exact"`` is the dense float64 sum over every input texel (slow, for references).
 
 Phong (:func:`phong_filter`, :func:`phong_chain`)
@@ -59,12 +84,14 @@ The normalised cosine-power lobe ``max(0, R . w)^P``, summed exactly over every 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import threadpool_limits
 
 from probegrid import lobes
 from probegrid.cubemap import (
@@ -72,8 +99,6 @@ from probegrid.cubemap import (
     FACE_U,
     FACE_V,
     check_cube,
-    direction_to_texel,
-    downsample,
     mip_sizes,
     texel_directions,
     texel_solid_angles,
@@ -82,6 +107,8 @@ from probegrid.cubemap import (
 
 __all__ = [
     "GGXMethod",
+    "PlanStage",
+    "ggx_filter",
     "ggx_prefilter",
     "ggx_tier_plan",
     "phong_chain",
@@ -293,7 +320,7 @@ def _octahedral_group() -> NDArray[np.float64]:
     return out
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=16)
 def _group_permutations(n: int) -> NDArray[np.int32]:
     """``perm[k, q]``: flat index (face-major) of the texel whose centre is ``S_k w_q``, for the
     48 cube symmetries ``S_k`` of :func:`_octahedral_group`. (48, 6 n^2) int32, read-only.
@@ -521,7 +548,8 @@ class PlanStage:
         Sparse stages: flat indices into the concatenated mip chain. None for a dense stage,
         whose ``K`` entries are all ``6 m^2`` texels of mip ``level`` in order.
     level : int
-        Source mip level of a dense stage (-1 for sparse stages).
+        Source mip level of a dense stage; for a sparse stage 0 when every entry is an input
+        texel (no moments: only ``P`` is gathered) and -1 otherwise.
     norm : (F,) float64
         The same first-order sum for the constant 1 (pure geometry): the normaliser.
     """
@@ -618,13 +646,18 @@ def ggx_tier_plan(n: int, size: int, alpha: float, *, beta: float = 6.0, gamma: 
     for g in sorted(sparse, reverse=True):
         parts = sparse[g]
         w0, w1, q, ok = (np.concatenate([x[i] for x in parts], axis=1) for i in range(4))
-        rr, cc, slot, width = _compact_rows(ok & ((w0 != 0) | (w1 != 0)))
-        packed = [np.zeros((w0.shape[0], width), dtype=x.dtype) for x in (w0, w1, q)]
-        for o, x in zip(packed, (w0, w1, q)):
-            o[rr, slot] = x[rr, cc]
         rdir = texel_directions(g)[0].reshape(-1, 3)[_fundamental_domain(g)[0]]
-        stages.append(_make_stage(g, packed[0], packed[1], packed[2].astype(np.int32), -1,
-                                  geo, rdir))
+        on_input = q < 6 * n * n
+        # Entries on the input texels have no moments: a separate stage gathers only P there.
+        for sel, level in ((on_input, 0), (~on_input, -1)):
+            rr, cc, slot, width = _compact_rows(sel & ok & ((w0 != 0) | (w1 != 0)))
+            if width == 0:
+                continue
+            packed = [np.zeros((w0.shape[0], width), dtype=x.dtype) for x in (w0, w1, q)]
+            for o, x in zip(packed, (w0, w1, q)):
+                o[rr, slot] = x[rr, cc]
+            stages.append(_make_stage(g, packed[0], packed[1], packed[2].astype(np.int32),
+                                      level, geo, rdir))
     return tuple(sorted(stages, key=lambda st: -st.grid))
 
 
@@ -651,15 +684,19 @@ def _geometric_pyramid(n: int) -> NDArray[np.float64]:
     return out
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=2)
 def _chain_permutations(n: int) -> NDArray[np.int32]:
     """:func:`_group_permutations` of the concatenated mip chain of an ``n``-cube, flattened:
-    ``out[k * total + q]``. (48 total,) int32, read-only."""
-    parts, off = [], 0
-    for m in mip_sizes(n):
-        parts.append(_group_permutations(m) + off)
+    ``out[k * total + q]``. (48 total,) int32, read-only: 48 x 8 n^2 int32 (25 MB at n = 128,
+    100 MB at 256), the main memory cost of the tiered filter."""
+    sizes = mip_sizes(n)
+    total = sum(6 * m * m for m in sizes)
+    perm = np.empty((48, total), dtype=np.int32)
+    off = 0
+    for m in sizes:
+        np.add(_group_permutations.__wrapped__(m), off, out=perm[:, off:off + 6 * m * m])
         off += 6 * m * m
-    perm = np.concatenate(parts, axis=1).astype(np.int32).reshape(-1)
+    perm = perm.reshape(-1)
     perm.setflags(write=False)
     return perm
 
@@ -669,22 +706,30 @@ def _moment_pyramid(src: NDArray[np.float32], dtype: type = np.float32) -> NDArr
 
     For mip texel ``q`` (centre ``w_q``) covering input texels ``i``:
     ``P_q = sum_i L_i dOmega_i`` and ``M_q = sum_i L_i dOmega_i (w_i - w_q)`` per channel (``M``
-    is 0 on level 0). Returns ``(total, 4 C)`` rows ``[P (C), M_x (C), M_y (C), M_z (C)]`` for
-    the levels ``0, 1, ...`` concatenated (each face-major), computed in float64.
+    is 0 on level 0). Built level by level from the 2 x 2 children ``j`` (float64):
+    ``P = sum_j P_j`` and ``M = sum_j (M_j + P_j (w_j - w_q))``. Returns ``(total, 4 C)`` rows
+    ``[P (C), M_x (C), M_y (C), M_z (C)]`` for the levels ``0, 1, ...`` concatenated (each
+    face-major).
     """
     n, c = src.shape[1], src.shape[3]
-    lw = src.astype(np.float64) * texel_solid_angles(n)[..., None]
-    lwd = lw[..., None, :] * texel_directions(n)[..., :, None]    # (6, n, n, 3, C)
-    rows = []
-    for m in mip_sizes(n):
-        b = n // m
-        p = lw.reshape(6, m, b, m, b, c).sum(axis=(2, 4))
-        mom = lwd.reshape(6, m, b, m, b, 3, c).sum(axis=(2, 4))
+    sizes = mip_sizes(n)
+    total = sum(6 * m * m for m in sizes)
+    out = np.empty((total, 4 * c), dtype=dtype)
+    p = src.astype(np.float64) * texel_solid_angles(n)[..., None]   # (6, m, m, C)
+    mom = np.zeros((6, n, n, 3, c))
+    out[:6 * n * n, :c] = p.reshape(-1, c)
+    out[:6 * n * n, c:] = 0.0
+    off = 6 * n * n
+    for m in sizes[1:]:
+        child_w = texel_directions(2 * m).reshape(6, m, 2, m, 2, 3, 1)
+        pc = p.reshape(6, m, 2, m, 2, 1, c)
+        mom = (mom.reshape(6, m, 2, m, 2, 3, c) + pc * child_w).sum(axis=(2, 4))
+        p = p.reshape(6, m, 2, m, 2, c).sum(axis=(2, 4))
         mom -= texel_directions(m)[..., :, None] * p[..., None, :]
-        if b == 1:
-            mom[:] = 0.0
-        rows.append(np.concatenate([p[..., None, :], mom], axis=3).reshape(6 * m * m, 4 * c))
-    return np.concatenate(rows, axis=0).astype(dtype)
+        out[off:off + 6 * m * m, :c] = p.reshape(-1, c)
+        out[off:off + 6 * m * m, c:] = mom.reshape(-1, 3 * c)
+        off += 6 * m * m
+    return out
 
 
 def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, ...],
@@ -704,6 +749,7 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
     src_levels = mip_sizes(n)
     offsets = np.cumsum([0] + [6 * m * m for m in src_levels[:-1]])
     acc = np.zeros((6, size, size, c + 1), dtype=np.float64)
+    p_only: NDArray[np.float32] | None = None
     for st in stages:
         g = st.grid
         fund, owner_sym, owner_row = _fundamental_domain(g)
@@ -744,10 +790,17 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
         else:
             ww, cols = st.weights, st.columns
             chunk = max(1, _CHUNK_BYTES // (4 * 4 * c * max(ww.shape[2], 1)))
+            if st.level == 0 and p_only is None:
+                p_only = np.ascontiguousarray(pyramid[:, :c])
             for i in range(0, 6 * g * g, chunk):
                 fr = owner_row[i:i + chunk]
-                idx = cols[fr] + (owner_sym[i:i + chunk].astype(np.intp) * total)[:, None]
-                x = np.take(pyramid, np.take(perm, idx), axis=0)   # (r, K, 4 C)
+                idx = np.take(perm, cols[fr] + (owner_sym[i:i + chunk].astype(np.intp)
+                                                 * total)[:, None])
+                if st.level == 0:                                  # input texels: P only
+                    x = np.take(p_only, idx, axis=0)               # (r, K, C)
+                    part[i:i + chunk, :c] = np.matmul(ww[fr, :1], x)[:, 0]
+                    continue
+                x = np.take(pyramid, idx, axis=0)                  # (r, K, 4 C)
                 y = np.matmul(ww[fr], x)                           # (r, 2, 4 C)
                 mom = y[:, 1, c:].reshape(-1, 3, c)
                 part[i:i + chunk, :c] = y[:, 0, :c] + np.einsum("rd,rdc->rc",
@@ -768,6 +821,7 @@ def ggx_prefilter(
     method: GGXMethod = "tiered",
     beta: float = 6.0,
     gamma: float = 3.0,
+    workers: int = 1,
 ) -> list[NDArray[np.float32]]:
     """GGX prefiltered specular mip chain (split-sum, ``n = v = r``).
 
@@ -785,6 +839,9 @@ def ggx_prefilter(
         sum over every input texel (:func:`reference_convolution`; slow).
     beta, gamma : float
         Accuracy parameters of ``"tiered"`` (see :func:`ggx_tier_plan`).
+    workers : int
+        Threads filtering levels concurrently (``"tiered"``); level 1 is about half the work,
+        so 2 is the useful maximum. Default 1 (a probe grid is parallel at a higher level).
 
     Returns
     -------
@@ -804,6 +861,8 @@ def ggx_prefilter(
         raise ValueError(f"method 'tiered' needs a power-of-two input face size, got {n}.")
     if not (beta >= 1 and gamma > 0):
         raise ValueError(f"beta must be >= 1 and gamma > 0, got {beta!r} and {gamma!r}.")
+    if not isinstance(workers, (int, np.integer)) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}.")
     if base == n:
         out = [src.copy()]
     else:
@@ -812,13 +871,59 @@ def ggx_prefilter(
         out = [resample(src, base)]
     if len(sizes) == 1:
         return out
-    if method == "tiered":
-        pyramid = _moment_pyramid(src)
-    for k, s in enumerate(sizes[1:], start=1):
-        alpha = float(lobes.roughness_to_alpha(lobes.level_roughness(k, len(sizes))))
-        if method == "exact":
+    if method == "exact":
+        for k, s in enumerate(sizes[1:], start=1):
+            alpha = float(lobes.roughness_to_alpha(lobes.level_roughness(k, len(sizes))))
             out.append(reference_convolution(src, alpha, s).astype(np.float32))
-        else:
+        return out
+    # The tiered path makes many small and medium BLAS calls; a second BLAS thread buys nothing
+    # there and, on a loaded machine, its spin-waiting made runs 2-10x slower (measured), so
+    # BLAS is limited to one thread for the duration of the call; ``workers`` threads filter
+    # different levels instead (numpy releases the GIL in the gathers and products).
+    with threadpool_limits(limits=1, user_api="blas"):
+        pyramid = _moment_pyramid(src)
+        _chain_permutations(n)  # shared caches, built once before any thread needs them
+        _geometric_pyramid(n)
+
+        def level(k: int) -> NDArray[np.float32]:
+            s = sizes[k]
+            alpha = float(lobes.roughness_to_alpha(lobes.level_roughness(k, len(sizes))))
             stages = ggx_tier_plan(n, s, alpha, beta=float(beta), gamma=float(gamma))
-            out.append(_apply_plan(pyramid, n, stages, s))
+            return _apply_plan(pyramid, n, stages, s)
+
+        if workers == 1:
+            out += [level(k) for k in range(1, len(sizes))]
+        else:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                out += list(pool.map(level, range(1, len(sizes))))
     return out
+
+
+def ggx_filter(faces: ArrayLike, alpha: float, size: int, *, beta: float = 6.0,
+               gamma: float = 3.0) -> NDArray[np.float32]:
+    """One GGX-prefiltered cube at any ``alpha`` (the tiered sum of :func:`ggx_prefilter`).
+
+    Parameters
+    ----------
+    faces : (6, n, n, C) float
+        Input radiance, ``n`` a power of two, finite.
+    alpha : float
+        GGX alpha > 0 (``roughness ** 2``).
+    size : int
+        Output face size.
+    beta, gamma : float
+        Accuracy parameters (:func:`ggx_tier_plan`).
+
+    Returns
+    -------
+    (6, size, size, C) float32
+    """
+    src = check_cube(faces, name="faces")
+    if not np.all(np.isfinite(src)):
+        raise ValueError("faces must be finite (no nan or inf radiance).")
+    n = src.shape[1]
+    if n & (n - 1):
+        raise ValueError(f"the tiered GGX filter needs a power-of-two input size, got {n}.")
+    with threadpool_limits(limits=1, user_api="blas"):
+        stages = ggx_tier_plan(n, size, float(alpha), beta=float(beta), gamma=float(gamma))
+        return _apply_plan(_moment_pyramid(src), n, stages, size)

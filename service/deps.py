@@ -1,14 +1,11 @@
 """Request dependencies of the routes, as ``Annotated`` aliases.
 
 * :data:`StateDep` -- the app's :class:`ServiceState` (settings, grids, scratch directory, DFG LUT).
-* :data:`SettingsDep` -- its :class:`service.settings.Settings`.
 * :data:`GridDep` -- the :class:`service.registry.ServedGrid` named by the ``{grid}`` path
   parameter (404 ``not_found`` for a name that is not served).
-* :data:`ProbeQueryDep` -- both of the above at once (:class:`ProbeQuery`), for ``/sh`` and
-  ``/maps``.
-* :data:`PointDep` -- the ``x``, ``y``, ``z`` query parameters (required, finite) and the
-  optional ``nx``, ``ny``, ``nz`` (all three or none, finite, not all zero) as a
-  :class:`PointQuery`.
+* :data:`ProbeQueryDep` -- the grid (as above) and the point of a probe query (``/sh``,
+  ``/maps``): the ``x``, ``y``, ``z`` query parameters (required, finite) and the optional
+  ``nx``, ``ny``, ``nz`` (all three or none, finite, not all zero), as a :class:`ProbeQuery`.
 """
 
 from __future__ import annotations
@@ -34,12 +31,10 @@ __all__ = [
     "DFG_SIZE",
     "POINT_PARAMETERS",
     "GridDep",
-    "PointDep",
     "PointQuery",
     "ProbeQuery",
     "ProbeQueryDep",
     "ServiceState",
-    "SettingsDep",
     "StateDep",
 ]
 
@@ -79,13 +74,6 @@ async def get_state(request: Request) -> ServiceState:
 
 
 StateDep = Annotated[ServiceState, Depends(get_state)]
-
-
-async def get_settings(state: StateDep) -> Settings:
-    return state.settings
-
-
-SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
 async def get_grid(
@@ -160,8 +148,6 @@ async def get_point(request: Request) -> PointQuery:
             raise ApiError(422, "The normal (nx, ny, nz) must not be the zero vector.")
     return PointQuery(position=np.array(xyz, dtype=np.float64), normal=normal)
 
-
-PointDep = Annotated[PointQuery, Depends(get_point)]
 
 
 @dataclass(frozen=True, eq=False)

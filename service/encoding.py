@@ -92,11 +92,12 @@ def conditional_response(
     return Response(content=body, media_type=media_type, headers=h)
 
 
-def scratch_directory() -> tempfile.TemporaryDirectory[str]:
-    """A private temporary directory for image encoding (under /dev/shm when available)."""
+def scratch_directory() -> Path:
+    """A new private directory for image encoding (under /dev/shm when available); the caller
+    removes it."""
     shm = Path("/dev/shm")
     base = str(shm) if shm.is_dir() and os.access(shm, os.W_OK) else None
-    return tempfile.TemporaryDirectory(prefix="probegrid-service-", dir=base)
+    return Path(tempfile.mkdtemp(prefix="probegrid-service-", dir=base))
 
 
 def cube_image(faces: NDArray[np.float32], layout: str) -> NDArray[np.float32]:

@@ -31,7 +31,7 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -77,11 +77,9 @@ def error_body(code: str, message: str, detail: list[dict[str, Any]] | None = No
 
 
 def _json(status: int, code: str, message: str, detail: list[dict[str, Any]] | None = None,
-          headers: dict[str, str] | None = None) -> JSONResponse:
-    body: dict[str, Any] = {"error": code, "message": message}
-    if detail is not None:
-        body["detail"] = detail
-    return JSONResponse(status_code=status, content=body, headers=headers)
+          headers: dict[str, str] | None = None) -> Response:
+    return Response(error_body(code, message, detail), status_code=status,
+                    media_type="application/json", headers=headers)
 
 
 def _sentence(text: str) -> str:
@@ -97,7 +95,7 @@ def _location(loc: tuple[Any, ...]) -> str:
     return ".".join(parts)
 
 
-def _validation(request: Request, exc: Exception) -> JSONResponse:
+def _validation(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, RequestValidationError)
     errors = list(exc.errors())
     detail = [
@@ -114,7 +112,7 @@ def _validation(request: Request, exc: Exception) -> JSONResponse:
     return _json(422, "invalid_request", msg, detail)
 
 
-def _http(request: Request, exc: Exception) -> JSONResponse:
+def _http(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
     status = exc.status_code if 400 <= exc.status_code < 500 else 400
     code = _CODES.get(status, "bad_request")
@@ -127,16 +125,16 @@ def _http(request: Request, exc: Exception) -> JSONResponse:
     return _json(status, code, message, headers=getattr(exc, "headers", None))
 
 
-def _api(request: Request, exc: Exception) -> JSONResponse:
+def _api(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, ApiError)
     return _json(exc.status, exc.code, _sentence(exc.message))
 
 
-def _value(request: Request, exc: Exception) -> JSONResponse:
+def _value(request: Request, exc: Exception) -> Response:
     return _json(422, "invalid_request", _sentence(str(exc)))
 
 
-def _store(request: Request, exc: Exception) -> JSONResponse:
+def _store(request: Request, exc: Exception) -> Response:
     log.error("store failure on %s %s: %s", request.method, request.url.path, exc)
     return _json(503, "store_unavailable", "The grid's store cannot be read right now.",
                  headers={"Retry-After": "1"})

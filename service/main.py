@@ -3,6 +3,7 @@
 * :func:`create_app` opens the stores (read-only memory maps) and returns the FastAPI app.
 * :func:`app_from_environment` is the app factory of worker processes: it reads the store list
   and every setting from ``PROBEGRID_*`` variables (:mod:`service.settings`).
+* :func:`example_usage` is what to print at start-up: a query to try and the same client call.
 * :func:`run` serves until interrupted; with ``workers > 1`` uvicorn starts that many processes,
   each building its app through the factory (memory-mapped stores share their pages).
 
@@ -20,6 +21,8 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
 from __future__ import annotations
 
 import os
+import shutil
+import weakref
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -27,14 +30,15 @@ from pathlib import Path
 from fastapi import FastAPI
 
 from probegrid import __version__
+from probegrid.store import read_manifest
 from service.deps import ServiceState
 from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
-from service.registry import GridRegistry
+from service.registry import GridRegistry, grid_name
 from service.routers import grids, health, lights, maps, sh, shade
 from service.settings import Settings, settings_environment
 
-__all__ = ["app_from_environment", "create_app", "run"]
+__all__ = ["app_from_environment", "create_app", "example_usage", "run"]
 
 
 def create_app(
@@ -57,13 +61,14 @@ def create_app(
     settings = Settings() if settings is None else settings
     registry = GridRegistry.open(list(store_paths))
     scratch = scratch_directory()
+    remove_scratch: list[weakref.finalize] = []
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         try:
             yield
         finally:
-            scratch.cleanup()
+            remove_scratch[0]()
 
     app = FastAPI(
         title="probegrid map service",
@@ -75,15 +80,29 @@ def create_app(
         ),
         lifespan=lifespan,
     )
-    app.state.probegrid = ServiceState(
-        settings=settings, grids=registry, scratch=Path(scratch.name)
-    )
+    # the scratch directory goes at shutdown, or with the app if it never ran a lifespan
+    remove_scratch.append(weakref.finalize(app, shutil.rmtree, scratch, ignore_errors=True))
+    app.state.probegrid = ServiceState(settings=settings, grids=registry, scratch=scratch)
     install_error_handlers(app)
     for module in (health, grids, sh, maps, shade, lights):
         app.include_router(module.router)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
     return app
+
+
+def example_usage(store_path: str | os.PathLike[str], base_url: str) -> str:
+    """Two lines to print when serving: a query to try, and the client call that does the same.
+
+    The query asks for the SH at the centre of the store's grid box.
+    """
+    grid = read_manifest(store_path).grid
+    name = grid_name(store_path)
+    x, y, z = (0.5 * (lo + hi) for lo, hi in zip(grid.bounds_min, grid.bounds_max, strict=True))
+    url = f"{base_url.rstrip('/')}/v1/grids/{name}/sh?x={x:g}&y={y:g}&z={z:g}"
+    call = (f"ProbeGridClient({base_url.rstrip('/')!r}).sh_at({name!r}, ({x:g}, {y:g}, {z:g}))"
+            "  # from probegrid.client import ProbeGridClient")
+    return f"try:   curl '{url}'\nor:    {call}"
 
 
 def app_from_environment() -> FastAPI:

@@ -292,3 +292,25 @@ def test_huge_normals_and_points_stay_finite(field):
     w = field.weights([[1e300, -1e300, 0.5]], normals=[[1e300, 1e300, 0.0]])
     assert w.outside[0] and np.isfinite(w.weights).all()
     assert w.weights.sum() == pytest.approx(1.0)
+
+
+def test_many_points_are_chunked_with_identical_results():
+    grid, _, moments, valid = _random_field(6)
+    rng = np.random.default_rng(6)
+    n = 9000  # more than one chunk of points
+    pts = rng.uniform(-0.2, 2.2, size=(n, 3))
+    nrm = rng.normal(size=(n, 3))
+    w = probe_weights(grid, pts, valid=valid, normals=nrm, moments=moments)
+    assert w.weights.shape == (n, 8) and w.outside.shape == (n,)
+    some = np.r_[0:5, 8190:8196, n - 5:n]
+    part = probe_weights(grid, pts[some], valid=valid, normals=nrm[some], moments=moments)
+    np.testing.assert_array_equal(w.weights[some], part.weights)
+    np.testing.assert_array_equal(w.indices[some], part.indices)
+    empty = probe_weights(grid, np.zeros((0, 3)))
+    assert empty.weights.shape == (0, 8) and len(empty) == 0
+
+
+def test_moments_of_the_wrong_shape_raise_value_error():
+    with pytest.raises(ValueError, match=r"\(P, 6, m, m, 2\)"):
+        probe_weights(LINE, [[0.5, 0.0, 0.0]], normals=[[1.0, 0.0, 0.0]],
+                      moments=np.zeros((2, 6, 2, 3, 2)))

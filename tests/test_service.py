@@ -28,7 +28,7 @@ from probegrid.layouts import faces_to_cross
 from probegrid.lights import PointLight, SpotLight, light_maps
 from probegrid.store import StoreError
 from service.deps import DFG_SIZE
-from service.main import create_app
+from service.main import create_app, example_usage
 from service.registry import grid_name
 
 LIMITS = {
@@ -451,3 +451,35 @@ def test_multiple_workers_share_the_stores(stores, tmp_path):
         bodies = {c.get("/v1/grids/lin/sh", params=POINT).content for _ in range(20)}
         assert len(bodies) == 1
         assert c.get("/v1/grids").json()["grids"][0]["name"] == "lin"
+
+
+def test_last_resort_turns_a_bug_into_a_logged_4xx(stores, caplog):
+    """The mechanism the fuzz run proves idle: an unexpected exception is logged with a
+    reference and answered 400 ``request_failed`` (in-process app, a route that fails on purpose)."""
+    app = create_app([stores["lin"]])
+
+    @app.get("/fail")
+    async def fail() -> None:
+        raise RuntimeError("a bug")
+
+    async def main():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.get("/fail"), await c.get("/healthz")
+
+    import asyncio
+
+    with caplog.at_level("ERROR", logger="probegrid.service"):
+        bad, ok = asyncio.run(main())
+    assert bad.status_code == 400 and bad.json()["error"] == "request_failed"
+    ref = bad.json()["message"].split("reference ")[1].split(")")[0]
+    assert any(ref in r.getMessage() and r.exc_info for r in caplog.records)
+    assert ok.status_code == 200
+
+
+def test_example_usage_names_a_working_query(http, stores, server):
+    text = example_usage(stores["lin"], server.url)
+    url = text.split("'")[1]
+    assert url == f"{server.url}/v1/grids/lin/sh?x=1&y=0.5&z=1"
+    assert http.get(url.removeprefix(server.url)).status_code == 200
+    assert "ProbeGridClient(" in text and ".sh_at('lin', (1, 0.5, 1))" in text

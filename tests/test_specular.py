@@ -29,9 +29,12 @@ def _rel(x: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 def _mean_cosine_ggx(alpha: float) -> float:
     """E[R . w] under the normalised GGX prefilter lobe, by 1-D quadrature in theta."""
-    x, w = np.polynomial.legendre.leggauss(4000)
-    th = 0.25 * np.pi * (x + 1.0)                       # theta in [0, pi/2]: kernel 0 beyond
-    wt = 0.25 * np.pi * w * 2.0 * np.pi * np.sin(th)
+    # midpoint rule in t = atan(tan(theta / 2) / alpha), which spreads the lobe over (0, ~pi/2)
+    t_max = np.arctan(np.tan(np.pi / 4) / alpha)       # theta = pi/2: the kernel is 0 beyond
+    t = (np.arange(200_000) + 0.5) * (t_max / 200_000)
+    th = 2.0 * np.arctan(alpha * np.tan(t))
+    dth = 2.0 * alpha / np.cos(t) ** 2 / (1.0 + (alpha * np.tan(t)) ** 2) * (t_max / 200_000)
+    wt = dth * 2.0 * np.pi * np.sin(th)
     k = lobes.ggx_kernel(np.cos(th), alpha)
     return float(np.sum(k * np.cos(th) * wt) / np.sum(k * wt))
 
@@ -88,39 +91,50 @@ def test_linear_environment_matches_analytic_lobe_mean() -> None:
 
 def test_tiered_matches_reference_on_real_hdr(venice64: np.ndarray,
                                               venice_chain: list[np.ndarray]) -> None:
-    """The tiered sum against the brute-force float64 sum over every input texel."""
+    """The tiered sum against the brute-force float64 sum over every input texel, and energy.
+
+    Energy: a normalised zonal filter keeps the solid-angle integral exactly in the continuum;
+    here both sums agree to 2e-4 at every level, and with the input to 1e-3 except at the
+    1 x 1 level, whose six texel centres are a crude quadrature of the result (1.6 % for the
+    reference as well).
+    """
     levels = len(venice_chain)
+    total = _integral(venice64)
     worst = []
     for k in range(1, levels):
         alpha = (k / (levels - 1)) ** 2
         ref = reference_convolution(venice64, alpha, 64 >> k)
         e = _rel(venice_chain[k], ref)
         worst.append((k, float(np.sqrt(np.mean(e**2))), float(e.max())))
+        np.testing.assert_allclose(_integral(venice_chain[k]), _integral(ref), rtol=2e-4)
+        np.testing.assert_allclose(_integral(venice_chain[k]), total,
+                                   rtol=2e-2 if (64 >> k) == 1 else 1e-3)
+    # measured: rms 1.6e-3 / 1.1e-3, max 4.1 % / 3.0 % (next to the sun) on the sparse levels
+    # 1-2; levels 3+ are dense stages, exact to float32 rounding
     for k, rms, mx in worst:
-        assert rms < 5e-3, worst
-        assert mx < 0.1, worst
+        assert rms < (3e-3 if k <= 2 else 1e-5), worst
+        assert mx < (0.06 if k <= 2 else 1e-4), worst
 
 
-def test_energy_is_conserved(venice64: np.ndarray, venice_chain: list[np.ndarray]) -> None:
-    """A normalised zonal filter keeps the solid-angle integral (up to quadrature error)."""
-    total = _integral(venice64)
-    for level in venice_chain:
-        np.testing.assert_allclose(_integral(level), total, rtol=1e-2)
+def test_bright_texels_match_reference() -> None:
+    """Near-delta sources (hot texels on a background 1e5 dimmer) against the exact sum.
 
-
-def test_single_bright_texel_matches_reference() -> None:
-    """A delta-like source (one hot texel on a dim background) against the exact sum."""
-    cube = np.full((6, 32, 32, 1), 0.01, dtype=np.float32)
-    cube[4, 13, 20] = 1000.0
+    The hardest case for the tiered sum: on the sparse levels a hot texel's position inside a
+    coarse mip texel is only kept to first order (its moment), so where the far tail of the
+    lobe dominates the relative error grows (measured max 71 % where the result is ~1e-4 of
+    the peak); near the lobe it is small, and the energy is right.
+    """
+    cube = np.full((6, 64, 64, 1), 0.01, dtype=np.float32)
+    cube[4, 27, 40] = 1000.0
+    cube[0, 0, 5] = 300.0
     chain = ggx_prefilter(cube)
-    for k in range(1, len(chain)):
-        alpha = (k / (len(chain) - 1)) ** 2
-        ref = reference_convolution(cube, alpha, 32 >> k)
-        # where the lobe sees the hot texel strongly the error is small...
-        peak = ref > 0.2 * ref.max()
-        assert np.max(_rel(chain[k], ref)[peak]) < 0.03
-        # ...and the total (its energy) is right
-        np.testing.assert_allclose(_integral(chain[k]), _integral(ref), rtol=1e-2)
+    for k in (1, 2):  # the sparse levels at this size
+        ref = reference_convolution(cube, (k / 6) ** 2, 64 >> k)
+        e = _rel(chain[k], ref)
+        near = ref > 0.05 * ref.max()
+        assert np.max(e[near]) < 0.15          # measured 8.6 %, 12.8 %
+        assert np.sqrt(np.mean(e**2)) < 0.05   # measured 3.7 %, 0.6 %
+        np.testing.assert_allclose(_integral(chain[k]), _integral(ref), rtol=2e-3)  # 1.1e-3
 
 
 def test_rotating_the_input_rotates_the_output() -> None:
@@ -149,6 +163,15 @@ def test_levels_and_size_options() -> None:
     assert [a.shape[1] for a in chain] == [8, 4, 2]
     np.testing.assert_allclose(chain[2], 1.0, rtol=1e-4)
     assert len(ggx_prefilter(cube, levels=1)) == 1
+
+
+def test_workers_give_identical_results(venice64: np.ndarray,
+                                       venice_chain: list[np.ndarray]) -> None:
+    two = ggx_prefilter(venice64, workers=2)
+    for a, b in zip(venice_chain, two):
+        assert np.array_equal(a, b)
+    with pytest.raises(ValueError, match="workers"):
+        ggx_prefilter(venice64, workers=0)
 
 
 def test_tier_plan_is_cached_and_read_only() -> None:
@@ -208,11 +231,11 @@ def test_phong_chain_sizes() -> None:
 def test_reference_is_normalised_ggx_sum() -> None:
     """Spot-check one output texel of the reference against an explicit float64 sum."""
     rng = np.random.default_rng(1)
-    cube = rng.random((6, 8, 8, 2))
+    cube = rng.random((6, 8, 8, 2)).astype(np.float32)  # texels are float32 by convention
     alpha = 0.3
     ref = reference_convolution(cube, alpha, 4)
     r = texel_directions(4)[2, 1, 3]
     k = lobes.ggx_kernel(texel_directions(8).reshape(-1, 3) @ r, alpha)
     k *= texel_solid_angles(8).reshape(-1)
-    expect = k @ cube.reshape(-1, 2) / k.sum()
+    expect = k @ cube.reshape(-1, 2).astype(np.float64) / k.sum()
     np.testing.assert_allclose(ref[2, 1, 3], expect, rtol=1e-12)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from probegrid.grid import GridSpec
 from probegrid.interpolate import ProbeWeights
 
@@ -14,12 +12,11 @@ def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dic
     """The probes with non-zero weight for one point, in corner order, as
     :class:`service.schemas.ProbeUse` dicts."""
     keep = weights.weights[row] > 0
-    idx = weights.indices[row][keep]
-    _, ny, nz = grid.counts
-    ijk = np.stack([idx // (ny * nz), (idx // nz) % ny, idx % nz], axis=-1).tolist()
+    _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.grid
     return [
-        {"index": i, "ijk": c, "weight": w}
-        for i, c, w in zip(idx.tolist(), ijk, weights.weights[row][keep].tolist(), strict=True)
+        {"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
+        for i, w in zip(weights.indices[row][keep].tolist(), weights.weights[row][keep].tolist(),
+                        strict=True)
     ]
 
 

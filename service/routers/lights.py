@@ -7,10 +7,12 @@ no shadows). With ``grid``, the grid's blended map at the position is added, so 
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from fastapi import APIRouter, Response
 
-from probegrid.cubemap import mip_sizes
+from probegrid.cubemap import CubeMap, mip_sizes
 from probegrid.lights import DirectionalLight, Light, PointLight, SpotLight, light_maps
 from service.deps import StateDep
 from service.encoding import MEDIA_TYPES, encode_cube
@@ -50,32 +52,31 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         raise ApiError(422, f"{len(body.lights)} lights is over the limit of "
                             f"{settings.max_lights}.")
     served = None
-    if body.grid is not None:
+    chain: int | None  # levels of the chain to make (None: full)
+    if body.grid is not None:  # the grid's map sizes
         served = state.grids.get(body.grid)
         if served is None:
             raise ApiError(404, f"There is no grid {body.grid!r}.")
         if body.kind not in served.field.kinds:
             raise ApiError(422, f"Grid {body.grid!r} has no {body.kind} maps.")
-        levels = served.field.map_levels(body.kind)
-        diffuse_size = served.field.map_size("diffuse") if body.kind == "diffuse" else 1
-        specular_size = served.field.map_size("specular") if body.kind == "specular" else 1
-        specular_levels = levels if body.kind == "specular" else 1
+        size0 = served.field.map_size(body.kind)
+        chain = served.field.map_levels(body.kind)
     else:
-        diffuse_size = body.diffuse_size if body.kind == "diffuse" else 1
-        specular_size = body.specular_size if body.kind == "specular" else 1
-        specular_levels = body.specular_levels if body.kind == "specular" else 1
-        biggest = max(body.diffuse_size if body.kind == "diffuse" else body.specular_size, 1)
-        if biggest > settings.max_light_map_size:
-            raise ApiError(422, f"A face size of {biggest} is over the limit of "
+        size0 = body.diffuse_size if body.kind == "diffuse" else body.specular_size
+        if size0 > settings.max_light_map_size:
+            raise ApiError(422, f"A face size of {size0} is over the limit of "
                                 f"{settings.max_light_map_size}.")
-        try:
-            levels = len(mip_sizes(specular_size, specular_levels))
-        except ValueError as exc:
-            raise ApiError(422, str(exc)) from None
+        chain = 1 if body.kind == "diffuse" else body.specular_levels
+    try:  # the other kind is made at size 1 (light_maps makes both)
+        levels = len(mip_sizes(size0, chain))
+    except ValueError as exc:
+        raise ApiError(422, str(exc)) from None
+    diffuse_size, specular_size = (size0, 1) if body.kind == "diffuse" else (1, size0)
+    specular_levels = levels if body.kind == "specular" else 1
     if body.level >= levels:
         raise ApiError(422, f"level {body.level} is out of range 0..{levels - 1} for "
                             f"{body.kind} maps.")
-    size = (diffuse_size if body.kind == "diffuse" else specular_size) >> body.level
+    size = size0 >> body.level
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
     maps = light_maps(
@@ -85,11 +86,12 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         specular_size=specular_size,
         specular_levels=specular_levels,
     )
-    faces = maps[body.kind].levels[body.level]
+    faces = cast(CubeMap, maps[body.kind]).levels[body.level]
     if served is not None:
         w = served.field.weights(np.asarray(body.position, dtype=np.float64))
         faces = faces + served.field.cube(w, body.kind, level=body.level)[0]
-    meta = {"kind": body.kind, "level": body.level, "lights": len(body.lights)}
+    meta: dict[str, object] = {"kind": body.kind, "level": body.level,
+                               "lights": len(body.lights)}
     data = encode_cube(faces.astype(np.float32), fmt=body.format, layout=body.layout,
                        scratch=state.scratch, meta=meta)
     return Response(content=data, media_type=MEDIA_TYPES[body.format])

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, cast
 
 from fastapi import APIRouter, Path, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
 
+from probegrid.interpolate import MapKind
 from probegrid.lobes import level_roughness
 from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep
 from service.encoding import MEDIA_TYPES, conditional_response, encode_cube
@@ -14,6 +16,9 @@ from service.routers._common import flags_json, probe_header, probes_json
 from service.schemas import CubeFormat, CubeLayout, ErrorOut
 
 router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
+
+#: Largest face size whose npy map is made on the event loop rather than in a worker thread.
+INLINE_FACE_SIZE = 32
 
 _BINARY = {"content": {t: {} for t in MEDIA_TYPES.values()}, "description": "The map."}
 
@@ -34,7 +39,7 @@ def check_json_size(values: int, limit: int) -> None:
     responses={200: _BINARY, 404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
     openapi_extra={"parameters": POINT_PARAMETERS},
 )
-def get_map(
+async def get_map(
     request: Request,
     state: StateDep,
     query: ProbeQueryDep,
@@ -54,27 +59,38 @@ def get_map(
     if kind not in field.kinds:
         have = ", ".join(field.kinds)
         raise ApiError(404, f"Grid {grid.name!r} has no {kind[:64]!r} maps; it has {have}.")
-    levels = field.map_levels(kind)  # type: ignore[arg-type]
+    map_kind = cast(MapKind, kind)
+    levels = field.map_levels(map_kind)
     if level >= levels:
         raise ApiError(422, f"level {level} is out of range 0..{levels - 1} for {kind} maps.")
+    n = field.map_size(map_kind, level)
     if fmt == "json":
-        n = field.map_size(kind, level)  # type: ignore[arg-type]
         check_json_size(6 * n * n * 3, state.settings.max_json_values)
-    w = field.weights(point.position, normals=point.normal)
-    faces = field.cube(w, kind, level=level)[0]  # type: ignore[arg-type]
-    f = flags_json(w, visibility=point.normal is not None)
-    meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level}
-    headers = {
-        "X-Probegrid-Probes": probe_header(grid.store.grid, w),
-        "X-Probegrid-Outside": str(f["outside"]).lower(),
-        "X-Probegrid-Unlit": str(f["unlit"]).lower(),
-    }
-    if kind == "specular":
-        r = float(level_roughness(level, levels))
-        meta["roughness"] = r
-        headers["X-Probegrid-Roughness"] = repr(r)
-    if fmt == "json":
-        meta["probes"] = probes_json(grid.store.grid, w)
-        meta["flags"] = f
-    body = encode_cube(faces, fmt=fmt, layout=layout, scratch=state.scratch, meta=meta)
+
+    def render() -> tuple[bytes, dict[str, str]]:
+        w = field.weights(point.position, normals=point.normal)
+        faces = field.cube(w, map_kind, level=level)[0]
+        f = flags_json(w, visibility=point.normal is not None)
+        meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level}
+        headers = {
+            "X-Probegrid-Probes": probe_header(grid.store.grid, w),
+            "X-Probegrid-Outside": str(f["outside"]).lower(),
+            "X-Probegrid-Unlit": str(f["unlit"]).lower(),
+        }
+        if kind == "specular":
+            r = float(level_roughness(level, levels))
+            meta["roughness"] = r
+            headers["X-Probegrid-Roughness"] = repr(r)
+        if fmt == "json":
+            meta["probes"] = probes_json(grid.store.grid, w)
+            meta["flags"] = f
+        body = encode_cube(faces, fmt=fmt, layout=layout, scratch=state.scratch, meta=meta)
+        return body, headers
+
+    # Small arrays are cheaper to make on the event loop than to hand to a thread; image
+    # encoding (OpenImageIO releases the GIL) and big maps go to the thread pool.
+    if fmt == "npy" and n <= INLINE_FACE_SIZE:
+        body, headers = render()
+    else:
+        body, headers = await run_in_threadpool(render)
     return conditional_response(request, body, MEDIA_TYPES[fmt], headers)

@@ -1,0 +1,155 @@
+"""Bake throughput against the physical limit: raw embreex on the same rays, in the same run.
+
+1. Bakes the bundled sample room (grid 4x3x4, 32^2 faces, 2 bounces, the bundled sky) in this
+   process while recording every ray batch the bake hands to Embree (primary and shadow rays,
+   classification rays included), then replays exactly those rays through ``embreex`` directly
+   (float32 arrays, the same batches, ``INTERSECT`` / ``OCCLUDED``) and prints both rates and
+   their ratio: the share of the bake's time that is ray casting.
+2. Probes per second for the sample scene with 1 and 2 local worker processes, for two grid
+   sizes (time should grow linearly in probes and fall with workers), and the peak resident
+   memory of the workers (bounded by a batch per worker, not by the grid).
+
+Run: ``.venv/bin/python benchmarks/bench_bake.py`` (about 2-4 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from embreex import rtcore_scene  # noqa: E402  (the benchmark talks to embreex directly)
+from embreex.mesh_construction import TriangleMesh  # noqa: E402
+
+from probegrid import raytrace  # noqa: E402
+from probegrid.bake import BakeSettings, bake  # noqa: E402
+from probegrid.bakejob import grid_for, load_environment  # noqa: E402
+from probegrid.executors import InlineExecutor, LocalExecutor  # noqa: E402
+from probegrid.scene import load_gltf  # noqa: E402
+
+SCENE = REPO / "data" / "sample_room.glb"
+SKY = REPO / "data" / "sample_sky.hdr"
+
+
+class Recorder:
+    """Wraps RayTracer.intersect / occluded to keep every batch (float32, as Embree sees it)."""
+
+    def __init__(self) -> None:
+        self.batches: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._orig = (raytrace.RayTracer.intersect, raytrace.RayTracer.occluded)
+
+    def __enter__(self) -> Recorder:
+        rec = self
+        intersect, occluded = self._orig
+
+        def rec_intersect(tr, origins, directions, *, tmin=0.0, tmax=np.inf):
+            rec._keep("intersect", tr, origins, directions, tmin, tmax)
+            return intersect(tr, origins, directions, tmin=tmin, tmax=tmax)
+
+        def rec_occluded(tr, origins, directions, tmax, *, tmin=0.0):
+            rec._keep("occluded", tr, origins, directions, tmin, tmax)
+            return occluded(tr, origins, directions, tmax, tmin=tmin)
+
+        raytrace.RayTracer.intersect = rec_intersect  # type: ignore[method-assign]
+        raytrace.RayTracer.occluded = rec_occluded  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        raytrace.RayTracer.intersect, raytrace.RayTracer.occluded = self._orig  # type: ignore
+
+    def _keep(self, kind, tr, origins, directions, tmin, tmax) -> None:
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        o = np.broadcast_to(np.asarray(origins, np.float64), (*np.shape(directions)[:-1], 3))
+        o = o.reshape(-1, 3)
+        lo = np.broadcast_to(np.asarray(tmin, np.float64), (len(d),))
+        hi = np.broadcast_to(np.asarray(tmax, np.float64), (len(d),))
+        org = (o + lo[:, None] * d - tr._centre).astype(np.float32)
+        far = (hi - lo).astype(np.float32)
+        self.batches.append((kind, org, d.astype(np.float32), far))
+
+    @property
+    def rays(self) -> int:
+        return sum(len(b[1]) for b in self.batches)
+
+
+def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
+    """Time to cast the recorded batches with embreex alone (best of 3)."""
+    centre = 0.5 * (scene.vertices.min(0) + scene.vertices.max(0))
+    es = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene=es, vertices=(scene.vertices - centre).astype(np.float32),
+                 indices=scene.triangles.astype(np.int32))
+    best = np.inf
+    for _ in range(3):
+        t = time.perf_counter()
+        for kind, org, d, far in batches:
+            for s in range(0, len(d), chunk):
+                dist = far[s:s + chunk].copy()
+                if kind == "intersect":
+                    es.run(org[s:s + chunk], d[s:s + chunk], dists=dist, output=1)
+                else:
+                    es.run(org[s:s + chunk], d[s:s + chunk], dists=dist,
+                           query="OCCLUDED")
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def children_peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+
+
+def main() -> None:
+    scene = load_gltf(SCENE)
+    env = load_environment(SKY)
+    tmp = Path(tempfile.mkdtemp(prefix="bench-bake-"))
+    try:
+        print("1. ray throughput: bake vs raw embreex on the same rays (1 process)")
+        grid = grid_for(scene, grid="4x3x4")
+        st = BakeSettings(face_size=32, bounces=2)
+        with Recorder() as rec:
+            t = time.perf_counter()
+            bake(scene, grid, tmp / "a.probes", settings=st, environment=env,
+                 executor=InlineExecutor(check_pickle=False))
+            t_bake = time.perf_counter() - t
+        t_raw = raw_embree_seconds(scene, rec.batches)
+        n = rec.rays
+        print(f"   rays cast by the bake (primary + shadow + classify): {n:,}")
+        print(f"   bake:          {n / t_bake / 1e6:7.2f} Mrays/s  ({t_bake:.2f} s, everything)")
+        print(f"   raw embreex:   {n / t_raw / 1e6:7.2f} Mrays/s  ({t_raw:.2f} s, same rays)")
+        print(f"   ratio bake / raw = {t_raw / t_bake:.3f}   (target >= 0.8)")
+
+        print("\n2. probes per second, sample room, 32^2 faces, 2 bounces")
+        print("   grid      probes  workers   seconds  probes/s  worker peak RSS")
+        rows = []
+        for label in ("4x2x4", "8x4x8"):
+            g = grid_for(scene, grid=label)
+            for workers in (1, 2):
+                out = tmp / f"{label}-{workers}.probes"
+                with LocalExecutor(workers) as ex:
+                    t = time.perf_counter()
+                    bake(scene, g, out, settings=st, environment=env, executor=ex)
+                    sec = time.perf_counter() - t
+                rows.append((label, g.n_probes, workers, sec))
+                print(f"   {label:<9} {g.n_probes:6d}  {workers:7d}  {sec:8.2f}  "
+                      f"{g.n_probes / sec:8.2f}  {children_peak_rss_mb():8.0f} MB (max so far)")
+        small = {w: s for lab, _, w, s in rows if lab == "4x2x4"}
+        big = {w: s for lab, _, w, s in rows if lab == "8x4x8"}
+        print(f"   time ratio 8x4x8 / 4x2x4 (4x the probes): 1 worker {big[1] / small[1]:.2f}, "
+              f"2 workers {big[2] / small[2]:.2f}")
+        print(f"   speed-up 2 workers / 1 worker: {small[1] / small[2]:.2f} (4x2x4), "
+              f"{big[1] / big[2]:.2f} (8x4x8)")
+        est = 2048 / (512 / big[2])
+        print(f"   16x8x16 (2048 probes) at the 2-worker rate: about {est / 60:.1f} minutes")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
