@@ -26,14 +26,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from embreex import rtcore_scene  # noqa: E402  (the benchmark talks to embreex directly)
-from embreex.mesh_construction import TriangleMesh  # noqa: E402
+from typing import Self
 
-from probegrid import raytrace  # noqa: E402
-from probegrid.bake import BakeSettings, bake  # noqa: E402
-from probegrid.bakejob import grid_for, load_environment  # noqa: E402
-from probegrid.executors import InlineExecutor, LocalExecutor  # noqa: E402
-from probegrid.scene import load_gltf  # noqa: E402
+from embreex import rtcore_scene
+from embreex.mesh_construction import TriangleMesh
+
+from probegrid import raytrace
+from probegrid.bake import BakeSettings, bake
+from probegrid.bakejob import grid_for, load_environment
+from probegrid.executors import InlineExecutor, LocalExecutor
+from probegrid.scene import load_gltf
 
 SCENE = REPO / "data" / "sample_room.glb"
 SKY = REPO / "data" / "sample_sky.hdr"
@@ -46,7 +48,7 @@ class Recorder:
         self.batches: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []
         self._orig = (raytrace.RayTracer.intersect, raytrace.RayTracer.occluded)
 
-    def __enter__(self) -> Recorder:
+    def __enter__(self) -> Self:
         rec = self
         intersect, occluded = self._orig
 

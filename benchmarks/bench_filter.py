@@ -17,7 +17,8 @@ level 0 must equal the input exactly). Both produce the full chain 128 -> 1 (8 l
   ``r = 1 - sqrt(1 - lod)`` (read from Filament's tools/cmgen/src/cmgen.cpp and checked against
   the roughness cmgen prints per level). cmgen clamps radiance with luminance above 4096
   (Karis' compressor); both inputs stay below that, asserted.
-* :func:`probegrid.specular.ggx_prefilter`: level ``k`` at ``r = k / 7``.
+* :func:`probegrid.specular.ggx_prefilter`: level ``k`` at ``r = k / 7`` (its default tiered
+  method; its ``method="fis"`` filtered importance sampling is shown for comparison).
 
 Each tool's level is compared with :func:`probegrid.specular.reference_convolution` (every input
 texel, float64) *at the roughness that tool assigns to that level*: RMS and max of the per-texel,
@@ -60,6 +61,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from probegrid import sh
+from probegrid.dfg import dfg_lut
 from probegrid.diffuse import diffuse_exact, diffuse_sh
 from probegrid.layouts import faces_to_cross, to_cube
 from probegrid.specular import ggx_filter, ggx_prefilter, reference_convolution
@@ -175,11 +177,15 @@ def bench_ggx(name: str, cube: np.ndarray, work: Path, cache: Path, args: argpar
             t_warm[w].append(time.perf_counter() - t0)
             assert all(np.array_equal(a, b) for a, b in zip(ours, again))
     theirs = [read_cmgen_level(out, name, k) for k in range(levels)]
+    t0 = time.perf_counter()
+    fis = ggx_prefilter(cube, method="fis", samples=args.fis_samples)
+    t_fis = time.perf_counter() - t0
 
     print(f"\n== GGX chain, {name}: 6 x {n}^2 x 3 -> {levels} levels "
           f"(cmgen {args.samples} samples) ==")
     print(f"{'lvl':>3} {'size':>4} | {'r ours':>7} {'rms':>8} {'max':>8} | "
-          f"{'r cmgen':>7} {'rms':>8} {'max':>8} | probegrid at cmgen's r: {'rms':>8} {'max':>8}")
+          f"{'r cmgen':>7} {'rms':>8} {'max':>8} | ours at cmgen's r {'rms':>8} {'max':>8} | "
+          f"fis@{args.fis_samples} {'rms':>8} {'max':>8}")
     worse = []
     for k in range(1, levels):
         r_o, r_c = k / (levels - 1), cmgen_roughness(k, levels)
@@ -189,8 +195,10 @@ def bench_ggx(name: str, cube: np.ndarray, work: Path, cache: Path, args: argpar
         e_s = errors(ggx_filter(cube, r_c**2, n >> k), ref_c)  # like for like
         if e_o[0] > e_c[0] or e_o[1] > e_c[1] or e_s[0] > e_c[0] or e_s[1] > e_c[1]:
             worse.append(k)
+        e_f = errors(fis[k], cached_reference(cache, cube, r_o**2, n >> k))
         print(f"{k:>3} {n >> k:>4} | {r_o:7.4f} {e_o[0]:8.2e} {e_o[1]:8.2e} | "
-              f"{r_c:7.4f} {e_c[0]:8.2e} {e_c[1]:8.2e} | {'':>23}{e_s[0]:8.2e} {e_s[1]:8.2e}")
+              f"{r_c:7.4f} {e_c[0]:8.2e} {e_c[1]:8.2e} | {'':>17} {e_s[0]:8.2e} {e_s[1]:8.2e} | "
+              f"{'':>{4 + len(str(args.fis_samples))}}{e_f[0]:8.2e} {e_f[1]:8.2e}")
     cm, cm0 = min(t_cm), min(t_cm0)
     cold = {w: min(t) for w, t in t_cold.items()}
     warm = {w: min(t) for w, t in t_warm.items()}
@@ -199,6 +207,7 @@ def bench_ggx(name: str, cube: np.ndarray, work: Path, cache: Path, args: argpar
     for w in (1, 2):
         print(f"  probegrid workers={w}: cold {cold[w]:.3f} s ({cold[w] / cm:.2f} x cmgen), "
               f"warm {warm[w]:.3f} s ({warm[w] / cm:.2f} x cmgen)")
+    print(f"  probegrid method='fis' ({args.fis_samples} samples, for comparison): {t_fis:.3f} s")
     ok_time = cold[2] <= 0.5 * cm
     verdict = "MET" if not worse and ok_time else "NOT MET"
     print(f"target (error <= cmgen@{args.samples} at every level, cold time with 2 threads like "
@@ -217,11 +226,34 @@ def bench_diffuse(name: str, cube: np.ndarray) -> None:
               f"{'NEGATIVE' if info.negative else 'ok'} | window width {info.width:.3g}")
 
 
+def bench_dfg(work: Path, size: int = 128) -> None:
+    """Our DFG table against ``cmgen --ibl-dfg`` (Filament: 1024 Hammersley samples per entry).
+
+    Filament's row ``y`` (0 at the top) holds roughness ``(size - y + 0.5) / size`` (its
+    CubemapIBL::DFG; row 0 saturates at 1), i.e. our row ``size - y``; columns agree
+    (``n.v = (x + 0.5) / size``). Row 0 is left out.
+    """
+    path = work / "dfg.psd"
+    t0 = time.perf_counter()
+    subprocess.run([CMGEN, "-q", f"-s{size}", f"--ibl-dfg={path}", "-c", "32"], check=True,
+                   capture_output=True)
+    t_cm = time.perf_counter() - t0
+    theirs = read_rgb(path)[1:, :, :2]
+    t0 = time.perf_counter()
+    ours = dfg_lut(size)
+    t_pg = time.perf_counter() - t0
+    d = np.abs(theirs - ours[size - 1:0:-1])
+    print(f"\n== DFG LUT {size}^2 vs cmgen --ibl-dfg ==\n|ours - cmgen|: mean {d.mean():.1e}, "
+          f"max {d.max():.1e} (ours converged to < 1e-4, tests/test_dfg.py); time: ours "
+          f"{t_pg:.2f} s, cmgen {t_cm:.2f} s")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--samples", type=int, default=1024)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--fis-samples", type=int, default=256)
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "probegrid-bench")
     ap.add_argument("--hdr", nargs="*", default=list(HDRS), choices=list(HDRS))
     args = ap.parse_args()
@@ -231,6 +263,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name, cube in cubes.items():
             bench_ggx(name, cube, Path(tmp), args.cache, args)
+        bench_dfg(Path(tmp))
 
     print("\n== Diffuse: band-2 SH vs exact clamped-cosine sum (32^2 from the "
           f"{args.size}^2 cube; relative error per texel and channel) ==")

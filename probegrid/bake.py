@@ -45,7 +45,7 @@ from probegrid.render import IndirectField, ProbeRenderer, RenderSettings
 from probegrid.scene import Scene
 from probegrid.store import ArraySpec, ProbeStore, StoreWriter, open_store, partial_path
 
-__all__ = ["BakeSettings", "BakeReport", "bake", "store_arrays", "environment_hash"]
+__all__ = ["BakeReport", "BakeSettings", "bake", "environment_hash", "store_arrays"]
 
 ProgressFn = Callable[[str, Progress, int], None]
 
@@ -261,11 +261,11 @@ class BakeReport:
             f"baked {self.probes} probes ({self.store.grid.label}) into {self.store.path}/ in "
             f"{self.seconds:.1f} s, {self.rays / max(self.seconds, 1e-9) / 1e6:.2f} Mrays/s"
             + (f" ({self.resumed_probes} probes resumed)" if self.resumed_probes else ""),
-            f"  invalid probes: {q['invalid_probes']} (relocated {q['relocated_probes']}); "
-            f"backface rays {q['backface_ray_fraction']:.3%}",
-            f"  energy (diffuse / incoming): worst |1 - ratio| {q['energy_max_error']:.2e}; "
+            (f"  invalid probes: {q['invalid_probes']} (relocated {q['relocated_probes']}); "
+            f"backface rays {q['backface_ray_fraction']:.3%}"),
+            (f"  energy (diffuse / incoming): worst |1 - ratio| {q['energy_max_error']:.2e}; "
             f"SH min irradiance/pi {q['sh_min_irradiance_over_pi']:.4g}; "
-            f"seam score {q['seam_score_mean']:.2e}",
+            f"seam score {q['seam_score_mean']:.2e}"),
         ])
 
 

@@ -23,7 +23,7 @@ from probegrid.executors import Progress
 from probegrid.grid import GridSpec, parse_bounds, parse_grid, parse_spacing
 from probegrid.scene import Scene, load_gltf
 
-__all__ = ["BakeOptions", "run_bake", "grid_for", "load_environment"]
+__all__ = ["BakeOptions", "grid_for", "load_environment", "run_bake"]
 
 
 class BakeOptions(BaseModel):

@@ -46,6 +46,7 @@ of the 2 x 2 texels it covers, i.e. the mean radiance over the coarse texel's so
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Final
@@ -59,18 +60,18 @@ __all__ = [
     "FACE_U",
     "FACE_V",
     "CubeMap",
-    "face_uv_to_direction",
+    "check_cube",
     "direction_to_face_uv",
-    "uv_to_texel",
-    "texel_to_uv",
     "direction_to_texel",
-    "texel_uv",
+    "downsample",
+    "face_uv_to_direction",
+    "mip_sizes",
+    "normalization_cube",
     "texel_directions",
     "texel_solid_angles",
-    "normalization_cube",
-    "downsample",
-    "mip_sizes",
-    "check_cube",
+    "texel_to_uv",
+    "texel_uv",
+    "uv_to_texel",
 ]
 
 #: Face names in storage order.
@@ -321,7 +322,7 @@ def mip_sizes(n: int, levels: int | None = None) -> list[int]:
     if levels < 1:
         raise ValueError(f"levels must be >= 1, got {levels}")
     sizes = [n >> k for k in range(levels)]
-    if sizes[-1] < 1 or any(s * 2 != p for p, s in zip(sizes, sizes[1:])):
+    if sizes[-1] < 1 or any(s * 2 != p for p, s in itertools.pairwise(sizes)):
         raise ValueError(f"face size {n} cannot be halved {levels - 1} times")
     return sizes
 

@@ -68,8 +68,8 @@ def run_demo(out: str | os.PathLike[str], *, progress: Progress | None = None,
     lines += [
         "",
         "Look at it:",
-        f"  previews:       {out / 'sky' / 'preview_specular.png'}, "
-        f"{out / 'sky' / 'preview_diffuse.png'}",
+        (f"  previews:       {out / 'sky' / 'preview_specular.png'}, "
+        f"{out / 'sky' / 'preview_diffuse.png'}"),
         f"  store manifest: probegrid info {store}",
         f"  one probe:      probegrid export {store} --probe 4,2,4 --out {out / 'probe_4_2_4'}",
     ]

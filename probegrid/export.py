@@ -38,18 +38,18 @@ def describe_store(path: str | os.PathLike[str]) -> str:
     env = m.bake.get("environment", {})
     lines = [
         f"probe grid store {p}",
-        f"  format {m.format} v{m.format_version}, written by probegrid {m.probegrid_version} "
-        f"on {m.created:%Y-%m-%d %H:%M:%S} UTC",
-        f"  grid: {g.label} = {g.n_probes} probes, box {tuple(g.bounds_min)} .. "
-        f"{tuple(g.bounds_max)}, spacing {tuple(round(float(s), 6) for s in g.spacing)}",
-        "  probe (i, j, k) at min + (i, j, k) * (max - min) / (counts - 1); "
-        "index = (i * ny + j) * nz + k",
+        (f"  format {m.format} v{m.format_version}, written by probegrid {m.probegrid_version} "
+        f"on {m.created:%Y-%m-%d %H:%M:%S} UTC"),
+        (f"  grid: {g.label} = {g.n_probes} probes, box {tuple(g.bounds_min)} .. "
+        f"{tuple(g.bounds_max)}, spacing {tuple(round(float(s), 6) for s in g.spacing)}"),
+        ("  probe (i, j, k) at min + (i, j, k) * (max - min) / (counts - 1); "
+        "index = (i * ny + j) * nz + k"),
     ]
     if valid is not None:
         lines.append(f"  valid probes: {int(valid.sum())} of {valid.size}")
     lines.append("  arrays (memory-mappable .npy, probe index first):")
     for name, info in m.arrays.items():
-        lines.append(f"    {name:<18} {info.dtype:<8} {str(tuple(info.shape)):<24} "
+        lines.append(f"    {name:<18} {info.dtype:<8} {tuple(info.shape)!s:<24} "
                      f"{_mb(info.nbytes):>10}  {info.description}")
     if bake:
         lines.append(

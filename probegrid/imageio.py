@@ -81,7 +81,6 @@ from probegrid.layouts import (
 )
 
 __all__ = [
-    "cube_exposure",
     "FACE_SUFFIXES",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
@@ -90,6 +89,7 @@ __all__ = [
     "ImageError",
     "clamp_radiance",
     "count_nonfinite",
+    "cube_exposure",
     "linear_to_srgb",
     "read_environment",
     "read_image",

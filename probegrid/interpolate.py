@@ -75,12 +75,13 @@ from numpy.typing import ArrayLike, NDArray
 from probegrid.cubemap import CubeMap, direction_to_face_uv
 from probegrid.grid import GridSpec
 from probegrid.lobes import roughness_to_lod
-from probegrid.seams import border_sources
+from probegrid.seams import add_border, border_sources
 from probegrid.shading import reflect, shade_split_sum
 from probegrid.store import ProbeStore
 
 __all__ = [
     "MAP_KINDS",
+    "BorderedCubes",
     "MapKind",
     "ProbeField",
     "ProbeWeights",
@@ -207,7 +208,7 @@ def probe_weights(
                 f"points."
             )
     if moments is not None:
-        shape = np.shape(moments)
+        shape = moments.shape if isinstance(moments, BorderedCubes) else np.shape(moments)
         if len(shape) != 5 or shape[1] != 6 or shape[2] != shape[3] or shape[4] != 2:
             raise ValueError(f"moments must have shape (P, 6, m, m, 2), got {shape}.")
     v = None if valid is None else np.asarray(valid, dtype=bool)
@@ -267,15 +268,17 @@ def _shading_factor(
     facing = ((np.einsum("nci,ni->nc", to_probe, normals) + 1.0) * 0.5) ** 2 + NORMAL_TERM_FLOOR
     s = facing
     if moments is not None:
-        m = moments if isinstance(moments, np.ndarray) else np.asarray(moments)
         cells = grid.cell_size[np.array(grid.counts) > 1]
         bias = normal_bias * (float(cells.min()) if cells.size else 0.0)
         q = points + bias * normals
         offset = q[:, None, :] - xc  # probe -> biased point
         r = np.linalg.norm(offset, axis=-1)
-        mom = _probe_bilinear(m, indices.reshape(-1), offset.reshape(-1, 3)).reshape(
-            *indices.shape, 2
-        )
+        if isinstance(moments, BorderedCubes):
+            mom = moments.lookup(indices.reshape(-1), offset.reshape(-1, 3))
+        else:
+            m = moments if isinstance(moments, np.ndarray) else np.asarray(moments)
+            mom = _probe_bilinear(m, indices.reshape(-1), offset.reshape(-1, 3))
+        mom = mom.reshape(*indices.shape, 2)
         mean, mean_sq = mom[..., 0], mom[..., 1]
         var = np.abs(mean_sq - mean * mean)
         excess = np.maximum(r - mean, 0.0)
@@ -287,6 +290,51 @@ def _shading_factor(
 
 
 # ------------------------------------------------------------------------------ seamless lookups
+class BorderedCubes:
+    """Many probes' small cubes with their seamless one-texel borders precomputed.
+
+    For repeated lookups into the same cubes (a bake pass reads the previous pass's distance
+    moments at every ray hit): :meth:`lookup` gathers 4 bordered texels per direction instead of
+    the 12 real texels :func:`_probe_bilinear` averages, with the same filter (the borders are
+    :func:`probegrid.seams.add_border`'s, stored in float32).
+
+    Parameters
+    ----------
+    cubes : (P, 6, n, n, C) float
+    """
+
+    def __init__(self, cubes: ArrayLike) -> None:
+        a = np.asarray(cubes, dtype=np.float32)
+        if a.ndim != 5 or a.shape[1] != 6 or a.shape[2] != a.shape[3]:
+            raise ValueError(f"cubes must have shape (P, 6, n, n, C), got {a.shape}.")
+        p, _, n, _, c = a.shape
+        bordered = add_border(np.moveaxis(a, 0, 3).reshape(6, n, n, p * c))  # probes as channels
+        m = n + 2
+        self.shape = a.shape
+        self.n = n
+        self._texels = 6 * m * m
+        self._data = np.ascontiguousarray(
+            bordered.reshape(self._texels, p, c).transpose(1, 0, 2)
+        ).reshape(p * self._texels, c)
+
+    def lookup(self, probes: ArrayLike, directions: ArrayLike) -> NDArray[np.float64]:
+        """Bilinear value of cube ``probes[k]`` in ``directions[k] (K, 3)``; ``(K, C)`` float64."""
+        n, m = self.n, self.n + 2
+        face, u, v = direction_to_face_uv(np.asarray(directions, dtype=np.float64))
+        x = (u + 1.0) * (0.5 * n) + 0.5
+        y = (v + 1.0) * (0.5 * n) + 0.5
+        x0 = np.minimum(np.floor(x), n)
+        y0 = np.minimum(np.floor(y), n)
+        fx, fy = x - x0, y - y0
+        base = (np.asarray(probes, dtype=np.intp) * self._texels
+                + (face * m + y0.astype(np.intp)) * m + x0.astype(np.intp))
+        d = self._data
+        gx, gy = 1.0 - fx, 1.0 - fy
+        out = (d[base] * (gy * gx)[:, None] + d[base + 1] * (gy * fx)[:, None]
+               + d[base + m] * (fy * gx)[:, None] + d[base + m + 1] * (fy * fx)[:, None])
+        return out
+
+
 @lru_cache(maxsize=32)
 def _border_table(n: int) -> NDArray[np.intp]:
     """``(6 (n + 2)^2, 3)`` flat indices into ``6 n^2`` of the real texels each bordered texel

@@ -57,7 +57,7 @@ from probegrid.cubemap import direction_to_texel, face_uv_to_direction, texel_to
 from probegrid.environment import Environment
 from probegrid.executors import probe_rng
 from probegrid.grid import GridSpec
-from probegrid.interpolate import probe_weights
+from probegrid.interpolate import BorderedCubes, probe_weights
 from probegrid.lights import incident_many, splat_delta
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
@@ -180,6 +180,10 @@ class IndirectField:
         # (P, 9, 3) irradiance coefficients A_l L_lm
         return np.moveaxis(sh.irradiance_coefficients(np.moveaxis(self.sh, 1, 0)), 0, 1)
 
+    @cached_property
+    def _moments(self) -> BorderedCubes | None:
+        return None if self.moments is None else BorderedCubes(self.moments)
+
     def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64]
                    ) -> NDArray[np.float64]:
         """Irradiance (lux, RGB) at ``points (n, 3)`` with unit ``normals (n, 3)``; ``(n, 3)``."""
@@ -187,12 +191,13 @@ class IndirectField:
             return np.zeros((0, 3))
         pw = probe_weights(
             self.grid, points, valid=self.valid, normals=normals,
-            probe_positions=self.positions, moments=self.moments,
+            probe_positions=self.positions, moments=self._moments,
         )
         basis = sh.sh_basis(normals)  # (n, 9)
-        coeffs = self._irradiance_coeffs[pw.indices]  # (n, 8, 9, 3)
-        per_probe = np.einsum("nk,nckj->ncj", basis, coeffs)  # (n, 8, 3)
-        e = np.einsum("nc,ncj->nj", pw.weights, per_probe)
+        coeffs = self._irradiance_coeffs
+        e = np.zeros((len(points), 3))
+        for c in range(8):  # corner by corner: (n, 9, 3) gathers instead of one (n, 8, 9, 3)
+            e += pw.weights[:, c, None] * np.einsum("nk,nkj->nj", basis, coeffs[pw.indices[:, c]])
         return np.maximum(e, 0.0)
 
 

@@ -104,6 +104,7 @@ from probegrid.cubemap import (
     texel_solid_angles,
     texel_uv,
 )
+from probegrid.sampling import CubeSampler, mip_chain, resample
 
 __all__ = [
     "GGXMethod",
@@ -111,13 +112,14 @@ __all__ = [
     "ggx_filter",
     "ggx_prefilter",
     "ggx_tier_plan",
+    "hammersley",
     "phong_chain",
     "phong_filter",
     "reference_convolution",
     "zonal_convolution",
 ]
 
-GGXMethod = Literal["tiered", "exact"]
+GGXMethod = Literal["tiered", "fis", "exact"]
 
 #: Temporaries of the dense sums are kept near this many bytes.
 _CHUNK_BYTES = 32 * 2**20
@@ -741,8 +743,6 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
     Output texel ``o = S_k(r)`` of fundamental texel ``r`` uses row ``r`` with every source
     texel ``q'`` replaced by ``S_k(q')``. Sparse stages gather per entry; dense stages instead
     permute the whole source mip once per symmetry and multiply (BLAS)."""
-    from probegrid.sampling import CubeSampler
-
     c = pyramid.shape[1] // 4
     total = pyramid.shape[0]
     perm = _chain_permutations(n)
@@ -813,6 +813,58 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
     return (acc[..., :c] / acc[..., c:]).astype(np.float32)
 
 
+def hammersley(count: int) -> NDArray[np.float64]:
+    """The Hammersley point set ``(i / N, radical_inverse_2(i))``: (N, 2) float64 in [0, 1)."""
+    i = np.arange(count, dtype=np.uint64)
+    bits = i.copy()
+    rev = np.zeros(count, dtype=np.uint64)
+    for _ in range(32):  # 32 bits of the van der Corput sequence
+        rev = (rev << np.uint64(1)) | (bits & np.uint64(1))
+        bits >>= np.uint64(1)
+    return np.stack([i / count, rev.astype(np.float64) / 2.0**32], axis=1)
+
+
+def _ggx_fis(sampler: CubeSampler, n: int, alpha: float, size: int, samples: int,
+             bias: float) -> NDArray[np.float32]:
+    """Filtered importance sampling of one GGX level (Krivanek & Colbert 2008; Karis 2013).
+
+    One fixed Hammersley set of ``samples`` half vectors ``h ~ D(h) (n.h)`` is shared by all
+    texels and rotated into each texel's frame (``n = v = R``); ``l = 2 (v.h) h - v``, weight
+    ``n.l`` (the GGX importance-sampling estimator of the kernel), looked up trilinearly at
+    ``lod = 0.5 log2(Omega_s / Omega_p) + bias`` with ``Omega_s = 1 / (N pdf)``,
+    ``pdf = D / 4`` and ``Omega_p = 4 pi / (6 n^2)``; the sum is divided by the sum of the
+    weights.
+    """
+    u = hammersley(samples)
+    a2 = alpha * alpha
+    c2 = (1.0 - u[:, 1]) / (1.0 + (a2 - 1.0) * u[:, 1])
+    ch, sh_ = np.sqrt(c2), np.sqrt(np.maximum(1.0 - c2, 0.0))
+    phi = 2.0 * np.pi * u[:, 0]
+    hx, hy = sh_ * np.cos(phi), sh_ * np.sin(phi)
+    local = np.stack([2.0 * ch * hx, 2.0 * ch * hy, 2.0 * c2 - 1.0], axis=1)   # l, v = +z
+    keep = local[:, 2] > 0
+    local, ch = local[keep], ch[keep]
+    weight = local[:, 2] / local[:, 2].sum()
+    pdf = lobes.ggx_ndf(ch, alpha) / 4.0
+    omega_p = 4.0 * np.pi / (6.0 * n * n)
+    lod = np.clip(0.5 * np.log2(1.0 / (samples * pdf * omega_p)) + bias, 0.0,
+                  sampler.num_levels - 1).astype(np.float32)
+    d = texel_directions(size).reshape(-1, 3)
+    up = np.where(np.abs(d[:, 2:3]) < 0.999, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    t = np.cross(up, d)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(d, t)
+    frame = np.stack([t, b, d], axis=1).astype(np.float32)                 # rows T, B, N
+    local32 = local.astype(np.float32)
+    out = np.empty((d.shape[0], sampler.channels), dtype=np.float32)
+    rows = max(1, _CHUNK_BYTES // (4 * 8 * local.shape[0]))
+    for i in range(0, d.shape[0], rows):
+        dirs = np.einsum("sj,rjk->rsk", local32, frame[i:i + rows])       # (r, S, 3)
+        vals = sampler.trilinear(dirs, lod)                                # (r, S, C)
+        out[i:i + rows] = np.einsum("s,rsc->rc", weight.astype(np.float32), vals)
+    return out.reshape(6, size, size, -1)
+
+
 def ggx_prefilter(
     faces: ArrayLike,
     *,
@@ -822,6 +874,8 @@ def ggx_prefilter(
     beta: float = 6.0,
     gamma: float = 3.0,
     workers: int = 1,
+    samples: int | None = None,
+    lod_bias: float = 1.0,
 ) -> list[NDArray[np.float32]]:
     """GGX prefiltered specular mip chain (split-sum, ``n = v = r``).
 
@@ -834,14 +888,20 @@ def ggx_prefilter(
         ``k / (levels - 1)``.
     size : int, optional
         Face size of level 0 (default ``n``); level ``k`` has ``size >> k``.
-    method : {"tiered", "exact"}
-        ``"tiered"``: sparse multi-resolution sum (module docstring); ``"exact"``: dense float64
-        sum over every input texel (:func:`reference_convolution`; slow).
+    method : {"tiered", "fis", "exact"}
+        ``"tiered"``: sparse multi-resolution sum (module docstring); ``"fis"``: filtered
+        importance sampling with ``samples`` Hammersley samples (for comparison: noisier and
+        slower at equal accuracy, see the module docstring); ``"exact"``: dense float64 sum over
+        every input texel (:func:`reference_convolution`; slow).
     beta, gamma : float
         Accuracy parameters of ``"tiered"`` (see :func:`ggx_tier_plan`).
     workers : int
         Threads filtering levels concurrently (``"tiered"``); level 1 is about half the work,
         so 2 is the useful maximum. Default 1 (a probe grid is parallel at a higher level).
+    samples : int, optional
+        ``"fis"`` only (default 256): samples per texel (a level gets the same set).
+    lod_bias : float
+        ``"fis"`` only: added to the lookup's mip level (1.0 = Filament's ``K = 4``).
 
     Returns
     -------
@@ -863,18 +923,25 @@ def ggx_prefilter(
         raise ValueError(f"beta must be >= 1 and gamma > 0, got {beta!r} and {gamma!r}.")
     if not isinstance(workers, (int, np.integer)) or isinstance(workers, bool) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}.")
+    if samples is not None and method != "fis":
+        raise ValueError(f"samples applies to method 'fis' only, not {method!r}.")
+    if samples is not None and (not isinstance(samples, (int, np.integer)) or samples < 1):
+        raise ValueError(f"samples must be a positive integer, got {samples!r}.")
     if base == n:
         out = [src.copy()]
     else:
-        from probegrid.sampling import resample
-
         out = [resample(src, base)]
     if len(sizes) == 1:
         return out
-    if method == "exact":
+    if method in ("exact", "fis"):
+        if method == "fis":
+            sampler = CubeSampler(mip_chain(src) if n & (n - 1) == 0 else [src])
         for k, s in enumerate(sizes[1:], start=1):
             alpha = float(lobes.roughness_to_alpha(lobes.level_roughness(k, len(sizes))))
-            out.append(reference_convolution(src, alpha, s).astype(np.float32))
+            if method == "exact":
+                out.append(reference_convolution(src, alpha, s).astype(np.float32))
+            else:
+                out.append(_ggx_fis(sampler, n, alpha, s, samples or 256, float(lod_bias)))
         return out
     # The tiered path makes many small and medium BLAS calls; a second BLAS thread buys nothing
     # there and, on a loaded machine, its spin-waiting made runs 2-10x slower (measured), so

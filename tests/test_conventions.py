@@ -22,7 +22,7 @@ def test_face_order_and_texel_table(conv):
     u, v = 0.25, -0.6
     for name, formula in conv["cube_texel_to_direction"].items():
         f = cubemap.FACE_NAMES.index(name)
-        expected = eval(formula.replace("u", "U").replace("v", "V"), {"U": u, "V": v})  # noqa: S307
+        expected = eval(formula.replace("u", "U").replace("v", "V"), {"U": u, "V": v})
         np.testing.assert_allclose(cubemap.face_uv_to_direction(f, u, v), expected)
     # texel centres as stated
     assert cubemap.texel_to_uv(0, 4) == pytest.approx(2 * 0.5 / 4 - 1)

@@ -314,3 +314,17 @@ def test_moments_of_the_wrong_shape_raise_value_error():
     with pytest.raises(ValueError, match=r"\(P, 6, m, m, 2\)"):
         probe_weights(LINE, [[0.5, 0.0, 0.0]], normals=[[1.0, 0.0, 0.0]],
                       moments=np.zeros((2, 6, 2, 3, 2)))
+
+
+def test_bordered_cubes_lookup_matches_the_seamless_filter():
+    from probegrid.interpolate import BorderedCubes, _probe_bilinear
+
+    rng = np.random.default_rng(5)
+    cubes = rng.random((7, 6, 4, 4, 2)).astype(np.float32)
+    probes = rng.integers(0, 7, 5000)
+    dirs = rng.normal(size=(5000, 3))
+    dirs[:8] = [[1, 1, 1], [-1, 1, 1], [1, -1, 1], [1, 1, -1], [1, 0, 0], [0, 1e-9, 1],
+                [1, 1, 0], [0, -1, 1]]  # corners, centres and edges
+    expected = _probe_bilinear(cubes, probes, dirs)
+    got = BorderedCubes(cubes).lookup(probes, dirs)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)

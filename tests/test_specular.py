@@ -157,6 +157,25 @@ def test_rotating_the_input_rotates_the_output() -> None:
                                        err_msg=f"symmetry {k}, level {lv}")
 
 
+def test_fis_method() -> None:
+    """Filtered importance sampling: exact for constants, unbiased-ish for a linear
+    environment, deterministic; ``samples`` is rejected for the other methods."""
+    np.testing.assert_allclose(ggx_prefilter(np.full((6, 16, 16, 2), 3.0), method="fis",
+                                             samples=32)[2], 3.0, rtol=1e-5)
+    b = np.array([[0.3, -0.2, 0.25]])
+    env = _linear_env(32, b)
+    a = ggx_prefilter(env, method="fis", samples=512)
+    assert np.array_equal(a[1], ggx_prefilter(env, method="fis", samples=512)[1])
+    for k in (2, 3):
+        d = texel_directions(32 >> k)
+        expect = 1.0 + _mean_cosine_ggx((k / 5) ** 2) * np.einsum("fijd,cd->fijc", d, b)
+        np.testing.assert_allclose(a[k], expect, rtol=2e-2)
+    with pytest.raises(ValueError, match="samples applies"):
+        ggx_prefilter(env, samples=64)
+    np.testing.assert_allclose(specular.hammersley(4),
+                               [[0, 0], [0.25, 0.5], [0.5, 0.25], [0.75, 0.75]])
+
+
 def test_levels_and_size_options() -> None:
     cube = np.ones((6, 16, 16, 3), dtype=np.float32)
     chain = ggx_prefilter(cube, levels=3, size=8)
@@ -185,7 +204,7 @@ def test_tier_plan_is_cached_and_read_only() -> None:
 def test_bad_arguments() -> None:
     cube = np.ones((6, 8, 8, 3), dtype=np.float32)
     with pytest.raises(ValueError, match="method must be one of"):
-        ggx_prefilter(cube, method="fis")  # type: ignore[arg-type]
+        ggx_prefilter(cube, method="mc")  # type: ignore[arg-type]
     bad = cube.copy()
     bad[0, 0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="finite"):
