@@ -67,7 +67,13 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
         help="exact clamped-cosine integral (default) or via 9 SH coefficients",
     )
     p.add_argument("--specular-levels", type=_positive_int, help="mip levels (default: full chain)")
-    p.add_argument("--samples", type=_positive_int, help="GGX samples per texel (default: auto)")
+    p.add_argument(
+        "--specular-method", choices=["tiered", "fis", "exact"], default="tiered",
+        help="GGX prefilter: tiered exact-kernel convolution (default), filtered importance "
+             "sampling, or the brute-force exact convolution (slow)",
+    )
+    p.add_argument("--samples", type=_positive_int,
+                   help="samples per texel for --specular-method fis")
     p.add_argument(
         "--sh-window", choices=["none", "hanning", "lanczos", "gauss", "auto"], default="none",
         help="SH windowing against ringing (auto: the least that makes irradiance >= 0)",
@@ -101,6 +107,7 @@ def _run_filter(args: argparse.Namespace) -> int:
         diffuse_size=args.diffuse_size,
         diffuse_method=args.diffuse_method,
         specular_levels=args.specular_levels,
+        specular_method=args.specular_method,
         samples=args.samples,
         sh_window=args.sh_window,
         sh_window_width=args.sh_window_width,

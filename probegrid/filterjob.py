@@ -50,6 +50,7 @@ class FilterSettings(BaseModel):
     diffuse_size: int = Field(default=32, ge=1, le=1024)
     diffuse_method: Literal["sh", "exact"] = "exact"
     specular_levels: int | None = Field(default=None, ge=1, le=16)
+    specular_method: Literal["tiered", "fis", "exact"] = "tiered"
     samples: int | None = Field(default=None, ge=1, le=65536)
     sh_window: Literal["none", "hanning", "lanczos", "gauss", "auto"] = "none"
     sh_window_width: float | None = Field(default=None, gt=0)
@@ -233,8 +234,10 @@ def run_filter(
 
     t = time.perf_counter()
     say(f"GGX specular chain: {levels} levels from {n}^2")
-    spec_kwargs: dict[str, Any] = {"levels": levels}
+    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
     if settings.samples is not None:
+        if settings.specular_method != "fis":
+            raise ValueError("--samples applies to --specular-method fis (importance sampling)")
         spec_kwargs["samples"] = settings.samples
     spec = specular.ggx_prefilter(cube, **spec_kwargs)
     timings["specular"] = time.perf_counter() - t

@@ -20,10 +20,12 @@ box/solid-angle resample when ``size`` differs from the input).
 
 ``method="tiered"`` (default) is a deterministic, *sparse multi-resolution* evaluation of that
 sum (no random or quasi-random samples). Why not importance sampling with filtered lookups
-(Krivanek & Colbert 2008, Filament's ``roughnessFilter``)? In numpy a seamless trilinear lookup
-costs ~300 ns, so the ~50 M lookups of a 128^2 chain at 1024 samples are far too slow, and with
-fewer samples the noise and the mip-footprint bias grow. The same idea -- coarser mips where
-the lobe is smooth -- is applied deterministically instead:
+(Krivanek & Colbert 2008, Filament's ``roughnessFilter``)? It is kept as ``method="fis"`` and
+measured (128^2 chains, ``benchmarks/bench_filter.py``): at 256 Hammersley samples it takes
+~1.1 s for 2-8 % RMS relative error on venice and 45-130 % on studio (64 samples: 0.3 s, 6-28 %
+on venice); a seamless trilinear lookup costs ~300 ns in numpy. The tiered sum takes 0.42-0.46 s
+cold / 0.23 s warm on one thread for 0.2-0.3 % (venice) and 1.5 % (studio). It applies the same
+idea -- coarser mips where the lobe is smooth -- deterministically:
 
 * Pieces. The GGX lobe has long tails (the energy beyond half-angle ``p`` is
   ``a^2 / (a^2 + tan^2 p)``: ~4 % beyond 12 degrees at ``r = 1/7``), so it cannot be truncated,
@@ -56,7 +58,7 @@ the lobe is smooth -- is applied deterministically instead:
   read-only arrays) and reused: a probe grid filters many cubes of one size. They are computed
   only for a fundamental domain of the 48 cube symmetries (signed axis permutations, which map
   texel centres onto texel centres and keep angles and solid angles): the texels
-  ``i <= j <= n - 1 - i`` of face +X, 1/48 of the outputs. Every other output reuses its
+  ``i <= j <= (n - 1) / 2`` of face +X, 1/48 of the outputs. Every other output reuses its
   representative's row with permuted source indices. Candidate source texels of a windowed piece
   are found with tiles and bounding cones before the exact test.
 * Applying a plan gathers ``(P, M)`` rows and contracts them with the weights, chunked over
@@ -68,10 +70,13 @@ the lobe is smooth -- is applied deterministically instead:
 Accuracy against :func:`reference_convolution` (every input texel, float64) on the real HDRs at
 128^2 (``benchmarks/bench_filter.py``): RMS relative error ~2e-3 (venice) and ~1.5e-2 (studio's
 small bright softboxes) on levels 1-2, max 7-12 % next to the brightest sources; levels 3+ are
-dense and within 1e-3 RMS. Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 %
-(studio) RMS. Memory: the plans (~5 MB at 128^2) and the symmetry table
-(:func:`_chain_permutations`, 25 MB at 128^2, 4 x per doubling). Tests: constant, linear
-(analytic lobe mean), near-delta and real-HDR inputs against the reference, symmetry.
+dense and within 2e-3 RMS. Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 %
+(studio) RMS, in 1.06 s with two threads (probegrid: 0.33 s cold, 0.15 s warm with
+``workers=2``). Memory: the cached plans (a few MB at 128^2) and symmetry table
+(:func:`_chain_permutations`, 25 MB at 128^2) plus chunked temporaries: peak +150 MB for a 128^2
+chain, +250 MB for 256^2 (cold 1.8 s, warm 0.8 s), growing about 4 x per doubling of ``n``.
+Tests: constant, linear (analytic lobe mean), near-delta and real-HDR inputs against the
+reference, symmetry.
 
 ``method="exact"`` is the dense float64 sum over every input texel (slow, for references).
 
@@ -125,6 +130,7 @@ GGXMethod = Literal["tiered", "fis", "exact"]
 _CHUNK_BYTES = 32 * 2**20
 #: GGX half width at half maximum is about this many times alpha (small alpha).
 _HWHM_PER_ALPHA = 1.29
+#: A piece summed over mip m is evaluated on a grid of this many times m, then interpolated.
 _GRID_PER_MIP = 2
 #: Largest mip face size summed whole by a dense stage (its 48 permuted copies are gathered).
 _DENSE_MAX_MIP = 64
@@ -359,14 +365,15 @@ def _fundamental_domain(g: int) -> tuple[NDArray[np.intp], NDArray[np.int32], ND
     Returns
     -------
     rows : (F,) intp
-        Flat indices (face 0) of the texels ``i <= j <= g - 1 - i`` (row ``i``, column ``j``)
-        of face +X: every texel of the cube is the image of one of them under some symmetry.
+        Flat indices (face 0) of the texels ``i <= j <= (g - 1) / 2`` (row ``i``, column
+        ``j``) of face +X, an eighth of the face (about ``g^2 / 8`` texels, 1/48 of the cube):
+        every texel of the cube is the image of one of them under some symmetry.
     owner_sym, owner_row : (6 g^2,) int32
         For every texel ``o``: a symmetry ``k`` and a position ``r`` in ``rows`` with
         ``perm[k, rows[r]] == o``.
     """
     i, j = np.meshgrid(np.arange(g), np.arange(g), indexing="ij")
-    rows = np.flatnonzero((i <= j) & (j <= g - 1 - i))
+    rows = np.flatnonzero((i <= j) & (2 * j <= g - 1))
     perm = _group_permutations(g)
     owner_sym = np.full(6 * g * g, -1, dtype=np.int32)
     owner_row = np.full(6 * g * g, -1, dtype=np.int32)
@@ -456,13 +463,20 @@ def _cap_pairs(g: int, rows: NDArray[np.intp], m: int, rho: NDArray[np.float64] 
     cs, rs, is_ = _tiles(src, bs)
     # Tile pairs whose bounding cones come within rho: (To, Kc) candidate source tiles.
     reach = np.minimum(rho_all[io].max(axis=1) + ro + rs.max(), np.pi)
-    near = (co.astype(np.float32) @ np.ascontiguousarray(cs.T, dtype=np.float32)
-            ) >= np.cos(reach).astype(np.float32)[:, None]
-    rr, cc, slot, kc = _compact_rows(near)
+    cos_reach = np.cos(reach).astype(np.float32)
+    cs_t = np.ascontiguousarray(cs.T, dtype=np.float32)
+    co32 = co.astype(np.float32)
+    found = []
+    step = max(1, _CHUNK_BYTES // (8 * cs.shape[0]))               # bounded (To, Ts) blocks
+    for t0 in range(0, co.shape[0], step):
+        rr, cc, slot, _ = _compact_rows(co32[t0:t0 + step] @ cs_t >= cos_reach[t0:t0 + step, None])
+        found.append((rr + t0, cc, slot))
+    kc = max(int(f[2].max()) + 1 if f[2].size else 0 for f in found)
     cand = np.zeros((co.shape[0], kc), dtype=np.intp)
     cvalid = np.zeros((co.shape[0], kc), dtype=bool)
-    cand[rr, slot] = cc
-    cvalid[rr, slot] = True
+    for rr, cc, slot in found:
+        cand[rr, slot] = cc
+        cvalid[rr, slot] = True
     # Every output of a tile tests the members of the tile's candidates exactly (float32 is
     # enough for the test: a misclassified entry sits at the window's edge, where it is 0).
     qs = is_[cand].reshape(co.shape[0], -1)                        # (To, Kc bs^2)
