@@ -143,7 +143,7 @@ def main() -> None:
                       f"{g.n_probes / sec:8.2f}  {children_peak_rss_mb():8.0f} MB (max so far)")
         small = {w: s for lab, _, w, s in rows if lab == "4x2x4"}
         big = {w: s for lab, _, w, s in rows if lab == "8x4x8"}
-        print(f"   time ratio 8x4x8 / 4x2x4 (4x the probes): 1 worker {big[1] / small[1]:.2f}, "
+        print(f"   time ratio 8x4x8 / 4x2x4 (8x the probes): 1 worker {big[1] / small[1]:.2f}, "
               f"2 workers {big[2] / small[2]:.2f}")
         print(f"   speed-up 2 workers / 1 worker: {small[1] / small[2]:.2f} (4x2x4), "
               f"{big[1] / big[2]:.2f} (8x4x8)")

@@ -37,7 +37,7 @@ class BakeOptions(BaseModel):
     spacing: str | None = None
     bounds: str | None = None
     margin: float | None = None
-    environment: Path | None = None
+    environment: list[Path] | None = None
     environment_layout: str = "auto"
     environment_color: str | None = None
     environment_intensity: float = 1.0
@@ -90,9 +90,13 @@ def grid_for(scene: Scene, *, grid: str | None = None, spacing: str | None = Non
     return GridSpec.from_counts(lo, hi, tuple(int(c) for c in counts))
 
 
-def load_environment(path: Path | None, *, layout: str = "auto", color: str | None = None,
-                     intensity: float = 1.0, rotation_deg: float = 0.0) -> Environment:
-    """The bake's environment from the CLI's options (default black)."""
+def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
+                     color: str | None = None, intensity: float = 1.0,
+                     rotation_deg: float = 0.0) -> Environment:
+    """The bake's environment from the CLI's options (default black).
+
+    ``path`` is one image in any layout :mod:`probegrid.layouts` reads, or six face files.
+    """
     if path is not None and color is not None:
         raise ValueError("give either --environment or --environment-color, not both")
     rotation = math.radians(rotation_deg)
@@ -110,13 +114,24 @@ def load_environment(path: Path | None, *, layout: str = "auto", color: str | No
         return Environment(color=np.array(rgb), intensity=intensity, rotation=rotation)
     from probegrid import imageio, layouts
 
-    image = imageio.read_image(path)
-    bad = imageio.count_nonfinite(image)
-    if bad:
-        raise ValueError(f"{path}: {bad} pixels have non-finite values")
-    lay = layouts.detect_layout(*image.shape[:2]) if layout == "auto" else layout
-    size = min(layouts.default_face_size(image.shape[0], image.shape[1], lay), 256)
-    return Environment(faces=layouts.to_cube(image, lay, size), intensity=intensity,
+    paths = [path] if isinstance(path, Path) else list(path)
+    if len(paths) not in (1, 6):
+        raise ValueError(f"--environment takes one image or six face files, got {len(paths)}")
+    images = [imageio.read_image(p) for p in paths]
+    for p, image in zip(paths, images, strict=True):
+        bad = imageio.count_nonfinite(image)
+        if bad:
+            raise ValueError(f"{p}: {bad} pixels have non-finite values")
+    if len(images) == 6:
+        if len({im.shape for im in images}) != 1 or images[0].shape[0] != images[0].shape[1]:
+            raise ValueError("six environment face files must be square images of one size")
+        source, lay = np.stack(images), "faces"
+        size = min(images[0].shape[0], 256)
+    else:
+        source = images[0]
+        lay = layouts.detect_layout(*source.shape[:2]) if layout == "auto" else layout
+        size = min(layouts.default_face_size(source.shape[0], source.shape[1], lay), 256)
+    return Environment(faces=layouts.to_cube(source, lay, size), intensity=intensity,
                        rotation=rotation)
 
 

@@ -169,7 +169,8 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
                    "probes at the centres of the grid's cells)")
     p.add_argument("--margin", type=_finite_float,
                    help="grow (or, negative, shrink) the scene bounds by this much")
-    p.add_argument("--environment", type=Path, help="HDR environment image (any layout)")
+    p.add_argument("--environment", type=Path, nargs="+", metavar="FILE",
+                   help="HDR environment: one image (any layout) or six face files")
     p.add_argument("--environment-layout", default="auto",
                    choices=["auto", "equirect", "angular", "hcross", "vcross"])
     p.add_argument("--environment-color", help="constant environment radiance R,G,B")

@@ -62,7 +62,7 @@ def run_demo(out: str | os.PathLike[str], *, progress: Progress | None = None,
         say(f"[2/2] baking {data / 'sample_room.glb'} ({grid}, {face_size}^2 faces, 2 bounces)")
         report = run_bake(BakeOptions(
             scene=data / "sample_room.glb", out=store, grid=grid, face_size=face_size,
-            environment=data / "sample_sky.hdr", bounces=2, workers=workers,
+            environment=[data / "sample_sky.hdr"], bounces=2, workers=workers,
         ))
         lines += ["Probe grid store:", report.summary()]
     lines += [

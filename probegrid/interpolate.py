@@ -212,6 +212,8 @@ def probe_weights(
         if len(shape) != 5 or shape[1] != 6 or shape[2] != shape[3] or shape[4] != 2:
             raise ValueError(f"moments must have shape (P, 6, m, m, 2), got {shape}.")
     v = None if valid is None else np.asarray(valid, dtype=bool)
+    if n is None and p.shape[0] == 1:
+        return _weights_one(grid, p, v)
     parts = [
         _weights(grid, p[i:i + _POINT_CHUNK], v, None if n is None else n[i:i + _POINT_CHUNK],
                  probe_positions, moments, normal_bias)
@@ -247,6 +249,38 @@ def _weights(
         total[unlit] = 1.0  # and their weights are all 0
     w = w / total[:, None]
     return ProbeWeights(indices=indices, weights=w, points=clamped, outside=outside, unlit=unlit)
+
+
+def _weights_one(
+    grid: GridSpec, p: NDArray[np.float64], valid: NDArray[np.bool_] | None
+) -> ProbeWeights:
+    """:func:`_weights` of a single point ``p (1, 3)`` without normals, in Python floats.
+
+    numpy's per-call overhead is most of the cost of one point, so this scalar path repeats
+    :func:`_weights`' operations on Python floats (:meth:`GridSpec.point_corners`, then the
+    validity mask, numpy's pairwise order for the sum of 8 weights, and the division); the
+    result equals :func:`_weights`' bit for bit (tested).
+    """
+    x, y, z = p[0].tolist()
+    indices, tri, outside = grid.point_corners(x, y, z)
+    if valid is not None:  # ``trilinear * valid[indices]``: t * 1.0 or t * 0.0
+        tri = [t if valid[i] else t * 0.0 for i, t in zip(indices, tri, strict=True)]
+    w0, w1, w2, w3, w4, w5, w6, w7 = tri
+    total = ((w0 + w1) + (w2 + w3)) + ((w4 + w5) + (w6 + w7))  # np.sum's order for 8 values
+    unlit = total <= 0
+    if unlit:
+        total = 1.0  # and the weights are all 0
+    clamped = [  # np.minimum(np.maximum(p, lo), hi)
+        c if (c := (v if v > lo else lo)) < hi else hi
+        for v, lo, hi in zip((x, y, z), grid.bounds_min, grid.bounds_max, strict=True)
+    ]
+    return ProbeWeights(
+        indices=np.array([indices], dtype=np.int64),
+        weights=np.array([[t / total for t in tri]], dtype=np.float64),
+        points=np.array([clamped], dtype=np.float64),
+        outside=np.array([outside]),
+        unlit=np.array([unlit]),
+    )
 
 
 def _shading_factor(

@@ -47,7 +47,7 @@ not depend on which batch or process rendered it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -133,6 +133,22 @@ def sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
     weights : (6, n, n, s) float64
         Area-element weights normalised to sum to 1 over each texel's samples.
     """
+    if settings.samples == 1:  # texel centres: the same for every probe
+        return _centre_pattern(settings.face_size)
+    return _sample_pattern(settings, probe_index)
+
+
+@lru_cache(maxsize=8)
+def _centre_pattern(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    d, w = _sample_pattern(RenderSettings(face_size=n, moments_size=1), 0)
+    d.setflags(write=False)
+    w.setflags(write=False)
+    return d, w
+
+
+def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
+    NDArray[np.float64], NDArray[np.float64]
+]:
     n, s = settings.face_size, settings.samples
     if s == 1:
         jitter = np.array([[0.5, 0.5]])

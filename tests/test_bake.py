@@ -190,3 +190,19 @@ def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
     a, b = _arrays(open_store(out)), _arrays(open_store(fresh))
     for k in a:
         assert np.array_equal(a[k], b[k]), k
+
+
+def test_environment_rotation_rotates_the_probes(tmp_path):
+    from probegrid.sh import rotate_y
+
+    rng = np.random.default_rng(1)
+    faces = rng.random((6, 16, 16, 3)).astype(np.float32) + np.linspace(0, 2, 16)[:, None, None]
+    scene = _lone_light_scene(intensity=0.0)
+    grid = GridSpec.from_counts((0, 0, 0), (0, 0, 0), (1, 1, 1))
+    st = BakeSettings(bounces=0, face_size=32, diffuse_size=4, moments_size=4, samples=4)
+    plain = bake(scene, grid, tmp_path / "a.probes", settings=st,
+                 environment=Environment(faces=faces)).store
+    turned = bake(scene, grid, tmp_path / "b.probes", settings=st,
+                  environment=Environment(faces=faces, rotation=np.pi / 2, intensity=2.0)).store
+    expected = 2.0 * rotate_y(np.asarray(plain["sh"][0], np.float64), np.pi / 2)
+    np.testing.assert_allclose(turned["sh"][0], expected, atol=0.02 * abs(expected[0]).max())
