@@ -141,6 +141,13 @@ class _Context:
     previous_moments: NDArray[np.float32] | None = None
 
     def setup(self) -> _State:
+        import multiprocessing
+
+        if multiprocessing.parent_process() is not None:
+            # a worker process: one BLAS thread, the executor already runs one task per core
+            from threadpoolctl import threadpool_limits
+
+            threadpool_limits(1)
         field = None
         if self.previous_sh is not None:
             assert self.positions is not None and self.valid is not None

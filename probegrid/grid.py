@@ -328,11 +328,13 @@ class GridSpec(BaseModel):
     def point_corners(self, x: float, y: float, z: float) -> tuple[list[int], list[float], bool]:
         """:meth:`corners` of one point, in plain Python float arithmetic.
 
-        For a single point numpy's per-call overhead is most of the cost of :meth:`corners`
-        (about 35 us against 3 us here); this is the scalar path of the service's per-point
-        queries. It performs the same IEEE-754 double operations in the same order (clamp,
-        ``(p - lo) / step``, floor, clip, ``1 - frac``, the product over axes x, y, z), so the
-        results equal :meth:`corners`' bit for bit (tested).
+        For a single point numpy's per-call overhead is nearly all of the cost of
+        :meth:`corners` (about 35 us against 1.5 us here); this is the scalar path of per-point
+        queries (:func:`probegrid.interpolate.probe_weights` of one point). It performs the same
+        IEEE-754 double operations in the same order (clamp, ``(p - lo) / step``, floor, clip,
+        ``1 - frac``, the product over axes x, y, z), so its indices, weights and flag equal
+        :meth:`corners`' (tested bit for bit; a zero weight may differ in sign, as numpy's own
+        ``clip`` of ``-0.0`` does between array sizes).
 
         Parameters
         ----------
@@ -345,30 +347,31 @@ class GridSpec(BaseModel):
         weights : list of 8 float
         outside : bool
         """
-        outside = False
-        base: list[int] = []
-        axis_weights: list[tuple[float, float]] = []
-        for p, lo, hi, n in zip((x, y, z), self.bounds_min, self.bounds_max, self.counts):
-            if p < lo or p > hi:
-                outside = True
-            if n > 1:
-                c = lo if p <= lo else (hi if p >= hi else p)  # np.clip(p, lo, hi)
-                t = (c - lo) / ((hi - lo) / (n - 1))
-                b = min(max(int(math.floor(t)), 0), n - 2)
-                f = t - b
-                f = 0.0 if f <= 0.0 else (1.0 if f >= 1.0 else f)  # np.clip(f, 0, 1)
-            else:
-                b, f = 0, 0.0
-            base.append(b)
-            axis_weights.append((1.0 - f, f))
-        (bi, bj, bk), (nx, ny, nz) = base, self.counts
-        wx, wy, wz = axis_weights
-        ii = (bi, min(bi + 1, nx - 1))
-        jj = (bj, min(bj + 1, ny - 1))
-        kk = (bk, min(bk + 1, nz - 1))
-        indices = [(ii[c >> 2] * ny + jj[(c >> 1) & 1]) * nz + kk[c & 1] for c in range(8)]
-        weights = [wx[c >> 2] * wy[(c >> 1) & 1] * wz[c & 1] for c in range(8)]
+        (lx, ly, lz), (hx, hy, hz), (nx, ny, nz) = self.bounds_min, self.bounds_max, self.counts
+        outside = x < lx or x > hx or y < ly or y > hy or z < lz or z > hz
+        i0, i1, wx0, wx1 = _axis_cell(x, lx, hx, nx)
+        j0, j1, wy0, wy1 = _axis_cell(y, ly, hy, ny)
+        k0, k1, wz0, wz1 = _axis_cell(z, lz, hz, nz)
+        r00, r01 = (i0 * ny + j0) * nz, (i0 * ny + j1) * nz  # corner c = 4 di + 2 dj + dk
+        r10, r11 = (i1 * ny + j0) * nz, (i1 * ny + j1) * nz
+        indices = [r00 + k0, r00 + k1, r01 + k0, r01 + k1, r10 + k0, r10 + k1, r11 + k0, r11 + k1]
+        w00, w01, w10, w11 = wx0 * wy0, wx0 * wy1, wx1 * wy0, wx1 * wy1  # (wx * wy) * wz
+        weights = [w00 * wz0, w00 * wz1, w01 * wz0, w01 * wz1,
+                   w10 * wz0, w10 * wz1, w11 * wz0, w11 * wz1]
         return indices, weights, outside
+
+
+def _axis_cell(p: float, lo: float, hi: float, n: int) -> tuple[int, int, float, float]:
+    """One axis of :meth:`GridSpec.point_corners`: lattice coordinates of the cell's two corner
+    planes and their trilinear factors ``1 - frac`` and ``frac``."""
+    if n == 1:
+        return 0, 0, 1.0, 0.0
+    c = lo if p <= lo else (hi if p >= hi else p)  # np.clip(p, lo, hi)
+    t = (c - lo) / ((hi - lo) / (n - 1))  # >= 0, so int() is floor()
+    b = min(int(t), n - 2)
+    f = t - b
+    f = 0.0 if f <= 0.0 else (1.0 if f >= 1.0 else f)  # np.clip(f, 0, 1)
+    return b, b + 1, 1.0 - f, f
 
 
 def _build(cls: type[GridSpec], lo: Vec3, hi: Vec3, counts: tuple[int, ...]) -> GridSpec:

@@ -197,7 +197,7 @@ def probe_weights(
     ProbeWeights
     """
     p = _points(points, "points")
-    if not (np.isfinite(normal_bias) and normal_bias >= 0):
+    if not (math.isfinite(normal_bias) and normal_bias >= 0):
         raise ValueError(f"normal_bias must be finite and >= 0, got {normal_bias!r}.")
     n = None
     if normals is not None:
@@ -270,9 +270,11 @@ def _weights_one(
     unlit = total <= 0
     if unlit:
         total = 1.0  # and the weights are all 0
+    (lx, ly, lz), (hx, hy, hz) = grid.bounds_min, grid.bounds_max
     clamped = [  # np.minimum(np.maximum(p, lo), hi)
-        c if (c := (v if v > lo else lo)) < hi else hi
-        for v, lo, hi in zip((x, y, z), grid.bounds_min, grid.bounds_max, strict=True)
+        c if (c := x if x > lx else lx) < hx else hx,
+        c if (c := y if y > ly else ly) < hy else hy,
+        c if (c := z if z > lz else lz) < hz else hz,
     ]
     return ProbeWeights(
         indices=np.array([indices], dtype=np.int64),
@@ -442,6 +444,7 @@ def blend(array: NDArray[Any], weights: ProbeWeights, *, dtype: type = np.float6
     (n, ...) array of ``dtype``
     """
     n = len(weights)
+    array = np.asarray(array)  # a memmap as a plain view: no per-operation memmap bookkeeping
     shape = array.shape[1:]
     size = math.prod(shape)
     out: NDArray[Any] = np.empty((n, size), dtype=dtype)

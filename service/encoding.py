@@ -38,6 +38,7 @@ import io
 import os
 import secrets
 import tempfile
+from functools import lru_cache
 from pathlib import Path
 from typing import Final
 
@@ -100,6 +101,16 @@ def scratch_directory() -> Path:
     return Path(tempfile.mkdtemp(prefix="probegrid-service-", dir=base))
 
 
+@lru_cache(maxsize=64)
+def _npy_header(shape: tuple[int, ...]) -> bytes:
+    """The ``.npy`` (format 1.0) header ``np.save`` writes for a C-ordered float32 array."""
+    buf = io.BytesIO()
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)),
+              "fortran_order": False, "shape": shape}
+    np.lib.format.write_array_header_1_0(buf, header)
+    return buf.getvalue()
+
+
 def cube_image(faces: NDArray[np.float32], layout: str) -> NDArray[np.float32]:
     """The array a layout serves: ``(6, n, n, 3)`` faces or the ``(3n, 4n, 3)`` cross."""
     return faces if layout == "faces" else faces_to_cross(faces, "hcross")
@@ -131,10 +142,8 @@ def encode_cube(
     if layout not in ("faces", "cross"):
         raise ValueError(f"unknown layout {layout!r}; choose 'faces' or 'cross'.")
     arr = np.ascontiguousarray(cube_image(faces, layout), dtype=np.float32)
-    if fmt == "npy":
-        buf = io.BytesIO()
-        np.save(buf, arr, allow_pickle=False)
-        return buf.getvalue()
+    if fmt == "npy":  # exactly np.save's bytes (tested), without its per-call header building
+        return _npy_header(arr.shape) + arr.tobytes()
     if fmt == "json":
         doc = dict(meta or {})
         doc.update(layout=layout, shape=list(arr.shape), data=arr.tolist())

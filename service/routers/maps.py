@@ -2,23 +2,28 @@
 
 from __future__ import annotations
 
-from typing import Annotated, cast
+from typing import Annotated, Any, Final, cast, get_args
 
 from fastapi import APIRouter, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from probegrid.interpolate import MapKind
 from probegrid.lobes import level_roughness
-from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep
+from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep, plain_query, probe_query
 from service.encoding import MEDIA_TYPES, conditional_response, encode_cube
 from service.errors import ApiError
+from service.fastroute import FastPathRoute, fast_path
 from service.routers._common import flags_json, probe_header, probes_json
 from service.schemas import CubeFormat, CubeLayout, ErrorOut
 
-router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
+router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"], route_class=FastPathRoute)
 
 #: Largest face size whose npy map is made on the event loop rather than in a worker thread.
 INLINE_FACE_SIZE = 32
+#: Largest ``level`` the route accepts (its ``Query(le=...)``); the store decides the real range.
+MAX_LEVEL: Final = 64
+_FORMATS: Final = frozenset(get_args(CubeFormat))
+_LAYOUTS: Final = frozenset(get_args(CubeLayout))
 
 _BINARY = {"content": {t: {} for t in MEDIA_TYPES.values()}, "description": "The map."}
 
@@ -32,6 +37,34 @@ def check_json_size(values: int, limit: int) -> None:
         )
 
 
+def _level(raw: str | None) -> int | None:
+    """``level`` as FastAPI's ``Query(ge=0, le=MAX_LEVEL)`` int reads it, for canonical decimal
+    digits only (``0``, ``7``, ``12``; not ``07``, `` 7`` or ``+7``); None for anything else."""
+    if raw is None:
+        return 0
+    if not (raw.isascii() and raw.isdigit() and len(raw) <= 2) or (len(raw) == 2 and raw[0] == "0"):
+        return None
+    level = int(raw)
+    return level if level <= MAX_LEVEL else None
+
+
+def resolve_map(request: Request) -> dict[str, Any] | None:
+    """Arguments of :func:`get_map` for a plain, well-formed query (else None: FastAPI resolves
+    and validates them); see :mod:`service.fastroute`. The grid and point are resolved first,
+    raising what the endpoint's dependency raises, as FastAPI does."""
+    params = plain_query(request)
+    if params is None:
+        return None
+    query = probe_query(request, params)
+    level = _level(params.get("level"))
+    fmt = params.get("format", "exr")
+    layout = params.get("layout", "faces")
+    if level is None or fmt not in _FORMATS or layout not in _LAYOUTS:
+        return None
+    return {"request": request, "state": request.app.state.probegrid, "query": query,
+            "kind": request.path_params["kind"], "level": level, "fmt": fmt, "layout": layout}
+
+
 @router.get(
     "/maps/{kind}",
     operation_id="get_map",
@@ -39,12 +72,13 @@ def check_json_size(values: int, limit: int) -> None:
     responses={200: _BINARY, 404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
     openapi_extra={"parameters": POINT_PARAMETERS},
 )
+@fast_path(resolve_map)
 async def get_map(
     request: Request,
     state: StateDep,
     query: ProbeQueryDep,
     kind: Annotated[str, Path(description="diffuse, specular or incoming (where stored).")],
-    level: Annotated[int, Query(ge=0, le=64, description="Specular mip level.")] = 0,
+    level: Annotated[int, Query(ge=0, le=MAX_LEVEL, description="Specular mip level.")] = 0,
     fmt: Annotated[CubeFormat, Query(alias="format", description="Encoding.")] = "exr",
     layout: Annotated[CubeLayout, Query(description="Six faces or a horizontal cross.")] = "faces",
 ) -> Response:

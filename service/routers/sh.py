@@ -2,15 +2,27 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from fastapi import APIRouter, Request, Response
 from pydantic_core import to_json
 
-from service.deps import POINT_PARAMETERS, ProbeQueryDep
+from service.deps import POINT_PARAMETERS, ProbeQueryDep, plain_query, probe_query
 from service.encoding import conditional_response
+from service.fastroute import FastPathRoute, fast_path
 from service.routers._common import flags_json, probes_json
 from service.schemas import ErrorOut, SHOut
 
-router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
+router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"], route_class=FastPathRoute)
+
+
+def resolve_sh(request: Request) -> dict[str, Any] | None:
+    """Arguments of :func:`get_sh` for a query string that needs no decoding (else None: FastAPI
+    resolves them); see :mod:`service.fastroute`."""
+    params = plain_query(request)
+    if params is None:
+        return None
+    return {"request": request, "query": probe_query(request, params)}
 
 
 @router.get(
@@ -20,6 +32,7 @@ router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
     responses={404: {"model": ErrorOut}, 422: {"model": ErrorOut}},
     openapi_extra={"parameters": POINT_PARAMETERS},
 )
+@fast_path(resolve_sh)
 async def get_sh(request: Request, query: ProbeQueryDep) -> Response:
     """The 9 RGB radiance coefficients at ``(x, y, z)``, blended from the surrounding probes.
 
