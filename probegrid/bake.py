@@ -204,7 +204,7 @@ def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
 
 def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
-    from probegrid import diffuse, seams, specular
+    from probegrid import seams
 
     ctx = state.ctx
     st = ctx.settings
@@ -217,18 +217,15 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
         "moments": res.moments,
         "rays": res.rays,
     }
-    sh_l, dif, sh_min, energy, seam = [], [], [], [], []
-    spec: list[list[NDArray[np.float32]]] = [[] for _ in range(levels)]
+    sh_l, sh_min, energy, seam = [], [], [], []
     for cube in res.incoming:  # per probe: results must not depend on the batch
         coeffs = sh.project_cube(cube)
         sh_l.append(coeffs)
         vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
         sh_min.append(vmin / np.pi)
-        d = diffuse.diffuse_exact(cube, st.diffuse_size)
-        dif.append(d)
-        chain = specular.ggx_prefilter(cube, levels=levels)
-        for k, lv in enumerate(chain):
-            spec[k].append(lv)
+    dif, chains = _filter_groups(res.incoming, st.diffuse_size, levels)
+    spec = [[c[k] for c in chains] for k in range(levels)]
+    for cube, d in zip(res.incoming, dif, strict=True):
         energy.append(_integral(d) / max(_integral(cube), 1e-30))
         seam.append(seams.seam_score(d))
     out["sh"] = np.stack(sh_l).astype(np.float32)
@@ -242,6 +239,44 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     out["_energy"] = np.array(energy)
     out["_seam"] = np.array(seam)
     return out
+
+
+#: Probes filtered together, as channels of one cube (a fixed shape, see _filter_groups).
+FILTER_GROUP = 8
+
+
+def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
+                   ) -> tuple[list[NDArray[np.float32]], list[list[NDArray[np.float32]]]]:
+    """Diffuse maps and GGX chains of ``cubes (B, 6, n, n, 3)``.
+
+    The filters are linear and act on each channel alike, so FILTER_GROUP probes go through one
+    call as the channels of a single cube, which amortises the per-call work. Every call has the
+    same shape (the last group is padded with zeros), so a probe's bits do not depend on which
+    probes share its group, i.e. on the batch.
+    """
+    from probegrid import diffuse, specular
+
+    b, _, n, _, c = cubes.shape
+    dif: list[NDArray[np.float32]] = []
+    chains: list[list[NDArray[np.float32]]] = []
+    for g0 in range(0, b, FILTER_GROUP):  # loop over groups of probes
+        group = np.zeros((FILTER_GROUP, 6, n, n, c), np.float32)
+        k = min(FILTER_GROUP, b - g0)
+        group[:k] = cubes[g0:g0 + k]
+        stacked = np.ascontiguousarray(np.moveaxis(group, 0, 3).reshape(6, n, n, -1))
+        d = diffuse.diffuse_exact(stacked, diffuse_size)
+        chain = specular.ggx_prefilter(stacked, levels=levels)
+
+        def split(a: NDArray[np.float32]) -> NDArray[np.float32]:
+            m = a.shape[1]
+            return np.moveaxis(a.reshape(6, m, m, FILTER_GROUP, c), 3, 0)
+
+        ds = split(d)
+        cs = [split(lv) for lv in chain]
+        for j in range(k):
+            dif.append(np.ascontiguousarray(ds[j]))
+            chains.append([np.ascontiguousarray(lv[j]) for lv in cs])
+    return dif, chains
 
 
 def _integral(cube: NDArray[np.float32]) -> float:

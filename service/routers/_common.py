@@ -8,16 +8,18 @@ from probegrid.grid import GridSpec
 from probegrid.interpolate import ProbeWeights
 
 
+def _used(weights: ProbeWeights, row: int) -> list[tuple[int, float]]:
+    """``(index, weight)`` of the probes with non-zero weight for one point, in corner order."""
+    return [(i, w) for i, w in zip(weights.indices[row].tolist(), weights.weights[row].tolist(),
+                                   strict=True) if w > 0]
+
+
 def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dict[str, Any]]:
     """The probes with non-zero weight for one point, in corner order, as
     :class:`service.schemas.ProbeUse` dicts."""
-    keep = weights.weights[row] > 0
     _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.grid
-    return [
-        {"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
-        for i, w in zip(weights.indices[row][keep].tolist(), weights.weights[row][keep].tolist(),
-                        strict=True)
-    ]
+    return [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
+            for i, w in _used(weights, row)]
 
 
 def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, bool]:
@@ -26,6 +28,6 @@ def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict
             "visibility": visibility}
 
 
-def probe_header(grid: GridSpec, weights: ProbeWeights) -> str:
+def probe_header(weights: ProbeWeights, row: int = 0) -> str:
     """``index:weight`` pairs of the probes used, comma separated (a response header)."""
-    return ",".join(f"{p['index']}:{p['weight']!r}" for p in probes_json(grid, weights))
+    return ",".join(f"{i}:{w!r}" for i, w in _used(weights, row))

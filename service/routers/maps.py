@@ -107,7 +107,7 @@ async def get_map(
         f = flags_json(w, visibility=point.normal is not None)
         meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level}
         headers = {
-            "X-Probegrid-Probes": probe_header(grid.store.grid, w),
+            "X-Probegrid-Probes": probe_header(w),
             "X-Probegrid-Outside": str(f["outside"]).lower(),
             "X-Probegrid-Unlit": str(f["unlit"]).lower(),
         }
