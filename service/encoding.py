@@ -21,8 +21,8 @@ Faces are in the order ``+X, -X, +Y, -Y, +Z, -Z`` with row 0 at the top (:mod:`p
 the cross is :func:`probegrid.layouts.faces_to_cross` ``"hcross"`` (uncovered cells 0). The exr,
 hdr and png encoders are :func:`probegrid.imageio.write_image`, which writes files: each image is
 written to a fresh file in the service's scratch directory (in ``/dev/shm`` when it exists, so it
-never touches a disk), read back and deleted. Every encoder is deterministic, so the same query
-always returns the same bytes.
+never touches a disk), read back and deleted. Every encoder is deterministic (EXRs carry no
+capture date), so the same query always returns the same bytes.
 
 ETags
 -----
@@ -118,10 +118,16 @@ def cube_image(faces: NDArray[np.float32], layout: str) -> NDArray[np.float32]:
     return faces if layout == "faces" else faces_to_cross(faces, "hcross")
 
 
+#: EXR header attributes of every served EXR: OpenImageIO stamps the current time as the
+#: ``capDate`` attribute unless ``DateTime`` is given, and an empty one leaves it out, so the
+#: same query gives the same bytes at any time.
+_EXR_METADATA: Final = {"DateTime": ""}
+
+
 def _encode_image(image: NDArray[np.float32], fmt: str, scratch: Path) -> bytes:
     path = scratch / f"{secrets.token_hex(12)}.{fmt}"
     try:
-        write_image(path, image, half=False)
+        write_image(path, image, half=False, metadata=_EXR_METADATA)
         return path.read_bytes()
     finally:
         path.unlink(missing_ok=True)
