@@ -447,18 +447,27 @@ def blend(array: NDArray[Any], weights: ProbeWeights, *, dtype: type = np.float6
     array = np.asarray(array)  # a memmap as a plain view: no per-operation memmap bookkeeping
     shape = array.shape[1:]
     size = math.prod(shape)
-    out: NDArray[Any] = np.empty((n, size), dtype=dtype)
     step = _chunk_rows(size * 8)
+    if n <= step:  # one chunk (every single-point query): no output buffer to fill
+        out = _blend_rows(array, weights.indices, weights.weights, size)
+        return out.astype(dtype, copy=False).reshape(n, *shape)
+    out = np.empty((n, size), dtype=dtype)
     for i in range(0, n, step):
         j = min(i + step, n)
-        w = weights.weights[i:j]
-        vals = np.take(array, weights.indices[i:j].ravel(), axis=0).reshape(j - i, 8, size)
-        unused = w <= 0
-        if unused.any():  # unused probes (invalid ones may hold anything) contribute nothing
-            vals = vals.astype(np.float64)
-            vals[unused] = 0.0
-        out[i:j] = np.matmul(w[:, None, :], vals)[:, 0]
+        out[i:j] = _blend_rows(array, weights.indices[i:j], weights.weights[i:j], size)
     return out.reshape(n, *shape)
+
+
+def _blend_rows(
+    array: NDArray[Any], indices: NDArray[np.int64], weights: NDArray[np.float64], size: int
+) -> NDArray[np.float64]:
+    """``(m, size)`` float64 blend of ``m`` points (one chunk of :func:`blend`)."""
+    vals = np.take(array, indices.ravel(), axis=0).reshape(len(indices), 8, size)
+    unused = weights <= 0
+    if unused.any():  # unused probes (invalid ones may hold anything) contribute nothing
+        vals = vals.astype(np.float64)
+        vals[unused] = 0.0
+    return np.matmul(weights[:, None, :], vals)[:, 0]
 
 
 def blend_lookup(

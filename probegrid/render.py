@@ -53,7 +53,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid import sh
-from probegrid.cubemap import direction_to_texel, face_uv_to_direction, texel_to_uv
+from probegrid.cubemap import (
+    face_uv_to_direction,
+    texel_directions,
+    texel_solid_angles,
+    texel_to_uv,
+)
 from probegrid.environment import Environment
 from probegrid.executors import probe_rng
 from probegrid.grid import GridSpec
@@ -261,8 +266,6 @@ class ProbeRenderer:
         k = n // m
         bins = (f * m + r // k) * m + c // k  # moments texel of every incoming texel
         self._moment_bins = np.repeat(bins.reshape(-1), self.settings.samples)
-        from probegrid.cubemap import texel_solid_angles
-
         self._texel_sa = np.repeat(texel_solid_angles(n).reshape(-1), self.settings.samples)
 
     # -- shading -------------------------------------------------------------------------
@@ -380,8 +383,6 @@ class ProbeRenderer:
 
         A cheap test for probes inside geometry; ``positions (B, 3)``, returns ``(B,)``.
         """
-        from probegrid.cubemap import texel_directions
-
         d = texel_directions(face_size).reshape(-1, 3)
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         hits = self.tracer.intersect(np.repeat(pos, len(d), axis=0), np.tile(d, (len(pos), 1)))
@@ -395,13 +396,3 @@ class ProbeRenderer:
             back[hit] = (facing > 0) & ~self._double_sided[p]
         return back.reshape(len(pos), -1).mean(axis=1)
 
-
-def project_sh_per_probe(incoming: NDArray[np.float32]) -> NDArray[np.float64]:
-    """SH radiance coefficients ``(B, 9, 3)`` of incoming cubes ``(B, 6, n, n, 3)``, per probe."""
-    return np.stack([sh.project_cube(c).astype(np.float64) for c in incoming])
-
-
-def probe_direction_texels(directions: NDArray[np.float64], n: int) -> NDArray[np.intp]:
-    """Flat texel index ``(f * n + row) * n + col`` of directions (helper for tests)."""
-    f, r, c = direction_to_texel(directions, n)
-    return (f * n + r) * n + c

@@ -84,7 +84,7 @@ def create_app(
     remove_scratch.append(weakref.finalize(app, shutil.rmtree, scratch, ignore_errors=True))
     app.state.probegrid = ServiceState(settings=settings, grids=registry, scratch=scratch)
     install_error_handlers(app)
-    for module in (health, grids, sh, maps, shade, lights):
+    for module in (health, sh, maps, grids, shade, lights):
         app.include_router(module.router)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
