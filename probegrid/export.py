@@ -13,7 +13,7 @@ import numpy as np
 
 from probegrid import __version__
 from probegrid.filterjob import write_json_atomic
-from probegrid.store import ProbeStore, StoreError, open_store, partial_path
+from probegrid.store import ProbeStore, StoreError, open_store, partial_path, partial_progress
 
 __all__ = ["describe_store", "export_probe", "parse_probe"]
 
@@ -25,9 +25,13 @@ def _mb(nbytes: int) -> str:
 def describe_store(path: str | os.PathLike[str]) -> str:
     """The manifest of a store in words (raises ``StoreError`` for an unfinished bake)."""
     p = Path(path)
-    if not p.exists() and partial_path(p).exists():
-        raise StoreError(f"{p} is an unfinished bake (in {partial_path(p)}); run the bake again "
-                         "to resume it")
+    work = p.with_name(p.name + ".work")
+    if not p.exists() and (partial_path(p).exists() or work.exists()):
+        progress = partial_progress(p) if partial_path(p).exists() else None
+        stage = (f"final pass, {progress[0]} of {progress[1]} probes done" if progress
+                 else "earlier passes")
+        raise StoreError(f"{p} is an unfinished bake ({stage}); run the same bake command "
+                         "again to resume it")
     store = open_store(p)
     m = store.manifest
     g = m.grid

@@ -180,6 +180,10 @@ def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
         open_store(out)
     with pytest.raises(StoreError):
         open_store(out.with_name(out.name + ".partial"))
+    from probegrid.export import describe_store
+
+    with pytest.raises(StoreError, match="unfinished bake"):
+        describe_store(out)
     done = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "resumed" in done.stdout
