@@ -10,6 +10,7 @@ cells (half a cell inside the bounds), so none starts on a wall.
 from __future__ import annotations
 
 import math
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -153,8 +154,9 @@ class _Bar:
         if stage != self._stage:
             self.close()
             self._stage = stage
+            width = shutil.get_terminal_size(fallback=(100, 24)).columns or 100
             self._bar = tqdm(total=p.probes_total, desc=stage, unit="probe", file=sys.stderr,
-                             dynamic_ncols=True, mininterval=0.5)
+                             ncols=min(width, 120), mininterval=0.5)
             self._t0 = time.perf_counter() - p.elapsed
             self._rays0 = rays
         assert self._bar is not None
