@@ -220,16 +220,21 @@ def run_filter(
 
     t = time.perf_counter()
     say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method})")
+    sh_window: dict[str, Any] = {"window": "none"}
     if settings.diffuse_method == "exact":
         diff = diffuse.diffuse_exact(cube, settings.diffuse_size)
-        window_used = "none"
     else:
         width = settings.sh_window_width
         if settings.sh_window not in ("none", "auto") and width is None:
             raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
-        diff = sh.diffuse_cube(coeffs, settings.diffuse_size, window=settings.sh_window,
-                               width=width)
-        window_used = settings.sh_window
+        diff, info = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
+                                        width=width)
+        sh_window = {
+            "window": info.window,
+            "width": info.width if np.isfinite(info.width) else None,
+            "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
+            "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
+        }
     timings["diffuse"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -291,7 +296,8 @@ def run_filter(
 
     say("writing maps")
     write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
-               content="irradiance / pi", method=settings.diffuse_method, sh_window=window_used)
+               content="irradiance / pi", method=settings.diffuse_method,
+               sh_window=sh_window["window"])
     for k, lv in enumerate(spec_out):
         r = k / (levels - 1) if levels > 1 else 0.0
         write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
@@ -304,6 +310,7 @@ def run_filter(
                    "A = (pi, 2pi/3, pi/4)",
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
+        "diffuse_map": {"method": settings.diffuse_method, **sh_window},
     }
     write_json_atomic(out / "sh.json", sh_doc)
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
@@ -347,6 +354,7 @@ def run_filter(
                                    for k in range(levels)]},
         "quality": {
             "sh_min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+            "diffuse_sh_window": sh_window,
             "energy": energy,
             "seam_score": seam_scores,
         },
