@@ -173,3 +173,19 @@ def test_bad_scenes_give_one_line_errors(tmp_path):
                             tmp_path / "t.probes", "--grid", "0x1x1"))
     _one_error_line(run_cli("bake", REPO / "data" / "sample_room.glb", "--out",
                             tmp_path / "t.probes", "--scheduler", "tcp://127.0.0.1:9"))
+
+
+def test_sh_diffuse_with_auto_window_reports_and_removes_negative_irradiance(tmp_path,
+                                                                             shared_data):
+    studio = shared_data / "hdr" / "studio_small_03_1k.hdr"
+    r = run_cli("filter", studio, "--out", tmp_path, "--size", "32", "--diffuse-size", "8",
+                "--diffuse-method", "sh", "--sh-window", "auto", "--no-previews")
+    assert r.returncode == 0, r.stderr
+    q = json.loads((tmp_path / "manifest.json").read_text())["quality"]
+    assert min(q["sh_min_irradiance_over_pi"]) < 0  # band-2 ringing of the raw projection
+    after = q["diffuse_sh_window"]
+    assert after["window"] == "hanning" and after["width"] > 2
+    assert min(after["min_irradiance_over_pi_after_window"]) >= 0
+    faces = np.stack([imageio.read_image(tmp_path / f"diffuse{s}.exr")
+                      for s in imageio.FACE_SUFFIXES])
+    assert faces.min() >= -1e-3  # half-float rounding of values near 0
