@@ -4,9 +4,11 @@ Starts ``service.main.run`` (one uvicorn worker, as ``probegrid serve`` does) on
 subprocess, serving ``--store`` or, without it, a synthetic store written with
 :class:`probegrid.store.StoreWriter` (8 x 4 x 8 probes, 16^2 diffuse cubes, a 64^2 GGX chain,
 distance moments). A minimal asyncio HTTP/1.1 keep-alive load generator (raw sockets, so the
-client costs far less than the server) then sends, per endpoint and after a warm-up,
+client costs far less than the server) then measures, after a warm-up, per endpoint:
 ``--requests`` requests on one connection (latency: p50, p99) and ``--requests`` more over
-``--connections`` concurrent connections (throughput: requests per second):
+``--connections`` concurrent connections (throughput: requests per second). The requests are
+sent in ``--rounds`` rounds that visit every endpoint in turn, so a change in the load of the
+(shared) machine during the run falls on every endpoint alike instead of on the ratios:
 
 * ``bare``: ``GET /healthz``, a fixed small JSON document from the same app (the reference);
 * ``sh``: ``GET /v1/grids/G/sh?x=&y=&z=`` at positions spread over the grid box;
@@ -18,10 +20,14 @@ endpoint (the figures; targets: ``sh`` p50 <= 1.5x and throughput >= 0.7x, ``map
 then the server's resident memory before and after ``--rss-requests`` more mixed requests
 (the issue's figure is 100000; the default is bounded for a shared machine).
 
+Every endpoint cycles through 512 random positions (and normals), so the figures are not those of
+one cached query. The header line names uvicorn's HTTP parser and event loop (``auto``: httptools
+and uvloop when installed, else h11 and asyncio): they change every figure.
+
 Usage::
 
     .venv/bin/python benchmarks/bench_service.py [--store S.probes] [--requests 2000]
-        [--connections 4] [--rss-requests 20000] [--max-seconds 300]
+        [--connections 4] [--rounds 10] [--rss-requests 20000] [--max-seconds 300]
 
 Loopback only; every phase is bounded in requests and in time.
 """
@@ -30,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import importlib.util
 import json
 import os
 import socket
@@ -41,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import psutil
+import uvicorn
 
 from probegrid.conventions import conventions
 from probegrid.cubemap import mip_sizes
@@ -103,9 +111,12 @@ async def _read_response(reader: asyncio.StreamReader) -> int:
 
 
 async def _connection(port: int, paths: list[bytes], start: int, step: int, count: int,
-                      latencies: list[float], statuses: dict[int, int], deadline: float) -> None:
+                      latencies: list[float], statuses: dict[int, int], deadline: float,
+                      ready: asyncio.Barrier | None = None) -> None:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     try:
+        if ready is not None:
+            await ready.wait()  # every connection is open before the clock starts
         for k in range(count):
             if time.monotonic() > deadline:
                 break
@@ -121,22 +132,61 @@ async def _connection(port: int, paths: list[bytes], start: int, step: int, coun
 
 
 async def load(port: int, paths: list[bytes], requests: int, connections: int,
-               max_seconds: float) -> dict[str, float]:
-    """Send ``requests`` GETs over ``connections`` keep-alive connections; latency stats."""
+               max_seconds: float, offset: int = 0) -> tuple[list[float], float]:
+    """Send ``requests`` GETs over ``connections`` keep-alive connections, cycling through
+    ``paths`` from ``offset``; the latencies (s) and the wall time once all were open (s)."""
     latencies: list[float] = []
     statuses: dict[int, int] = {}
     per = -(-requests // connections)
     deadline = time.monotonic() + max_seconds
+    ready = asyncio.Barrier(connections + 1)
+    tasks = [asyncio.create_task(_connection(port, paths, offset + c, connections, per,
+                                             latencies, statuses, deadline, ready))
+             for c in range(connections)]
+    await ready.wait()
     t0 = time.perf_counter()
-    await asyncio.gather(*(
-        _connection(port, paths, c, connections, per, latencies, statuses, deadline)
-        for c in range(connections)))
+    await asyncio.gather(*tasks)
     wall = time.perf_counter() - t0
-    lat = np.array(latencies) * 1e3
     if set(statuses) != {200}:
         raise RuntimeError(f"unexpected statuses {statuses}")
-    return {"n": float(lat.size), "p50_ms": float(np.percentile(lat, 50)),
-            "p99_ms": float(np.percentile(lat, 99)), "rps": lat.size / wall}
+    return latencies, wall
+
+
+def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections: int,
+            rounds: int, max_seconds: float) -> dict[str, dict[str, float]]:
+    """Latency (1 connection) and throughput (``connections``) of every endpoint, ``requests``
+    of each per endpoint, in ``rounds`` interleaved rounds (module docstring)."""
+    for p in paths.values():  # warm-up
+        asyncio.run(load(port, p, min(300, requests), connections, 30))
+    one: dict[str, list[float]] = {k: [] for k in paths}
+    many: dict[str, list[float]] = {k: [] for k in paths}
+    wall = dict.fromkeys(paths, 0.0)
+    deadline = time.monotonic() + max_seconds
+    per = -(-requests // rounds)
+    for r in range(rounds):
+        if time.monotonic() > deadline:
+            break
+        for key, p in paths.items():
+            one[key] += asyncio.run(load(port, p, per, 1, max_seconds, r * per))[0]
+            lat, w = asyncio.run(load(port, p, per, connections, max_seconds, r * per))
+            many[key] += lat
+            wall[key] += w
+    results = {}
+    for key in paths:
+        a, b = np.array(one[key]) * 1e3, np.array(many[key]) * 1e3
+        results[key] = {"p50_ms": float(np.percentile(a, 50)),
+                        "p99_ms": float(np.percentile(a, 99)),
+                        "rps": b.size / wall[key], "requests": float(a.size),
+                        "loaded_p50_ms": float(np.percentile(b, 50)),
+                        "loaded_p99_ms": float(np.percentile(b, 99))}
+    return results
+
+
+def server_stack() -> str:
+    """uvicorn's ``auto`` choices in this environment (what the server process uses)."""
+    http = "httptools" if importlib.util.find_spec("httptools") else "h11"
+    loop = "uvloop" if importlib.util.find_spec("uvloop") else "asyncio"
+    return f"uvicorn {uvicorn.__version__} {http}/{loop}"
 
 
 def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray) -> dict[str, list[bytes]]:
@@ -161,6 +211,8 @@ def main() -> None:
     parser.add_argument("--store", type=Path, help="store to serve (default: synthetic)")
     parser.add_argument("--requests", type=int, default=2000, help="requests per endpoint")
     parser.add_argument("--connections", type=int, default=4, help="keep-alive connections")
+    parser.add_argument("--rounds", type=int, default=10,
+                        help="interleaved rounds the requests are split into")
     parser.add_argument("--rss-requests", type=int, default=20000,
                         help="mixed requests between the two memory readings")
     parser.add_argument("--max-seconds", type=float, default=300.0,
@@ -185,17 +237,11 @@ def main() -> None:
                         raise RuntimeError((Path(tmp) / "server.log").read_text()) from None
                     time.sleep(0.1)
             paths = endpoint_paths(name, grid.lo, grid.hi)
-            results: dict[str, dict[str, float]] = {}
-            for key, p in paths.items():
-                asyncio.run(load(port, p, min(300, args.requests), args.connections, 30))
-                one = asyncio.run(load(port, p, args.requests, 1, args.max_seconds))
-                many = asyncio.run(load(port, p, args.requests, args.connections,
-                                        args.max_seconds))
-                results[key] = {"p50_ms": one["p50_ms"], "p99_ms": one["p99_ms"],
-                                "rps": many["rps"], "loaded_p50_ms": many["p50_ms"],
-                                "loaded_p99_ms": many["p99_ms"]}
-            print(f"{args.requests} requests per endpoint and measurement, one uvicorn worker, "
-                  f"store {store.name} ({grid.label}); latency on 1 connection, throughput on "
+            results = measure(port, paths, args.requests, args.connections, args.rounds,
+                              args.max_seconds)
+            print(f"{args.requests} requests per endpoint and measurement in {args.rounds} "
+                  f"interleaved rounds, one uvicorn worker ({server_stack()}), store "
+                  f"{store.name} ({grid.label}); latency on 1 connection, throughput on "
                   f"{args.connections}")
             print(f"{'endpoint':<11}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
                   f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}")

@@ -366,11 +366,11 @@ def _axis_cell(p: float, lo: float, hi: float, n: int) -> tuple[int, int, float,
     planes and their trilinear factors ``1 - frac`` and ``frac``."""
     if n == 1:
         return 0, 0, 1.0, 0.0
-    c = lo if p <= lo else (hi if p >= hi else p)  # np.clip(p, lo, hi)
+    c = lo if p <= lo else min(hi, p)  # np.clip(p, lo, hi)
     t = (c - lo) / ((hi - lo) / (n - 1))  # >= 0, so int() is floor()
     b = min(int(t), n - 2)
     f = t - b
-    f = 0.0 if f <= 0.0 else (1.0 if f >= 1.0 else f)  # np.clip(f, 0, 1)
+    f = 0.0 if f <= 0.0 else min(1.0, f)  # np.clip(f, 0, 1)
     return b, b + 1, 1.0 - f, f
 
 

@@ -141,7 +141,7 @@ def _points(points: ArrayLike, name: str) -> NDArray[np.float64]:
         p = p[None]
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"{name} must have shape (n, 3) or (3,), got {np.shape(points)}.")
-    if not np.isfinite(p).all():
+    if not np.logical_and.reduce(np.isfinite(p), axis=None):  # .all() without its Python wrapper
         raise ValueError(f"{name} must be finite (no nan or inf components).")
     return p
 
@@ -259,7 +259,8 @@ def _weights_one(
     numpy's per-call overhead is most of the cost of one point, so this scalar path repeats
     :func:`_weights`' operations on Python floats (:meth:`GridSpec.point_corners`, then the
     validity mask, numpy's pairwise order for the sum of 8 weights, and the division); the
-    result equals :func:`_weights`' bit for bit (tested).
+    result equals :func:`_weights`' bit for bit (tested; a zero weight may differ in sign,
+    which no consumer sees: only weights > 0 are used).
     """
     x, y, z = p[0].tolist()
     indices, tri, outside = grid.point_corners(x, y, z)
@@ -271,11 +272,8 @@ def _weights_one(
     if unlit:
         total = 1.0  # and the weights are all 0
     (lx, ly, lz), (hx, hy, hz) = grid.bounds_min, grid.bounds_max
-    clamped = [  # np.minimum(np.maximum(p, lo), hi)
-        c if (c := x if x > lx else lx) < hx else hx,
-        c if (c := y if y > ly else ly) < hy else hy,
-        c if (c := z if z > lz else lz) < hz else hz,
-    ]
+    # np.minimum(np.maximum(p, lo), hi)
+    clamped = [min(hx, max(lx, x)), min(hy, max(ly, y)), min(hz, max(lz, z))]
     return ProbeWeights(
         indices=np.array([indices], dtype=np.int64),
         weights=np.array([[t / total for t in tri]], dtype=np.float64),
@@ -461,13 +459,20 @@ def blend(array: NDArray[Any], weights: ProbeWeights, *, dtype: type = np.float6
 def _blend_rows(
     array: NDArray[Any], indices: NDArray[np.int64], weights: NDArray[np.float64], size: int
 ) -> NDArray[np.float64]:
-    """``(m, size)`` float64 blend of ``m`` points (one chunk of :func:`blend`)."""
+    """``(m, size)`` float64 blend of ``m`` points (one chunk of :func:`blend`).
+
+    ``np.einsum`` casts the gathered values to float64 in small buffers as it sums, rather than
+    making a float64 copy of all of them as ``matmul`` must. That matters once the data is out
+    of the CPU caches, as between a server's requests: for one point, measured with 0.3 ms
+    pauses between calls, 47 us against 60 us for a 16^2 cube and 11 us against 22 us for SH.
+    The sum over the 8 corners is in float64 either way (results differ from ``matmul``'s in
+    the last bits only: below 1e-15 relative, measured).
+    """
     vals = np.take(array, indices.ravel(), axis=0).reshape(len(indices), 8, size)
     unused = weights <= 0
-    if unused.any():  # unused probes (invalid ones may hold anything) contribute nothing
-        vals = vals.astype(np.float64)
-        vals[unused] = 0.0
-    return np.matmul(weights[:, None, :], vals)[:, 0]
+    if np.logical_or.reduce(unused, axis=None):  # unused probes (invalid ones may hold
+        vals[unused] = 0  # anything) contribute nothing; vals is a fresh copy
+    return np.einsum("nc,ncx->nx", weights, vals, dtype=np.float64)
 
 
 def blend_lookup(

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
@@ -211,8 +211,8 @@ async def get_probe_query(
     grid: Annotated[str, PathParam(description="Name of a served grid (see /v1/grids).")],
     request: Request,
 ) -> ProbeQuery:
-    """:func:`get_grid` and :func:`get_point` in one dependency (one resolution per request on
-    the hot path)."""
+    """:func:`served_grid` and :func:`parse_point` in one dependency (one resolution per
+    request)."""
     return ProbeQuery(grid=served_grid(request, grid), point=parse_point(request.query_params))
 
 

@@ -328,3 +328,53 @@ def test_bordered_cubes_lookup_matches_the_seamless_filter():
     expected = _probe_bilinear(cubes, probes, dirs)
     got = BorderedCubes(cubes).lookup(probes, dirs)
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------ one point
+SCALAR_GRIDS = [
+    GRID,
+    GridSpec.from_counts((-1.5, 0.2, -3.0), (2.25, 0.2, 5.0), (3, 1, 5)),
+    GridSpec.from_counts((0.1, 0.2, 0.3), (0.7, 1.9, 3.3), (2, 7, 1)),
+    GridSpec.from_counts((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1, 1, 1)),
+]
+
+
+def _edge_points(grid: GridSpec, n: int, seed: int) -> np.ndarray:
+    """Random points in and around the box, plus probes, box corners, faces and -0.0."""
+    rng = np.random.default_rng(seed)
+    lo, hi = grid.lo, grid.hi
+    pts = lo - 1.0 + rng.random((n, 3)) * (hi - lo + 2.0)
+    pts[:40] = grid.positions()[rng.integers(0, grid.n_probes, 40)]
+    pts[40:60] = np.where(rng.random((20, 3)) < 0.5, lo, hi)
+    pts[60:70, 0] = -0.0
+    pts[70:80] = [1e300, -1e300, 0.5]
+    return pts
+
+
+@pytest.mark.parametrize("grid", SCALAR_GRIDS, ids=[g.label for g in SCALAR_GRIDS])
+def test_one_point_scalar_path_equals_the_vectorised_one(grid):
+    """probe_weights of a single point (pure-Python path) gives the vectorised path's indices,
+    weights, clamped point and flags exactly (equal floats; a zero may differ in sign)."""
+    pts = _edge_points(grid, 600, seed=grid.n_probes)
+    rng = np.random.default_rng(1)
+    for valid in (None, rng.random(grid.n_probes) < 0.6):
+        many = probe_weights(grid, pts, valid=valid)
+        for k, p in enumerate(pts):
+            one = probe_weights(grid, p, valid=valid)
+            for name in ("indices", "weights", "points", "outside", "unlit"):
+                np.testing.assert_array_equal(getattr(one, name)[0], getattr(many, name)[k],
+                                              err_msg=f"{name} at {p}")
+        idx, w, out = grid.corners(pts)
+        for k, p in enumerate(pts[:100]):
+            i1, w1, o1 = grid.point_corners(*p.tolist())
+            assert i1 == idx[k].tolist() and w1 == w[k].tolist() and o1 == out[k]
+
+
+def test_blend_of_a_batch_equals_the_blend_of_each_point(field):
+    pts = _edge_points(GRID, 100, seed=3)
+    w = field.weights(pts)
+    batch_sh, batch_cube = field.sh(w), field.cube(w, "specular", level=1)
+    for k, p in enumerate(pts):
+        one = field.weights(p)
+        np.testing.assert_array_equal(field.sh(one)[0], batch_sh[k])
+        np.testing.assert_array_equal(field.cube(one, "specular", level=1)[0], batch_cube[k])

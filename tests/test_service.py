@@ -432,6 +432,133 @@ def test_fuzz_openapi_never_gives_5xx(server):
     assert "request_failed" not in server.log_text()  # the last resort never fired
 
 
+# ------------------------------------------------------------------------------ fast path
+FAST_PATH_QUERIES = [
+    "/v1/grids/lin/sh?x=0.75&y=0.25&z=1.5",
+    "/v1/grids/lin/sh?x=0.75&y=0.25&z=1.5&nx=0.3&ny=-0.8&nz=0.5",
+    "/v1/grids/lin/sh?x=-3&y=9&z=1e3",
+    "/v1/grids/second/sh?x=-0.9&y=0.1&z=-0.9",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&x=0.5",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&&extra=&flag",
+    "/v1/grids/lin/sh?x=0%2E75&y=0.25&z=1.5",
+    "/v1/grids/lin/sh?x=+0.75&y=0.25&z=1.5",
+    "/v1/grids/lin/sh?x=1&y=1",
+    "/v1/grids/lin/sh?x=nan&y=1&z=1",
+    "/v1/grids/lin/sh?x=abc&y=1&z=1",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&nx=1",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&nx=0&ny=0&nz=0",
+    "/v1/grids/nope/sh?x=nan",
+    "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5&format=npy",
+    "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5&format=npy&nx=0&ny=1&nz=0&layout=cross",
+    "/v1/grids/lin/maps/specular?x=0.75&y=0.25&z=1.5&format=json&level=2",
+    "/v1/grids/lin/maps/incoming?x=0.75&y=0.25&z=1.5&format=png",
+    "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=02",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=+1",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=64",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=65",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=-1",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=npy&level=1.0",
+    "/v1/grids/lin/maps/diffuse?x=0&y=0&z=0&format=gif",
+    "/v1/grids/lin/maps/diffuse?x=0&y=0&z=0&format=NPY",
+    "/v1/grids/lin/maps/diffuse?x=0&y=0&z=0&layout=vcross",
+    "/v1/grids/lin/maps/bogus?x=0&y=0&z=0&format=npy",
+    "/v1/grids/second/maps/incoming?x=0&y=0&z=0&format=npy",
+    "/v1/grids/lin/maps/specular?x=0&y=0&z=0&format=json",
+    "/v1/grids/lin/maps/diffuse?x=nan&y=0&z=0&level=-1",
+    "/v1/grids/lin/maps/diffuse?y=0&z=0&format=gif",
+]
+
+
+async def _force_fastapi() -> None:
+    """A dependency override that nothing uses: while it is set, every route resolves its
+    arguments through FastAPI (service.fastroute)."""
+
+
+def test_fast_path_answers_exactly_as_fastapi(stores, monkeypatch):
+    """The resolvers of /sh and /maps give the same status, headers and bytes as FastAPI's own
+    argument resolution, for good queries and every kind of bad one."""
+    import asyncio
+
+    import service.routers.maps as maps_router
+    import service.routers.sh as sh_router
+    from service.settings import Settings
+
+    app = create_app([stores["lin"], stores["second"]], Settings(**LIMITS))
+    resolved = []
+    for module in (sh_router, maps_router):  # count the fast path's resolutions
+        real = module.plain_query
+        monkeypatch.setattr(module, "plain_query",
+                            lambda request, real=real: resolved.append(1) or real(request))
+
+    async def fetch_all() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return [await c.get(url) for url in FAST_PATH_QUERIES]
+
+    fast = asyncio.run(fetch_all())
+    assert len(resolved) == len(FAST_PATH_QUERIES)
+    app.dependency_overrides[_force_fastapi] = _force_fastapi
+    slow = asyncio.run(fetch_all())
+    assert len(resolved) == len(FAST_PATH_QUERIES)  # no fast path while overrides are set
+    for url, a, b in zip(FAST_PATH_QUERIES, fast, slow, strict=True):
+        assert (a.status_code, a.headers.multi_items(), a.content) == (
+            b.status_code, b.headers.multi_items(), b.content), url
+        assert a.status_code < 500, url
+    statuses = {r.status_code for r in fast}
+    assert statuses == {200, 404, 422}
+
+
+def test_plain_query_reads_what_starlette_reads():
+    from starlette.requests import Request
+
+    from service.deps import plain_query
+
+    for raw in (b"", b"x=1", b"x=1&y=2&x=3", b"x=1&&y=&z", b"=1&a==b&c=d=e", b"x=1;y=2",
+                b"x=\xe9", b"x=%31", b"x=+1", b"a+b=1"):
+        request = Request({"type": "http", "query_string": raw})
+        got = plain_query(request)
+        if b"%" in raw or b"+" in raw:
+            assert got is None
+        else:
+            assert got == {k: request.query_params[k] for k in request.query_params}, raw
+
+
+def test_fast_path_route_refuses_what_it_would_bypass():
+    from fastapi import APIRouter, Depends, Response
+
+    from service.fastroute import FastPathRoute, fast_path
+
+    router = APIRouter(route_class=FastPathRoute)
+    with pytest.raises(ValueError, match="dependencies"):
+        @router.get("/a", dependencies=[Depends(_force_fastapi)])
+        @fast_path(lambda request: None)
+        async def a() -> Response:
+            return Response()
+    with pytest.raises(ValueError, match="async endpoint"):
+        @router.get("/b")
+        @fast_path(lambda request: None)
+        def b() -> Response:
+            return Response()
+
+
+def test_npy_bodies_are_numpy_save_bytes_and_exr_bodies_carry_no_date(tmp_path):
+    from service.encoding import encode_cube
+
+    rng = np.random.default_rng(7)
+    for n in (1, 4, 16):
+        faces = rng.random((6, n, n, 3)).astype(np.float32)
+        for layout in ("faces", "cross"):
+            buf = io.BytesIO()
+            img = faces if layout == "faces" else faces_to_cross(faces, "hcross")
+            np.save(buf, img, allow_pickle=False)
+            assert encode_cube(faces, fmt="npy", layout=layout, scratch=tmp_path) == \
+                buf.getvalue()
+    exr = encode_cube(faces, fmt="exr", layout="faces", scratch=tmp_path)
+    assert exr[:4] == b"v/1\x01" and b"capDate" not in exr  # no time stamp: same bytes later
+
+
 # ------------------------------------------------------------------------------ app building
 def test_create_app_refuses_bad_stores(stores, tmp_path):
     with pytest.raises(StoreError):
