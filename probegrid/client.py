@@ -330,9 +330,27 @@ class _BaseClient:
             return ProbeGridTimeoutError(f"{what}: the server did not answer in time ({exc}).")
         return ProbeGridConnectionError(f"{what}: cannot reach the server ({exc}).")
 
-    @staticmethod
-    def _failure(response: httpx.Response) -> ProbeGridHTTPError | None:
-        return _http_error(response) if response.status_code >= 400 else None
+    @classmethod
+    def _transport_failure(cls, exc: httpx.TransportError, call: _Call) -> ProbeGridError:
+        """The error of an attempt that raised ``exc`` (call it in the ``except`` block).
+
+        Returned when the attempt may be retried (the connection could not be made), raised
+        otherwise.
+        """
+        failure = cls._transport_error(exc, call)
+        if isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout)):
+            return failure
+        raise failure from exc
+
+    @classmethod
+    def _response_failure(cls, response: httpx.Response) -> ProbeGridHTTPError | None:
+        """None for a success; the error of an answer that may be retried; raises the others."""
+        if response.status_code < 400:
+            return None
+        failure = _http_error(response)
+        if not cls._retryable(response):
+            raise failure
+        return failure
 
     # -- calls and decoders --------------------------------------------------------------------
     @staticmethod
@@ -501,16 +519,12 @@ class ProbeGridClient(_BaseClient):
             try:
                 response = self._http.request(call.method, call.path,
                                               **self._request_kwargs(call))
-            except (httpx.ConnectError, httpx.ConnectTimeout) as exc:
-                failure = self._transport_error(exc, call)
-                continue
             except httpx.TransportError as exc:
-                raise self._transport_error(exc, call) from exc
-            failure = self._failure(response)
+                failure = self._transport_failure(exc, call)
+                continue
+            failure = self._response_failure(response)
             if failure is None:
                 return response
-            if not self._retryable(response):
-                break
         assert failure is not None
         raise failure
 
@@ -607,16 +621,12 @@ class AsyncProbeGridClient(_BaseClient):
             try:
                 response = await self._http.request(call.method, call.path,
                                                     **self._request_kwargs(call))
-            except (httpx.ConnectError, httpx.ConnectTimeout) as exc:
-                failure = self._transport_error(exc, call)
-                continue
             except httpx.TransportError as exc:
-                raise self._transport_error(exc, call) from exc
-            failure = self._failure(response)
+                failure = self._transport_failure(exc, call)
+                continue
+            failure = self._response_failure(response)
             if failure is None:
                 return response
-            if not self._retryable(response):
-                break
         assert failure is not None
         raise failure
 

@@ -432,6 +432,19 @@ def _check_context(context: object) -> None:
         )
 
 
+def _checked_work(
+    fn: TaskFn[Any], context: WorkerContext[Any], batches: Iterable[ArrayLike]
+) -> tuple[list[Batch], bytes]:
+    """Check a ``map`` call bound for worker processes: the batches, and that both pickle.
+
+    Returns the batches as int64 arrays and the pickled context.
+    """
+    _check_context(context)
+    todo = _as_batches(batches)
+    _check_picklable(fn, "task function")
+    return todo, _check_picklable(context, "worker context")
+
+
 # ---------------------------------------------------------------------------- local processes
 class _ProcessSlot:
     """The state of the current ``map`` call in a local worker process (or its setup error)."""
@@ -526,10 +539,7 @@ class LocalExecutor:
         progress: ProgressFn | None = None,
     ) -> Iterator[tuple[Batch, R]]:
         """See :meth:`Executor.map`."""
-        _check_context(context)
-        todo = _as_batches(batches)
-        _check_picklable(fn, "task function")
-        payload = _check_picklable(context, "worker context")
+        todo, payload = _checked_work(fn, context, batches)
         return self._run(fn, payload, todo, progress)
 
     def _run(
@@ -556,8 +566,16 @@ class LocalExecutor:
                     "a worker process died (killed, out of memory, or its setup() failed)"
                 ) from exc
 
+        def submit(order: int, batch: Batch) -> cf.Future[R]:
+            try:
+                return pool.submit(_local_task, fn, batch)
+            except cf.process.BrokenProcessPool as exc:  # a worker died before this submit
+                fut: cf.Future[R] = cf.Future()
+                fut.set_exception(exc)  # surfaces through fetch like any other death
+                return fut
+
         pipeline: _Pipeline[R] = _Pipeline(
-            submit=lambda order, batch: pool.submit(_local_task, fn, batch),
+            submit=submit,
             wait_first=wait_first,
             fetch=fetch,
             cancel=lambda futs: [f.cancel() for f in futs],
@@ -736,10 +754,7 @@ class DaskExecutor:
         progress: ProgressFn | None = None,
     ) -> Iterator[tuple[Batch, R]]:
         """See :meth:`Executor.map`."""
-        _check_context(context)
-        todo = _as_batches(batches)
-        _check_picklable(fn, "task function")
-        _check_picklable(context, "worker context")
+        todo, _ = _checked_work(fn, context, batches)
         return self._run(fn, context, todo, progress)
 
     def _run(

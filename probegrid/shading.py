@@ -157,6 +157,19 @@ def _sampler(cube: CubeLike, name: str) -> CubeSampler:
         raise ValueError(f"{name}: {exc}") from None
 
 
+def _map_samplers(
+    diffuse: CubeLike, specular: CubeLike, specular_name: str
+) -> tuple[CubeSampler, CubeSampler]:
+    """Samplers of the diffuse and the specular map, checked to have the same channels."""
+    d_s, s_s = _sampler(diffuse, "diffuse"), _sampler(specular, specular_name)
+    if d_s.channels != s_s.channels:
+        raise ValueError(
+            f"diffuse and specular maps must have the same channels, got {d_s.channels} "
+            f"and {s_s.channels}."
+        )
+    return d_s, s_s
+
+
 def _channels(value: ArrayLike, name: str, c: int) -> NDArray[np.float64]:
     a = _finite(value, name)
     if a.ndim == 0 or a.shape[-1] not in (1, c):
@@ -207,12 +220,7 @@ def shade_classic(
     (..., C) float32
     """
     n = _vectors(normals, "normals", nonzero=True)
-    d_s, s_s = _sampler(diffuse, "diffuse"), _sampler(specular, "specular")
-    if d_s.channels != s_s.channels:
-        raise ValueError(
-            f"diffuse and specular maps must have the same channels, got {d_s.channels} "
-            f"and {s_s.channels}."
-        )
+    d_s, s_s = _map_samplers(diffuse, specular, "specular")
     c = d_s.channels
     alb = _channels(albedo, "albedo", c)
     g = _finite(gloss, "gloss")
@@ -271,12 +279,7 @@ def shade_split_sum(
     """
     n = _vectors(normals, "normals", nonzero=True)
     v = _vectors(views, "views", nonzero=True)
-    d_s, s_s = _sampler(diffuse, "diffuse"), _sampler(specular_levels, "specular_levels")
-    if d_s.channels != s_s.channels:
-        raise ValueError(
-            f"diffuse and specular maps must have the same channels, got {d_s.channels} "
-            f"and {s_s.channels}."
-        )
+    d_s, s_s = _map_samplers(diffuse, specular_levels, "specular_levels")
     c = d_s.channels
     alb = _channels(albedo, "albedo", c)
     spec_f0 = _channels(f0, "f0", c)

@@ -64,6 +64,7 @@ import re
 import shutil
 import threading
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -542,6 +543,20 @@ def _lock_dir(directory: Path) -> int:
     return fd
 
 
+@contextmanager
+def _locked_setup(directory: Path) -> Iterator[int]:
+    """Lock ``directory`` (:func:`_lock_dir`) and yield the fd; release it if the block raises.
+
+    On success the fd stays open: the new :class:`StoreWriter` holds the lock until it closes.
+    """
+    fd = _lock_dir(directory)
+    try:
+        yield fd
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 def _check_target(final: Path, overwrite: bool) -> None:
     if final.exists() and not overwrite:
         raise StoreError(f"{final} already exists; pass overwrite=True (--overwrite) to replace it")
@@ -698,8 +713,7 @@ class StoreWriter:
             finally:
                 os.close(fd)
         partial.mkdir(parents=True)
-        fd = _lock_dir(partial)
-        try:
+        with _locked_setup(partial) as fd:
             maps = {}
             for name, info in plan.arrays.items():
                 file = partial / info.file
@@ -712,9 +726,6 @@ class StoreWriter:
             )
             _fsync_file(partial / DONE_FILE)
             _atomic_write_text(partial / PLAN_FILE, plan.model_dump_json(indent=2))
-        except BaseException:
-            os.close(fd)
-            raise
         return cls(
             final=final,
             plan=plan,
@@ -751,8 +762,7 @@ class StoreWriter:
         partial = partial_path(final)
         if not partial.is_dir():
             raise StoreError(f"no unfinished bake at {partial} to resume")
-        fd = _lock_dir(partial)
-        try:
+        with _locked_setup(partial) as fd:
             _check_target(final, overwrite)
             if (partial / PLAN_FILE).is_file():
                 stored: _Plan = _load_manifest_json(partial / PLAN_FILE, _Plan)
@@ -779,9 +789,6 @@ class StoreWriter:
                 done_info = ArrayInfo(file=DONE_FILE, dtype="|b1", shape=(grid.n_probes,))
                 _check_array_file(partial, "done mask", done_info)
                 done = np.load(partial / DONE_FILE, mmap_mode="r+")
-        except BaseException:
-            os.close(fd)
-            raise
         return cls(
             final=final,
             plan=stored,
