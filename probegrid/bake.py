@@ -38,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from probegrid import sh
 from probegrid.conventions import conventions
+from probegrid.cubemap import mip_sizes, solid_angle_integral
 from probegrid.environment import Environment
 from probegrid.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.grid import GridSpec
@@ -71,12 +72,8 @@ class BakeSettings(BaseModel):
     batch_size: int = Field(default=8, ge=1, le=4096)
 
     def levels(self) -> int:
-        full = int(np.log2(self.face_size)) + 1
-        if self.face_size & (self.face_size - 1):
-            raise ValueError(f"face_size must be a power of two, got {self.face_size}")
-        if self.specular_levels is not None and self.specular_levels > full:
-            raise ValueError(f"a {self.face_size}^2 cube has at most {full} mip levels")
-        return self.specular_levels or full
+        """Specular mip levels (the full chain of ``face_size`` by default)."""
+        return len(mip_sizes(self.face_size, self.specular_levels))
 
     def render_settings(self, scene: Scene, grid: GridSpec) -> RenderSettings:
         extent = float(np.linalg.norm(np.ptp(np.vstack([scene.bounds, grid.lo, grid.hi]), axis=0)))
@@ -95,6 +92,7 @@ def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
     """The arrays of a store baked with ``settings`` (name -> per-probe shape and dtype)."""
     n, d = settings.face_size, settings.diffuse_size
     m = min(settings.moments_size, n)
+    levels = settings.levels()
     arrays = {
         "sh": ArraySpec((9, 3), "float32", "radiance SH coefficients L_lm, index l(l+1)+m, RGB"),
         "diffuse": ArraySpec((6, d, d, 3), "float32", "diffuse cube: irradiance / pi"),
@@ -105,9 +103,9 @@ def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
         "backface_fraction": ArraySpec((), "float32", "fraction of rays hitting backfaces"),
         "sh_min": ArraySpec((3,), "float32", "minimum over the sphere of SH irradiance / pi"),
     }
-    for k in range(settings.levels()):
+    for k in range(levels):
         s = n >> k
-        r = k / (settings.levels() - 1) if settings.levels() > 1 else 0.0
+        r = k / (levels - 1) if levels > 1 else 0.0
         arrays[f"specular_{k}"] = ArraySpec(
             (6, s, s, 3), "float32", f"GGX prefiltered radiance, roughness {r:.4g}"
         )
@@ -163,6 +161,10 @@ class _State:
     field: IndirectField | None
 
 
+#: Face size of the texel-centre rays that classify a probe as inside geometry.
+CLASSIFY_FACE_SIZE = 8
+
+
 def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
     """Lattice offsets in [-1, 1]^3 (without 0), nearest first, ties in a fixed order."""
     k = np.arange(-steps, steps + 1) / steps
@@ -175,18 +177,19 @@ def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
 def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     ctx = state.ctx
     lattice = ctx.grid.positions()[batch]
-    frac = state.renderer.backface_fraction(lattice)
+    frac = state.renderer.backface_fraction(lattice, face_size=CLASSIFY_FACE_SIZE)
     pos = lattice.copy()
     valid = frac <= ctx.settings.invalid_threshold
-    rays = len(batch) * 6 * 64
+    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2
+    rays = len(batch) * rays_per_point
     if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
         cell = np.where(np.array(ctx.grid.counts) > 1, ctx.grid.cell_size, 0.0)
         offsets = _relocation_offsets() * (ctx.settings.relocate_fraction * cell)
         offsets = offsets[np.any(offsets != 0, axis=1)]
         for j in np.flatnonzero(~valid):  # loop over invalid probes, not rays
             cand = lattice[j] + offsets
-            f = state.renderer.backface_fraction(cand)
-            rays += len(cand) * 6 * 64
+            f = state.renderer.backface_fraction(cand, face_size=CLASSIFY_FACE_SIZE)
+            rays += len(cand) * rays_per_point
             ok = np.flatnonzero(f <= ctx.settings.invalid_threshold)
             if ok.size:
                 pos[j] = cand[ok[0]]
@@ -226,7 +229,8 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     dif, chains = _filter_groups(res.incoming, st.diffuse_size, levels)
     spec = [[c[k] for c in chains] for k in range(levels)]
     for cube, d in zip(res.incoming, dif, strict=True):
-        energy.append(_integral(d) / max(_integral(cube), 1e-30))
+        energy.append(float(solid_angle_integral(d).sum())
+                      / max(float(solid_angle_integral(cube).sum()), 1e-30))
         seam.append(seams.seam_score(d))
     out["sh"] = np.stack(sh_l).astype(np.float32)
     out["sh_min"] = np.stack(sh_min).astype(np.float32)
@@ -243,6 +247,12 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
 #: Probes filtered together, as channels of one cube (a fixed shape, see _filter_groups).
 FILTER_GROUP = 8
+
+
+def _unstack_probes(cube: NDArray[np.float32], channels: int) -> NDArray[np.float32]:
+    """``(6, m, m, G * C)`` -> ``(G, 6, m, m, C)``: undo the probes-as-channels stacking."""
+    m = cube.shape[1]
+    return np.moveaxis(cube.reshape(6, m, m, -1, channels), 3, 0)
 
 
 def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
@@ -267,22 +277,12 @@ def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
         d = diffuse.diffuse_exact(stacked, diffuse_size)
         chain = specular.ggx_prefilter(stacked, levels=levels)
 
-        def split(a: NDArray[np.float32]) -> NDArray[np.float32]:
-            m = a.shape[1]
-            return np.moveaxis(a.reshape(6, m, m, FILTER_GROUP, c), 3, 0)
-
-        ds = split(d)
-        cs = [split(lv) for lv in chain]
+        ds = _unstack_probes(d, c)
+        cs = [_unstack_probes(lv, c) for lv in chain]
         for j in range(k):
             dif.append(np.ascontiguousarray(ds[j]))
             chains.append([np.ascontiguousarray(lv[j]) for lv in cs])
     return dif, chains
-
-
-def _integral(cube: NDArray[np.float32]) -> float:
-    from probegrid.cubemap import texel_solid_angles
-
-    return float(np.einsum("fij,fijc->", texel_solid_angles(cube.shape[1]), cube))
 
 
 # ------------------------------------------------------------------------------ driver

@@ -91,6 +91,10 @@ def grid_for(scene: Scene, *, grid: str | None = None, spacing: str | None = Non
     return GridSpec.from_counts(lo, hi, tuple(int(c) for c in counts))
 
 
+#: Largest default face size of a bake's environment cube (each worker holds a copy).
+MAX_ENVIRONMENT_SIZE = 256
+
+
 def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
                      color: str | None = None, intensity: float = 1.0,
                      rotation_deg: float = 0.0) -> Environment:
@@ -113,27 +117,10 @@ def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
         if len(rgb) != 3:
             raise ValueError(f"--environment-color must be R,G,B, got {color!r}")
         return Environment(color=np.array(rgb), intensity=intensity, rotation=rotation)
-    from probegrid import imageio, layouts
+    from probegrid.imageio import read_environment
 
-    paths = [path] if isinstance(path, Path) else list(path)
-    if len(paths) not in (1, 6):
-        raise ValueError(f"--environment takes one image or six face files, got {len(paths)}")
-    images = [imageio.read_image(p) for p in paths]
-    for p, image in zip(paths, images, strict=True):
-        bad = imageio.count_nonfinite(image)
-        if bad:
-            raise ValueError(f"{p}: {bad} pixels have non-finite values")
-    if len(images) == 6:
-        if len({im.shape for im in images}) != 1 or images[0].shape[0] != images[0].shape[1]:
-            raise ValueError("six environment face files must be square images of one size")
-        source, lay = np.stack(images), "faces"
-        size = min(images[0].shape[0], 256)
-    else:
-        source = images[0]
-        lay = layouts.detect_layout(*source.shape[:2]) if layout == "auto" else layout
-        size = min(layouts.default_face_size(source.shape[0], source.shape[1], lay), 256)
-    return Environment(faces=layouts.to_cube(source, lay, size), intensity=intensity,
-                       rotation=rotation)
+    faces = read_environment(path, layout=layout, max_size=MAX_ENVIRONMENT_SIZE)
+    return Environment(faces=faces, intensity=intensity, rotation=rotation)
 
 
 class _Bar:

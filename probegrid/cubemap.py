@@ -67,6 +67,7 @@ __all__ = [
     "face_uv_to_direction",
     "mip_sizes",
     "normalization_cube",
+    "solid_angle_integral",
     "texel_directions",
     "texel_solid_angles",
     "texel_to_uv",
@@ -252,6 +253,23 @@ def texel_solid_angles(n: int) -> NDArray[np.float64]:
     """
     _check_size(n)
     return _texel_solid_angles(int(n))
+
+
+def solid_angle_integral(faces: ArrayLike) -> NDArray[np.float64]:
+    """``integral L dw`` of a cube over the sphere, per channel (exact texel solid angles).
+
+    Parameters
+    ----------
+    faces : (6, n, n, C) float
+
+    Returns
+    -------
+    (C,) float64
+        For a radiance cube, the irradiance it would deliver to a sphere's worth of normals
+        divided by pi; a constant cube of value L gives ``4 pi L``.
+    """
+    a = check_cube(faces)
+    return np.einsum("fij,fijc->c", texel_solid_angles(a.shape[1]), a, dtype=np.float64)
 
 
 def normalization_cube(n: int, *, encoded: bool = False) -> NDArray[np.float32]:

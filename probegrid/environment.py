@@ -17,14 +17,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from probegrid.cubemap import check_cube
 from probegrid.sampling import CubeSampler
+from probegrid.sh import rotation_y
 
-__all__ = ["Environment", "rotation_y"]
-
-
-def rotation_y(angle: float) -> NDArray[np.float64]:
-    """Right-handed rotation matrix about +Y, ``(3, 3)`` float64 (``R @ (0,0,1) = (sin, 0, cos)``)."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+__all__ = ["Environment"]
 
 
 @dataclass(frozen=True, eq=False)

@@ -22,6 +22,11 @@ def _mb(nbytes: int) -> str:
     return f"{nbytes / 2**20:.1f} MiB"
 
 
+def _specular_levels(store: ProbeStore) -> list[int]:
+    """The levels ``k`` of the store's ``specular_<k>`` arrays, ascending."""
+    return sorted(int(n.split("_")[1]) for n in store.names if n.startswith("specular_"))
+
+
 def describe_store(path: str | os.PathLike[str]) -> str:
     """The manifest of a store in words (raises ``StoreError`` for an unfinished bake)."""
     p = Path(path)
@@ -36,7 +41,7 @@ def describe_store(path: str | os.PathLike[str]) -> str:
     m = store.manifest
     g = m.grid
     valid = np.asarray(store["valid"]) if "valid" in store.names else None
-    spec_levels = sorted(int(n.split("_")[1]) for n in store.names if n.startswith("specular_"))
+    spec_levels = _specular_levels(store)
     conv = m.conventions
     bake = m.bake.get("settings", {})
     env = m.bake.get("environment", {})
@@ -126,7 +131,7 @@ def export_probe(
     files: list[dict[str, Any]] = []
     written: list[Path] = []
     names = store.names
-    levels = sorted(int(n.split("_")[1]) for n in names if n.startswith("specular_"))
+    levels = _specular_levels(store)
     maps = [("diffuse", "diffuse", None)]
     maps += [(f"specular_{k}", "specular", k) for k in levels]
     if "incoming" in names:

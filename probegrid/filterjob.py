@@ -33,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from probegrid import __version__
 from probegrid.conventions import conventions
-from probegrid.cubemap import texel_solid_angles
+from probegrid.cubemap import mip_sizes, solid_angle_integral
 
 __all__ = ["FilterResult", "FilterSettings", "energy_ratio", "run_filter", "write_json_atomic"]
 
@@ -122,12 +122,8 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
     the same value as the radiance they came from (the kernels are symmetric and normalised), so
     this ratio is 1 for a correct filter.
     """
-    def integral(a: NDArray[np.floating]) -> float:
-        w = texel_solid_angles(a.shape[1])
-        return float(np.einsum("fij,fijc->", w, a.astype(np.float64)))
-
-    r = integral(ref)
-    return integral(out) / r if r != 0 else float("nan")
+    r = float(solid_angle_integral(ref).sum())
+    return float(solid_angle_integral(out).sum()) / r if r != 0 else float("nan")
 
 
 def _load_environment(
@@ -160,15 +156,14 @@ def _load_environment(
     bad = int(np.count_nonzero(~np.isfinite(source)))
     if bad:
         if settings.clamp is None:
-            pixels = int(np.count_nonzero(~np.isfinite(source).all(axis=-1)))
+            pixels = imageio.count_nonfinite(source)
             raise ValueError(
                 f"{paths[0]}: {pixels} pixels have non-finite values (NaN or inf); "
                 "pass --clamp to replace them"
             )
         progress(f"replacing {bad} non-finite values (NaN -> 0, inf -> clamp)")
     if settings.clamp is not None:
-        source = np.nan_to_num(source, nan=0.0, posinf=settings.clamp, neginf=0.0)
-        source = np.clip(source, 0.0, settings.clamp)
+        source = imageio.clamp_radiance(source, settings.clamp)
     elif (source < 0).any():
         progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
 
@@ -204,12 +199,9 @@ def run_filter(
 
     cube, in_layout, nonfinite = _load_environment([Path(p) for p in paths], settings, say)
     n = cube.shape[1]
-    sizes_ok = n & (n - 1) == 0
-    if not sizes_ok and settings.specular_levels not in (None, 1):
-        raise ValueError(f"a specular mip chain needs a power-of-two cube size, got {n}")
-    levels = settings.specular_levels or (int(np.log2(n)) + 1 if sizes_ok else 1)
-    if levels > int(np.log2(n)) + 1:
-        raise ValueError(f"a {n}^2 cube has at most {int(np.log2(n)) + 1} mip levels, got {levels}")
+    # the full chain by default; a cube that is not a power of two gets its level 0 only
+    default_levels = None if n & (n - 1) == 0 else 1
+    levels = len(mip_sizes(n, settings.specular_levels or default_levels))
     timings["read"] = time.perf_counter() - t0
 
     # --- compute everything before touching the output directory -----------------------

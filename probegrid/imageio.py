@@ -272,6 +272,7 @@ def read_environment(
     *,
     layout: Layout | Literal["auto"] = "auto",
     size: int | None = None,
+    max_size: int | None = None,
     clamp: float | None = None,
 ) -> NDArray[np.float32]:
     """Read an environment as a cube map of linear radiance.
@@ -287,6 +288,8 @@ def read_environment(
     size : int, optional
         Output face size; default :func:`probegrid.layouts.default_face_size` of the source
         (e.g. 1024 x 512 equirect -> 256).
+    max_size : int, optional
+        Upper bound on the default face size (ignored when ``size`` is given).
     clamp : float, optional
         If given, source pixels are clamped to ``[0, clamp]`` (NaN -> 0, +inf -> clamp) before
         resampling. If not, a source with non-finite pixels raises :class:`ImageError` giving
@@ -338,6 +341,8 @@ def read_environment(
     else:
         raise ValueError(f"give one environment image or six face files, got {len(plist)} paths.")
     n = default_face_size(h, w, lay) if size is None else size
+    if size is None and max_size is not None:
+        n = min(n, max_size)
     try:
         return to_cube(source, lay, n)
     except ValueError as exc:

@@ -270,23 +270,40 @@ class ProbeRenderer:
 
     # -- shading -------------------------------------------------------------------------
 
+    def _visible_lights(
+        self, points: NDArray[np.float64], normals: NDArray[np.float64] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], int]:
+        """Which punctual lights reach which points, by shadow rays.
+
+        One shadow ray per (point, light) pair that could deliver light (``E_perp > 0`` and, when
+        ``normals (p, 3)`` are given, the light in front of the surface), starting
+        ``ray_offset`` off the point (along the normal when given).
+
+        Returns
+        -------
+        directions (p, L, 3), e_perp (p, L, 3), visible (p, L) bool, rays cast
+        """
+        dirs, e_perp, dist = incident_many(self.scene.lights, points)
+        lit = e_perp.max(axis=-1) > 0
+        if normals is not None:
+            lit &= np.einsum("pli,pi->pl", dirs, normals) > 0
+        pi, li = np.nonzero(lit)
+        eps = self.settings.ray_offset
+        origins = points[pi] if normals is None else points[pi] + eps * normals[pi]
+        tmax = np.where(np.isfinite(dist[pi, li]), dist[pi, li] - eps, np.inf)
+        visible = np.zeros(lit.shape, dtype=bool)
+        if pi.size:
+            visible[pi, li] = ~self.tracer.occluded(origins, dirs[pi, li], tmax, tmin=eps)
+        return dirs, e_perp, visible, len(pi)
+
     def _direct_irradiance(self, pos: NDArray[np.float64], nrm: NDArray[np.float64]
                            ) -> tuple[NDArray[np.float64], int]:
         """Irradiance of the punctual lights at surface points, with shadow rays."""
-        lights = self.scene.lights
-        if not lights or len(pos) == 0:
+        if not self.scene.lights or len(pos) == 0:
             return np.zeros((len(pos), 3)), 0
-        dirs, e_perp, dist = incident_many(lights, pos)  # (h, L, 3), (h, L, 3), (h, L)
+        dirs, e_perp, visible, rays = self._visible_lights(pos, nrm)
         cos = np.einsum("hli,hi->hl", dirs, nrm)
-        lit = (cos > 0) & (e_perp.max(axis=-1) > 0)
-        hi, li = np.nonzero(lit)
-        eps = self.settings.ray_offset
-        tmax = np.where(np.isfinite(dist[hi, li]), dist[hi, li] - eps, np.inf)
-        blocked = self.tracer.occluded(pos[hi] + eps * nrm[hi], dirs[hi, li], tmax, tmin=eps)
-        vis = np.zeros(lit.shape)
-        vis[hi, li] = ~blocked
-        e = np.einsum("hl,hlj->hj", cos * vis, e_perp)
-        return e, len(hi)
+        return np.einsum("hl,hlj->hj", cos * visible, e_perp), rays
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                field: IndirectField | None) -> tuple[NDArray[np.float32], NDArray[np.float64],
@@ -365,34 +382,22 @@ class ProbeRenderer:
 
     def _splat_direct(self, pos: NDArray[np.float64], incoming: NDArray[np.float32]) -> int:
         """Fold each visible punctual light into the probes' cubes (in place); returns rays."""
-        dirs, e_perp, dist = incident_many(self.scene.lights, pos)  # (B, L, ...)
-        bi, li = np.nonzero(e_perp.max(axis=-1) > 0)
-        if bi.size == 0:
-            return 0
-        eps = self.settings.ray_offset
-        tmax = np.where(np.isfinite(dist[bi, li]), dist[bi, li] - eps, np.inf)
-        blocked = self.tracer.occluded(pos[bi], dirs[bi, li], tmax, tmin=eps)
-        for j in np.unique(bi[~blocked]):  # loop over probes, not rays
-            sel = (bi == j) & ~blocked
-            incoming[j] = splat_delta(incoming[j], dirs[bi[sel], li[sel]], e_perp[bi[sel], li[sel]])
-        return len(bi)
+        dirs, e_perp, visible, rays = self._visible_lights(pos)
+        for j in np.flatnonzero(visible.any(axis=1)):  # loop over probes, not rays
+            li = np.flatnonzero(visible[j])
+            incoming[j] = splat_delta(incoming[j], dirs[j, li], e_perp[j, li])
+        return rays
 
     def backface_fraction(self, positions: NDArray[np.float64], *, face_size: int = 8
                           ) -> NDArray[np.float64]:
         """Fraction of ``6 face_size^2`` texel-centre rays from each point that hit a backface.
 
         A cheap test for probes inside geometry; ``positions (B, 3)``, returns ``(B,)``.
+        Double-sided materials have no back.
         """
-        d = texel_directions(face_size).reshape(-1, 3)
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        hits = self.tracer.intersect(np.repeat(pos, len(d), axis=0), np.tile(d, (len(pos), 1)))
-        prim = hits.prim_id
-        hit = prim >= 0
-        back = np.zeros(len(prim), dtype=bool)
-        if hit.any():
-            p = prim[hit]
-            nrm = self.scene.triangle_normals[p]
-            facing = np.einsum("hi,hi->h", nrm, np.tile(d, (len(pos), 1))[hit])
-            back[hit] = (facing > 0) & ~self._double_sided[p]
+        d = texel_directions(face_size).reshape(-1, 3)
+        dirs = np.tile(d, (len(pos), 1))
+        prim = self.tracer.intersect(np.repeat(pos, len(d), axis=0), dirs).prim_id
+        back = self.tracer.backface(prim, dirs) & ~self._double_sided[np.maximum(prim, 0)]
         return back.reshape(len(pos), -1).mean(axis=1)
-
