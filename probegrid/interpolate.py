@@ -347,7 +347,8 @@ class BorderedCubes:
         self.shape = a.shape
         self.n = n
         self._texels = 6 * m * m
-        self._data = np.ascontiguousarray(
+        #: ``(P * 6 (n + 2)^2, C)`` float32: probe-major bordered texels, row-major per face.
+        self.data = np.ascontiguousarray(
             bordered.reshape(self._texels, p, c).transpose(1, 0, 2)
         ).reshape(p * self._texels, c)
 
@@ -362,7 +363,7 @@ class BorderedCubes:
         fx, fy = x - x0, y - y0
         base = (np.asarray(probes, dtype=np.intp) * self._texels
                 + (face * m + y0.astype(np.intp)) * m + x0.astype(np.intp))
-        d = self._data
+        d = self.data
         gx, gy = 1.0 - fx, 1.0 - fy
         out = (d[base] * (gy * gx)[:, None] + d[base + 1] * (gy * fx)[:, None]
                + d[base + m] * (fy * gx)[:, None] + d[base + m + 1] * (fy * fx)[:, None])

@@ -109,11 +109,13 @@ from probegrid.lobes import (
 __all__ = [
     "DirectionalLight",
     "Light",
+    "PackedLights",
     "PointLight",
     "SpotLight",
     "incident",
     "incident_many",
     "light_maps",
+    "pack_lights",
     "range_attenuation",
     "splat_delta",
     "spot_attenuation",
@@ -324,8 +326,8 @@ def spot_attenuation(
 
 
 @dataclass(frozen=True)
-class _Packed:
-    """Lights as arrays, (L, ...)."""
+class PackedLights:
+    """Lights as arrays, (L, ...): what vectorised and compiled code evaluates."""
 
     kind: NDArray[np.intp]
     position: NDArray[np.float64]  # (L, 3); zeros for directional lights
@@ -336,7 +338,8 @@ class _Packed:
     angle_offset: NDArray[np.float64]  # (L,) 1 for non-spots (attenuation 1)
 
 
-def _pack(lights: Sequence[Light]) -> _Packed:
+def pack_lights(lights: Sequence[Light]) -> PackedLights:
+    """The lights as arrays (kind 0 point, 1 spot, 2 directional)."""
     if isinstance(lights, (PointLight, SpotLight, DirectionalLight)):
         lights = [lights]
     lights = list(lights)
@@ -369,7 +372,7 @@ def _pack(lights: Sequence[Light]) -> _Packed:
             scale[i], offset[i] = light.angle_scale_offset
         else:
             kind[i] = _POINT
-    return _Packed(kind, position, axis, power, rng, scale, offset)
+    return PackedLights(kind, position, axis, power, rng, scale, offset)
 
 
 def _positions(positions: ArrayLike, name: str) -> NDArray[np.float64]:
@@ -411,7 +414,7 @@ def incident_many(
     every other distance follows the law. Memory is ``O(positions x lights)``: callers chunk.
     """
     p = _positions(positions, "positions")
-    pk = _pack(lights)
+    pk = pack_lights(lights)
     to = pk.position - p[..., None, :]  # (..., L, 3)
     dist = np.linalg.norm(to, axis=-1)
     directional = pk.kind == _DIRECTIONAL

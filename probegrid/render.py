@@ -54,16 +54,30 @@ from numpy.typing import NDArray
 
 from probegrid import sh
 from probegrid.cubemap import (
-    face_uv_to_direction,
+    FACE_NORMALS,
+    FACE_U,
+    FACE_V,
     texel_directions,
     texel_solid_angles,
-    texel_to_uv,
 )
 from probegrid.environment import Environment
 from probegrid.executors import probe_rng
-from probegrid.grid import GridSpec
-from probegrid.interpolate import BorderedCubes, probe_weights
-from probegrid.lights import incident_many, splat_delta
+from probegrid.grid import CORNER_OFFSETS, GridSpec
+from probegrid.interpolate import (
+    CRUSH_THRESHOLD,
+    DEFAULT_NORMAL_BIAS,
+    MIN_WEIGHT,
+    NORMAL_TERM_FLOOR,
+    BorderedCubes,
+    probe_weights,
+)
+from probegrid.kernels import (
+    cube_sample_directions,
+    indirect_irradiance,
+    light_rays,
+    outgoing_radiance,
+)
+from probegrid.lights import incident_many, pack_lights, splat_delta
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
@@ -160,18 +174,10 @@ def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
     else:
         shift = probe_rng(settings.seed, probe_index).random(2)
         jitter = np.mod(0.5 + np.arange(1, s + 1)[:, None] * _R2[None, :] + shift, 1.0)
-    k = np.arange(n, dtype=np.float64)
-    # continuous texel coordinates of each sample: (n, s) for columns (x) and rows (y)
-    cx = k[:, None] - 0.5 + jitter[None, :, 0]
-    cy = k[:, None] - 0.5 + jitter[None, :, 1]
-    u = texel_to_uv(cx, n)[None, :, :]  # (1, n_col, s)
-    v = texel_to_uv(cy, n)[:, None, :]  # (n_row, 1, s)
-    u, v = np.broadcast_arrays(u, v)  # (n, n, s), [row, col, sample]
-    d = face_uv_to_direction(np.arange(6)[:, None, None, None], u[None], v[None])
-    norm = np.linalg.norm(d, axis=-1)
-    w = norm**-3  # (1 + u^2 + v^2)^(-3/2)
-    w = w / w.sum(axis=-1, keepdims=True)
-    return d / norm[..., None], w
+    # sample k of texel (row, col) at continuous texel coordinates (col - 0.5 + jitter_x,
+    # row - 0.5 + jitter_y), weighted by the area element (1 + u^2 + v^2)^(-3/2)
+    return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64),
+                                  FACE_NORMALS, FACE_U, FACE_V)
 
 
 @dataclass(frozen=True, eq=False)
@@ -205,9 +211,38 @@ class IndirectField:
     def _moments(self) -> BorderedCubes | None:
         return None if self.moments is None else BorderedCubes(self.moments)
 
+    @cached_property
+    def _kernel_args(self) -> tuple:
+        g = self.grid
+        counts = np.array(g.counts, dtype=np.int64)
+        cells = g.cell_size[counts > 1]
+        bias = DEFAULT_NORMAL_BIAS * (float(cells.min()) if cells.size else 0.0)
+        mom = self._moments
+        data = np.zeros((0, 2), np.float32) if mom is None else mom.data
+        m = 1 if mom is None else mom.n
+        return (g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS,
+                np.ascontiguousarray(self.valid, dtype=bool),
+                np.ascontiguousarray(self.positions, dtype=np.float64), data, m, bias,
+                np.ascontiguousarray(self._irradiance_coeffs), sh.BASIS_SCALE, FACE_U, FACE_V,
+                NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD)
+
     def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64]
                    ) -> NDArray[np.float64]:
-        """Irradiance (lux, RGB) at ``points (n, 3)`` with unit ``normals (n, 3)``; ``(n, 3)``."""
+        """Irradiance (lux, RGB) at ``points (n, 3)`` with unit ``normals (n, 3)``; ``(n, 3)``.
+
+        The compiled :func:`probegrid.kernels.indirect_irradiance`; :meth:`irradiance_reference`
+        is the same computation in numpy array expressions (tests compare them).
+        """
+        if len(points) == 0:
+            return np.zeros((0, 3))
+        return indirect_irradiance(np.ascontiguousarray(points, dtype=np.float64),
+                                   np.ascontiguousarray(normals, dtype=np.float64),
+                                   *self._kernel_args)
+
+    def irradiance_reference(self, points: NDArray[np.float64], normals: NDArray[np.float64]
+                             ) -> NDArray[np.float64]:
+        """:meth:`irradiance` through :func:`probegrid.interpolate.probe_weights` and the SH
+        basis: the readable statement of what the kernel computes."""
         if len(points) == 0:
             return np.zeros((0, 3))
         pw = probe_weights(
@@ -296,19 +331,22 @@ class ProbeRenderer:
             visible[pi, li] = ~self.tracer.occluded(origins, dirs[pi, li], tmax, tmin=eps)
         return dirs, e_perp, visible, len(pi)
 
-    def _direct_irradiance(self, pos: NDArray[np.float64], nrm: NDArray[np.float64]
-                           ) -> tuple[NDArray[np.float64], int]:
-        """Irradiance of the punctual lights at surface points, with shadow rays."""
-        if not self.scene.lights or len(pos) == 0:
-            return np.zeros((len(pos), 3)), 0
-        dirs, e_perp, visible, rays = self._visible_lights(pos, nrm)
-        cos = np.einsum("hli,hi->hl", dirs, nrm)
-        return np.einsum("hl,hlj->hj", cos * visible, e_perp), rays
+    @cached_property
+    def _lights(self) -> tuple:
+        pk = pack_lights(self.scene.lights)
+        return (pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
+                pk.angle_scale, pk.angle_offset)
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                field: IndirectField | None) -> tuple[NDArray[np.float32], NDArray[np.float64],
                                                      NDArray[np.bool_], int]:
-        """Radiance, hit distance and backface flag of rays ``(N, 3)`` from ``origins (N, 3)``."""
+        """Radiance, hit distance and backface flag of rays ``(N, 3)`` from ``origins (N, 3)``.
+
+        Misses read the environment; front hits get ``emission + albedo / pi * E`` with ``E``
+        the unshadowed punctual lights (one shadow ray per light in front of the surface,
+        :func:`probegrid.kernels.light_rays`) plus the previous bounce's grid
+        (:meth:`IndirectField.irradiance`); back hits are black.
+        """
         hits = self.tracer.intersect(origins, dirs)
         radiance = np.zeros((len(dirs), 3), dtype=np.float32)
         miss = hits.prim_id < 0
@@ -319,23 +357,22 @@ class ProbeRenderer:
         rays = len(dirs)
         if hit.size:
             prim = hits.prim_id[hit]
-            surf = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
-            nrm = surf.normal
-            facing = np.einsum("hi,hi->h", nrm, dirs[hit])
-            two = self._double_sided[prim]
-            is_back = (facing > 0) & ~two
-            nrm = np.where((facing > 0)[:, None], -nrm, nrm)  # shade the side the ray sees
+            pos, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
+            facing = np.einsum("hi,hi->h", nrm, dirs[hit]) > 0
+            is_back = facing & ~self._double_sided[prim]
+            np.negative(nrm, out=nrm, where=facing[:, None])  # shade the side the ray sees
             back[hit] = is_back
-            front = ~is_back
-            fh = np.flatnonzero(front)
-            pos = surf.position[fh]
-            n_f = nrm[fh]
-            e, shadow_rays = self._direct_irradiance(pos, n_f)
-            rays += shadow_rays
-            if field is not None:
-                e = e + field.irradiance(pos, n_f)
-            lo = surf.emission[fh] + surf.albedo[fh] / np.pi * e
-            radiance[hit[fh]] = lo.astype(np.float32)
+            fh = np.flatnonzero(~is_back)
+            if fh.size < hit.size:
+                pos, nrm = pos[fh], nrm[fh]
+                albedo, emission = albedo[fh], emission[fh]
+            e = np.zeros((len(fh), 3)) if field is None else field.irradiance(pos, nrm)
+            eps = self.settings.ray_offset
+            which, s_org, s_dir, s_tmax, s_irr = light_rays(pos, nrm, *self._lights, eps)
+            occluded = (self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps) if len(which)
+                        else np.zeros(0, dtype=bool))
+            rays += len(which)
+            radiance[hit[fh]] = outgoing_radiance(emission, albedo, e, which, s_irr, occluded)
         t = np.where(miss, self.settings.max_distance,
                      np.minimum(hits.t, self.settings.max_distance))
         return radiance, t, back, rays

@@ -64,6 +64,7 @@ from urllib.parse import unquote
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid.kernels import hit_surfaces, multiply_texture
 from probegrid.lights import DirectionalLight, Light, PointLight, SpotLight
 
 __all__ = [
@@ -482,6 +483,54 @@ class Scene:
 
     # -- shading -----------------------------------------------------------------------------
 
+    @cached_property
+    def _kernel_tables(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Contiguous vertices, triangles, normals and material indices for the kernels."""
+        return (np.ascontiguousarray(self.vertices, dtype=np.float64),
+                np.ascontiguousarray(self.triangles, dtype=np.int64),
+                np.ascontiguousarray(self.triangle_normals, dtype=np.float64),
+                np.ascontiguousarray(self.material, dtype=np.int64))
+
+    @cached_property
+    def _kernel_colors(self) -> NDArray[np.float64]:
+        if self.colors is None:
+            return np.zeros((0, 3))
+        return np.ascontiguousarray(self.colors[:, :3], dtype=np.float64)
+
+    @cached_property
+    def _kernel_uvs(self) -> NDArray[np.float64]:
+        if self.uvs is None:
+            return np.zeros((0, 2))
+        return np.ascontiguousarray(self.uvs, dtype=np.float64)
+
+    @cached_property
+    def _textured_materials(self) -> NDArray[np.int64]:
+        return np.array([i for i, m in enumerate(self.materials)
+                         if m.base_color_texture is not None or m.emissive_texture is not None],
+                        dtype=np.int64)
+
+    def _apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
+                        v: NDArray[np.float64], albedo: NDArray[np.float64],
+                        emission: NDArray[np.float64]) -> None:
+        """Multiply ``albedo``/``emission (n, 3)`` in place by the textures sampled at the
+        interpolated UV of the hits (:func:`sample_texture`'s bilinear filter and wrap modes,
+        compiled as :func:`probegrid.kernels.multiply_texture`)."""
+        if not self._textured_materials.size or not pid.size:
+            return
+        mat = self.material[pid]
+        tris, uvs = self._kernel_tables[1], self._kernel_uvs
+        for i in self._textured_materials:  # loop over textured materials, not hits
+            sel = np.flatnonzero(mat == i)
+            if not sel.size:
+                continue
+            m = self.materials[int(i)]
+            for tex, wrap, target in ((m.base_color_texture, m.base_color_wrap, albedo),
+                                      (m.emissive_texture, m.emissive_wrap, emission)):
+                if tex is not None:
+                    multiply_texture(target, sel, pid, u, v, tris, uvs,
+                                     np.ascontiguousarray(tex, dtype=np.float32),
+                                     _WRAPS.index(wrap[0]), _WRAPS.index(wrap[1]))
+
     def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
         """Position, geometric normal, albedo and emission at barycentric points of triangles.
 
@@ -515,38 +564,11 @@ class Scene:
                 f"prim_ids must be triangle indices in [0, {self.n_triangles}); filter misses "
                 "(-1) out first."
             )
-        tri = self.triangles[pid]
-        w = np.stack([1.0 - uu - vv, uu, vv], axis=1)[:, :, None]  # (n, 3, 1)
-        position = np.sum(w * self.vertices[tri], axis=1)
-        normal = self.triangle_normals[pid]
-        mat = self.material[pid]
         base, emis = self._factor_tables
-        albedo = base[mat]
-        emission = emis[mat]
-        if self.colors is not None:
-            albedo = albedo * np.sum(w * self.colors[tri][:, :, :3], axis=1)
-        textured = [
-            i
-            for i, m in enumerate(self.materials)
-            if m.base_color_texture is not None or m.emissive_texture is not None
-        ]
-        if textured and pid.size:
-            uv = (
-                np.sum(w * self.uvs[tri], axis=1)
-                if self.uvs is not None
-                else np.zeros((len(pid), 2))
-            )
-            for i in np.intersect1d(textured, mat):
-                sel = np.flatnonzero(mat == i)
-                m = self.materials[int(i)]
-                if m.base_color_texture is not None:
-                    albedo[sel] *= sample_texture(
-                        m.base_color_texture, uv[sel], wrap=m.base_color_wrap
-                    )[:, :3]
-                if m.emissive_texture is not None:
-                    emission[sel] *= sample_texture(
-                        m.emissive_texture, uv[sel], wrap=m.emissive_wrap
-                    )
+        position, normal, albedo, emission = hit_surfaces(
+            pid, np.ascontiguousarray(uu), np.ascontiguousarray(vv), *self._kernel_tables,
+            base, emis, self._kernel_colors)
+        self._apply_textures(pid, uu, vv, albedo, emission)
         return Surface(
             position.reshape(*shape, 3),
             normal.reshape(*shape, 3),

@@ -1,0 +1,500 @@
+"""Compiled per-ray kernels of the bake (the one module that imports numba).
+
+A bake shades every ray hit with the same short sequence of scalar steps: the DDGI weights of the
+8 probes around the hit (:mod:`probegrid.interpolate`), a seamless bilinear lookup of each probe's
+distance moments, and the SH irradiance of each probe at the hit's normal. Written as numpy array
+expressions these steps allocate a dozen ``(n, 8)`` and ``(n, 8, 3)`` temporaries per batch and
+cost about 30x the ray casting itself; here they are one fused loop per hit, compiled by numba
+(``cache=True``: compiled once per machine, then loaded from ``__pycache__``).
+
+Each kernel restates, step for step, an array expression that stays the reference and the
+documentation of the maths; tests compare the two on random inputs:
+
+* :func:`indirect_irradiance` -- :meth:`probegrid.render.IndirectField.irradiance`'s numpy path
+  (:func:`probegrid.interpolate.probe_weights` with normals and moments, then
+  :func:`probegrid.sh.evaluate` of the irradiance coefficients ``A_l L_lm``).
+
+Conventions are the owning modules' and are passed in, not restated: the cube faces' ``u``/``v``
+axes (:data:`probegrid.cubemap.FACE_U`, :data:`~probegrid.cubemap.FACE_V`), the corner order
+(:data:`probegrid.grid.CORNER_OFFSETS`), the SH basis constants
+(:data:`probegrid.sh.BASIS_SCALE`) and the DDGI constants of :mod:`probegrid.interpolate`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "cube_sample_directions",
+    "hit_surfaces",
+    "indirect_irradiance",
+    "light_rays",
+    "multiply_texture",
+    "outgoing_radiance",
+]
+
+_JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+
+
+@numba.njit(**_JIT)
+def _face_uv(dx: float, dy: float, dz: float, face_u: NDArray[np.float64],
+             face_v: NDArray[np.float64]) -> tuple[int, float, float]:
+    """:func:`probegrid.cubemap.direction_to_face_uv` of one direction (same tie rules)."""
+    ax, ay, az = abs(dx), abs(dy), abs(dz)
+    if ax >= ay and ax >= az:
+        axis, comp = 0, dx
+    elif ay >= az:
+        axis, comp = 1, dy
+    else:
+        axis, comp = 2, dz
+    face = 2 * axis + (1 if comp < 0 else 0)
+    ma = abs(comp)
+    if not ma > 0:
+        ma = 1.0
+    u = (dx * face_u[face, 0] + dy * face_u[face, 1] + dz * face_u[face, 2]) / ma
+    v = (dx * face_v[face, 0] + dy * face_v[face, 1] + dz * face_v[face, 2]) / ma
+    return face, min(max(u, -1.0), 1.0), min(max(v, -1.0), 1.0)
+
+
+@numba.njit(**_JIT)
+def indirect_irradiance(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
+    step: NDArray[np.float64],
+    counts: NDArray[np.int64],
+    corner_offsets: NDArray[np.int64],
+    valid: NDArray[np.bool_],
+    positions: NDArray[np.float64],
+    moments: NDArray[np.float32],
+    moments_n: int,
+    bias: float,
+    coeffs: NDArray[np.float64],
+    basis_scale: NDArray[np.float64],
+    face_u: NDArray[np.float64],
+    face_v: NDArray[np.float64],
+    normal_floor: float,
+    min_weight: float,
+    crush: float,
+) -> NDArray[np.float64]:
+    """Irradiance of a probe grid at surface points with the DDGI weights.
+
+    Parameters
+    ----------
+    points, normals : (n, 3) float64
+        Surface points (world) and normals (any non-zero length; normalised here).
+    lo, hi, step : (3,) float64
+        Grid box and lattice spacing (1 on an axis with a single probe).
+    counts : (3,) int64
+    corner_offsets : (8, 3) int64
+        :data:`probegrid.grid.CORNER_OFFSETS`.
+    valid : (P,) bool
+    positions : (P, 3) float64
+        Probe positions (possibly moved).
+    moments : (P * 6 (m + 2)^2, 2) float32
+        Bordered distance moments (:class:`probegrid.interpolate.BorderedCubes`' layout); an
+        empty array means no Chebyshev test.
+    moments_n : int
+        Face size ``m`` of the unbordered moments cubes.
+    bias : float
+        Offset of the visibility test point along the normal (world units).
+    coeffs : (P, 9, 3) float64
+        Irradiance SH coefficients ``A_l L_lm`` per probe.
+    basis_scale : (9,) float64
+        :data:`probegrid.sh.BASIS_SCALE`.
+    face_u, face_v : (6, 3) float64
+    normal_floor, min_weight, crush : float
+        DDGI constants (:mod:`probegrid.interpolate`).
+
+    Returns
+    -------
+    (n, 3) float64
+        Irradiance (lux, RGB), clamped at 0; 0 where no valid probe carries weight.
+    """
+    n_pts = points.shape[0]
+    out = np.zeros((n_pts, 3))
+    use_moments = moments.shape[0] > 0
+    m = moments_n
+    mb = m + 2
+    texels = 6 * mb * mb
+    half = 0.5 * m
+    crush2 = crush * crush
+    idx = np.empty(8, np.int64)
+    w = np.empty(8)
+    base = np.empty(3, np.int64)
+    frac = np.empty(3)
+    cp = np.empty(3)
+    k0, k1, k2, k3, k4 = (basis_scale[0], basis_scale[1], basis_scale[4], basis_scale[6],
+                          basis_scale[8])
+    for i in range(n_pts):
+        # unit normal, scaled by its largest component first (interpolate._unit_rows)
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        big = max(abs(nx), abs(ny), abs(nz))
+        nx, ny, nz = nx / big, ny / big, nz / big
+        nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+        nx, ny, nz = nx / nl, ny / nl, nz / nl
+        # cell and trilinear fractions (GridSpec.cell_weights), clamped point
+        for a in range(3):
+            c = min(max(points[i, a], lo[a]), hi[a])
+            cp[a] = c
+            if counts[a] > 1:
+                t = (c - lo[a]) / step[a]
+                b = min(max(math.floor(t), 0.0), float(max(counts[a] - 2, 0)))
+                base[a] = int(b)
+                frac[a] = min(max(t - b, 0.0), 1.0)
+            else:
+                base[a] = 0
+                frac[a] = 0.0
+        qx, qy, qz = cp[0] + bias * nx, cp[1] + bias * ny, cp[2] + bias * nz
+        total = 0.0
+        for c in range(8):
+            ii = min(base[0] + corner_offsets[c, 0], counts[0] - 1)
+            jj = min(base[1] + corner_offsets[c, 1], counts[1] - 1)
+            kk = min(base[2] + corner_offsets[c, 2], counts[2] - 1)
+            p = (ii * counts[1] + jj) * counts[2] + kk
+            idx[c] = p
+            tw = 1.0
+            for a in range(3):
+                f = frac[a]
+                tw *= f if corner_offsets[c, a] == 1 else 1.0 - f
+            if not valid[p]:
+                tw *= 0.0
+            if tw == 0.0:  # no weight whatever the shading factor: skip the lookups
+                w[c] = 0.0
+                continue
+            # normal-facing term
+            ex = positions[p, 0] - cp[0]
+            ey = positions[p, 1] - cp[1]
+            ez = positions[p, 2] - cp[2]
+            el = math.sqrt(ex * ex + ey * ey + ez * ez)
+            if el > 1e-300:
+                dot = (ex * nx + ey * ny + ez * nz) / el
+            else:
+                dot = 0.0
+            s = ((dot + 1.0) * 0.5) ** 2 + normal_floor
+            if use_moments:
+                ox = qx - positions[p, 0]
+                oy = qy - positions[p, 1]
+                oz = qz - positions[p, 2]
+                r = math.sqrt(ox * ox + oy * oy + oz * oz)
+                face, u, v = _face_uv(ox, oy, oz, face_u, face_v)
+                x = (u + 1.0) * half + 0.5
+                y = (v + 1.0) * half + 0.5
+                x0 = min(math.floor(x), float(m))
+                y0 = min(math.floor(y), float(m))
+                fx, fy = x - x0, y - y0
+                gx, gy = 1.0 - fx, 1.0 - fy
+                t0 = p * texels + (face * mb + int(y0)) * mb + int(x0)
+                w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
+                mean = (moments[t0, 0] * w00 + moments[t0 + 1, 0] * w01
+                        + moments[t0 + mb, 0] * w10 + moments[t0 + mb + 1, 0] * w11)
+                mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
+                           + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
+                if not r <= mean:
+                    var = abs(mean_sq - mean * mean)
+                    excess = max(r - mean, 0.0)
+                    den = var + excess * excess
+                    if excess > 0:
+                        cheb = var / den if den != 0 else math.nan
+                    else:
+                        cheb = 1.0
+                    if math.isnan(cheb):
+                        cheb = 0.0
+                    s *= cheb * cheb * cheb
+            s = max(s, min_weight)
+            if s < crush:
+                s = s * s * s / crush2
+            tw *= s
+            w[c] = tw
+            total += tw
+        if total <= 0:
+            continue
+        bx, by, bz = nx, ny, nz
+        y0_ = k0
+        y1, y2, y3 = k1 * by, k1 * bz, k1 * bx
+        y4, y5 = k2 * bx * by, k2 * by * bz
+        y6 = k3 * (3.0 * bz * bz - 1.0)
+        y7, y8 = k2 * bx * bz, k4 * (bx * bx - by * by)
+        for ch in range(3):
+            e = 0.0
+            for c in range(8):
+                wc = w[c] / total
+                if wc == 0.0:
+                    continue
+                cf = coeffs[idx[c]]
+                e += wc * (y0_ * cf[0, ch] + y1 * cf[1, ch] + y2 * cf[2, ch] + y3 * cf[3, ch]
+                           + y4 * cf[4, ch] + y5 * cf[5, ch] + y6 * cf[6, ch] + y7 * cf[7, ch]
+                           + y8 * cf[8, ch])
+            out[i, ch] = max(e, 0.0)
+    return out
+
+
+@numba.njit(**_JIT)
+def hit_surfaces(
+    prim: NDArray[np.int64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    vertices: NDArray[np.float64],
+    triangles: NDArray[np.int64],
+    tri_normals: NDArray[np.float64],
+    material: NDArray[np.int64],
+    base_color: NDArray[np.float64],
+    emissive: NDArray[np.float64],
+    colors: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Position, geometric normal, albedo and emission at barycentric points of triangles.
+
+    :meth:`probegrid.scene.Scene.surface_at` without the textures (applied after, per
+    material): ``position = (1 - u - v) a + u b + v c``; ``normal`` the triangle's unit normal
+    as wound; ``albedo = baseColorFactor.rgb * COLOR_0.rgb`` (``colors`` interpolated like the
+    position; an empty ``colors`` means none); ``emission = emissiveFactor``.
+
+    Parameters
+    ----------
+    prim : (n,) int64 triangle indices; u, v : (n,) float64 barycentrics
+    vertices (V, 3) float64, triangles (T, 3) int64, tri_normals (T, 3) float64,
+    material (T,) int64, base_color (M, 3) and emissive (M, 3) float64,
+    colors (V, >= 3) float64 or (0, 3)
+
+    Returns
+    -------
+    position, normal, albedo, emission : (n, 3) float64
+    """
+    n = prim.shape[0]
+    pos = np.empty((n, 3))
+    nrm = np.empty((n, 3))
+    alb = np.empty((n, 3))
+    emi = np.empty((n, 3))
+    has_colors = colors.shape[0] > 0
+    for i in range(n):
+        t = prim[i]
+        w1, w2 = u[i], v[i]
+        w0 = 1.0 - w1 - w2
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        m = material[t]
+        for k in range(3):
+            pos[i, k] = w0 * vertices[a, k] + w1 * vertices[b, k] + w2 * vertices[c, k]
+            nrm[i, k] = tri_normals[t, k]
+            f = base_color[m, k]
+            if has_colors:
+                f *= w0 * colors[a, k] + w1 * colors[b, k] + w2 * colors[c, k]
+            alb[i, k] = f
+            emi[i, k] = emissive[m, k]
+    return pos, nrm, alb, emi
+
+
+@numba.njit(**_JIT)
+def light_rays(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    kind: NDArray[np.int64],
+    light_pos: NDArray[np.float64],
+    axis: NDArray[np.float64],
+    power: NDArray[np.float64],
+    light_range: NDArray[np.float64],
+    angle_scale: NDArray[np.float64],
+    angle_offset: NDArray[np.float64],
+    eps: float,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+           NDArray[np.float64]]:
+    """The shadow rays of the punctual lights at surface points, and what each would deliver.
+
+    :func:`probegrid.lights.incident_many` (kinds 0 point, 1 spot, 2 directional; the spec's
+    range window ``clamp(1 - (d / range)^4, 0, 1) / d^2`` and spot cone
+    ``saturate(cos * scale + offset)^2``) fused with the selection of
+    :meth:`probegrid.render.ProbeRenderer._visible_lights`: a (point, light) pair gets a shadow
+    ray when the light delivers ``E_perp > 0`` and lies in front of the surface
+    (``cos = dot(l, n) > 0``). The ray starts ``eps`` along the normal, with ``tmin = eps`` and
+    ``tmax = distance - eps`` (inf for directional lights).
+
+    Returns
+    -------
+    point : (k,) int64
+        Which point each ray belongs to.
+    origins, directions : (k, 3) float64
+    tmax : (k,) float64
+    irradiance : (k, 3) float64
+        ``cos * E_perp`` (lux) the point receives if the ray is not occluded.
+    """
+    n, nl = points.shape[0], kind.shape[0]
+    cap = n * nl
+    which = np.empty(cap, np.int64)
+    org = np.empty((cap, 3))
+    dirs = np.empty((cap, 3))
+    tmax = np.empty(cap)
+    irr = np.empty((cap, 3))
+    k = 0
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        for li in range(nl):
+            if kind[li] == 2:
+                lx, ly, lz = -axis[li, 0], -axis[li, 1], -axis[li, 2]
+                dist = math.inf
+                atten = 1.0
+            else:
+                tx = light_pos[li, 0] - px
+                ty = light_pos[li, 1] - py
+                tz = light_pos[li, 2] - pz
+                dist = math.sqrt(tx * tx + ty * ty + tz * tz)
+                if dist == 0.0:
+                    continue  # at the light: no direction, no light (incident_many)
+                lx, ly, lz = tx / dist, ty / dist, tz / dist
+                atten = 1.0 / (dist * dist)
+                r = light_range[li]
+                if r < math.inf:
+                    q = dist / r
+                    atten *= min(max(1.0 - q * q * q * q, 0.0), 1.0)
+                if kind[li] == 1:
+                    cd = -(lx * axis[li, 0] + ly * axis[li, 1] + lz * axis[li, 2])
+                    a = min(max(cd * angle_scale[li] + angle_offset[li], 0.0), 1.0)
+                    atten *= a * a
+            e0, e1, e2 = atten * power[li, 0], atten * power[li, 1], atten * power[li, 2]
+            if not max(e0, e1, e2) > 0:
+                continue
+            cos = lx * nx + ly * ny + lz * nz
+            if not cos > 0:
+                continue
+            which[k] = i
+            org[k, 0] = px + eps * nx
+            org[k, 1] = py + eps * ny
+            org[k, 2] = pz + eps * nz
+            dirs[k, 0], dirs[k, 1], dirs[k, 2] = lx, ly, lz
+            tmax[k] = dist - eps if dist < math.inf else math.inf
+            irr[k, 0], irr[k, 1], irr[k, 2] = cos * e0, cos * e1, cos * e2
+            k += 1
+    return which[:k], org[:k], dirs[:k], tmax[:k], irr[:k]
+
+
+@numba.njit(**_JIT)
+def outgoing_radiance(
+    emission: NDArray[np.float64],
+    albedo: NDArray[np.float64],
+    irradiance: NDArray[np.float64],
+    shadow_point: NDArray[np.int64],
+    shadow_irradiance: NDArray[np.float64],
+    occluded: NDArray[np.bool_],
+) -> NDArray[np.float32]:
+    """Lambertian outgoing radiance ``emission + albedo / pi * E`` (n, 3) float32, with ``E`` the
+    ``irradiance (n, 3)`` (indirect; lux) plus every unoccluded shadow ray's ``shadow_irradiance``
+    added to its ``shadow_point``."""
+    e = irradiance.copy()
+    for k in range(shadow_point.shape[0]):
+        if not occluded[k]:
+            i = shadow_point[k]
+            for c in range(3):
+                e[i, c] += shadow_irradiance[k, c]
+    n = emission.shape[0]
+    out = np.empty((n, 3), np.float32)
+    inv_pi = 1.0 / math.pi
+    for i in range(n):
+        for c in range(3):
+            out[i, c] = emission[i, c] + albedo[i, c] * inv_pi * e[i, c]
+    return out
+
+
+@numba.njit(**_JIT)
+def _wrap(i: int, n: int, mode: int) -> int:
+    """:func:`probegrid.scene._wrap_index` of one index: 0 repeat, 1 clamp, 2 mirror."""
+    if mode == 0:
+        return i % n
+    if mode == 1:
+        return min(max(i, 0), n - 1)
+    m = i % (2 * n)
+    return m if m < n else 2 * n - 1 - m
+
+
+@numba.njit(**_JIT)
+def multiply_texture(
+    target: NDArray[np.float64],
+    rows: NDArray[np.int64],
+    prim: NDArray[np.int64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    triangles: NDArray[np.int64],
+    uvs: NDArray[np.float64],
+    texture: NDArray[np.float32],
+    wrap_s: int,
+    wrap_t: int,
+) -> None:
+    """Multiply ``target[rows] (k, 3)`` in place by a texture's RGB at the hits' UVs.
+
+    :func:`probegrid.scene.sample_texture` (bilinear, texel centres at ``(col + 0.5) / W``,
+    ``(row + 0.5) / H``, wrap modes 0 repeat, 1 clamp, 2 mirror) at the UV interpolated with
+    barycentrics ``u[rows], v[rows]`` over triangle ``prim[rows]``; ``uvs`` empty means UV 0.
+    """
+    h, w = texture.shape[0], texture.shape[1]
+    has_uv = uvs.shape[0] > 0
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        s, t = 0.0, 0.0
+        if has_uv:
+            tri = prim[i]
+            w1, w2 = u[i], v[i]
+            w0 = 1.0 - w1 - w2
+            a, b, c = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
+            s = w0 * uvs[a, 0] + w1 * uvs[b, 0] + w2 * uvs[c, 0]
+            t = w0 * uvs[a, 1] + w1 * uvs[b, 1] + w2 * uvs[c, 1]
+        x = s * w - 0.5
+        y = t * h - 0.5
+        x0, y0 = math.floor(x), math.floor(y)
+        fx, fy = x - x0, y - y0
+        xi, yi = int(x0), int(y0)
+        c0, c1 = _wrap(xi, w, wrap_s), _wrap(xi + 1, w, wrap_s)
+        r0, r1 = _wrap(yi, h, wrap_t), _wrap(yi + 1, h, wrap_t)
+        for k in range(3):
+            top = texture[r0, c0, k] * (1.0 - fx) + texture[r0, c1, k] * fx
+            bottom = texture[r1, c0, k] * (1.0 - fx) + texture[r1, c1, k] * fx
+            target[i, k] *= top * (1.0 - fy) + bottom * fy
+
+
+@numba.njit(**_JIT)
+def cube_sample_directions(
+    n: int,
+    jitter: NDArray[np.float64],
+    face_normals: NDArray[np.float64],
+    face_u: NDArray[np.float64],
+    face_v: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit directions of jittered samples in every texel of an ``n``-cube, and their weights.
+
+    Sample ``k`` of texel ``(f, row, col)`` sits at continuous texel coordinates
+    ``(col - 0.5 + jitter[k, 0], row - 0.5 + jitter[k, 1])`` (face coordinates
+    ``(c + 0.5) 2 / n - 1``, :func:`probegrid.cubemap.texel_to_uv`); its direction is
+    ``normal + u U + v V`` normalised and its weight the area element ``|d|^-3``, normalised
+    over the texel's samples.
+
+    Returns
+    -------
+    directions : (6, n, n, s, 3) float64
+    weights : (6, n, n, s) float64
+    """
+    s = jitter.shape[0]
+    d = np.empty((6, n, n, s, 3))
+    wt = np.empty((6, n, n, s))
+    scale = 2.0 / n
+    for f in range(6):
+        for row in range(n):
+            for col in range(n):
+                total = 0.0
+                for k in range(s):
+                    uu = (col - 0.5 + jitter[k, 0] + 0.5) * scale - 1.0
+                    vv = (row - 0.5 + jitter[k, 1] + 0.5) * scale - 1.0
+                    x = face_normals[f, 0] + uu * face_u[f, 0] + vv * face_v[f, 0]
+                    y = face_normals[f, 1] + uu * face_u[f, 1] + vv * face_v[f, 1]
+                    z = face_normals[f, 2] + uu * face_u[f, 2] + vv * face_v[f, 2]
+                    norm = math.sqrt(x * x + y * y + z * z)
+                    d[f, row, col, k, 0] = x / norm
+                    d[f, row, col, k, 1] = y / norm
+                    d[f, row, col, k, 2] = z / norm
+                    a = norm ** -3.0
+                    wt[f, row, col, k] = a
+                    total += a
+                for k in range(s):
+                    wt[f, row, col, k] /= total
+    return d, wt

@@ -1,0 +1,111 @@
+"""The compiled bake kernels against the numpy expressions they restate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from probegrid.grid import GridSpec
+from probegrid.render import IndirectField
+
+
+def _field(rng: np.random.Generator, counts=(4, 3, 5), moments=True, invalid=0.2,
+           moved=True) -> IndirectField:
+    grid = GridSpec(bounds_min=(-1.0, 0.0, -2.0), bounds_max=(2.0, 1.5, 1.0), counts=counts)
+    p = grid.n_probes
+    pos = grid.positions().reshape(-1, 3)
+    if moved:
+        pos = pos + rng.uniform(-0.1, 0.1, pos.shape)
+    m = None
+    if moments:
+        mean = rng.uniform(0.05, 2.0, (p, 6, 4, 4))
+        m2 = mean**2 + rng.uniform(0.0, 0.3, mean.shape)
+        m = np.stack([mean, m2], axis=-1).astype(np.float32)
+    return IndirectField(grid=grid, sh=rng.normal(0.3, 0.4, (p, 9, 3)),
+                         valid=rng.random(p) >= invalid, positions=pos, moments=m)
+
+
+@pytest.mark.parametrize("moments", [True, False])
+@pytest.mark.parametrize("counts", [(4, 3, 5), (1, 3, 2), (2, 1, 1)])
+def test_indirect_kernel_matches_numpy(moments: bool, counts: tuple[int, int, int]) -> None:
+    rng = np.random.default_rng(7)
+    field = _field(rng, counts=counts, moments=moments)
+    n = 4000
+    pts = rng.uniform((-1.3, -0.2, -2.3), (2.3, 1.7, 1.3), (n, 3))  # some outside the box
+    pts[:50] = field.positions[rng.integers(0, field.grid.n_probes, 50)]  # at probes
+    nrm = rng.normal(size=(n, 3))
+    nrm[:20] = [[0.0, 1.0, 0.0]] * 20
+    nrm[20:40] = [[1.0, 1.0, 0.0]] * 20  # ties in the face selection
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    got = field.irradiance(pts, nrm)
+    ref = field.irradiance_reference(pts, nrm)
+    assert got.shape == ref.shape == (n, 3)
+    scale = np.abs(ref).max()
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12 * scale)
+    assert (ref > 0).mean() > 0.3  # the comparison covers lit points
+
+
+def test_indirect_kernel_all_invalid_is_zero() -> None:
+    rng = np.random.default_rng(1)
+    field = _field(rng, invalid=1.1)
+    pts = rng.uniform((-1.0, 0.0, -2.0), (2.0, 1.5, 1.0), (100, 3))
+    nrm = np.tile([0.0, 0.0, 1.0], (100, 1))
+    assert np.all(field.irradiance(pts, nrm) == 0)
+    assert np.all(field.irradiance_reference(pts, nrm) == 0)
+
+
+def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sample pattern in numpy array expressions (cubemap's own conversions)."""
+    from probegrid.cubemap import face_uv_to_direction, texel_to_uv
+
+    k = np.arange(n, dtype=np.float64)
+    u = texel_to_uv(k[:, None] - 0.5 + jitter[None, :, 0], n)[None, :, :]
+    v = texel_to_uv(k[:, None] - 0.5 + jitter[None, :, 1], n)[:, None, :]
+    u, v = np.broadcast_arrays(u, v)
+    d = face_uv_to_direction(np.arange(6)[:, None, None, None], u[None], v[None])
+    norm = np.linalg.norm(d, axis=-1)
+    w = norm**-3
+    return d / norm[..., None], w / w.sum(axis=-1, keepdims=True)
+
+
+@pytest.mark.parametrize("samples", [1, 5])
+def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
+    from probegrid.render import RenderSettings, sample_pattern
+
+    st = RenderSettings(face_size=8, samples=samples, seed=3, moments_size=8)
+    d, w = sample_pattern(st, 11)
+    jitter = (np.array([[0.5, 0.5]]) if samples == 1 else None)
+    if jitter is None:  # recover the probe's jitter from the pattern's first texel
+        from probegrid.executors import probe_rng
+        from probegrid.render import _R2
+
+        shift = probe_rng(3, 11).random(2)
+        jitter = np.mod(0.5 + np.arange(1, samples + 1)[:, None] * _R2[None, :] + shift, 1.0)
+    rd, rw = _pattern_reference(8, jitter)
+    np.testing.assert_allclose(d, rd, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(w, rw, rtol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-15)
+
+
+@pytest.mark.parametrize("wrap", [("repeat", "repeat"), ("clamp", "mirror"), ("mirror", "clamp")])
+def test_texture_kernel_matches_sample_texture(wrap) -> None:
+    from probegrid.kernels import multiply_texture
+    from probegrid.scene import _WRAPS, sample_texture
+
+    rng = np.random.default_rng(5)
+    tex = rng.random((5, 7, 4)).astype(np.float32)
+    tris = np.array([[0, 1, 2], [1, 3, 2]], dtype=np.int64)
+    uvs = rng.uniform(-2.0, 3.0, (4, 2))
+    n = 500
+    prim = rng.integers(0, 2, n).astype(np.int64)
+    bu = rng.random(n)
+    bv = rng.random(n) * (1 - bu)
+    w = np.stack([1 - bu - bv, bu, bv], axis=1)[:, :, None]
+    uv = np.sum(w * uvs[tris[prim]], axis=1)
+    target = rng.random((n, 3)) + 0.5
+    rows = np.flatnonzero(rng.random(n) < 0.7)
+    expect = target.copy()
+    expect[rows] *= sample_texture(tex, uv[rows], wrap=wrap)[:, :3]
+    multiply_texture(target, rows, prim, bu, bv, tris, uvs, tex, _WRAPS.index(wrap[0]),
+                     _WRAPS.index(wrap[1]))
+    np.testing.assert_allclose(target, expect, rtol=1e-12)
