@@ -189,7 +189,7 @@ def main() -> None:
         for label, sc in scenes:
             grid = grid_for(scene, grid="4x3x4")
             # warm-up: numba kernels loaded, the BVH's first traversals
-            bake(sc, grid, tmp / "warm.probes", settings=BakeSettings(face_size=8, bounces=1),
+            bake(sc, grid, tmp / f"warm{len(label)}.probes", settings=BakeSettings(face_size=8, bounces=1),
                  environment=env, executor=InlineExecutor(check_pickle=False))
             for samples in (1, 8):
                 st = BakeSettings(face_size=32, bounces=2, samples=samples)

@@ -42,6 +42,7 @@ from probegrid.cubemap import mip_sizes, solid_angle_integral
 from probegrid.environment import Environment
 from probegrid.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.grid import GridSpec
+from probegrid.raytrace import RayTracer
 from probegrid.render import IndirectField, ProbeRenderer, RenderSettings
 from probegrid.scene import Scene
 from probegrid.store import ArraySpec, ProbeStore, StoreWriter, open_store, partial_path
@@ -151,7 +152,9 @@ class _Context:
             assert self.positions is not None and self.valid is not None
             field = IndirectField(self.grid, self.previous_sh, self.valid, self.positions,
                                   self.previous_moments)
-        return _State(ProbeRenderer(self.scene, self.environment, self.render), self, field)
+        renderer = ProbeRenderer(self.scene, self.environment, self.render,
+                                 tracer=RayTracer.shared(self.scene))
+        return _State(renderer, self, field)
 
 
 @dataclass

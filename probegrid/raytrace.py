@@ -37,6 +37,7 @@ Reference: Wald et al., "Embree: A Kernel Framework for Efficient CPU Ray Tracin
 
 from __future__ import annotations
 
+import hashlib
 import math
 from typing import Final, NamedTuple
 
@@ -131,6 +132,24 @@ class RayTracer:
         """A tracer over ``scene.vertices`` and ``scene.triangles`` (a Scene of probegrid.scene)."""
         vertices, triangles = scene.vertices, scene.triangles  # type: ignore[attr-defined]
         return cls(vertices, triangles, chunk_size=chunk_size)
+
+    @classmethod
+    def shared(cls, scene: object, *, chunk_size: int = _DEFAULT_CHUNK) -> RayTracer:
+        """:meth:`from_scene`, reused while the geometry is the same: one BVH per process.
+
+        A bake's stages each hand a worker the scene anew; the tracer of the last geometry seen
+        (keyed by a SHA-256 of the vertex and index arrays) is kept, so the BVH is built once
+        per worker process, not once per stage.
+        """
+        vertices, triangles = scene.vertices, scene.triangles  # type: ignore[attr-defined]
+        h = hashlib.sha256(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(triangles, dtype=np.int64).tobytes())
+        key = (h.hexdigest(), chunk_size)
+        cached = _SHARED.get(key)
+        if cached is None:
+            _SHARED.clear()
+            cached = _SHARED[key] = cls(vertices, triangles, chunk_size=chunk_size)
+        return cached
 
     def __reduce__(self) -> tuple:
         """Pickle as the arrays; the Embree scene is rebuilt on unpickling."""
@@ -301,6 +320,10 @@ class RayTracer:
         hit = pid >= 0
         n = self.normals[np.where(hit, pid, 0)]
         return hit & (np.einsum("...i,...i->...", n, d) > 0)
+
+
+#: The process's shared tracer (:meth:`RayTracer.shared`), at most one.
+_SHARED: dict[tuple[str, int], RayTracer] = {}
 
 
 def _rebuild(vertices: NDArray, triangles: NDArray, chunk_size: int) -> RayTracer:

@@ -398,9 +398,12 @@ class ProbeRenderer:
         nr = dirs.shape[1]
         origins = np.repeat(pos, nr, axis=0)
         radiance, t, back, rays = self._shade(origins, dirs.reshape(-1, 3), field)
-        radiance = radiance.reshape(b, 6, n, n, s, 3)
-        w = wts.reshape(b, 6, n, n, s, 1)
-        incoming = (radiance * w).sum(axis=4, dtype=np.float64).astype(np.float32)
+        if s == 1:  # one ray per texel: its weight is exactly 1
+            incoming = radiance.reshape(b, 6, n, n, 3)
+        else:
+            radiance = radiance.reshape(b, 6, n, n, s, 3)
+            w = wts.reshape(b, 6, n, n, s, 1)
+            incoming = (radiance * w).sum(axis=4, dtype=np.float64).astype(np.float32)
         t = t.reshape(b, nr)
         backfrac = back.reshape(b, nr).mean(axis=1)
 

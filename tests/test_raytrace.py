@@ -185,3 +185,17 @@ def test_bad_arguments() -> None:
         RayTracer([[0, 0, 0], [1, 0, 0], [0, np.inf, 0]], [[0, 1, 2]])
     with pytest.raises(ValueError):
         RayTracer([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 3]])
+
+
+def test_shared_tracer_is_reused_per_geometry() -> None:
+    from probegrid.raytrace import RayTracer
+    from probegrid.scene import box_scene
+
+    a = box_scene((-1, -1, -1), (1, 1, 1), albedo=0.5)
+    again = box_scene((-1, -1, -1), (1, 1, 1), albedo=0.9)  # same geometry, another object
+    t1 = RayTracer.shared(a)
+    assert RayTracer.shared(again) is t1
+    t2 = RayTracer.shared(box_scene((-2, -1, -1), (1, 1, 1), albedo=0.5))
+    assert t2 is not t1
+    hit = t2.intersect(np.zeros(3), np.array([-1.0, 0.0, 0.0]))
+    assert hit.t == pytest.approx(2.0)  # the new geometry's BVH, not the cached one
