@@ -37,7 +37,7 @@ __all__ = [
     "outgoing_radiance",
 ]
 
-_JIT = {"nogil": True, "cache": True, "error_model": "numpy"}
+_JIT = {"nogil": True, "cache": True, "error_model": "numpy", "fastmath": {"contract", "arcp"}}
 
 
 @numba.njit(**_JIT)
@@ -220,17 +220,24 @@ def indirect_irradiance(
         y4, y5 = k2 * bx * by, k2 * by * bz
         y6 = k3 * (3.0 * bz * bz - 1.0)
         y7, y8 = k2 * bx * bz, k4 * (bx * bx - by * by)
-        for ch in range(3):
-            e = 0.0
-            for c in range(8):
-                wc = w[c] / total
-                if wc == 0.0:
-                    continue
-                cf = coeffs[idx[c]]
-                e += wc * (y0_ * cf[0, ch] + y1 * cf[1, ch] + y2 * cf[2, ch] + y3 * cf[3, ch]
-                           + y4 * cf[4, ch] + y5 * cf[5, ch] + y6 * cf[6, ch] + y7 * cf[7, ch]
-                           + y8 * cf[8, ch])
-            out[i, ch] = max(e, 0.0)
+        e0 = e1 = e2 = 0.0
+        for c in range(8):
+            wc = w[c]
+            if wc == 0.0:
+                continue
+            p = idx[c]
+            e0 += wc * (y0_ * coeffs[p, 0, 0] + y1 * coeffs[p, 1, 0] + y2 * coeffs[p, 2, 0]
+                        + y3 * coeffs[p, 3, 0] + y4 * coeffs[p, 4, 0] + y5 * coeffs[p, 5, 0]
+                        + y6 * coeffs[p, 6, 0] + y7 * coeffs[p, 7, 0] + y8 * coeffs[p, 8, 0])
+            e1 += wc * (y0_ * coeffs[p, 0, 1] + y1 * coeffs[p, 1, 1] + y2 * coeffs[p, 2, 1]
+                        + y3 * coeffs[p, 3, 1] + y4 * coeffs[p, 4, 1] + y5 * coeffs[p, 5, 1]
+                        + y6 * coeffs[p, 6, 1] + y7 * coeffs[p, 7, 1] + y8 * coeffs[p, 8, 1])
+            e2 += wc * (y0_ * coeffs[p, 0, 2] + y1 * coeffs[p, 1, 2] + y2 * coeffs[p, 2, 2]
+                        + y3 * coeffs[p, 3, 2] + y4 * coeffs[p, 4, 2] + y5 * coeffs[p, 5, 2]
+                        + y6 * coeffs[p, 6, 2] + y7 * coeffs[p, 7, 2] + y8 * coeffs[p, 8, 2])
+        out[i, 0] = max(e0 / total, 0.0)
+        out[i, 1] = max(e1 / total, 0.0)
+        out[i, 2] = max(e2 / total, 0.0)
     return out
 
 
