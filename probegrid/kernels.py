@@ -30,11 +30,14 @@ from numpy.typing import NDArray
 
 __all__ = [
     "cube_sample_directions",
+    "distance_moments",
     "hit_surfaces",
     "indirect_irradiance",
     "light_rays",
     "multiply_texture",
+    "orient_hits",
     "outgoing_radiance",
+    "texel_means",
 ]
 
 _JIT = {"nogil": True, "cache": True, "error_model": "numpy", "fastmath": {"contract", "arcp"}}
@@ -499,9 +502,90 @@ def cube_sample_directions(
                     d[f, row, col, k, 0] = x / norm
                     d[f, row, col, k, 1] = y / norm
                     d[f, row, col, k, 2] = z / norm
-                    a = norm ** -3.0
+                    a = 1.0 / (norm * norm * norm)
                     wt[f, row, col, k] = a
                     total += a
                 for k in range(s):
                     wt[f, row, col, k] /= total
     return d, wt
+
+
+@numba.njit(**_JIT)
+def orient_hits(
+    normals: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    rows: NDArray[np.int64],
+    prim: NDArray[np.int64],
+    double_sided: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Turn hit normals toward the rays that hit them; flag hits on the back of one-sided faces.
+
+    ``normals (h, 3)`` (geometric, as wound) of the hits of rays ``rows (h,)`` with
+    ``directions (N, 3)`` on triangles ``prim (h,)``: where ``dot(normal, direction) > 0`` the
+    ray sees the back, the normal is negated in place (the side the ray sees is shaded), and the
+    hit is a backface unless the triangle's material is ``double_sided (T,)``.
+
+    Returns
+    -------
+    (h,) bool
+        Backface hits.
+    """
+    h = rows.shape[0]
+    back = np.zeros(h, np.bool_)
+    for j in range(h):
+        r = rows[j]
+        d = (normals[j, 0] * directions[r, 0] + normals[j, 1] * directions[r, 1]
+             + normals[j, 2] * directions[r, 2])
+        if d > 0:
+            normals[j, 0] = -normals[j, 0]
+            normals[j, 1] = -normals[j, 1]
+            normals[j, 2] = -normals[j, 2]
+            back[j] = not double_sided[prim[j]]
+    return back
+
+
+@numba.njit(**_JIT)
+def texel_means(radiance: NDArray[np.float32], weights: NDArray[np.float64],
+                samples: int) -> NDArray[np.float32]:
+    """Weighted mean radiance of each texel's rays.
+
+    ``radiance (R, 3)`` float32 of rays stored texel by texel (``samples`` consecutive rays per
+    texel) and their ``weights (R,)`` (summing to 1 over each texel's rays); returns
+    ``(R / samples, 3)`` float32, summed in float64.
+    """
+    n = radiance.shape[0] // samples
+    out = np.empty((n, 3), np.float32)
+    for i in range(n):
+        a0 = a1 = a2 = 0.0
+        for k in range(i * samples, (i + 1) * samples):
+            w = weights[k]
+            a0 += w * radiance[k, 0]
+            a1 += w * radiance[k, 1]
+            a2 += w * radiance[k, 2]
+        out[i, 0], out[i, 1], out[i, 2] = a0, a1, a2
+    return out
+
+
+@numba.njit(**_JIT)
+def distance_moments(distance: NDArray[np.float64], solid_angle: NDArray[np.float64],
+                     bins: NDArray[np.int64], n_bins: int) -> NDArray[np.float32]:
+    """Solid-angle-weighted mean distance and mean squared distance per bin.
+
+    ``distance (R,)`` of rays carrying ``solid_angle (R,)`` steradians, ``bins (R,)`` in
+    ``[0, n_bins)``; returns ``(n_bins, 2)`` float32 (sums in float64; an empty bin is nan).
+    """
+    den = np.zeros(n_bins)
+    mu = np.zeros(n_bins)
+    m2 = np.zeros(n_bins)
+    for k in range(distance.shape[0]):
+        b = bins[k]
+        a = solid_angle[k]
+        t = distance[k]
+        den[b] += a
+        mu[b] += a * t
+        m2[b] += a * t * t
+    out = np.empty((n_bins, 2), np.float32)
+    for b in range(n_bins):
+        out[b, 0] = mu[b] / den[b]
+        out[b, 1] = m2[b] / den[b]
+    return out

@@ -73,9 +73,12 @@ from probegrid.interpolate import (
 )
 from probegrid.kernels import (
     cube_sample_directions,
+    distance_moments,
     indirect_irradiance,
     light_rays,
+    orient_hits,
     outgoing_radiance,
+    texel_means,
 )
 from probegrid.lights import incident_many, pack_lights, splat_delta
 from probegrid.raytrace import RayTracer
@@ -364,9 +367,7 @@ class ProbeRenderer:
         if hit.size:
             prim = hits.prim_id[hit]
             pos, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
-            facing = np.einsum("hi,hi->h", nrm, dirs[hit]) > 0
-            is_back = facing & ~self._double_sided[prim]
-            np.negative(nrm, out=nrm, where=facing[:, None])  # shade the side the ray sees
+            is_back = orient_hits(nrm, dirs, hit, prim, self._double_sided)
             back[hit] = is_back
             fh = np.flatnonzero(~is_back)
             if fh.size < hit.size:
@@ -415,20 +416,15 @@ class ProbeRenderer:
         if s == 1:  # one ray per texel: its weight is exactly 1
             incoming = radiance.reshape(b, 6, n, n, 3)
         else:
-            radiance = radiance.reshape(b, 6, n, n, s, 3)
-            w = wts.reshape(b, 6, n, n, s, 1)
-            incoming = (radiance * w).sum(axis=4, dtype=np.float64).astype(np.float32)
+            incoming = texel_means(radiance, wts.reshape(-1), s).reshape(b, 6, n, n, 3)
         t = t.reshape(b, nr)
         backfrac = back.reshape(b, nr).mean(axis=1)
 
         moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
         sa = self._texel_sa * wts.reshape(b, nr)  # solid angle carried by each ray
         for j in range(b):  # per probe: the reductions must not depend on the batch
-            den = np.bincount(self._moment_bins, weights=sa[j], minlength=6 * m * m)
-            mu = np.bincount(self._moment_bins, weights=sa[j] * t[j], minlength=6 * m * m)
-            m2 = np.bincount(self._moment_bins, weights=sa[j] * t[j] ** 2, minlength=6 * m * m)
-            moments[j, ..., 0] = (mu / den).reshape(6, m, m)
-            moments[j, ..., 1] = (m2 / den).reshape(6, m, m)
+            moments[j] = distance_moments(t[j], sa[j], self._moment_bins,
+                                          6 * m * m).reshape(6, m, m, 2)
 
         if st.direct and self.scene.lights:
             rays += self._splat_direct(pos, incoming)

@@ -109,3 +109,35 @@ def test_texture_kernel_matches_sample_texture(wrap) -> None:
     multiply_texture(target, rows, prim, bu, bv, tris, uvs, tex, _WRAPS.index(wrap[0]),
                      _WRAPS.index(wrap[1]))
     np.testing.assert_allclose(target, expect, rtol=1e-12)
+
+
+def test_texel_means_and_distance_moments_match_numpy() -> None:
+    from probegrid.kernels import distance_moments, texel_means
+
+    rng = np.random.default_rng(2)
+    s, texels = 5, 96
+    rad = rng.random((texels * s, 3)).astype(np.float32)
+    w = rng.random((texels, s))
+    w /= w.sum(axis=1, keepdims=True)
+    ref = (rad.reshape(texels, s, 3) * w[..., None]).sum(axis=1, dtype=np.float64)
+    np.testing.assert_allclose(texel_means(rad, w.reshape(-1), s), ref, rtol=1e-6)
+
+    t = rng.uniform(0.1, 9.0, texels * s)
+    sa = rng.uniform(0.01, 0.02, texels * s)
+    bins = rng.integers(0, 12, texels * s)
+    bins[:12] = np.arange(12)
+    got = distance_moments(t, sa, bins, 12)
+    den = np.bincount(bins, weights=sa, minlength=12)
+    np.testing.assert_allclose(got[:, 0], np.bincount(bins, sa * t, 12) / den, rtol=1e-6)
+    np.testing.assert_allclose(got[:, 1], np.bincount(bins, sa * t * t, 12) / den, rtol=1e-6)
+
+
+def test_orient_hits_flips_toward_the_ray_and_flags_one_sided_backs() -> None:
+    from probegrid.kernels import orient_hits
+
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    dirs = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [9.0, 9.0, 9.0], [0.0, 1.0, 0.0]])
+    rows = np.array([0, 1, 3])
+    back = orient_hits(nrm, dirs, rows, np.array([0, 0, 1]), np.array([False, True]))
+    assert back.tolist() == [False, True, False]  # the second triangle is double-sided
+    assert nrm.tolist() == [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]]
