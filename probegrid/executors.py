@@ -19,9 +19,11 @@ For each :meth:`Executor.map` call every worker process unpickles the context an
 ``setup()`` exactly once, before its first batch of that call, and passes the state to every
 batch it runs: ``fn(state, batch)``.
 
-* Local: the pool is created for the ``map`` call; its initializer receives the pickled context
-  and runs ``setup()``. The state sits in a per-process slot of this module (the one piece of
-  process-global state here: a task function can only find per-process state through one).
+* Local: the processes outlive ``map`` calls (until :meth:`LocalExecutor.close`); each call
+  writes its pickled context to a temporary file and tags its tasks with a token, and a process
+  runs ``setup()`` on its first task of a new token. The state sits in a per-process slot of
+  this module (the one piece of process-global state here: a task function can only find
+  per-process state through one).
 * Dask: the context is scattered (broadcast) to the workers once; a worker plugin installed on
   every worker holds a lock and a cache keyed by the ``map`` call, so ``setup()`` runs once per
   worker process even when the worker has several threads (the state is then shared by them and
@@ -48,6 +50,7 @@ import functools
 import multiprocessing
 import os
 import pickle
+import tempfile
 import threading
 import time
 import uuid
@@ -450,31 +453,30 @@ class _ProcessSlot:
     """The state of the current ``map`` call in a local worker process (or its setup error)."""
 
     def __init__(self) -> None:
+        self.token: str | None = None
         self.state: Any = None
         self.error: BaseException | None = None
 
 
 @functools.cache
 def _process_slot() -> _ProcessSlot:
-    """This process's slot (one per worker process; a pool lives for one ``map`` call)."""
+    """This process's slot (one per worker process, holding the state of one ``map`` call)."""
     return _ProcessSlot()
 
 
-def _local_init(context_bytes: bytes) -> None:
-    """Pool initializer: unpickle the context and build this process's state once.
-
-    A failure is kept and raised by the process's tasks, so the caller sees the real error
-    (an initializer that raised would only break the pool with a generic message).
-    """
+def _local_task(token: str, context_file: str, fn: TaskFn[R], batch: Batch) -> R:
+    """Run one batch in a worker process, building the state of map call ``token`` first if
+    this process has not yet: unpickle the context from ``context_file`` and call ``setup()``
+    (the previous call's state is dropped first). A setup failure is kept and raised by every
+    task of that call, so the caller sees the real error."""
     slot = _process_slot()
-    try:
-        slot.state = pickle.loads(context_bytes).setup()
-    except Exception as exc:  # noqa: BLE001 - re-raised by every task of this process
-        slot.error = exc
-
-
-def _local_task(fn: TaskFn[R], batch: Batch) -> R:
-    slot = _process_slot()
+    if slot.token != token:
+        slot.token, slot.state, slot.error = token, None, None
+        try:
+            with open(context_file, "rb") as fh:
+                slot.state = pickle.loads(fh.read()).setup()
+        except Exception as exc:  # noqa: BLE001 - re-raised by every task of this call
+            slot.error = exc
     if slot.error is not None:
         raise RuntimeError(f"setup() failed in the worker: {_first_line(slot.error)}")
     return fn(slot.state, batch)
@@ -492,9 +494,13 @@ class LocalExecutor:
     max_in_flight_per_worker : int
         Batches submitted and not yet handed back, per process (default 2).
 
-    A pool is started for each :meth:`map` call (``min(workers, number of batches)`` processes,
-    each running the context's ``setup()`` once in its initializer) and shut down when the
-    iteration ends or is abandoned.
+    The worker processes start with the first :meth:`map` call and serve every later one
+    until :meth:`close` (or the end of a ``with`` block), so a bake's stages do not each pay for
+    starting processes, importing the library and building the BVH
+    (:meth:`probegrid.raytrace.RayTracer.shared`). Each call's context travels once, as a
+    temporary file each process reads before its first batch of the call and runs
+    ``setup()`` on. A call that fails or is abandoned shuts the processes down (pending batches
+    are cancelled); the next call starts new ones.
     """
 
     def __init__(
@@ -521,6 +527,7 @@ class LocalExecutor:
         self._workers = int(workers)
         self._start_method = start_method
         self._per_worker = int(max_in_flight_per_worker)
+        self._pool: cf.ProcessPoolExecutor | None = None
 
     @property
     def workers(self) -> int:
@@ -547,13 +554,16 @@ class LocalExecutor:
     ) -> Iterator[tuple[Batch, R]]:
         if not todo:
             return
-        n = min(self._workers, len(todo))
-        pool = cf.ProcessPoolExecutor(
-            max_workers=n,
-            mp_context=multiprocessing.get_context(self._start_method),
-            initializer=_local_init,
-            initargs=(payload,),
-        )
+        if self._pool is None:
+            self._pool = cf.ProcessPoolExecutor(
+                max_workers=self._workers,
+                mp_context=multiprocessing.get_context(self._start_method),
+            )
+        pool = self._pool
+        token = uuid.uuid4().hex
+        fd, context_file = tempfile.mkstemp(prefix="probegrid-context-", suffix=".pickle")
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(payload)
 
         def wait_first(futs: list[cf.Future[R]]) -> set[cf.Future[R]]:
             return cf.wait(futs, return_when=cf.FIRST_COMPLETED).done
@@ -568,7 +578,7 @@ class LocalExecutor:
 
         def submit(order: int, batch: Batch) -> cf.Future[R]:
             try:
-                return pool.submit(_local_task, fn, batch)
+                return pool.submit(_local_task, token, context_file, fn, batch)
             except cf.process.BrokenProcessPool as exc:  # a worker died before this submit
                 fut: cf.Future[R] = cf.Future()
                 fut.set_exception(exc)  # surfaces through fetch like any other death
@@ -579,16 +589,23 @@ class LocalExecutor:
             wait_first=wait_first,
             fetch=fetch,
             cancel=lambda futs: [f.cancel() for f in futs],
-            limit=n * self._per_worker,
+            limit=min(self._workers, len(todo)) * self._per_worker,
             where=self.description,
         )
+        finished = False
         try:
             yield from pipeline.run(todo, progress)
+            finished = True
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            if not finished:  # failed or abandoned: stop the processes, cancel what is pending
+                self.close()
+            os.unlink(context_file)
 
     def close(self) -> None:
-        """Nothing to release (pools live for one ``map`` call)."""
+        """Stop the worker processes (waits for running batches; cancels pending ones)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> Self:
         return self

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import tempfile
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -313,3 +314,21 @@ def test_dask_bit_identical_setup_once_and_errors(tmp_path, reference, dask_clus
                     task=failing_task)
         assert "\n" not in str(info.value)
         assert "ValueError: probe 13 is cursed" in str(info.value)
+
+
+def test_local_processes_serve_successive_maps(tmp_path):
+    """The processes outlive a map call; each call's context is set up anew in each process."""
+    log1, log2 = tmp_path / "a", tmp_path / "b"
+    log1.mkdir()
+    log2.mkdir()
+    before = set(Path(tempfile.gettempdir()).glob("probegrid-context-*"))
+    with ex.LocalExecutor(2) as executor:
+        out1, seen1, _ = run_all(executor, NoiseContext(SEED, str(log1)),
+                                 ex.make_batches(P, batch_size=3))
+        out2, seen2, _ = run_all(executor, NoiseContext(SEED, str(log2)),
+                                 ex.make_batches(P, batch_size=5))
+    np.testing.assert_array_equal(out1, out2)
+    c1, c2 = setups_per_pid(log1), setups_per_pid(log2)
+    assert all(c == 1 for c in c1.values()) and all(c == 1 for c in c2.values())
+    assert set(c2) & set(c1)  # the same processes served the second call
+    assert set(Path(tempfile.gettempdir()).glob("probegrid-context-*")) <= before  # removed
