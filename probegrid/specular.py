@@ -791,16 +791,25 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
                     y0 += np.einsum("fkd,fkdc->fkc", dirs[o], y1.reshape(-1, kk, 3, c))
                 part[o, :c] = y0
         elif st.columns is None:
-            # Dense stage, few outputs (6 g^2 < 48): gather the rows of every output directly.
+            # Dense stage, few outputs (6 g^2 < 48): scatter each output's row of weights to the
+            # source texels its symmetry maps them to (a (6 g^2, 6 m^2) matrix per moment), then
+            # multiply the source mip as it is (cheaper than gathering it once per output).
             m = src_levels[st.level]
-            base = offsets[st.level] + np.arange(6 * m * m)
+            rows_m = 6 * m * m
+            base = offsets[st.level] + np.arange(rows_m)
             sym = owner_sym.astype(np.intp)[:, None] * total
-            idx = np.take(perm, base[None, :] + sym)              # (6 g^2, 6 m^2)
-            w = st.weights[owner_row]                              # (6 g^2, 2, 6 m^2)
-            x = np.take(pyramid, idx, axis=0)                      # (6 g^2, 6 m^2, 4 C)
-            y = np.matmul(w, x)                                    # (6 g^2, 2, 4 C)
-            mom = y[:, 1, c:].reshape(-1, 3, c)
-            part[:, :c] = y[:, 0, :c] + np.einsum("rd,rdc->rc", dirs, mom)
+            idx = np.take(perm, base[None, :] + sym) - offsets[st.level]  # (6 g^2, 6 m^2)
+            out_rows = np.arange(6 * g * g)[:, None]
+            block = pyramid[offsets[st.level]:offsets[st.level] + rows_m]
+            w0 = np.zeros((6 * g * g, rows_m), dtype=np.float32)
+            w0[out_rows, idx] = st.weights[owner_row, 0]
+            y = w0 @ block[:, :c]                                  # (6 g^2, C)
+            if st.level > 0:  # level 0 has no moments
+                w1 = np.zeros((6 * g * g, rows_m), dtype=np.float32)
+                w1[out_rows, idx] = st.weights[owner_row, 1]
+                mom = (w1 @ block[:, c:]).reshape(-1, 3, c)        # (6 g^2, 3, C)
+                y = y + np.einsum("rd,rdc->rc", dirs, mom)
+            part[:, :c] = y
         else:
             ww, cols = st.weights, st.columns
             chunk = max(1, _CHUNK_BYTES // (4 * 4 * c * max(ww.shape[2], 1)))
