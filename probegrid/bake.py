@@ -223,12 +223,10 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
         "moments": res.moments,
         "rays": res.rays,
     }
-    sh_l, sh_min, energy, seam = [], [], [], []
-    for cube in res.incoming:  # per probe: results must not depend on the batch
-        coeffs = sh.project_cube(cube)
-        sh_l.append(coeffs)
-        vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
-        sh_min.append(vmin / np.pi)
+    energy, seam = [], []
+    # per probe: results must not depend on the batch
+    sh_l = [sh.project_cube(cube) for cube in res.incoming]
+    sh_min = _sh_minima(np.stack(sh_l))
     dif, chains = _filter_groups(res.incoming, st.diffuse_size, levels)
     spec = [[c[k] for c in chains] for k in range(levels)]
     for cube, d in zip(res.incoming, dif, strict=True):
@@ -236,7 +234,7 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
                       / max(float(solid_angle_integral(cube).sum()), 1e-30))
         seam.append(seams.seam_score(d))
     out["sh"] = np.stack(sh_l).astype(np.float32)
-    out["sh_min"] = np.stack(sh_min).astype(np.float32)
+    out["sh_min"] = sh_min.astype(np.float32)
     out["diffuse"] = np.stack(dif)
     for k in range(levels):
         out[f"specular_{k}"] = np.stack(spec[k])
@@ -250,6 +248,23 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
 #: Probes filtered together, as channels of one cube (a fixed shape, see _filter_groups).
 FILTER_GROUP = 8
+
+
+def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``.
+
+    FILTER_GROUP probes per :func:`probegrid.sh.min_over_sphere` call, the last group padded
+    with zeros, so every call has the same shape and a probe's bits do not depend on the batch.
+    """
+    b = len(coeffs)
+    out = np.empty((b, 3))
+    for g0 in range(0, b, FILTER_GROUP):  # loop over groups of probes
+        k = min(FILTER_GROUP, b - g0)
+        group = np.zeros((FILTER_GROUP, 9, 3))
+        group[:k] = coeffs[g0:g0 + k]
+        vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(np.moveaxis(group, 1, 0)))
+        out[g0:g0 + k] = vmin[:k] / np.pi
+    return out
 
 
 def _unstack_probes(cube: NDArray[np.float32], channels: int) -> NDArray[np.float32]:
