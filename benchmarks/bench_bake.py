@@ -7,7 +7,9 @@
    of the bake's time that is ray casting. Two scenes: the bundled room (44 triangles, where a
    ray costs Embree about 75 ns, less than shading its hit) and the same room with a
    327,680-triangle sculpture; 1 and 8 rays per texel (the per-probe filters are amortised over
-   more rays at 8).
+   more rays at 8). The rays are recorded in one run and the bake is timed in another (recording
+   costs time); a third, instrumented run splits the bake's time into ray casting (Embree and
+   our argument handling), the indirect lookup at ray hits, the per-probe filters, and the rest.
 2. Probes per second for the sample scene with 1 and 2 local worker processes, for two grid
    sizes (time should grow linearly in probes and fall with workers), and the peak resident
    memory of the workers (bounded by a batch per worker, not by the grid).
@@ -84,6 +86,51 @@ class Recorder:
     @property
     def rays(self) -> int:
         return sum(len(b[1]) for b in self.batches)
+
+
+class Split:
+    """Times the bake's parts: RayTracer calls (Embree and its argument handling), the indirect
+    lookup (IndirectField.irradiance) and the per-probe filters and SH minima."""
+
+    def __init__(self) -> None:
+        self.seconds = {"cast": 0.0, "indirect": 0.0, "filters": 0.0}
+        self.total = 0.0
+        self._patched: list[tuple[object, str, object]] = []
+
+    def _wrap(self, owner: object, name: str, key: str) -> None:
+        orig = getattr(owner, name)
+        split = self
+
+        def timed(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return orig(*args, **kwargs)
+            finally:
+                split.seconds[key] += time.perf_counter() - t
+
+        self._patched.append((owner, name, orig))
+        setattr(owner, name, timed)
+
+    def __enter__(self) -> Self:
+        from probegrid import bake as bake_module
+        from probegrid.render import IndirectField
+
+        self._wrap(raytrace.RayTracer, "intersect", "cast")
+        self._wrap(raytrace.RayTracer, "occluded", "cast")
+        self._wrap(IndirectField, "irradiance", "indirect")
+        self._wrap(bake_module, "_filter_groups", "filters")
+        self._wrap(bake_module, "_sh_minima", "filters")
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.total = time.perf_counter() - self._t0
+        for owner, name, orig in reversed(self._patched):
+            setattr(owner, name, orig)
+
+    def shares(self) -> tuple[float, float, float, float]:
+        c, i, f = (self.seconds[k] / self.total for k in ("cast", "indirect", "filters"))
+        return c, i, f, 1.0 - c - i - f
 
 
 def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
@@ -186,6 +233,7 @@ def main() -> None:
         print("   scene                     triangles samples      rays   bake Mray/s  raw Mray/s"
               "   ratio  (target >= 0.8)")
         scenes = [("sample room", scene), ("sample room + sculpture", detailed_scene(scene))]
+        rows = []
         for label, sc in scenes:
             grid = grid_for(scene, grid="4x3x4")
             # warm-up: numba kernels loaded, the BVH's first traversals
@@ -193,15 +241,28 @@ def main() -> None:
                  environment=env, executor=InlineExecutor(check_pickle=False))
             for samples in (1, 8):
                 st = BakeSettings(face_size=32, bounces=2, samples=samples)
-                with Recorder() as rec:
-                    t = time.perf_counter()
-                    bake(sc, grid, tmp / f"a{samples}{len(label)}.probes", settings=st,
-                         environment=env, executor=InlineExecutor(check_pickle=False))
-                    t_bake = time.perf_counter() - t
+                run = InlineExecutor(check_pickle=False)
+                with Recorder() as rec:  # the rays (recording costs time: not the timed run)
+                    bake(sc, grid, tmp / f"r{samples}{len(label)}.probes", settings=st,
+                         environment=env, executor=run)
+                t = time.perf_counter()  # the same bake, timed, uninstrumented
+                bake(sc, grid, tmp / f"a{samples}{len(label)}.probes", settings=st,
+                     environment=env, executor=run)
+                t_bake = time.perf_counter() - t
+                with Split() as split:  # and once more, timing its parts
+                    bake(sc, grid, tmp / f"s{samples}{len(label)}.probes", settings=st,
+                         environment=env, executor=run)
                 t_raw = raw_embree_seconds(sc, rec.batches)
                 n = rec.rays
+                rows.append((label, samples, split.shares()))
                 print(f"   {label:<25} {sc.n_triangles:9,d} {samples:7d} {n / 1e6:7.2f} M "
                       f"{n / t_bake / 1e6:10.2f} {n / t_raw / 1e6:11.2f}   {t_raw / t_bake:.3f}")
+        print("\n   where the bake's time goes (share of an instrumented run):")
+        print("   scene                     samples  ray casting  indirect lookup  filters+SH min"
+              "  rest")
+        for label, samples, (cast, ind, filt, rest) in rows:
+            print(f"   {label:<25} {samples:7d} {cast:11.0%} {ind:16.0%} {filt:15.0%} "
+                  f"{rest:5.0%}")
 
         print("\n2. probes per second, sample room, 32^2 faces, 2 bounces")
         print("   grid      probes  workers   seconds  probes/s  largest worker RSS")
