@@ -323,9 +323,9 @@ def test_local_processes_serve_successive_maps(tmp_path):
     log2.mkdir()
     before = set(Path(tempfile.gettempdir()).glob("probegrid-context-*"))
     with ex.LocalExecutor(2) as executor:
-        out1, seen1, _ = run_all(executor, NoiseContext(SEED, str(log1)),
+        out1, _, _ = run_all(executor, NoiseContext(SEED, str(log1)),
                                  ex.make_batches(P, batch_size=3))
-        out2, seen2, _ = run_all(executor, NoiseContext(SEED, str(log2)),
+        out2, _, _ = run_all(executor, NoiseContext(SEED, str(log2)),
                                  ex.make_batches(P, batch_size=5))
     np.testing.assert_array_equal(out1, out2)
     c1, c2 = setups_per_pid(log1), setups_per_pid(log2)
