@@ -31,6 +31,8 @@ from numpy.typing import NDArray
 __all__ = [
     "cube_sample_directions",
     "distance_moments",
+    "embree_hits",
+    "embree_rays",
     "hit_surfaces",
     "indirect_irradiance",
     "light_rays",
@@ -589,3 +591,74 @@ def distance_moments(distance: NDArray[np.float64], solid_angle: NDArray[np.floa
         out[b, 0] = mu[b] / den[b]
         out[b, 1] = m2[b] / den[b]
     return out
+
+
+@numba.njit(**_JIT)
+def embree_rays(
+    origins: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    tmin: NDArray[np.float64],
+    tmax: NDArray[np.float64],
+    centre: NDArray[np.float64],
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], bool]:
+    """Rays as Embree takes them: float32 origins moved to ``tmin`` and re-centred, directions,
+    and segment lengths ``tmax - tmin`` (:meth:`probegrid.raytrace.RayTracer._embree_rays`).
+
+    ``origins (1 or m, 3)``, ``directions (m, 3)``, ``tmin``/``tmax (1 or m,)`` float64 (a single
+    row is shared by every ray), ``centre (3,)``. The origin is ``(o - centre) + tmin d`` in
+    float64, rounded once. The last value is False if an origin or direction is not finite in
+    float32.
+    """
+    m = directions.shape[0]
+    org = np.empty((m, 3), np.float32)
+    d32 = np.empty((m, 3), np.float32)
+    far = np.empty(m, np.float32)
+    one_o = origins.shape[0] == 1
+    one_lo = tmin.shape[0] == 1
+    one_hi = tmax.shape[0] == 1
+    ok = True
+    for i in range(m):
+        io = 0 if one_o else i
+        lo = tmin[0] if one_lo else tmin[i]
+        hi = tmax[0] if one_hi else tmax[i]
+        for k in range(3):
+            dk = directions[i, k]
+            a = np.float32((origins[io, k] - centre[k]) + lo * dk)
+            b = np.float32(dk)
+            org[i, k] = a
+            d32[i, k] = b
+            if not (math.isfinite(a) and math.isfinite(b)):
+                ok = False
+        far[i] = hi - lo
+    return org, d32, far, ok
+
+
+@numba.njit(**_JIT)
+def embree_hits(
+    prim_id: NDArray[np.int32],
+    tfar: NDArray[np.float32],
+    u: NDArray[np.float32],
+    v: NDArray[np.float32],
+    tmin: NDArray[np.float64],
+    start: int,
+    prim_out: NDArray[np.int64],
+    t_out: NDArray[np.float64],
+    u_out: NDArray[np.float64],
+    v_out: NDArray[np.float64],
+) -> None:
+    """Copy Embree's answers for rays ``start:start + m`` into the float64 / int64 outputs: the
+    hit distance measured from the ray's origin (``tfar + tmin``; ``tmin (1 or n,)``), inf and
+    barycentrics 0 for a miss (``prim_id < 0``)."""
+    one_lo = tmin.shape[0] == 1
+    for j in range(prim_id.shape[0]):
+        i = start + j
+        p = prim_id[j]
+        prim_out[i] = p
+        if p < 0:
+            t_out[i] = math.inf
+            u_out[i] = 0.0
+            v_out[i] = 0.0
+        else:
+            t_out[i] = np.float64(tfar[j]) + (tmin[0] if one_lo else tmin[i])
+            u_out[i] = u[j]
+            v_out[i] = v[j]

@@ -46,6 +46,8 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid.kernels import embree_hits, embree_rays
+
 __all__ = ["Hits", "RayTracer"]
 
 _DEFAULT_CHUNK: Final[int] = 1 << 16
@@ -112,7 +114,6 @@ class RayTracer:
         self.triangles: NDArray[np.int64] = t
         self.chunk_size = int(chunk_size)
         self._centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-        self._centre_flat = np.tile(self._centre, self.chunk_size)  # for flat re-centring
         p = v[t]
         n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         length = np.linalg.norm(n, axis=1, keepdims=True)
@@ -198,26 +199,15 @@ class RayTracer:
     ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
         """float32 origins (shifted to tmin, re-centred), directions and tfar of rays s:e.
 
-        The shift and the re-centring are done in float64 on flat arrays (numpy is slow at
-        broadcasting over a trailing axis of 3); each array is rounded to float32 once.
+        The shift and the re-centring are done in float64, each value rounded to float32 once
+        (:func:`probegrid.kernels.embree_rays`).
         """
-        m = e - s
-        dirs = d[s:e].reshape(-1)
-        if len(o) == 1:
-            base = np.tile(o[0] - self._centre, m)
-        else:
-            base = o[s:e].reshape(-1) - self._centre_flat[: 3 * m]
-        if lo.ndim == 0:
-            if lo != 0:
-                base += float(lo) * dirs
-        else:
-            base += np.repeat(lo[s:e], 3) * dirs
-        org = base.astype(np.float32).reshape(m, 3)
-        dir32 = d[s:e].astype(np.float32)
-        if not (np.isfinite(org).all() and np.isfinite(dir32).all()):
+        org, dir32, far, ok = embree_rays(
+            o if len(o) == 1 else o[s:e], d[s:e],
+            lo.reshape(1) if lo.ndim == 0 else lo[s:e],
+            hi.reshape(1) if hi.ndim == 0 else hi[s:e], self._centre)
+        if not ok:
             raise ValueError("ray origins and directions must be finite (and within float32).")
-        far = np.empty(m, dtype=np.float32)  # Embree writes the hit distance into it
-        far[:] = (hi if hi.ndim == 0 else hi[s:e]) - (lo if lo.ndim == 0 else lo[s:e])
         # (tmax = inf stays inf; tmax <= tmin never hits)
         return org, dir32, far
 
@@ -258,14 +248,8 @@ class RayTracer:
             e = min(s + self.chunk_size, n)
             org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
             res = self._scene.run(org, dirs, dists=far, output=1)
-            miss = np.flatnonzero(res["primID"] < 0) + s
-            prim[s:e] = res["primID"]
-            np.add(res["tfar"], lo if lo.ndim == 0 else lo[s:e], out=t[s:e])
-            u[s:e] = res["u"]
-            v[s:e] = res["v"]
-            t[miss] = np.inf
-            u[miss] = 0.0
-            v[miss] = 0.0
+            embree_hits(res["primID"], res["tfar"], res["u"], res["v"],
+                        lo.reshape(1) if lo.ndim == 0 else lo, s, prim, t, u, v)
         return Hits(prim.reshape(shape), t.reshape(shape), u.reshape(shape), v.reshape(shape))
 
     def occluded(
