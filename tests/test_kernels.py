@@ -141,3 +141,74 @@ def test_orient_hits_flips_toward_the_ray_and_flags_one_sided_backs() -> None:
     back = orient_hits(nrm, dirs, rows, np.array([0, 0, 1]), np.array([False, True]))
     assert back.tolist() == [False, True, False]  # the second triangle is double-sided
     assert nrm.tolist() == [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]]
+
+
+def test_light_rays_match_incident_many() -> None:
+    """The shadow-ray set-up equals lights.incident_many plus the renderer's selection rule."""
+    from probegrid.kernels import light_rays
+    from probegrid.lights import (
+        DirectionalLight,
+        PointLight,
+        SpotLight,
+        incident_many,
+        pack_lights,
+    )
+
+    lights = [
+        PointLight((0.0, 2.0, 0.0), (1.0, 0.8, 0.6), 40.0, range=3.0),
+        SpotLight((1.0, 1.5, -1.0), (0.0, -1.0, 0.2), (0.2, 0.4, 1.0), 80.0, range=None,
+                  inner_cone_angle=0.3, outer_cone_angle=0.7),
+        DirectionalLight((0.3, -1.0, 0.1), (1.0, 1.0, 1.0), 3.0),
+    ]
+    rng = np.random.default_rng(4)
+    n = 3000
+    pts = rng.uniform(-2.5, 2.5, (n, 3))
+    pts[0] = lights[0].position  # at the light: no direction, no light
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    eps = 1e-3
+    pk = pack_lights(lights)
+    which, org, dirs, tmax, irr = light_rays(
+        pts, nrm, pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
+        pk.angle_scale, pk.angle_offset, eps)
+
+    d_ref, e_ref, dist_ref = incident_many(lights, pts)
+    cos = np.einsum("pli,pi->pl", d_ref, nrm)
+    lit = (e_ref.max(axis=-1) > 0) & (cos > 0)
+    pi, li = np.nonzero(lit)  # the same (point, light) order as the kernel's loops
+    assert len(which) == len(pi) > n // 4
+    np.testing.assert_array_equal(which, pi)
+    np.testing.assert_allclose(dirs, d_ref[pi, li], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(org, pts[pi] + eps * nrm[pi], rtol=0, atol=1e-14)
+    ref_tmax = np.where(np.isfinite(dist_ref[pi, li]), dist_ref[pi, li] - eps, np.inf)
+    np.testing.assert_allclose(tmax, ref_tmax, rtol=1e-14)
+    np.testing.assert_allclose(irr, cos[pi, li, None] * e_ref[pi, li], rtol=1e-12, atol=1e-300)
+    assert not lit[0, 0]  # at the light: neither the reference nor the kernel lights it
+
+
+def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
+    from probegrid.kernels import hit_surfaces
+
+    rng = np.random.default_rng(6)
+    verts = rng.normal(size=(30, 3))
+    tris = np.stack([rng.permutation(30)[:3] for _ in range(40)]).astype(np.int64)
+    p = verts[tris]
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    material = rng.integers(0, 3, 40).astype(np.int64)
+    base = rng.random((3, 3))
+    emis = rng.random((3, 3))
+    colors = rng.random((30, 4))
+    n = 500
+    prim = rng.integers(0, 40, n).astype(np.int64)
+    u = rng.random(n)
+    v = rng.random(n) * (1 - u)
+    pos, nn, alb, em = hit_surfaces(prim, u, v, verts, tris, nrm, material, base, emis,
+                                    np.ascontiguousarray(colors[:, :3]))
+    w = np.stack([1 - u - v, u, v], axis=1)[:, :, None]
+    np.testing.assert_allclose(pos, np.sum(w * verts[tris[prim]], axis=1), rtol=1e-13,
+                               atol=1e-14)
+    np.testing.assert_array_equal(nn, nrm[prim])
+    np.testing.assert_allclose(alb, base[material[prim]]
+                               * np.sum(w * colors[tris[prim]][:, :, :3], axis=1), rtol=1e-13)
+    np.testing.assert_array_equal(em, emis[material[prim]])
