@@ -11,8 +11,10 @@
    costs time); a third, instrumented run splits the bake's time into ray casting (Embree and
    our argument handling), the indirect lookup at ray hits, the per-probe filters, and the rest.
 2. Probes per second for the sample scene with 1 and 2 local worker processes, for two grid
-   sizes (time should grow linearly in probes and fall with workers), and the peak resident
-   memory of the workers (bounded by a batch per worker, not by the grid).
+   sizes (time should grow linearly in probes and fall with workers), and the peak memory of
+   the workers.
+3. Worker memory for a 32-probe and a 16,384-probe grid: bounded by a batch per worker, not by
+   the grid (workers memory-map the previous bounce's grid instead of holding a copy).
 
 Run: ``.venv/bin/python benchmarks/bench_bake.py`` (about 2-4 minutes on 2 cores).
 """
@@ -155,11 +157,14 @@ def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
 
 
 class DescendantMemory:
-    """Samples the resident memory of this process's descendants (the worker processes, which
-    forkserver starts as grandchildren) from /proc every 0.1 s; keeps the largest one seen."""
+    """Samples the memory of this process's descendants (the worker processes, which forkserver
+    starts as grandchildren) from /proc every 0.1 s; keeps the largest seen: resident memory
+    (``VmRSS``, which counts the pages of memory-mapped files a worker has touched) and private
+    memory (``RssAnon``: what the worker alone holds)."""
 
     def __init__(self) -> None:
         self.peak_mb = 0.0
+        self.peak_private_mb = 0.0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -175,25 +180,30 @@ class DescendantMemory:
         me = os.getpid()
         while not self._stop.wait(0.1):
             parents: dict[int, int] = {}
-            rss: dict[int, float] = {}
+            mem: dict[int, tuple[float, float]] = {}
             for entry in os.listdir("/proc"):
                 if not entry.isdigit():
                     continue
                 try:
                     with open(f"/proc/{entry}/stat") as fh:
                         parents[int(entry)] = int(fh.read().rsplit(")", 1)[1].split()[1])
+                    rss = anon = 0.0
                     with open(f"/proc/{entry}/status") as fh:
                         for line in fh:
                             if line.startswith("VmRSS:"):
-                                rss[int(entry)] = int(line.split()[1]) / 1024
+                                rss = int(line.split()[1]) / 1024
+                            elif line.startswith("RssAnon:"):
+                                anon = int(line.split()[1]) / 1024
+                    mem[int(entry)] = (rss, anon)
                 except (OSError, ValueError, IndexError):
                     continue
-            for pid, mb in rss.items():
+            for pid, (rss, anon) in mem.items():
                 p, depth = pid, 0
                 while p in parents and p != me and depth < 8:
                     p, depth = parents[p], depth + 1
                 if p == me and pid != me:
-                    self.peak_mb = max(self.peak_mb, mb)
+                    self.peak_mb = max(self.peak_mb, rss)
+                    self.peak_private_mb = max(self.peak_private_mb, anon)
 
 
 def detailed_scene(scene: Scene, subdivisions: int = 7) -> Scene:
@@ -264,8 +274,9 @@ def main() -> None:
             print(f"   {label:<25} {samples:7d} {cast:11.0%} {ind:16.0%} {filt:15.0%} "
                   f"{rest:5.0%}")
 
-        print("\n2. probes per second, sample room, 32^2 faces, 2 bounces")
-        print("   grid      probes  workers   seconds  probes/s  largest worker RSS")
+        print("\n2. probes per second, sample room, 32^2 faces, 2 bounces, 1 ray per texel")
+        print("   grid      probes  workers   seconds  probes/s  largest worker: resident, private")
+        st = BakeSettings(face_size=32, bounces=2)
         rows = []
         for label in ("4x2x4", "8x4x8"):
             g = grid_for(scene, grid=label)
@@ -277,15 +288,31 @@ def main() -> None:
                     sec = time.perf_counter() - t
                 rows.append((label, g.n_probes, workers, sec))
                 print(f"   {label:<9} {g.n_probes:6d}  {workers:7d}  {sec:8.2f}  "
-                      f"{g.n_probes / sec:8.2f}  {mem.peak_mb:8.0f} MB")
+                      f"{g.n_probes / sec:8.2f}  {mem.peak_mb:8.0f} MB, "
+                      f"{mem.peak_private_mb:4.0f} MB")
         small = {w: s for lab, _, w, s in rows if lab == "4x2x4"}
         big = {w: s for lab, _, w, s in rows if lab == "8x4x8"}
         print(f"   time ratio 8x4x8 / 4x2x4 (8x the probes): 1 worker {big[1] / small[1]:.2f}, "
               f"2 workers {big[2] / small[2]:.2f}")
         print(f"   speed-up 2 workers / 1 worker: {small[1] / small[2]:.2f} (4x2x4), "
               f"{big[1] / big[2]:.2f} (8x4x8)")
-        est = 2048 / (512 / big[2])
-        print(f"   16x8x16 (2048 probes) at the 2-worker rate: about {est / 60:.1f} minutes")
+        est = 2048 / (256 / big[2])
+        print(f"   16x8x16 (2048 probes) at the 2-worker rate: about {est:.0f} s")
+
+        print("\n3. worker memory against grid size (8^2 faces, 1 bounce, 2 workers)")
+        print("   grid        probes   seconds  largest worker: resident, private")
+        small_st = BakeSettings(face_size=8, bounces=1)
+        for label in ("4x2x4", "32x16x32"):
+            g = grid_for(scene, grid=label)
+            with LocalExecutor(2) as ex, DescendantMemory() as mem:
+                t = time.perf_counter()
+                bake(scene, g, tmp / f"m{label}.probes", settings=small_st, environment=env,
+                     executor=ex)
+                sec = time.perf_counter() - t
+            print(f"   {label:<10} {g.n_probes:7d}  {sec:8.2f}  {mem.peak_mb:8.0f} MB, "
+                  f"{mem.peak_private_mb:4.0f} MB")
+        print("   (resident memory includes the pages of the memory-mapped previous bounce a "
+              "worker has read; private memory is what it holds alone)")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

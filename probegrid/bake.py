@@ -43,7 +43,13 @@ from probegrid.environment import Environment
 from probegrid.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.grid import GridSpec
 from probegrid.raytrace import RayTracer
-from probegrid.render import IndirectField, ProbeRenderer, RenderSettings
+from probegrid.render import (
+    FieldFiles,
+    IndirectField,
+    ProbeRenderer,
+    RenderSettings,
+    write_field_files,
+)
 from probegrid.scene import Scene
 from probegrid.store import ArraySpec, ProbeStore, StoreWriter, open_store, partial_path
 
@@ -127,17 +133,24 @@ def environment_hash(env: Environment) -> str:
 # ------------------------------------------------------------------------------ worker side
 @dataclass(frozen=True, eq=False)
 class _Context:
-    """Per-bake-stage worker context: pickled once per worker, ``setup`` builds the BVH."""
+    """Per-bake-stage worker context: pickled once per worker, ``setup`` builds the BVH.
+
+    The grid-sized arrays (probe positions and validity, the previous bounce's field) travel
+    either as arrays (``previous`` a tuple ``(sh, moments)``; for Dask workers, which may not
+    share this machine's files) or as ``.npy`` paths in the bake's work directory that
+    ``setup`` memory-maps (``positions``/``valid`` strings, ``previous`` a
+    :class:`~probegrid.render.FieldFiles`), so that a local worker's memory is bounded by its
+    batch, not by the grid.
+    """
 
     scene: Scene
     environment: Environment
     render: RenderSettings
     settings: BakeSettings
     grid: GridSpec
-    positions: NDArray[np.float64] | None = None
-    valid: NDArray[np.bool_] | None = None
-    previous_sh: NDArray[np.float64] | None = None
-    previous_moments: NDArray[np.float32] | None = None
+    positions: NDArray[np.float64] | str | None = None
+    valid: NDArray[np.bool_] | str | None = None
+    previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
 
     def setup(self) -> _State:
         import multiprocessing
@@ -147,14 +160,22 @@ class _Context:
             from threadpoolctl import threadpool_limits
 
             threadpool_limits(1)
+        positions, valid = _array(self.positions), _array(self.valid)
         field = None
-        if self.previous_sh is not None:
-            assert self.positions is not None and self.valid is not None
-            field = IndirectField(self.grid, self.previous_sh, self.valid, self.positions,
-                                  self.previous_moments)
+        if isinstance(self.previous, FieldFiles):
+            field = IndirectField.open(self.grid, self.previous)
+        elif self.previous is not None:
+            assert positions is not None and valid is not None
+            field = IndirectField(self.grid, self.previous[0], valid, positions,
+                                  self.previous[1])
         renderer = ProbeRenderer(self.scene, self.environment, self.render,
                                  tracer=RayTracer.shared(self.scene))
-        return _State(renderer, self, field)
+        return _State(renderer, self, field, positions, valid)
+
+
+def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
+    """An array, or the read-only memory map of an ``.npy`` path."""
+    return np.load(a, mmap_mode="r", allow_pickle=False) if isinstance(a, str) else a
 
 
 @dataclass
@@ -162,6 +183,8 @@ class _State:
     renderer: ProbeRenderer
     ctx: _Context
     field: IndirectField | None
+    positions: NDArray[np.float64] | None
+    valid: NDArray[np.bool_] | None
 
 
 #: Face size of the texel-centre rays that classify a probe as inside geometry.
@@ -202,9 +225,8 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
 
 def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
-    ctx = state.ctx
-    assert ctx.positions is not None
-    res = state.renderer.render(ctx.positions[batch], batch, field=state.field)
+    assert state.positions is not None
+    res = state.renderer.render(state.positions[batch], batch, field=state.field)
     coeffs = np.stack([sh.project_cube(c) for c in res.incoming])  # (B, 9, 3), per probe
     return {"sh": coeffs, "moments": res.moments, "rays": res.rays}
 
@@ -214,12 +236,12 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
     ctx = state.ctx
     st = ctx.settings
-    assert ctx.positions is not None and ctx.valid is not None
-    res = state.renderer.render(ctx.positions[batch], batch, field=state.field)
+    assert state.positions is not None and state.valid is not None
+    res = state.renderer.render(state.positions[batch], batch, field=state.field)
     levels = st.levels()
     out: dict[str, Any] = {
-        "positions": ctx.positions[batch],
-        "valid": ctx.valid[batch],
+        "positions": state.positions[batch],
+        "valid": state.valid[batch],
         "moments": res.moments,
         "rays": res.rays,
     }
@@ -444,19 +466,33 @@ def bake(
     valid = np.array(cls_store["valid"])
     lattice = grid.positions()
     relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
+    # Workers on this machine memory-map the grid-sized arrays from the work directory; others
+    # (a Dask cluster) receive them.
+    files = bool(getattr(ex, "shares_files", False))
+    probe_pos: NDArray[np.float64] | str = positions
+    probe_valid: NDArray[np.bool_] | str = valid
+    if files:
+        probe_pos = str(work / "classify.probes" / "positions.npy")
+        probe_valid = str(work / "classify.probes" / "valid.npy")
 
     # 2. bounces
     m = render.moments_size
-    prev_sh = prev_mom = None
+    previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
     for k in range(st.bounces):
-        ctx = _Context(scene, env, render, st, grid, positions, valid, prev_sh, prev_mom)
+        ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
         arrays = {"sh": ArraySpec((9, 3), "float64", "radiance SH of this bounce"),
                   "moments": ArraySpec((6, m, m, 2), "float32", "distance moments")}
         w, _ = _run_stage(f"bounce {k + 1}/{st.bounces + 1}", work / f"bounce{k}.probes",
                           arrays, _bounce_task, ctx, ex, plan, scene_hash, progress, totals)
         bstore = w.finish() if isinstance(w, StoreWriter) else w
-        prev_sh = np.array(bstore["sh"])
-        prev_mom = np.array(bstore["moments"])
+        if files:
+            previous = write_field_files(
+                work / f"field{k}", bstore["sh"], bstore["moments"],
+                sh_file=work / f"bounce{k}.probes" / "sh.npy",
+                valid_file=work / "classify.probes" / "valid.npy",
+                positions_file=work / "classify.probes" / "positions.npy")
+        else:
+            previous = (np.array(bstore["sh"]), np.array(bstore["moments"]))
 
     # 3. final
     energy = np.full(grid.n_probes, np.nan)
@@ -466,7 +502,7 @@ def bake(
         energy[batch] = result["_energy"]
         seam[batch] = result["_seam"]
 
-    ctx = _Context(scene, env, render, st, grid, positions, valid, prev_sh, prev_mom)
+    ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
     w, resumed = _run_stage(f"bounce {st.bounces + 1}/{st.bounces + 1} (final)", out,
                             store_arrays(st), _final_task, ctx, ex, plan, scene_hash, progress,
                             totals, overwrite=overwrite, intermediate=False, extra=keep)

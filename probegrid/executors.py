@@ -56,6 +56,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import (
     TYPE_CHECKING,
     Any,
@@ -150,7 +151,11 @@ ProgressFn = Callable[[Progress], None]
 
 @runtime_checkable
 class Executor(Protocol):
-    """Runs ``fn(state, batch)`` over batches; see the module docstring."""
+    """Runs ``fn(state, batch)`` over batches; see the module docstring.
+
+    An executor whose tasks run on the caller's machine has ``shares_files = True``: a context
+    may then name files (e.g. memory-mappable ``.npy`` arrays) instead of carrying the data.
+    """
 
     @property
     def workers(self) -> int:
@@ -361,6 +366,9 @@ class InlineExecutor:
         executors do, so that a bake that works inline also works on workers.
     """
 
+    #: Tasks run on this machine and can read its files.
+    shares_files = True
+
     def __init__(self, *, check_pickle: bool = True) -> None:
         self._check_pickle = check_pickle
 
@@ -503,6 +511,9 @@ class LocalExecutor:
     are cancelled); the next call starts new ones.
     """
 
+    #: Tasks run on this machine and can read its files.
+    shares_files = True
+
     def __init__(
         self,
         workers: int | None = None,
@@ -561,7 +572,9 @@ class LocalExecutor:
             )
         pool = self._pool
         token = uuid.uuid4().hex
-        fd, context_file = tempfile.mkstemp(prefix="probegrid-context-", suffix=".pickle")
+        _remove_stale_context_files()
+        fd, context_file = tempfile.mkstemp(prefix=f"{_CONTEXT_PREFIX}{os.getpid()}-",
+                                            suffix=".pickle")
         with os.fdopen(fd, "wb") as fh:
             fh.write(payload)
 
@@ -612,6 +625,25 @@ class LocalExecutor:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: Temporary context files are named ``probegrid-context-<pid of the caller>-<random>.pickle``.
+_CONTEXT_PREFIX = "probegrid-context-"
+
+
+def _remove_stale_context_files() -> None:
+    """Delete context files left by callers that no longer run (killed before cleaning up)."""
+    for path in Path(tempfile.gettempdir()).glob(f"{_CONTEXT_PREFIX}*-*.pickle"):
+        pid = path.name[len(_CONTEXT_PREFIX):].split("-", 1)[0]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        except OSError:  # alive but another user's: not ours to remove
+            continue
 
 
 def _check_in_flight(n: int) -> None:
@@ -703,6 +735,9 @@ class DaskExecutor:
     Raises :class:`ExecutorError` (one line) when the scheduler cannot be reached or has no
     workers. Workers need probegrid (and whatever ``fn`` imports) installed.
     """
+
+    #: Workers may be on other machines: grid-sized arrays travel with the context.
+    shares_files = False
 
     def __init__(
         self,

@@ -87,6 +87,7 @@ __all__ = [
     "ProbeWeights",
     "blend",
     "blend_lookup",
+    "bordered_cubes",
     "probe_weights",
 ]
 
@@ -338,19 +339,25 @@ class BorderedCubes:
     """
 
     def __init__(self, cubes: ArrayLike) -> None:
-        a = np.asarray(cubes, dtype=np.float32)
-        if a.ndim != 5 or a.shape[1] != 6 or a.shape[2] != a.shape[3]:
-            raise ValueError(f"cubes must have shape (P, 6, n, n, C), got {a.shape}.")
-        p, _, n, _, c = a.shape
-        bordered = add_border(np.moveaxis(a, 0, 3).reshape(6, n, n, p * c))  # probes as channels
-        m = n + 2
-        self.shape = a.shape
-        self.n = n
+        self._wrap(bordered_cubes(cubes))
+
+    @classmethod
+    def from_bordered(cls, bordered: NDArray[np.float32]) -> BorderedCubes:
+        """Wrap cubes already bordered by :func:`bordered_cubes`, ``(P, 6, n + 2, n + 2, C)``
+        float32 and C-contiguous (for example a memory map), without copying."""
+        if bordered.ndim != 5 or bordered.shape[1] != 6 or bordered.shape[2] != bordered.shape[3]:
+            raise ValueError(f"bordered must have shape (P, 6, m, m, C), got {bordered.shape}.")
+        obj = cls.__new__(cls)
+        obj._wrap(bordered)
+        return obj
+
+    def _wrap(self, bordered: NDArray[np.float32]) -> None:
+        p, _, m, _, c = bordered.shape
+        self.shape = (p, 6, m - 2, m - 2, c)
+        self.n = m - 2
         self._texels = 6 * m * m
         #: ``(P * 6 (n + 2)^2, C)`` float32: probe-major bordered texels, row-major per face.
-        self.data = np.ascontiguousarray(
-            bordered.reshape(self._texels, p, c).transpose(1, 0, 2)
-        ).reshape(p * self._texels, c)
+        self.data = bordered.reshape(p * self._texels, c)
 
     def lookup(self, probes: ArrayLike, directions: ArrayLike) -> NDArray[np.float64]:
         """Bilinear value of cube ``probes[k]`` in ``directions[k] (K, 3)``; ``(K, C)`` float64."""
@@ -368,6 +375,25 @@ class BorderedCubes:
         out = (d[base] * (gy * gx)[:, None] + d[base + 1] * (gy * fx)[:, None]
                + d[base + m] * (fy * gx)[:, None] + d[base + m + 1] * (fy * fx)[:, None])
         return out
+
+
+def bordered_cubes(cubes: ArrayLike, *, out: NDArray[np.float32] | None = None,
+                   chunk: int = 4096) -> NDArray[np.float32]:
+    """Many probes' cubes with the seamless one-texel border of
+    :func:`probegrid.seams.add_border`, ``(P, 6, n, n, C)`` -> ``(P, 6, n + 2, n + 2, C)``
+    float32, ``chunk`` probes at a time (into ``out`` when given, e.g. a writable memory map)."""
+    a = cubes if isinstance(cubes, np.ndarray) else np.asarray(cubes, dtype=np.float32)
+    if a.ndim != 5 or a.shape[1] != 6 or a.shape[2] != a.shape[3]:
+        raise ValueError(f"cubes must have shape (P, 6, n, n, C), got {a.shape}.")
+    p, _, n, _, c = a.shape
+    if out is None:
+        out = np.empty((p, 6, n + 2, n + 2, c), dtype=np.float32)
+    for s in range(0, p, chunk):  # loop over chunks of probes: bounded temporaries
+        part = np.asarray(a[s:s + chunk], dtype=np.float32)
+        k = len(part)
+        b = add_border(np.moveaxis(part, 0, 3).reshape(6, n, n, k * c))  # probes as channels
+        out[s:s + k] = np.moveaxis(b.reshape(6, n + 2, n + 2, k, c), 3, 0)
+    return out
 
 
 @lru_cache(maxsize=32)

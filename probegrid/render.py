@@ -48,6 +48,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,6 +70,7 @@ from probegrid.interpolate import (
     MIN_WEIGHT,
     NORMAL_TERM_FLOOR,
     BorderedCubes,
+    bordered_cubes,
     probe_weights,
 )
 from probegrid.kernels import (
@@ -85,11 +87,14 @@ from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
 __all__ = [
+    "FieldFiles",
     "IndirectField",
     "ProbeRenderer",
     "RenderResult",
     "RenderSettings",
+    "probe_irradiance_coefficients",
     "sample_pattern",
+    "write_field_files",
 ]
 
 # R2 low-discrepancy sequence (Roberts 2018): the plastic number's inverse powers.
@@ -189,6 +194,51 @@ def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
                                   FACE_NORMALS, FACE_U, FACE_V)
 
 
+def probe_irradiance_coefficients(
+    sh_l: NDArray[np.float64], *, out: NDArray[np.float64] | None = None, chunk: int = 1 << 16
+) -> NDArray[np.float64]:
+    """Irradiance coefficients ``A_l L_lm`` of radiance coefficients ``(P, 9, 3)``, ``chunk``
+    probes at a time (into ``out`` when given); ``(P, 9, 3)`` float64."""
+    if out is None:
+        out = np.empty(sh_l.shape, dtype=np.float64)
+    for s in range(0, len(sh_l), chunk):  # loop over chunks of probes: bounded temporaries
+        part = np.asarray(sh_l[s:s + chunk], dtype=np.float64)
+        out[s:s + len(part)] = np.moveaxis(
+            sh.irradiance_coefficients(np.moveaxis(part, 1, 0)), 0, 1)
+    return out
+
+
+@dataclass(frozen=True)
+class FieldFiles:
+    """``.npy`` files holding an :class:`IndirectField` (paths; see :func:`write_field_files`)."""
+
+    sh: str
+    valid: str
+    positions: str
+    coeffs: str
+    moments_bordered: str
+
+
+def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArray[np.float32],
+                      *, sh_file: Path, valid_file: Path, positions_file: Path) -> FieldFiles:
+    """Write the derived arrays of a bounce's field into ``directory``: its irradiance
+    coefficients and bordered distance moments, computed a chunk of probes at a time (the
+    inputs may be memory maps), so that workers can memory-map the whole field."""
+    directory.mkdir(parents=True, exist_ok=True)
+    coeffs = np.lib.format.open_memmap(directory / "coeffs.npy", mode="w+", dtype=np.float64,
+                                       shape=sh_l.shape)
+    probe_irradiance_coefficients(sh_l, out=coeffs)
+    coeffs.flush()
+    p, _, m, _, c = moments.shape
+    bordered = np.lib.format.open_memmap(directory / "moments_bordered.npy", mode="w+",
+                                         dtype=np.float32, shape=(p, 6, m + 2, m + 2, c))
+    bordered_cubes(moments, out=bordered)
+    bordered.flush()
+    del coeffs, bordered
+    return FieldFiles(str(sh_file), str(valid_file), str(positions_file),
+                      str(directory / "coeffs.npy"), str(directory / "moments_bordered.npy"))
+
+
 @dataclass(frozen=True, eq=False)
 class IndirectField:
     """Irradiance of the previous bounce's probe grid at surface points.
@@ -201,24 +251,44 @@ class IndirectField:
     valid : (P,) bool
     positions : (P, 3) float64
         Probe positions (possibly moved).
-    moments : (P, 6, m, m, 2) float32 or None
-        Distance moments for the Chebyshev visibility test.
+    moments : (P, 6, m, m, 2) float32, BorderedCubes or None
+        Distance moments for the Chebyshev visibility test (or their bordered form).
+    coeffs : (P, 9, 3) float64, optional
+        Irradiance coefficients ``A_l L_lm`` of ``sh`` when already computed.
+
+    Any of the arrays may be read-only memory maps (:meth:`open`): a worker then reads the pages
+    of the probes its rays reach, and its memory does not grow with the grid.
     """
 
     grid: GridSpec
     sh: NDArray[np.float64]
     valid: NDArray[np.bool_]
     positions: NDArray[np.float64]
-    moments: NDArray[np.float32] | None = None
+    moments: NDArray[np.float32] | BorderedCubes | None = None
+    coeffs: NDArray[np.float64] | None = None
+
+    @classmethod
+    def open(cls, grid: GridSpec, files: FieldFiles) -> IndirectField:
+        """The field of :func:`write_field_files`' files, memory-mapped read-only."""
+        def load(path: str) -> NDArray:
+            return np.load(path, mmap_mode="r", allow_pickle=False)
+
+        return cls(grid, load(files.sh), load(files.valid), load(files.positions),
+                   BorderedCubes.from_bordered(load(files.moments_bordered)),
+                   load(files.coeffs))
 
     @cached_property
     def _irradiance_coeffs(self) -> NDArray[np.float64]:
         # (P, 9, 3) irradiance coefficients A_l L_lm
-        return np.moveaxis(sh.irradiance_coefficients(np.moveaxis(self.sh, 1, 0)), 0, 1)
+        if self.coeffs is not None:
+            return self.coeffs
+        return probe_irradiance_coefficients(self.sh)
 
     @cached_property
     def _moments(self) -> BorderedCubes | None:
-        return None if self.moments is None else BorderedCubes(self.moments)
+        if self.moments is None or isinstance(self.moments, BorderedCubes):
+            return self.moments
+        return BorderedCubes(self.moments)
 
     @cached_property
     def _kernel_args(self) -> tuple:

@@ -196,6 +196,45 @@ def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
         assert np.array_equal(a[k], b[k]), k
 
 
+def test_sigterm_stops_a_bake_cleanly(tmp_path):
+    """``kill PID`` stops a CLI bake like Ctrl-C: exit code 130, one line, its worker
+    processes and temporary context file gone, nothing loadable left."""
+    import tempfile
+
+    from probegrid.cli import EXIT_INTERRUPTED
+
+    glb = Path(__file__).resolve().parents[1] / "data" / "sample_room.glb"
+    out = tmp_path / "room.probes"
+    cmd = [sys.executable, "-m", "probegrid.cli", "bake", str(glb), "--out", str(out),
+           "--grid", "4x3x4", "--face-size", "8", "--diffuse-size", "4", "--bounces", "0",
+           "--workers", "1", "--batch-size", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    from probegrid.store import partial_progress
+
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        prog = partial_progress(out) if out.with_name(out.name + ".partial").exists() else None
+        if prog and prog[0] >= 2:
+            break
+        if proc.poll() is not None:
+            pytest.fail("the bake finished before it could be stopped")
+        time.sleep(0.05)
+    else:
+        pytest.fail("the bake made no progress")
+    proc.send_signal(signal.SIGTERM)  # the CLI process only, as ``kill PID`` does
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == EXIT_INTERRUPTED, err
+    assert err.strip().splitlines()[-1] == "probegrid: interrupted"
+    assert not list(Path(tempfile.gettempdir()).glob(f"probegrid-context-{proc.pid}-*"))
+    with pytest.raises(ProcessLookupError):  # the process group (its workers) is gone
+        for _ in range(100):
+            os.killpg(proc.pid, 0)
+            time.sleep(0.05)
+    with pytest.raises(StoreError):
+        open_store(out)
+
+
 def test_environment_rotation_rotates_the_probes(tmp_path):
     from probegrid.sh import rotate_y
 
