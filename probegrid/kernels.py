@@ -198,9 +198,9 @@ def indirect_irradiance(
                 w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
                 mean = (moments[t0, 0] * w00 + moments[t0 + 1, 0] * w01
                         + moments[t0 + mb, 0] * w10 + moments[t0 + mb + 1, 0] * w11)
-                mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
-                           + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
-                if not r <= mean:
+                if not r <= mean:  # (the mean square is needed only here)
+                    mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
+                               + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
                     var = abs(mean_sq - mean * mean)
                     excess = max(r - mean, 0.0)
                     den = var + excess * excess
