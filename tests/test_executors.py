@@ -332,3 +332,29 @@ def test_local_processes_serve_successive_maps(tmp_path):
     assert all(c == 1 for c in c1.values()) and all(c == 1 for c in c2.values())
     assert set(c2) & set(c1)  # the same processes served the second call
     assert set(Path(tempfile.gettempdir()).glob("probegrid-context-*")) <= before  # removed
+
+
+def test_context_files_of_dead_callers_are_removed(tmp_path):
+    tmp = Path(tempfile.gettempdir())
+    dead = subprocess_pid_that_exited()
+    stale = tmp / f"probegrid-context-{dead}-test.pickle"
+    mine = tmp / f"probegrid-context-{os.getpid()}-test.pickle"
+    stale.write_bytes(b"x")
+    mine.write_bytes(b"x")
+    try:
+        with ex.LocalExecutor(1) as executor:
+            run_all(executor, NoiseContext(SEED, str(tmp_path)), ex.make_batches(4, batch_size=4))
+        assert not stale.exists()  # its caller is gone
+        assert mine.exists()  # a running caller's file stays
+    finally:
+        stale.unlink(missing_ok=True)
+        mine.unlink(missing_ok=True)
+
+
+def subprocess_pid_that_exited() -> int:
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
