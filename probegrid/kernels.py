@@ -5,14 +5,30 @@ A bake shades every ray hit with the same short sequence of scalar steps: the DD
 distance moments, and the SH irradiance of each probe at the hit's normal. Written as numpy array
 expressions these steps allocate a dozen ``(n, 8)`` and ``(n, 8, 3)`` temporaries per batch and
 cost about 30x the ray casting itself; here they are one fused loop per hit, compiled by numba
-(``cache=True``: compiled once per machine, then loaded from ``__pycache__``).
+(``cache=True``: compiled once per machine, then loaded from numba's cache). Kernels are pure
+functions of arrays (they allocate their outputs, or fill arrays passed for that purpose) and
+release the GIL.
 
 Each kernel restates, step for step, an array expression that stays the reference and the
-documentation of the maths; tests compare the two on random inputs:
+documentation of the maths; ``tests/test_kernels.py`` compares the two on random inputs:
 
-* :func:`indirect_irradiance` -- :meth:`probegrid.render.IndirectField.irradiance`'s numpy path
-  (:func:`probegrid.interpolate.probe_weights` with normals and moments, then
-  :func:`probegrid.sh.evaluate` of the irradiance coefficients ``A_l L_lm``).
+* :func:`indirect_irradiance` -- :meth:`probegrid.render.IndirectField.irradiance_reference`
+  (:func:`probegrid.interpolate.probe_weights` with normals and moments, then the SH basis at
+  the normal against the irradiance coefficients ``A_l L_lm``).
+* :func:`hit_surfaces`, :func:`multiply_texture` -- :meth:`probegrid.scene.Scene.surface_at`'s
+  barycentric interpolation and :func:`probegrid.scene.sample_texture`.
+* :func:`light_rays` -- :func:`probegrid.lights.incident_many` and the renderer's choice of
+  shadow rays; :func:`outgoing_radiance` -- ``emission + albedo / pi * E``.
+* :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
+  :func:`orient_hits` -- the render's sample pattern (:mod:`probegrid.cubemap`'s conversions),
+  per-texel means, distance moments and the backface rule.
+* :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
+  conversions to and from Embree's float32 rays (tested through the tracer).
+
+Floating point: float64 throughout (float32 only where the data is), with FMA contraction and
+reciprocal multiplication allowed (``fastmath={"contract", "arcp"}``; no other fast-math flag,
+so nan and inf keep their meaning). Results match the references to a few ulps, and a bake's
+float32 outputs come out bit-identical to the pure-numpy bake's in practice.
 
 Conventions are the owning modules' and are passed in, not restated: the cube faces' ``u``/``v``
 axes (:data:`probegrid.cubemap.FACE_U`, :data:`~probegrid.cubemap.FACE_V`), the corner order
