@@ -42,13 +42,13 @@ from probegrid.cubemap import mip_sizes, solid_angle_integral
 from probegrid.environment import Environment
 from probegrid.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.grid import GridSpec
+from probegrid.interpolate import BorderedCubes, bordered_cubes
 from probegrid.raytrace import RayTracer
 from probegrid.render import (
-    FieldFiles,
     IndirectField,
     ProbeRenderer,
     RenderSettings,
-    write_field_files,
+    probe_irradiance_coefficients,
 )
 from probegrid.scene import Scene
 from probegrid.store import ArraySpec, ProbeStore, StoreWriter, open_store, partial_path
@@ -130,6 +130,47 @@ def environment_hash(env: Environment) -> str:
     return h.hexdigest()
 
 
+# ------------------------------------------------------------------------------ field files
+@dataclass(frozen=True)
+class FieldFiles:
+    """``.npy`` files in the work directory holding a bounce's :class:`IndirectField`."""
+
+    sh: str
+    valid: str
+    positions: str
+    coeffs: str
+    moments_bordered: str
+
+    def open(self, grid: GridSpec) -> IndirectField:
+        """The field, every array memory-mapped read-only."""
+        def load(path: str) -> NDArray[Any]:
+            return np.load(path, mmap_mode="r", allow_pickle=False)
+
+        return IndirectField(grid, load(self.sh), load(self.valid), load(self.positions),
+                             BorderedCubes.from_bordered(load(self.moments_bordered)),
+                             load(self.coeffs))
+
+
+def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArray[np.float32],
+                      *, sh_file: Path, valid_file: Path, positions_file: Path) -> FieldFiles:
+    """Write the derived arrays of a bounce's field into ``directory``: its irradiance
+    coefficients and bordered distance moments, computed a chunk of probes at a time (the
+    inputs may be memory maps), so that workers can memory-map the whole field."""
+    directory.mkdir(parents=True, exist_ok=True)
+    coeffs = np.lib.format.open_memmap(directory / "coeffs.npy", mode="w+", dtype=np.float64,
+                                       shape=sh_l.shape)
+    probe_irradiance_coefficients(sh_l, out=coeffs)
+    coeffs.flush()
+    p, _, m, _, c = moments.shape
+    bordered = np.lib.format.open_memmap(directory / "moments_bordered.npy", mode="w+",
+                                         dtype=np.float32, shape=(p, 6, m + 2, m + 2, c))
+    bordered_cubes(moments, out=bordered)
+    bordered.flush()
+    del coeffs, bordered
+    return FieldFiles(str(sh_file), str(valid_file), str(positions_file),
+                      str(directory / "coeffs.npy"), str(directory / "moments_bordered.npy"))
+
+
 # ------------------------------------------------------------------------------ worker side
 @dataclass(frozen=True, eq=False)
 class _Context:
@@ -163,7 +204,7 @@ class _Context:
         positions, valid = _array(self.positions), _array(self.valid)
         field = None
         if isinstance(self.previous, FieldFiles):
-            field = IndirectField.open(self.grid, self.previous)
+            field = self.previous.open(self.grid)
         elif self.previous is not None:
             assert positions is not None and valid is not None
             field = IndirectField(self.grid, self.previous[0], valid, positions,

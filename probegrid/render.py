@@ -48,7 +48,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,7 +69,6 @@ from probegrid.interpolate import (
     MIN_WEIGHT,
     NORMAL_TERM_FLOOR,
     BorderedCubes,
-    bordered_cubes,
     probe_weights,
 )
 from probegrid.kernels import (
@@ -87,14 +85,12 @@ from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
 __all__ = [
-    "FieldFiles",
     "IndirectField",
     "ProbeRenderer",
     "RenderResult",
     "RenderSettings",
     "probe_irradiance_coefficients",
     "sample_pattern",
-    "write_field_files",
 ]
 
 # R2 low-discrepancy sequence (Roberts 2018): the plastic number's inverse powers.
@@ -208,37 +204,6 @@ def probe_irradiance_coefficients(
     return out
 
 
-@dataclass(frozen=True)
-class FieldFiles:
-    """``.npy`` files holding an :class:`IndirectField` (paths; see :func:`write_field_files`)."""
-
-    sh: str
-    valid: str
-    positions: str
-    coeffs: str
-    moments_bordered: str
-
-
-def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArray[np.float32],
-                      *, sh_file: Path, valid_file: Path, positions_file: Path) -> FieldFiles:
-    """Write the derived arrays of a bounce's field into ``directory``: its irradiance
-    coefficients and bordered distance moments, computed a chunk of probes at a time (the
-    inputs may be memory maps), so that workers can memory-map the whole field."""
-    directory.mkdir(parents=True, exist_ok=True)
-    coeffs = np.lib.format.open_memmap(directory / "coeffs.npy", mode="w+", dtype=np.float64,
-                                       shape=sh_l.shape)
-    probe_irradiance_coefficients(sh_l, out=coeffs)
-    coeffs.flush()
-    p, _, m, _, c = moments.shape
-    bordered = np.lib.format.open_memmap(directory / "moments_bordered.npy", mode="w+",
-                                         dtype=np.float32, shape=(p, 6, m + 2, m + 2, c))
-    bordered_cubes(moments, out=bordered)
-    bordered.flush()
-    del coeffs, bordered
-    return FieldFiles(str(sh_file), str(valid_file), str(positions_file),
-                      str(directory / "coeffs.npy"), str(directory / "moments_bordered.npy"))
-
-
 @dataclass(frozen=True, eq=False)
 class IndirectField:
     """Irradiance of the previous bounce's probe grid at surface points.
@@ -256,8 +221,8 @@ class IndirectField:
     coeffs : (P, 9, 3) float64, optional
         Irradiance coefficients ``A_l L_lm`` of ``sh`` when already computed.
 
-    Any of the arrays may be read-only memory maps (:meth:`open`): a worker then reads the pages
-    of the probes its rays reach, and its memory does not grow with the grid.
+    Any of the arrays may be read-only memory maps: a worker then reads the pages of the probes
+    its rays reach, and its memory does not grow with the grid.
     """
 
     grid: GridSpec
@@ -266,16 +231,6 @@ class IndirectField:
     positions: NDArray[np.float64]
     moments: NDArray[np.float32] | BorderedCubes | None = None
     coeffs: NDArray[np.float64] | None = None
-
-    @classmethod
-    def open(cls, grid: GridSpec, files: FieldFiles) -> IndirectField:
-        """The field of :func:`write_field_files`' files, memory-mapped read-only."""
-        def load(path: str) -> NDArray:
-            return np.load(path, mmap_mode="r", allow_pickle=False)
-
-        return cls(grid, load(files.sh), load(files.valid), load(files.positions),
-                   BorderedCubes.from_bordered(load(files.moments_bordered)),
-                   load(files.coeffs))
 
     @cached_property
     def _irradiance_coeffs(self) -> NDArray[np.float64]:
