@@ -27,7 +27,7 @@ from __future__ import annotations
 import hashlib
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -143,12 +143,14 @@ class FieldFiles:
 
     def open(self, grid: GridSpec) -> IndirectField:
         """The field, every array memory-mapped read-only."""
-        def load(path: str) -> NDArray[Any]:
-            return np.load(path, mmap_mode="r", allow_pickle=False)
+        return IndirectField(grid, _load(self.sh), _load(self.valid), _load(self.positions),
+                             BorderedCubes.from_bordered(_load(self.moments_bordered)),
+                             _load(self.coeffs))
 
-        return IndirectField(grid, load(self.sh), load(self.valid), load(self.positions),
-                             BorderedCubes.from_bordered(load(self.moments_bordered)),
-                             load(self.coeffs))
+
+def _load(path: str) -> NDArray[Any]:
+    """The read-only memory map of an ``.npy`` file."""
+    return np.load(path, mmap_mode="r", allow_pickle=False)
 
 
 def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArray[np.float32],
@@ -216,7 +218,7 @@ class _Context:
 
 def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
     """An array, or the read-only memory map of an ``.npy`` path."""
-    return np.load(a, mmap_mode="r", allow_pickle=False) if isinstance(a, str) else a
+    return _load(a) if isinstance(a, str) else a
 
 
 @dataclass
@@ -313,18 +315,23 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 FILTER_GROUP = 8
 
 
-def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``.
-
-    FILTER_GROUP probes per :func:`probegrid.sh.min_over_sphere` call, the last group padded
-    with zeros, so every call has the same shape and a probe's bits do not depend on the batch.
-    """
-    b = len(coeffs)
-    out = np.empty((b, 3))
+def _padded_groups(items: NDArray[Any]) -> Iterator[tuple[int, int, NDArray[Any]]]:
+    """``(start, count, group)`` for FILTER_GROUP items of ``items (B, ...)`` at a time, the
+    last group padded with zeros: every group has the same shape, so what is computed from an
+    item does not depend on which items share its group, i.e. on the batch."""
+    b = len(items)
     for g0 in range(0, b, FILTER_GROUP):  # loop over groups of probes
         k = min(FILTER_GROUP, b - g0)
-        group = np.zeros((FILTER_GROUP, 9, 3))
-        group[:k] = coeffs[g0:g0 + k]
+        group = np.zeros((FILTER_GROUP, *items.shape[1:]), items.dtype)
+        group[:k] = items[g0:g0 + k]
+        yield g0, k, group
+
+
+def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``,
+    FILTER_GROUP probes per :func:`probegrid.sh.min_over_sphere` call."""
+    out = np.empty((len(coeffs), 3))
+    for g0, k, group in _padded_groups(coeffs):
         vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(np.moveaxis(group, 1, 0)))
         out[g0:g0 + k] = vmin[:k] / np.pi
     return out
@@ -341,19 +348,15 @@ def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
     """Diffuse maps and GGX chains of ``cubes (B, 6, n, n, 3)``.
 
     The filters are linear and act on each channel alike, so FILTER_GROUP probes go through one
-    call as the channels of a single cube, which amortises the per-call work. Every call has the
-    same shape (the last group is padded with zeros), so a probe's bits do not depend on which
-    probes share its group, i.e. on the batch.
+    call as the channels of a single cube, which amortises the per-call work
+    (:func:`_padded_groups`: every call has the same shape).
     """
     from probegrid import diffuse, specular
 
-    b, _, n, _, c = cubes.shape
+    _, _, n, _, c = cubes.shape
     dif: list[NDArray[np.float32]] = []
     chains: list[list[NDArray[np.float32]]] = []
-    for g0 in range(0, b, FILTER_GROUP):  # loop over groups of probes
-        group = np.zeros((FILTER_GROUP, 6, n, n, c), np.float32)
-        k = min(FILTER_GROUP, b - g0)
-        group[:k] = cubes[g0:g0 + k]
+    for _, k, group in _padded_groups(cubes):
         stacked = np.ascontiguousarray(np.moveaxis(group, 0, 3).reshape(6, n, n, -1))
         d = diffuse.diffuse_exact(stacked, diffuse_size)
         chain = specular.ggx_prefilter(stacked, levels=levels)

@@ -175,15 +175,21 @@ def _centre_pattern(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return d, w
 
 
+def _jitter(settings: RenderSettings, probe_index: int) -> NDArray[np.float64]:
+    """``(s, 2)`` positions of a probe's samples inside every texel, in ``[0, 1)^2``: the
+    centre for one sample, else the R2 sequence shifted by the probe's random offset."""
+    s = settings.samples
+    if s == 1:
+        return np.array([[0.5, 0.5]])
+    shift = probe_rng(settings.seed, probe_index).random(2)
+    return np.mod(0.5 + np.arange(1, s + 1)[:, None] * _R2[None, :] + shift, 1.0)
+
+
 def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
     NDArray[np.float64], NDArray[np.float64]
 ]:
-    n, s = settings.face_size, settings.samples
-    if s == 1:
-        jitter = np.array([[0.5, 0.5]])
-    else:
-        shift = probe_rng(settings.seed, probe_index).random(2)
-        jitter = np.mod(0.5 + np.arange(1, s + 1)[:, None] * _R2[None, :] + shift, 1.0)
+    n = settings.face_size
+    jitter = _jitter(settings, probe_index)
     # sample k of texel (row, col) at continuous texel coordinates (col - 0.5 + jitter_x,
     # row - 0.5 + jitter_y), weighted by the area element (1 + u^2 + v^2)^(-3/2)
     return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64),

@@ -154,26 +154,32 @@ def test_dask_local_cluster_bake_equals_local_bake(tmp_path):
         assert np.array_equal(local[k], dask[k]), k
 
 
-def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
+def _start_cli_bake(out: Path, *, probes_done: int, stderr: int
+                    ) -> tuple[list[str], subprocess.Popen]:
+    """Start a slow CLI bake of the sample room into ``out`` (its own process group) and
+    return its command and process once ``probes_done`` probes of the final stage are stored."""
+    from probegrid.store import partial_progress
+
     glb = Path(__file__).resolve().parents[1] / "data" / "sample_room.glb"
-    out = tmp_path / "room.probes"
     cmd = [sys.executable, "-m", "probegrid.cli", "bake", str(glb), "--out", str(out),
            "--grid", "4x3x4", "--face-size", "8", "--diffuse-size", "4", "--bounces", "0",
            "--workers", "1", "--batch-size", "2", "--no-progress"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr, text=True,
                             start_new_session=True)
-    from probegrid.store import partial_progress
-
     deadline = time.time() + 120
     while time.time() < deadline:
         prog = partial_progress(out) if out.with_name(out.name + ".partial").exists() else None
-        if prog and prog[0] >= 4:
-            break
+        if prog and prog[0] >= probes_done:
+            return cmd, proc
         if proc.poll() is not None:
-            pytest.fail("the bake finished before it could be killed")
+            pytest.fail("the bake finished before it could be stopped")
         time.sleep(0.05)
-    else:
-        pytest.fail("the bake made no progress")
+    pytest.fail("the bake made no progress")
+
+
+def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
+    out = tmp_path / "room.probes"
+    cmd, proc = _start_cli_bake(out, probes_done=4, stderr=subprocess.DEVNULL)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     with pytest.raises(StoreError):
@@ -203,25 +209,8 @@ def test_sigterm_stops_a_bake_cleanly(tmp_path):
 
     from probegrid.cli import EXIT_INTERRUPTED
 
-    glb = Path(__file__).resolve().parents[1] / "data" / "sample_room.glb"
     out = tmp_path / "room.probes"
-    cmd = [sys.executable, "-m", "probegrid.cli", "bake", str(glb), "--out", str(out),
-           "--grid", "4x3x4", "--face-size", "8", "--diffuse-size", "4", "--bounces", "0",
-           "--workers", "1", "--batch-size", "2", "--no-progress"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
-    from probegrid.store import partial_progress
-
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        prog = partial_progress(out) if out.with_name(out.name + ".partial").exists() else None
-        if prog and prog[0] >= 2:
-            break
-        if proc.poll() is not None:
-            pytest.fail("the bake finished before it could be stopped")
-        time.sleep(0.05)
-    else:
-        pytest.fail("the bake made no progress")
+    _, proc = _start_cli_bake(out, probes_done=2, stderr=subprocess.PIPE)
     proc.send_signal(signal.SIGTERM)  # the CLI process only, as ``kill PID`` does
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == EXIT_INTERRUPTED, err

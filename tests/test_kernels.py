@@ -70,18 +70,11 @@ def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 @pytest.mark.parametrize("samples", [1, 5])
 def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
-    from probegrid.render import RenderSettings, sample_pattern
+    from probegrid.render import RenderSettings, _jitter, sample_pattern
 
     st = RenderSettings(face_size=8, samples=samples, seed=3, moments_size=8)
     d, w = sample_pattern(st, 11)
-    jitter = (np.array([[0.5, 0.5]]) if samples == 1 else None)
-    if jitter is None:  # recover the probe's jitter from the pattern's first texel
-        from probegrid.executors import probe_rng
-        from probegrid.render import _R2
-
-        shift = probe_rng(3, 11).random(2)
-        jitter = np.mod(0.5 + np.arange(1, samples + 1)[:, None] * _R2[None, :] + shift, 1.0)
-    rd, rw = _pattern_reference(8, jitter)
+    rd, rw = _pattern_reference(8, _jitter(st, 11))
     np.testing.assert_allclose(d, rd, rtol=0, atol=1e-15)
     np.testing.assert_allclose(w, rw, rtol=1e-14)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-15)
