@@ -10,13 +10,17 @@
    more rays at 8). The rays are recorded in one run and the bake is timed in another (recording
    costs time); a third, instrumented run splits the bake's time into ray casting (Embree and
    our argument handling), the indirect lookup at ray hits, the per-probe filters, and the rest.
+   From the split it prints the efficiency of the ray casting alone (raw over our casting) and
+   two ceilings of the ratio: with the per-probe filters as the bake's only other work, and with
+   the filters and the indirect lookup (the two costs the issue's items 3 and 5 require).
 2. Probes per second for the sample scene with 1 and 2 local worker processes, for two grid
    sizes (time should grow linearly in probes and fall with workers), and the peak memory of
    the workers.
 3. Worker memory for a 32-probe and a 16,384-probe grid: bounded by a batch per worker, not by
    the grid (workers memory-map the previous bounce's grid instead of holding a copy).
 
-Run: ``.venv/bin/python benchmarks/bench_bake.py`` (about 2-4 minutes on 2 cores).
+Run: ``.venv/bin/python benchmarks/bench_bake.py`` (about 2-4 minutes on 2 cores; ``--part N``
+runs one part).
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from embreex.mesh_construction import TriangleMesh
 from probegrid import raytrace
 from probegrid.bake import BakeSettings, bake
 from probegrid.bakejob import grid_for, load_environment
+from probegrid.environment import Environment
 from probegrid.executors import InlineExecutor, LocalExecutor
 from probegrid.scene import Material, Scene, load_gltf
 
@@ -233,88 +238,119 @@ def detailed_scene(scene: Scene, subdivisions: int = 7) -> Scene:
     )
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--part", type=int, action="append", choices=(1, 2, 3),
+                    help="run only this part (repeatable); all three by default")
+    parts = set(ap.parse_args(argv).part or (1, 2, 3))
     scene = load_gltf(SCENE)
     env = load_environment(SKY)
     tmp = Path(tempfile.mkdtemp(prefix="bench-bake-"))
     try:
-        print("1. ray throughput: bake vs raw embreex on the same rays (1 process)")
-        print("   grid 4x3x4, 32^2 faces, 2 bounces, the bundled sky")
-        print("   scene                     triangles samples      rays   bake Mray/s  raw Mray/s"
-              "   ratio  (target >= 0.8)")
-        scenes = [("sample room", scene), ("sample room + sculpture", detailed_scene(scene))]
-        rows = []
-        for label, sc in scenes:
-            grid = grid_for(scene, grid="4x3x4")
-            # warm-up: numba kernels loaded, the BVH's first traversals
-            bake(sc, grid, tmp / f"warm{len(label)}.probes", settings=BakeSettings(face_size=8, bounces=1),
-                 environment=env, executor=InlineExecutor(check_pickle=False))
-            for samples in (1, 8):
-                st = BakeSettings(face_size=32, bounces=2, samples=samples)
-                run = InlineExecutor(check_pickle=False)
-                with Recorder() as rec:  # the rays (recording costs time: not the timed run)
-                    bake(sc, grid, tmp / f"r{samples}{len(label)}.probes", settings=st,
-                         environment=env, executor=run)
-                t = time.perf_counter()  # the same bake, timed, uninstrumented
-                bake(sc, grid, tmp / f"a{samples}{len(label)}.probes", settings=st,
-                     environment=env, executor=run)
-                t_bake = time.perf_counter() - t
-                with Split() as split:  # and once more, timing its parts
-                    bake(sc, grid, tmp / f"s{samples}{len(label)}.probes", settings=st,
-                         environment=env, executor=run)
-                t_raw = raw_embree_seconds(sc, rec.batches)
-                n = rec.rays
-                rows.append((label, samples, split.shares()))
-                print(f"   {label:<25} {sc.n_triangles:9,d} {samples:7d} {n / 1e6:7.2f} M "
-                      f"{n / t_bake / 1e6:10.2f} {n / t_raw / 1e6:11.2f}   {t_raw / t_bake:.3f}")
-        print("\n   where the bake's time goes (share of an instrumented run):")
-        print("   scene                     samples  ray casting  indirect lookup  filters+SH min"
-              "  rest")
-        for label, samples, (cast, ind, filt, rest) in rows:
-            print(f"   {label:<25} {samples:7d} {cast:11.0%} {ind:16.0%} {filt:15.0%} "
-                  f"{rest:5.0%}")
-
-        print("\n2. probes per second, sample room, 32^2 faces, 2 bounces, 1 ray per texel")
-        print("   grid      probes  workers   seconds  probes/s  largest worker: resident, private")
-        st = BakeSettings(face_size=32, bounces=2)
-        rows = []
-        for label in ("4x2x4", "8x4x8"):
-            g = grid_for(scene, grid=label)
-            for workers in (1, 2):
-                out = tmp / f"{label}-{workers}.probes"
-                with LocalExecutor(workers) as ex, DescendantMemory() as mem:
-                    t = time.perf_counter()
-                    bake(scene, g, out, settings=st, environment=env, executor=ex)
-                    sec = time.perf_counter() - t
-                rows.append((label, g.n_probes, workers, sec))
-                print(f"   {label:<9} {g.n_probes:6d}  {workers:7d}  {sec:8.2f}  "
-                      f"{g.n_probes / sec:8.2f}  {mem.peak_mb:8.0f} MB, "
-                      f"{mem.peak_private_mb:4.0f} MB")
-        small = {w: s for lab, _, w, s in rows if lab == "4x2x4"}
-        big = {w: s for lab, _, w, s in rows if lab == "8x4x8"}
-        print(f"   time ratio 8x4x8 / 4x2x4 (8x the probes): 1 worker {big[1] / small[1]:.2f}, "
-              f"2 workers {big[2] / small[2]:.2f}")
-        print(f"   speed-up 2 workers / 1 worker: {small[1] / small[2]:.2f} (4x2x4), "
-              f"{big[1] / big[2]:.2f} (8x4x8)")
-        est = 2048 / (256 / big[2])
-        print(f"   16x8x16 (2048 probes) at the 2-worker rate: about {est:.0f} s")
-
-        print("\n3. worker memory against grid size (8^2 faces, 1 bounce, 2 workers)")
-        print("   grid        probes   seconds  largest worker: resident, private")
-        small_st = BakeSettings(face_size=8, bounces=1)
-        for label in ("4x2x4", "32x16x32"):
-            g = grid_for(scene, grid=label)
-            with LocalExecutor(2) as ex, DescendantMemory() as mem:
-                t = time.perf_counter()
-                bake(scene, g, tmp / f"m{label}.probes", settings=small_st, environment=env,
-                     executor=ex)
-                sec = time.perf_counter() - t
-            print(f"   {label:<10} {g.n_probes:7d}  {sec:8.2f}  {mem.peak_mb:8.0f} MB, "
-                  f"{mem.peak_private_mb:4.0f} MB")
-        print("   (resident memory includes the pages of the memory-mapped previous bounce a "
-              "worker has read; private memory is what it holds alone)")
+        if 1 in parts:
+            part_throughput(scene, env, tmp)
+        if 2 in parts:
+            part_probes_per_second(scene, env, tmp)
+        if 3 in parts:
+            part_memory(scene, env, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
+    """Part 1: the ratio to raw embreex, where the time goes, and the ceilings."""
+    print("1. ray throughput: bake vs raw embreex on the same rays (1 process)")
+    print("   grid 4x3x4, 32^2 faces, 2 bounces, the bundled sky")
+    print("   scene                     triangles samples      rays   bake Mray/s  raw Mray/s"
+          "   ratio  (target >= 0.8)")
+    scenes = [("sample room", scene), ("sample room + sculpture", detailed_scene(scene))]
+    rows = []
+    for label, sc in scenes:
+        grid = grid_for(scene, grid="4x3x4")
+        # warm-up: numba kernels loaded, the BVH's first traversals
+        bake(sc, grid, tmp / f"warm{len(label)}.probes", settings=BakeSettings(face_size=8, bounces=1),
+             environment=env, executor=InlineExecutor(check_pickle=False))
+        for samples in (1, 8):
+            st = BakeSettings(face_size=32, bounces=2, samples=samples)
+            run = InlineExecutor(check_pickle=False)
+            with Recorder() as rec:  # the rays (recording costs time: not the timed run)
+                bake(sc, grid, tmp / f"r{samples}{len(label)}.probes", settings=st,
+                     environment=env, executor=run)
+            t = time.perf_counter()  # the same bake, timed, uninstrumented
+            bake(sc, grid, tmp / f"a{samples}{len(label)}.probes", settings=st,
+                 environment=env, executor=run)
+            t_bake = time.perf_counter() - t
+            with Split() as split:  # and once more, timing its parts
+                bake(sc, grid, tmp / f"s{samples}{len(label)}.probes", settings=st,
+                     environment=env, executor=run)
+            t_raw = raw_embree_seconds(sc, rec.batches)
+            n = rec.rays
+            rows.append((label, samples, split.shares(), t_raw, dict(split.seconds)))
+            print(f"   {label:<25} {sc.n_triangles:9,d} {samples:7d} {n / 1e6:7.2f} M "
+                  f"{n / t_bake / 1e6:10.2f} {n / t_raw / 1e6:11.2f}   {t_raw / t_bake:.3f}")
+    print("\n   where the bake's time goes (share of an instrumented run):")
+    print("   scene                     samples  ray casting  indirect lookup  filters+SH min"
+          "  rest")
+    for label, samples, (cast, ind, filt, rest), _, _ in rows:
+        print(f"   {label:<25} {samples:7d} {cast:11.0%} {ind:16.0%} {filt:15.0%} "
+              f"{rest:5.0%}")
+    print("\n   what the ratio could be (raw embreex seconds over the sum of the parts kept):")
+    print("   casting = raw / the bake's own ray casting (Embree plus argument handling);")
+    print("   the ceilings assume everything else in the bake took no time at all.")
+    print("   scene                     samples   casting   ceiling: filters only"
+          "   filters + indirect")
+    for label, samples, _, t_raw, sec in rows:
+        cast, ind, filt = sec["cast"], sec["indirect"], sec["filters"]
+        print(f"   {label:<25} {samples:7d} {t_raw / cast:9.2f} "
+              f"{t_raw / (t_raw + filt):23.2f} {t_raw / (t_raw + filt + ind):20.2f}")
+
+
+def part_probes_per_second(scene: Scene, env: Environment, tmp: Path) -> None:
+    """Part 2: probes per second for 1 and 2 workers and two grid sizes."""
+    print("\n2. probes per second, sample room, 32^2 faces, 2 bounces, 1 ray per texel")
+    print("   grid      probes  workers   seconds  probes/s  largest worker: resident, private")
+    st = BakeSettings(face_size=32, bounces=2)
+    rows = []
+    for label in ("4x2x4", "8x4x8"):
+        g = grid_for(scene, grid=label)
+        for workers in (1, 2):
+            out = tmp / f"{label}-{workers}.probes"
+            with LocalExecutor(workers) as ex, DescendantMemory() as mem:
+                t = time.perf_counter()
+                bake(scene, g, out, settings=st, environment=env, executor=ex)
+                sec = time.perf_counter() - t
+            rows.append((label, g.n_probes, workers, sec))
+            print(f"   {label:<9} {g.n_probes:6d}  {workers:7d}  {sec:8.2f}  "
+                  f"{g.n_probes / sec:8.2f}  {mem.peak_mb:8.0f} MB, "
+                  f"{mem.peak_private_mb:4.0f} MB")
+    small = {w: s for lab, _, w, s in rows if lab == "4x2x4"}
+    big = {w: s for lab, _, w, s in rows if lab == "8x4x8"}
+    print(f"   time ratio 8x4x8 / 4x2x4 (8x the probes): 1 worker {big[1] / small[1]:.2f}, "
+          f"2 workers {big[2] / small[2]:.2f}")
+    print(f"   speed-up 2 workers / 1 worker: {small[1] / small[2]:.2f} (4x2x4), "
+          f"{big[1] / big[2]:.2f} (8x4x8)")
+    est = 2048 / (256 / big[2])
+    print(f"   16x8x16 (2048 probes) at the 2-worker rate: about {est:.0f} s")
+
+
+def part_memory(scene: Scene, env: Environment, tmp: Path) -> None:
+    """Part 3: worker memory against grid size."""
+    print("\n3. worker memory against grid size (8^2 faces, 1 bounce, 2 workers)")
+    print("   grid        probes   seconds  largest worker: resident, private")
+    small_st = BakeSettings(face_size=8, bounces=1)
+    for label in ("4x2x4", "32x16x32"):
+        g = grid_for(scene, grid=label)
+        with LocalExecutor(2) as ex, DescendantMemory() as mem:
+            t = time.perf_counter()
+            bake(scene, g, tmp / f"m{label}.probes", settings=small_st, environment=env,
+                 executor=ex)
+            sec = time.perf_counter() - t
+        print(f"   {label:<10} {g.n_probes:7d}  {sec:8.2f}  {mem.peak_mb:8.0f} MB, "
+              f"{mem.peak_private_mb:4.0f} MB")
+    print("   (resident memory includes the pages of the memory-mapped previous bounce a "
+          "worker has read; private memory is what it holds alone)")
 
 
 if __name__ == "__main__":

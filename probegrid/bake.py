@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from probegrid import sh
+from probegrid import probefilter, sh
 from probegrid.conventions import conventions
 from probegrid.cubemap import mip_sizes, solid_angle_integral
 from probegrid.environment import Environment
@@ -349,17 +349,26 @@ def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
 
     The filters are linear and act on each channel alike, so FILTER_GROUP probes go through one
     call as the channels of a single cube, which amortises the per-call work
-    (:func:`_padded_groups`: every call has the same shape).
+    (:func:`_padded_groups`: every call has the same shape). Faces up to
+    :data:`probegrid.probefilter.MAX_FACE` go through the exact sums as one cached matrix
+    (:func:`probegrid.probefilter.filter_cube`); larger ones through
+    :func:`~probegrid.diffuse.diffuse_exact` and the tiered
+    :func:`~probegrid.specular.ggx_prefilter` (:func:`probegrid.probefilter.describe`, in the
+    manifest, says which).
     """
     from probegrid import diffuse, specular
 
     _, _, n, _, c = cubes.shape
+    dense = probefilter.supported(n, diffuse_size)
     dif: list[NDArray[np.float32]] = []
     chains: list[list[NDArray[np.float32]]] = []
     for _, k, group in _padded_groups(cubes):
         stacked = np.ascontiguousarray(np.moveaxis(group, 0, 3).reshape(6, n, n, -1))
-        d = diffuse.diffuse_exact(stacked, diffuse_size)
-        chain = specular.ggx_prefilter(stacked, levels=levels)
+        if dense:
+            d, chain = probefilter.filter_cube(stacked, diffuse_size, levels)
+        else:
+            d = diffuse.diffuse_exact(stacked, diffuse_size)
+            chain = specular.ggx_prefilter(stacked, levels=levels)
 
         ds = _unstack_probes(d, c)
         cs = [_unstack_probes(lv, c) for lv in chain]
@@ -487,7 +496,8 @@ def bake(
     ).hexdigest()
     plan = {"settings": st.model_dump(), "environment": env.describe(),
             "render": {"ray_offset": render.ray_offset, "max_distance": render.max_distance,
-                       "moments_size": render.moments_size}}
+                       "moments_size": render.moments_size},
+            "filters": probefilter.describe(st.face_size, st.diffuse_size)}
     work = _work_dir(out)
     if overwrite:  # start again: drop any interrupted bake of this store
         shutil.rmtree(work, ignore_errors=True)

@@ -67,6 +67,10 @@ def describe_store(path: str | os.PathLike[str]) -> str:
             f"{bake.get('diffuse_size')}^2, direct light "
             f"{'in the probes' if bake.get('direct') else 'left out'}"
         )
+    filters = m.bake.get("filters", {})
+    for kind in ("diffuse", "specular"):
+        if kind in filters:
+            lines.append(f"  {kind} filter: {filters[kind]}")
     if env:
         lines.append(f"  environment: {json.dumps(env)}")
     lines.append(f"  scene hash: {m.scene_hash}")

@@ -37,6 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "ggx_kernel",
+    "ggx_kernel_inplace",
     "ggx_kernel_integral",
     "ggx_ndf",
     "level_roughness",
@@ -87,6 +88,25 @@ def ggx_kernel(cos_theta: ArrayLike, alpha: ArrayLike) -> NDArray[np.float64]:
     c = np.clip(np.asarray(cos_theta, dtype=np.float64), -1.0, 1.0)
     n_dot_h = np.sqrt(0.5 * (1.0 + c))
     return ggx_ndf(n_dot_h, alpha) * np.maximum(c, 0.0) * 0.25
+
+
+def ggx_kernel_inplace(cos_theta: NDArray[np.float64], alpha: float) -> NDArray[np.float64]:
+    """:func:`ggx_kernel` of a float64 array of cosines, computed in place (the array is
+    overwritten and returned): the same values with no temporaries, for the dense sums.
+
+    With ``(n.h)^2 = (1 + c) / 2``: ``K = alpha^2 / (pi t^2) max(c, 0) / 4`` and
+    ``t = (1 + c) / 2 (alpha^2 - 1) + 1`` (``c`` clipped to ``[0, 1]``: ``K = 0`` for ``c <= 0``).
+    """
+    a2 = float(alpha) ** 2
+    slope = 0.5 * (a2 - 1.0)
+    c = cos_theta
+    np.clip(c, 0.0, 1.0, out=c)
+    t = c * slope
+    t += slope + 1.0
+    t *= t
+    np.divide(c, t, out=c)
+    c *= a2 / (4.0 * np.pi)
+    return c
 
 
 @lru_cache(maxsize=1)

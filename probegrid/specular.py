@@ -191,25 +191,9 @@ def zonal_convolution(
 
 
 def _ggx_kernel_fast(alpha: float) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-    """In-place evaluation of ``lobes.ggx_kernel`` (same formula, fewer temporaries).
-
-    With ``(n.h)^2 = (1 + c) / 2``: ``K = alpha^2 / (pi t^2) max(c, 0) / 4`` and
-    ``t = (1 + c) / 2 (alpha^2 - 1) + 1``.
-    """
-    a2 = float(alpha) ** 2
-    slope = 0.5 * (a2 - 1.0)
-    scale = a2 / (4.0 * np.pi)
-
-    def k(c: NDArray[np.float64]) -> NDArray[np.float64]:
-        np.clip(c, 0.0, 1.0, out=c)
-        t = c * slope
-        t += slope + 1.0
-        t *= t
-        np.divide(c, t, out=c)
-        c *= scale
-        return c
-
-    return k
+    """``lobes.ggx_kernel`` at ``alpha`` evaluated in place (:func:`lobes.ggx_kernel_inplace`)."""
+    a = float(alpha)
+    return lambda c: lobes.ggx_kernel_inplace(c, a)
 
 
 def reference_convolution(faces: ArrayLike, alpha: float, size: int) -> NDArray[np.float64]:

@@ -138,6 +138,25 @@ def test_bake_is_bit_identical_across_executors_and_batches(tmp_path):
     assert a["sh"][:, 0].min() > 0  # lit
 
 
+def test_stored_maps_are_the_filters_of_the_stored_incoming_cube(tmp_path):
+    """Diffuse and specular maps are the exact sums of the probe's own incoming cube (the
+    matrix path, :mod:`probegrid.probefilter`), and the manifest says so."""
+    from probegrid.diffuse import diffuse_exact
+    from probegrid.specular import ggx_prefilter
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 1, 2))
+    st = BakeSettings(bounces=1, store_incoming=True, **FAST)
+    s = bake(_room_scene(), grid, tmp_path / "r.probes", settings=st).store
+    assert "cached float32 matrix" in s.manifest.bake["filters"]["specular"]
+    for i in range(grid.n_probes):
+        cube = np.asarray(s["incoming"][i])
+        np.testing.assert_allclose(s["diffuse"][i], diffuse_exact(cube, st.diffuse_size),
+                                   rtol=1e-5)
+        ref = ggx_prefilter(cube, levels=st.levels(), method="exact")
+        for k in range(st.levels()):
+            np.testing.assert_allclose(s[f"specular_{k}"][i], ref[k], rtol=1e-5, atol=1e-7)
+
+
 def test_dask_local_cluster_bake_equals_local_bake(tmp_path):
     distributed = pytest.importorskip("distributed")
     from probegrid.executors import DaskExecutor

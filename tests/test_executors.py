@@ -321,7 +321,8 @@ def test_local_processes_serve_successive_maps(tmp_path):
     log1, log2 = tmp_path / "a", tmp_path / "b"
     log1.mkdir()
     log2.mkdir()
-    before = set(Path(tempfile.gettempdir()).glob("probegrid-context-*"))
+    mine = f"probegrid-context-{os.getpid()}-*"  # other processes on the machine may bake too
+    before = set(Path(tempfile.gettempdir()).glob(mine))
     with ex.LocalExecutor(2) as executor:
         out1, _, _ = run_all(executor, NoiseContext(SEED, str(log1)),
                                  ex.make_batches(P, batch_size=3))
@@ -331,7 +332,7 @@ def test_local_processes_serve_successive_maps(tmp_path):
     c1, c2 = setups_per_pid(log1), setups_per_pid(log2)
     assert all(c == 1 for c in c1.values()) and all(c == 1 for c in c2.values())
     assert set(c2) & set(c1)  # the same processes served the second call
-    assert set(Path(tempfile.gettempdir()).glob("probegrid-context-*")) <= before  # removed
+    assert set(Path(tempfile.gettempdir()).glob(mine)) <= before  # removed
 
 
 def test_context_files_of_dead_callers_are_removed(tmp_path):
