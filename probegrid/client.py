@@ -15,7 +15,9 @@ round trip of float64).
 Options (keyword-only)
 ----------------------
 ``timeout``
-    Seconds (or an ``httpx.Timeout``) for connecting, reading and writing; default 10.
+    Seconds (or an ``httpx.Timeout``) for each network operation -- connecting, and each read
+    or write -- not a deadline for the whole call: a server that trickles bytes can take longer,
+    and the retries multiply it. Default 10.
 ``retries``
     Extra attempts after a connection failure or a ``503`` answer, with exponential back-off
     ``backoff * 2^attempt`` seconds (defaults 2 and 0.1). Other errors are never retried.
@@ -27,8 +29,10 @@ Exceptions
 ::
 
     ProbeGridError                 base of everything this module raises
+    +-- InvalidArgumentError       a bad argument, refused before any request (also a ValueError)
     +-- ProbeGridConnectionError   the server could not be reached (after the retries)
     +-- ProbeGridTimeoutError      the server did not answer in time
+    +-- ProbeGridResponseError     a success status with a body that is not the API's
     +-- ProbeGridHTTPError         the server answered with an error status
         +-- BadRequestError        400, 413, 422: the request was rejected (bad input, limits)
         +-- NotFoundError          404: unknown grid, map kind or route
@@ -45,6 +49,7 @@ import io
 import json
 import time
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Literal, Self
 from urllib.parse import quote
@@ -61,11 +66,13 @@ __all__ = [
     "AsyncProbeGridClient",
     "BadRequestError",
     "GridInfo",
+    "InvalidArgumentError",
     "NotFoundError",
     "ProbeGridClient",
     "ProbeGridConnectionError",
     "ProbeGridError",
     "ProbeGridHTTPError",
+    "ProbeGridResponseError",
     "ProbeGridTimeoutError",
     "SHSample",
     "ServerError",
@@ -77,6 +84,15 @@ MapKind = Literal["diffuse", "specular", "incoming"]
 # ------------------------------------------------------------------------------ exceptions
 class ProbeGridError(Exception):
     """Base class of the client's errors."""
+
+
+class InvalidArgumentError(ProbeGridError, ValueError):
+    """An argument of the call is invalid (checked before any request is sent)."""
+
+
+class ProbeGridResponseError(ProbeGridError):
+    """The server answered with a success status but a body that is not what the API returns
+    (the URL may not be a probegrid service)."""
 
 
 class ProbeGridConnectionError(ProbeGridError):
@@ -223,18 +239,27 @@ class SHSample:
 
 # ------------------------------------------------------------------------------ request building
 def _vec3(value: ArrayLike, name: str) -> list[float]:
-    a = np.asarray(value, dtype=np.float64)
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidArgumentError(f"{name} must be three finite numbers, got {value!r}.") from None
     if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be three finite numbers, got {value!r}.")
+        raise InvalidArgumentError(f"{name} must be three finite numbers, got {value!r}.")
     return a.tolist()
 
 
 def _rows(value: ArrayLike, name: str) -> NDArray[np.float64]:
-    a = np.asarray(value, dtype=np.float64)
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidArgumentError(f"{name} must be numbers of shape (n, 3).") from None
     if a.ndim == 1:
         a = a[None]
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (n, 3), got {np.shape(value)}.")
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
+        raise InvalidArgumentError(f"{name} must have shape (n, 3) with n >= 1, got "
+                                   f"{np.shape(value)}.")
+    if not np.all(np.isfinite(a)):
+        raise InvalidArgumentError(f"{name} must be finite (no nan or inf components).")
     return a
 
 
@@ -259,10 +284,10 @@ def _per_point(value: ArrayLike, n: int, name: str, components: int) -> NDArray[
     a = np.asarray(value, dtype=np.float64)
     single = (components,) if components > 1 else ()
     if a.shape not in (single, (n, *single)):
-        raise ValueError(f"{name} must have shape {single or 'scalar'} or {(n, *single)}, "
+        raise InvalidArgumentError(f"{name} must have shape {single or 'scalar'} or {(n, *single)}, "
                          f"got {a.shape}.")
     if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite.")
+        raise InvalidArgumentError(f"{name} must be finite.")
     return a
 
 
@@ -285,8 +310,21 @@ def _position_params(position: ArrayLike, normal: ArrayLike | None) -> dict[str,
     return params
 
 
-def _load_npy(content: bytes) -> NDArray[np.float32]:
-    return np.load(io.BytesIO(content), allow_pickle=False)
+@contextmanager
+def _decoding(response: httpx.Response) -> Iterator[None]:
+    """Turn a body that does not decode as the API's answer into ProbeGridResponseError."""
+    try:
+        yield
+    except (ValueError, KeyError, TypeError, IndexError, EOFError) as exc:
+        raise ProbeGridResponseError(
+            f"{response.request.method} {response.request.url} answered "
+            f"{response.status_code} with a body that is not the probegrid API's "
+            f"({type(exc).__name__}: {exc}); is this a probegrid service?") from None
+
+
+def _load_npy(response: httpx.Response) -> NDArray[np.float32]:
+    with _decoding(response):
+        return np.load(io.BytesIO(response.content), allow_pickle=False)
 
 
 class _BaseClient:
@@ -302,10 +340,17 @@ class _BaseClient:
         headers: dict[str, str] | None = None,
     ) -> None:
         if not isinstance(retries, int) or retries < 0:
-            raise ValueError(f"retries must be an integer >= 0, got {retries!r}.")
+            raise InvalidArgumentError(f"retries must be an integer >= 0, got {retries!r}.")
         if not (isinstance(backoff, (int, float)) and backoff >= 0):
-            raise ValueError(f"backoff must be a number >= 0, got {backoff!r}.")
-        self.base_url = base_url.rstrip("/")
+            raise InvalidArgumentError(f"backoff must be a number >= 0, got {backoff!r}.")
+        try:
+            url = httpx.URL(str(base_url).rstrip("/"))
+        except httpx.InvalidURL as exc:
+            raise InvalidArgumentError(f"base_url {base_url!r} is not a valid URL: {exc}.") from None
+        if url.scheme not in ("http", "https") or not url.host:
+            raise InvalidArgumentError(f"base_url must be an http:// or https:// URL with a host, "
+                                       f"got {base_url!r}.")
+        self.base_url = str(url)
         self.retries = retries
         self.backoff = float(backoff)
         self._timeout = timeout if isinstance(timeout, httpx.Timeout) else httpx.Timeout(timeout)
@@ -359,14 +404,16 @@ class _BaseClient:
 
     @staticmethod
     def _grids_result(r: httpx.Response) -> list[GridInfo]:
-        return [GridInfo.from_json(g) for g in r.json()["grids"]]
+        with _decoding(r):
+            return [GridInfo.from_json(g) for g in r.json()["grids"]]
 
     @staticmethod
     def _grid_call(grid: str) -> _Call:
         return _Call("GET", f"/v1/grids/{_segment(grid)}")
 
     def _grid_result(self, r: httpx.Response) -> GridInfo:
-        info = GridInfo.from_json(r.json())
+        with _decoding(r):
+            info = GridInfo.from_json(r.json())
         for kind in info.kinds:
             self._levels[(info.name, kind)] = len(info.map_sizes[kind])
         return info
@@ -377,7 +424,11 @@ class _BaseClient:
 
     @staticmethod
     def _sh_result(r: httpx.Response) -> SHSample:
-        doc = r.json()
+        with _decoding(r):
+            return _BaseClient._sh_sample(r.json())
+
+    @staticmethod
+    def _sh_sample(doc: dict[str, Any]) -> SHSample:
         probes = doc["probes"]
         return SHSample(
             coefficients=np.asarray(doc["coefficients"], dtype=np.float64),
@@ -403,9 +454,9 @@ class _BaseClient:
     ) -> list[_Call]:
         p, n, v = _rows(points, "points"), _rows(normals, "normals"), _rows(views, "views")
         if not p.shape[0] == n.shape[0] == v.shape[0]:
-            raise ValueError("points, normals and views must have the same number of rows.")
+            raise InvalidArgumentError("points, normals and views must have the same number of rows.")
         if not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size must be a positive integer, got {batch_size!r}.")
+            raise InvalidArgumentError(f"batch_size must be a positive integer, got {batch_size!r}.")
         total = p.shape[0]
         alb = _per_point(albedo, total, "albedo", 3)
         spec = _per_point(f0, total, "f0", 3)
@@ -435,7 +486,8 @@ class _BaseClient:
 
     @staticmethod
     def _shade_result(r: httpx.Response) -> NDArray[np.float32]:
-        return np.asarray(r.json()["rgb"], dtype=np.float32).reshape(-1, 3)
+        with _decoding(r):
+            return np.asarray(r.json()["rgb"], dtype=np.float32).reshape(-1, 3)
 
     @staticmethod
     def _light_call(
@@ -443,7 +495,7 @@ class _BaseClient:
         grid: str | None, diffuse_size: int, specular_size: int, specular_levels: int | None,
     ) -> _Call:
         if not lights:
-            raise ValueError("light_maps needs at least one light.")
+            raise InvalidArgumentError("light_maps needs at least one light.")
         body = {
             "position": _vec3(position, "position"),
             "lights": [_light_json(light) for light in lights],
@@ -471,7 +523,7 @@ class _BaseClient:
 def _segment(name: str) -> str:
     """A path segment for a grid or kind name (percent-encoded; never a path of its own)."""
     if not isinstance(name, str) or not name:
-        raise ValueError(f"names must be non-empty strings, got {name!r}.")
+        raise InvalidArgumentError(f"names must be non-empty strings, got {name!r}.")
     return quote(name, safe="")
 
 
@@ -530,7 +582,9 @@ class ProbeGridClient(_BaseClient):
 
     def healthz(self) -> bool:
         """True when the server answers its health check."""
-        return self._send(_Call("GET", "/healthz")).json().get("status") == "ok"
+        r = self._send(_Call("GET", "/healthz"))
+        with _decoding(r):
+            return r.json().get("status") == "ok"
 
     def grids(self) -> list[GridInfo]:
         """Every served grid."""
@@ -557,7 +611,7 @@ class ProbeGridClient(_BaseClient):
             self.grid(grid)
             levels = self._levels_wanted(grid, kind, level) or [0]
         faces = [
-            _load_npy(self._send(self._map_call(grid, position, normal, kind, k)).content)
+            _load_npy(self._send(self._map_call(grid, position, normal, kind, k)))
             for k in levels
         ]
         return CubeMap(tuple(faces), kind=kind)
@@ -582,7 +636,7 @@ class ProbeGridClient(_BaseClient):
         call = self._light_call(position, lights, kind=kind, level=level, grid=grid,
                                 diffuse_size=diffuse_size, specular_size=specular_size,
                                 specular_levels=specular_levels)
-        return CubeMap((_load_npy(self._send(call).content),), kind=kind)
+        return CubeMap((_load_npy(self._send(call)),), kind=kind)
 
 
 # ------------------------------------------------------------------------------ async client
@@ -631,7 +685,9 @@ class AsyncProbeGridClient(_BaseClient):
         raise failure
 
     async def healthz(self) -> bool:
-        return (await self._send(_Call("GET", "/healthz"))).json().get("status") == "ok"
+        r = await self._send(_Call("GET", "/healthz"))
+        with _decoding(r):
+            return r.json().get("status") == "ok"
 
     async def grids(self) -> list[GridInfo]:
         return self._grids_result(await self._send(self._grids_call()))
@@ -652,7 +708,7 @@ class AsyncProbeGridClient(_BaseClient):
         responses = await asyncio.gather(
             *(self._send(self._map_call(grid, position, normal, kind, k)) for k in levels)
         )
-        return CubeMap(tuple(_load_npy(r.content) for r in responses), kind=kind)
+        return CubeMap(tuple(_load_npy(r) for r in responses), kind=kind)
 
     async def shade(self, grid: str, points: ArrayLike, normals: ArrayLike, views: ArrayLike, *,
                     albedo: ArrayLike = (1.0, 1.0, 1.0), f0: ArrayLike = (0.04, 0.04, 0.04),
@@ -669,4 +725,4 @@ class AsyncProbeGridClient(_BaseClient):
         call = self._light_call(position, lights, kind=kind, level=level, grid=grid,
                                 diffuse_size=diffuse_size, specular_size=specular_size,
                                 specular_levels=specular_levels)
-        return CubeMap((_load_npy((await self._send(call)).content),), kind=kind)
+        return CubeMap((_load_npy(await self._send(call)),), kind=kind)

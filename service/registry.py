@@ -66,9 +66,17 @@ class ServedGrid:
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> ServedGrid:
-        """Open a store and describe it; StoreError or ValueError if it cannot be served."""
+        """Open a store and describe it; StoreError or ValueError if it cannot be served.
+
+        Every array is memory-mapped now, not on first use: a store replaced on disk while the
+        service runs (a new bake with ``--overwrite`` renames a new directory into place) is
+        still served whole from the old files, whose mappings stay valid, never as a mix of
+        old and new arrays. Serving the new store takes a restart.
+        """
         name = grid_name(path)
         store = open_store(path)
+        for array_name in store.names:
+            store.arrays[array_name]
         field = ProbeField(store)
         arrays = store.manifest.arrays
         valid = int(np.count_nonzero(store.arrays["valid"])) if "valid" in arrays else None

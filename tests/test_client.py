@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import asyncio
-import shutil
+import contextlib
+import http.server
+import json
 import socket
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +22,13 @@ from probegrid.client import (
     AsyncProbeGridClient,
     BadRequestError,
     GridInfo,
+    InvalidArgumentError,
     NotFoundError,
     ProbeGridClient,
     ProbeGridConnectionError,
     ProbeGridError,
     ProbeGridHTTPError,
+    ProbeGridResponseError,
     ProbeGridTimeoutError,
     ServerError,
     SHSample,
@@ -67,7 +72,8 @@ def test_public_api_is_declared():
     assert set(client_module.__all__) == {
         "AsyncProbeGridClient", "BadRequestError", "GridInfo", "NotFoundError", "ProbeGridClient",
         "ProbeGridConnectionError", "ProbeGridError", "ProbeGridHTTPError",
-        "ProbeGridTimeoutError", "SHSample", "ServerError",
+        "ProbeGridTimeoutError", "SHSample", "ServerError", "InvalidArgumentError",
+        "ProbeGridResponseError",
     }
     for name in ("ProbeGridConnectionError", "ProbeGridTimeoutError", "ProbeGridHTTPError"):
         assert issubclass(getattr(client_module, name), ProbeGridError)
@@ -247,17 +253,77 @@ def test_a_silent_server_times_out():
             assert time.perf_counter() - t < 2.0  # read timeouts are not retried
 
 
-def test_503_is_retried_then_raised_with_the_server_message(store_path, tmp_path):
-    broken = tmp_path / "broken.probes"
-    shutil.copytree(store_path, broken)
-    with serve([broken], tmp_path / "server.log") as live:
-        (broken / "sh.npy").unlink()  # mapped on first use, which now fails
-        with ProbeGridClient(live.url, retries=2, backoff=0.05) as c:
-            t = time.perf_counter()
-            with pytest.raises(ServerError) as e:
-                c.sh_at("broken", POS)
-            assert time.perf_counter() - t >= 0.15
-            assert c.maps_at("broken", POS).size == 4  # the rest is still served
-        assert e.value.status == 503 and e.value.code == "store_unavailable"
-        assert e.value.message == "The grid's store cannot be read right now."
-        assert live.log_text().count("store failure") == 3  # 1 attempt + 2 retries
+class _Answer503(http.server.BaseHTTPRequestHandler):
+    """A real HTTP server that is "temporarily unavailable", in the service's words."""
+
+    hits = 0
+
+    def do_GET(self) -> None:
+        type(self).hits += 1
+        body = json.dumps({"error": "store_unavailable",
+                           "message": "The grid's store cannot be read right now."}).encode()
+        self.send_response(503)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+class _AnswerHtml(http.server.BaseHTTPRequestHandler):
+    """A real HTTP server that is not the service: 200 and a web page."""
+
+    def do_GET(self) -> None:
+        body = b"<html>not an API</html>"
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def _http_server(handler: type) -> Iterator[str]:
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_port}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_503_is_retried_then_raised_with_the_server_message():
+    with _http_server(_Answer503) as url, ProbeGridClient(url, retries=2, backoff=0.05) as c:
+        t = time.perf_counter()
+        with pytest.raises(ServerError) as e:
+            c.sh_at("g", POS)
+        assert time.perf_counter() - t >= 0.15  # two back-offs slept
+    assert _Answer503.hits == 3  # 1 attempt + 2 retries
+    assert e.value.status == 503 and e.value.code == "store_unavailable"
+    assert e.value.message == "The grid's store cannot be read right now."
+
+
+def test_everything_the_client_raises_is_a_probegrid_error():
+    """A 200 from something that is not the service, and arguments refused before sending
+    (those are ValueErrors too)."""
+    with _http_server(_AnswerHtml) as url, ProbeGridClient(url, retries=0) as c:
+        for call in (c.healthz, c.grids, lambda: c.sh_at("g", POS),
+                     lambda: c.maps_at("g", POS, level=0)):
+            with pytest.raises(ProbeGridResponseError, match="not the probegrid API"):
+                call()
+        for bad in (lambda: c.shade("g", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))),
+                    lambda: c.shade("g", [[0, 0, np.nan]], [[0, 1, 0]], [[0, 0, 1]]),
+                    lambda: c.sh_at("g", (0, "x", 0)),
+                    lambda: c.sh_at("g", POS, normal=(np.inf, 0, 0))):
+            with pytest.raises(InvalidArgumentError) as e:
+                bad()
+            assert isinstance(e.value, ValueError)
+    for url in ("http://[::1", "ftp://example.org", "not a url"):
+        with pytest.raises(InvalidArgumentError, match="base_url"):
+            ProbeGridClient(url)

@@ -26,7 +26,7 @@ from probegrid.imageio import linear_to_srgb
 from probegrid.interpolate import ProbeField
 from probegrid.layouts import faces_to_cross
 from probegrid.lights import PointLight, SpotLight, light_maps
-from probegrid.store import StoreError
+from probegrid.store import StoreError, open_store
 from service.deps import DFG_SIZE
 from service.main import create_app, example_usage
 from service.registry import grid_name
@@ -70,8 +70,6 @@ def http(server):
 
 @pytest.fixture(scope="module")
 def field(stores) -> ProbeField:
-    from probegrid.store import open_store
-
     return ProbeField(open_store(stores["lin"]))
 
 
@@ -560,6 +558,40 @@ def test_npy_bodies_are_numpy_save_bytes_and_exr_bodies_carry_no_date(tmp_path):
 
 
 # ------------------------------------------------------------------------------ app building
+def test_a_store_replaced_on_disk_is_served_whole_from_the_old_files(stores, tmp_path):
+    """A new bake renamed over a served store (``--overwrite``) changes nothing the running
+    service answers, not even for arrays no request had touched yet."""
+    import asyncio
+    import shutil
+
+    from service.settings import Settings
+
+    path = tmp_path / "swap.probes"
+    shutil.copytree(stores["lin"], path)
+    app = create_app([path], Settings(**LIMITS))
+    arrays = linear_arrays(GRID)
+    for name in ("sh", "diffuse", "positions"):
+        arrays[name] = arrays[name] * 2
+    arrays["moments"][..., 0] = 0.01  # every probe now sees a wall at 1 cm
+    new = tmp_path / "new.probes"
+    write_store(new, GRID, arrays)
+    shutil.rmtree(path)
+    new.rename(path)
+
+    async def fetch() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            q = {**POINT, "nx": "0", "ny": "1", "nz": "0"}
+            return [await c.get("/v1/grids/swap/sh", params=q),
+                    await c.get("/v1/grids/swap/maps/diffuse", params={**q, "format": "npy"})]
+
+    sh_r, map_r = asyncio.run(fetch())
+    old = ProbeField(open_store(stores["lin"]))
+    w = old.weights(POS, normals=(0.0, 1.0, 0.0))
+    np.testing.assert_array_equal(np.array(sh_r.json()["coefficients"]), old.sh(w)[0])
+    np.testing.assert_array_equal(_npy(map_r.content), old.cube(w, "diffuse")[0])
+
+
 def test_create_app_refuses_bad_stores(stores, tmp_path):
     with pytest.raises(StoreError):
         create_app([tmp_path / "missing.probes"])
