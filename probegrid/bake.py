@@ -9,7 +9,9 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    invalid and every reader gives it zero weight.
 2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.render`)
    with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
-   projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``.
+   projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
+   the punctual lights' direct light at the probe (the surface points that read them get it
+   from their own shadow rays; through the grid it would count twice).
 3. **final** (bounce B) -- the same render, then per probe: SH coefficients, the diffuse cube
    (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the distance
    moments and, optionally, the raw incoming cube, written to the store.
@@ -269,7 +271,9 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
 def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     assert state.positions is not None
-    res = state.renderer.render(state.positions[batch], batch, field=state.field)
+    # without the punctual lights folded in at the probe: this grid is the next bounce's
+    # indirect light, and its surface points get the lights' direct light by shadow rays
+    res = state.renderer.render(state.positions[batch], batch, field=state.field, direct=False)
     coeffs = np.stack([sh.project_cube(c) for c in res.incoming])  # (B, 9, 3), per probe
     return {"sh": coeffs, "moments": res.moments, "rays": res.rays}
 
@@ -496,7 +500,9 @@ def bake(
     ).hexdigest()
     plan = {"settings": st.model_dump(), "environment": env.describe(),
             "render": {"ray_offset": render.ray_offset, "max_distance": render.max_distance,
-                       "moments_size": render.moments_size},
+                       "moments_size": render.moments_size,
+                       "environment_lookup_size": env.lookup_size(
+                           render.environment_footprint)},
             "filters": probefilter.describe(st.face_size, st.diffuse_size)}
     work = _work_dir(out)
     if overwrite:  # start again: drop any interrupted bake of this store

@@ -493,11 +493,13 @@ class _BaseClient:
     def _light_call(
         position: ArrayLike, lights: Sequence[Light], *, kind: str, level: int,
         grid: str | None, diffuse_size: int, specular_size: int, specular_levels: int | None,
+        normal: ArrayLike | None = None,
     ) -> _Call:
         if not lights:
             raise InvalidArgumentError("light_maps needs at least one light.")
         body = {
             "position": _vec3(position, "position"),
+            "normal": None if normal is None else _vec3(normal, "normal"),
             "lights": [_light_json(light) for light in lights],
             "kind": kind, "level": int(level), "grid": grid,
             "diffuse_size": int(diffuse_size), "specular_size": int(specular_size),
@@ -631,11 +633,13 @@ class ProbeGridClient(_BaseClient):
     def light_maps(self, position: ArrayLike, lights: Sequence[Light], *,
                    kind: Literal["diffuse", "specular"] = "diffuse", level: int = 0,
                    grid: str | None = None, diffuse_size: int = 16, specular_size: int = 32,
-                   specular_levels: int | None = None) -> CubeMap:
-        """Analytic map (one level) of dynamic lights at a position, plus ``grid``'s map if given."""
+                   specular_levels: int | None = None, normal: ArrayLike | None = None
+                   ) -> CubeMap:
+        """Analytic map (one level) of dynamic lights at a position, plus ``grid``'s map if given
+        (blended visibility-aware with the surface ``normal``, as :meth:`maps_at`)."""
         call = self._light_call(position, lights, kind=kind, level=level, grid=grid,
                                 diffuse_size=diffuse_size, specular_size=specular_size,
-                                specular_levels=specular_levels)
+                                specular_levels=specular_levels, normal=normal)
         return CubeMap((_load_npy(self._send(call)),), kind=kind)
 
 
@@ -721,8 +725,9 @@ class AsyncProbeGridClient(_BaseClient):
     async def light_maps(self, position: ArrayLike, lights: Sequence[Light], *,
                          kind: Literal["diffuse", "specular"] = "diffuse", level: int = 0,
                          grid: str | None = None, diffuse_size: int = 16,
-                         specular_size: int = 32, specular_levels: int | None = None) -> CubeMap:
+                         specular_size: int = 32, specular_levels: int | None = None,
+                         normal: ArrayLike | None = None) -> CubeMap:
         call = self._light_call(position, lights, kind=kind, level=level, grid=grid,
                                 diffuse_size=diffuse_size, specular_size=specular_size,
-                                specular_levels=specular_levels)
+                                specular_levels=specular_levels, normal=normal)
         return CubeMap((_load_npy(await self._send(call)),), kind=kind)

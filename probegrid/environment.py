@@ -5,6 +5,13 @@ rotated by ``rotation`` radians about +Y with the right-hand rule (a positive qu
 moves what the image shows toward +Z to +X), then scaled. A constant environment returns its
 colour in every direction; the default environment is black.
 
+A ray stands for the solid angle of its texel, so :meth:`Environment.sampler` can look the cube
+up *prefiltered to that footprint*: the cube box-filtered over solid angle
+(:func:`probegrid.sampling.resample`) to the face size whose texels match the rays', then sampled
+bilinearly. A point lookup in a 256^2 sky from 32^2-texel rays would
+see a sun smaller than a texel in full or not at all (measured on venice_sunset at 32^2, one ray
+per texel: -12 % of the sunward irradiance, 15 % worst texel; prefiltered: 0.2 %).
+
 Radiance is linear Rec.709 RGB in the scene's photometric units (cd/m^2).
 """
 
@@ -16,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from probegrid.cubemap import check_cube
-from probegrid.sampling import CubeSampler
+from probegrid.sampling import CubeSampler, resample
 from probegrid.sh import rotation_y
 
 __all__ = ["Environment"]
@@ -64,9 +71,20 @@ class Environment:
     def is_black(self) -> bool:
         return self.intensity == 0 or (self.faces is None and not self.color.any())
 
-    def sampler(self) -> _EnvSampler:
-        """A fast evaluator (builds the seamless sampler once)."""
-        return _EnvSampler(self)
+    def sampler(self, footprint: int | None = None) -> _EnvSampler:
+        """A fast evaluator (builds the seamless sampler once).
+
+        ``footprint``: face size of a cube whose texels have the solid angle one lookup stands
+        for; the environment is box-filtered down to it when it is finer (None: as stored).
+        """
+        return _EnvSampler(self, footprint)
+
+    def lookup_size(self, footprint: int | None) -> int | None:
+        """Face size of the cube :meth:`sampler` samples for ``footprint`` (None: constant)."""
+        if self.faces is None:
+            return None
+        n = int(self.faces.shape[1])
+        return n if footprint is None else min(n, int(footprint))
 
     def describe(self) -> dict[str, object]:
         """JSON-ready description for manifests."""
@@ -81,9 +99,16 @@ class Environment:
 
 
 class _EnvSampler:
-    def __init__(self, env: Environment) -> None:
+    def __init__(self, env: Environment, footprint: int | None = None) -> None:
+        if footprint is not None and (not isinstance(footprint, (int, np.integer))
+                                      or footprint < 1):
+            raise ValueError(f"footprint must be a positive integer, got {footprint!r}")
         self._env = env
-        self._sampler = CubeSampler([env.faces]) if env.faces is not None else None
+        self._sampler = None
+        if env.faces is not None:
+            size = env.lookup_size(footprint)
+            faces = env.faces if size == env.faces.shape[1] else resample(env.faces, size)
+            self._sampler = CubeSampler([faces])
         self._inverse = rotation_y(-env.rotation)
 
     def radiance(self, directions: ArrayLike) -> NDArray[np.float32]:

@@ -7,7 +7,8 @@ the texel by a seeded, deterministic pattern and weighted by the cube's area ele
 
 What a ray brings back
 ----------------------
-* A miss: the environment (:mod:`probegrid.environment`).
+* A miss: the environment (:mod:`probegrid.environment`), box-filtered to the texel's footprint
+  (:attr:`RenderSettings.environment_footprint`), so a sun smaller than a texel keeps its energy.
 * A hit on the front of a surface (the geometric normal faces the ray; double-sided materials
   have no back): the outgoing radiance of a Lambertian surface,
 
@@ -134,6 +135,17 @@ class RenderSettings:
     direct: bool = True
     ray_offset: float = 1e-4
     max_distance: float = 1e3
+
+    @property
+    def environment_footprint(self) -> int:
+        """Face size of the environment cube misses read (box-filtered to it,
+        :meth:`probegrid.environment.Environment.sampler`): the incoming cube's, whatever the
+        samples per texel. A texel holds the mean radiance over its solid angle, and each of its
+        rays then reads the environment's mean over a texel-sized footprint, so the texel mean
+        keeps the environment's energy (measured on venice_sunset at 32^2: sunward irradiance
+        exact, worst texel 1.1 %; a finer footprint of 64^2 with 4 samples: 3.3 %); more samples
+        still resolve the edges of geometry inside the texel."""
+        return self.face_size
 
     def __post_init__(self) -> None:
         for name in ("face_size", "samples", "moments_size"):
@@ -334,7 +346,7 @@ class ProbeRenderer:
         self.environment = environment or Environment()
         self.settings = settings or RenderSettings()
         self.tracer = tracer or RayTracer.from_scene(scene)
-        self._env = self.environment.sampler()
+        self._env = self.environment.sampler(self.settings.environment_footprint)
         self._double_sided = scene.double_sided
         n, m = self.settings.face_size, self.settings.moments_size
         f, r, c = np.meshgrid(np.arange(6), np.arange(n), np.arange(n), indexing="ij")
@@ -423,8 +435,15 @@ class ProbeRenderer:
         indices: NDArray[np.int64],
         *,
         field: IndirectField | None = None,
+        direct: bool | None = None,
     ) -> RenderResult:
-        """Render the incoming cubes of probes at ``positions (B, 3)`` with linear ``indices``."""
+        """Render the incoming cubes of probes at ``positions (B, 3)`` with linear ``indices``.
+
+        ``direct`` overrides :attr:`RenderSettings.direct` (folding the punctual lights' direct
+        light into the cubes). A bake's intermediate bounces render without it: their grids are
+        the indirect light at later bounces' surface points, which get the lights' direct
+        light from their own shadow rays (through the grid it would be counted twice).
+        """
         st = self.settings
         n, s, m = st.face_size, st.samples, st.moments_size
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -457,7 +476,7 @@ class ProbeRenderer:
             moments[j] = distance_moments(t[j], sa[j], self._moment_bins,
                                           6 * m * m).reshape(6, m, m, 2)
 
-        if st.direct and self.scene.lights:
+        if (st.direct if direct is None else direct) and self.scene.lights:
             rays += self._splat_direct(pos, incoming)
         return RenderResult(incoming, moments, backfrac, rays)
 

@@ -91,7 +91,11 @@ def _finite(value: ArrayLike, name: str) -> NDArray[np.float64]:
 
 
 def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    """Rows scaled to unit length; scaled by their largest component first, so vectors with
+    tiny (1e-200) or huge components normalise instead of under- or overflowing."""
+    scale = np.max(np.abs(v), axis=-1, keepdims=True)
+    s = v / np.where(scale > 0, scale, 1.0)
+    return s / np.linalg.norm(s, axis=-1, keepdims=True)
 
 
 def transform_normals(normals: ArrayLike, matrix: ArrayLike) -> NDArray[np.float64]:

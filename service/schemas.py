@@ -52,7 +52,7 @@ Color = tuple[
 ]
 Reflectance = tuple[Unit, Unit, Unit]
 #: A bounded coordinate: finite and small enough that squares and sums stay finite.
-Coord = Annotated[float, Field(ge=-1e12, le=1e12)]
+Coord = Annotated[float, Field(ge=-1e12, le=1e12, allow_inf_nan=False)]
 Point = tuple[Coord, Coord, Coord]
 
 
@@ -226,10 +226,15 @@ class LightMapsRequest(_Model):
     """Analytic maps of punctual lights seen from a position (no shadows).
 
     With ``grid``, the grid's blended map at that position is added, and the map sizes are the
-    grid's (``diffuse_size``, ``specular_size`` and ``specular_levels`` are then ignored).
+    grid's (``diffuse_size``, ``specular_size`` and ``specular_levels`` are then ignored); with
+    ``normal`` too, the grid's maps are blended with the visibility-aware (DDGI) weights, as
+    ``/maps`` does with ``nx, ny, nz``.
     """
 
     position: Point
+    normal: Point | None = Field(
+        default=None, description="Surface normal at the position (any non-zero length): "
+        "leak-free blending of the grid's maps.")
     lights: list[LightIn] = Field(min_length=1)
     kind: Literal["diffuse", "specular"] = "diffuse"
     level: Annotated[int, Field(ge=0, le=16)] = 0
@@ -239,3 +244,9 @@ class LightMapsRequest(_Model):
     grid: Annotated[str, Field(max_length=128)] | None = None
     format: CubeFormat = "npy"
     layout: CubeLayout = "faces"
+
+    @model_validator(mode="after")
+    def _nonzero_normal(self) -> LightMapsRequest:
+        if self.normal is not None and not any(self.normal):
+            raise ValueError("normal is the zero vector")
+        return self

@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     max_light_map_size : int
         Largest face size, in texels, a request may ask analytic light maps for (422 above it).
     max_json_values : int
-        Most floats a ``format=json`` map response may hold (413 above it; use npy or exr).
+        Most floats a ``format=json`` map response may hold (422 above it; use npy or exr).
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, extra="ignore")

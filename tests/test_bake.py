@@ -89,6 +89,59 @@ def test_wall_casts_shadow(tmp_path):
     assert shadowed["sh"][0, 0, 0] == 0.0
 
 
+def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
+    """A point light over an endless floor, nothing else: the floor is lit by the light alone,
+    so the radiance a probe sees on it is rho / pi I cos / d^2 after any number of bounces (the
+    bounce grids must not carry the light's direct term into the surfaces a second time)."""
+    from probegrid.cubemap import texel_directions
+
+    rho, intensity, light = 0.5, 20.0, np.array([0.0, 3.0, 0.0])
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(rho))
+    b.add_quad((-500, 0, 500), (1000, 0, 0), (0, 0, -1000), material=m)  # faces +Y
+    b.add_light(PointLight(tuple(light), (1.0, 1.0, 1.0), intensity))
+    scene = b.build()
+    grid = GridSpec.from_counts((-2, 0.5, -2), (2, 2.5, 2), (3, 3, 3))
+    probe = 13  # the centre probe, (0, 1.5, 0)
+    for bounces in (0, 1, 2):
+        st = BakeSettings(bounces=bounces, store_incoming=True,
+                          **{**FAST, "face_size": 16})
+        s = bake(scene, grid, tmp_path / f"f{bounces}.probes", settings=st).store
+        p = np.asarray(s["positions"][probe])
+        d = texel_directions(16)[3]  # the -Y face: every texel sees the floor
+        hit = p + (-p[1] / d[..., 1])[..., None] * d
+        to_light = light - hit
+        dist = np.linalg.norm(to_light, axis=-1)
+        expected = rho / np.pi * intensity * (to_light[..., 1] / dist) / dist**2
+        np.testing.assert_allclose(np.asarray(s["incoming"][probe])[3, ..., 0], expected,
+                                   rtol=1e-4, err_msg=f"{bounces} bounces")
+
+
+def test_a_sun_smaller_than_a_texel_keeps_its_energy(tmp_path):
+    """Misses read the environment box-filtered to the texel's footprint: a bright 1-texel sun in
+    a 128^2 sky reaches an 8^2 probe cube with its energy (a point lookup would catch it whole or
+    miss it): the probe's texels are the sky's means over their solid angles."""
+    from probegrid.cubemap import texel_solid_angles
+    from probegrid.sampling import resample
+
+    sky = np.full((6, 128, 128, 3), 0.2, np.float32)
+    sky[2, 37, 90] = 5000.0  # on +Y, between the probe texels' centres
+    scene = _lone_light_scene(intensity=0.0)
+    grid = GridSpec.from_counts((0, 0, 0), (0, 0, 0), (1, 1, 1))
+    st = BakeSettings(bounces=0, store_incoming=True, **FAST)
+    s = bake(scene, grid, tmp_path / "sun.probes", settings=st,
+             environment=Environment(faces=sky)).store
+
+    def energy(cube):
+        return np.einsum("fijc,fij->c", np.asarray(cube, np.float64),
+                         texel_solid_angles(cube.shape[1]))
+
+    incoming = np.asarray(s["incoming"][0])
+    np.testing.assert_allclose(energy(incoming), energy(sky), rtol=1e-4)
+    np.testing.assert_allclose(incoming, resample(sky, FAST["face_size"]), rtol=1e-5)
+    assert s.manifest.bake["render"]["environment_lookup_size"] == FAST["face_size"]
+
+
 def test_direct_light_can_be_left_out(tmp_path):
     grid = GridSpec.from_counts((3, 0, 0), (3, 0, 0), (1, 1, 1))
     s = bake(_lone_light_scene(), grid, tmp_path / "n.probes",

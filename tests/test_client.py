@@ -153,6 +153,11 @@ def test_light_maps_equal_the_library(pg, field):
     baked = field.cube(field.weights(POS), "specular", level=1)[0]
     np.testing.assert_allclose(both.faces, spec["specular"].levels[1] + baked, rtol=1e-6,
                                atol=1e-12)
+    normal = (0.2, 0.9, -0.3)
+    lit = pg.light_maps(POS, lights, kind="specular", level=1, grid="lin", normal=normal)
+    baked = field.cube(field.weights(POS, normals=normal), "specular", level=1)[0]
+    np.testing.assert_allclose(lit.faces, spec["specular"].levels[1] + baked, rtol=1e-6,
+                               atol=1e-12)
 
 
 # ------------------------------------------------------------------------------ async

@@ -264,6 +264,22 @@ def test_light_maps_equal_the_library_and_add_to_a_grid(http, field):
     spec = light_maps(lib, POS, diffuse_size=1, specular_size=8, specular_levels=4)["specular"]
     baked = field.cube(field.weights(POS), "specular", level=1)[0]
     np.testing.assert_array_equal(_npy(r.content), spec.levels[1] + baked)
+    normal = (0.3, -0.8, 0.5)  # with a normal: the grid's visibility-aware blend, as /maps
+    r = http.post("/v1/lights/maps", json={"position": POS.tolist(), "lights": lights,
+                                            "grid": "lin", "normal": list(normal)})
+    size = field.map_size("diffuse")
+    want = light_maps(lib, POS, diffuse_size=size, specular_size=1, specular_levels=1)["diffuse"]
+    baked = field.cube(field.weights(POS, normals=normal), "diffuse")[0]
+    np.testing.assert_array_equal(_npy(r.content), want.faces + baked)
+
+
+def test_shade_takes_normals_and_views_of_any_length(http, field):
+    """A normal or view of length 1e-200 is a direction like any other."""
+    base = {"position": POS.tolist(), "normal": [0.0, 1.0, 0.0], "view": [0.6, 0.8, 0.0]}
+    tiny = {"position": POS.tolist(), "normal": [0.0, 1e-200, 0.0], "view": [6e-200, 8e-200, 0.0]}
+    a, b = (http.post("/v1/grids/lin/shade", json={"points": [p]}) for p in (base, tiny))
+    assert a.status_code == b.status_code == 200, b.text
+    assert a.json()["rgb"] == b.json()["rgb"]
 
 
 # ------------------------------------------------------------------------------ bad input
@@ -306,6 +322,18 @@ BAD_REQUESTS = [
      413, "limit of 64"),
     ("POST", "/v1/grids/lin/shade", b"[" + b"0," * 40000 + b"0]", 413, "65536 bytes"),
     ("POST", "/v1/lights/maps", {"position": [0, 0, 0], "lights": []}, 422, "lights"),
+    ("POST", "/v1/lights/maps",
+     {"position": [0, 1.5, 0], "lights": [{"type": "point", "position": [0, 1.5, 1e-16],
+                                           "intensity": 1e12}]}, 422, "overflows"),
+    ("POST", "/v1/lights/maps",
+     {"position": [0, 1.5, 0], "lights": [{"type": "point", "position": [0, 1.5, 1e-160],
+                                           "intensity": 1}]}, 422, "almost exactly"),
+    ("POST", "/v1/lights/maps",
+     {"position": [0, 0, 0], "grid": "lin", "normal": [0, 0, 0],
+      "lights": [{"type": "point", "position": [1, 1, 1], "intensity": 1}]}, 422, "zero vector"),
+    ("POST", "/v1/grids/lin/shade",
+     b'{"points": [{"position": [0, NaN, 0], "normal": [0, 1, 0], "view": [0, 0, 1]}]}',
+     422, "finite"),
     ("POST", "/v1/lights/maps",
      {"position": [0, 0, 0], "lights": [{"type": "laser", "intensity": 1}]}, 422, "lights"),
     ("POST", "/v1/lights/maps",

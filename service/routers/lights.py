@@ -2,7 +2,8 @@
 
 The maps are :func:`probegrid.lights.light_maps` (diffuse = irradiance / pi, GGX specular chain,
 no shadows). With ``grid``, the grid's blended map at the position is added, so the response is
-"baked + dynamic" lighting there, at the grid's map sizes.
+"baked + dynamic" lighting there, at the grid's map sizes (blended with the visibility-aware
+weights when the request gives the surface ``normal``).
 """
 
 from __future__ import annotations
@@ -79,17 +80,25 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
     size = size0 >> body.level
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
-    maps = light_maps(
-        [to_light(s) for s in body.lights],
-        np.asarray(body.position, dtype=np.float64),
-        diffuse_size=diffuse_size,
-        specular_size=specular_size,
-        specular_levels=specular_levels,
-    )
+    try:
+        maps = light_maps(
+            [to_light(s) for s in body.lights],
+            np.asarray(body.position, dtype=np.float64),
+            diffuse_size=diffuse_size,
+            specular_size=specular_size,
+            specular_levels=specular_levels,
+        )
+    except ValueError as exc:  # a light practically at the position: 1 / d^2 overflows
+        raise ApiError(422, f"The lights cannot be evaluated at this position ({exc}); is a "
+                            "light almost exactly at it?") from None
     faces = cast(CubeMap, maps[body.kind]).levels[body.level]
     if served is not None:
-        w = served.field.weights(np.asarray(body.position, dtype=np.float64))
+        w = served.field.weights(np.asarray(body.position, dtype=np.float64),
+                                 normals=body.normal)
         faces = faces + served.field.cube(w, body.kind, level=body.level)[0]
+    if not np.all(np.isfinite(faces)):
+        raise ApiError(422, "The lights' irradiance at this position overflows float32 (a light "
+                            "practically at the position, or one too intense for its distance).")
     meta: dict[str, object] = {"kind": body.kind, "level": body.level,
                                "lights": len(body.lights)}
     data = encode_cube(faces.astype(np.float32), fmt=body.format, layout=body.layout,
