@@ -270,9 +270,12 @@ def _serve(stores: Sequence[Path], host: str, port: int, workers: int) -> None:
     if not 0 < port < 65536:
         raise ValueError(f"--port must be in 1..65535, got {port}")
     base = f"http://{host}:{port}"
-    print(f"serving {', '.join(str(s) for s in stores)} at {base} (docs: {base}/docs)")
-    print(example_usage(stores[0], base), flush=True)
-    run(stores, host=host, port=port, workers=workers)
+
+    def ready() -> None:  # once the stores have opened
+        print(f"serving {', '.join(str(s) for s in stores)} at {base} (docs: {base}/docs)")
+        print(example_usage(stores[0], base), flush=True)
+
+    run(stores, host=host, port=port, workers=workers, on_ready=ready)
 
 
 def _run_serve(args: argparse.Namespace) -> int:

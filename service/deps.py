@@ -43,6 +43,7 @@ __all__ = [
     "parse_point",
     "plain_query",
     "probe_query",
+    "require_json",
     "served_grid",
 ]
 
@@ -217,3 +218,12 @@ async def get_probe_query(
 
 
 ProbeQueryDep = Annotated[ProbeQuery, Depends(get_probe_query)]
+
+
+async def require_json(request: Request) -> None:
+    """Refuse a request body that is not declared as JSON (415); no Content-Type is taken as
+    JSON, as FastAPI does."""
+    media = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media and media != "application/json" and not media.endswith("+json"):
+        raise ApiError(415, f"The request body must be JSON (Content-Type: application/json), "
+                            f"not {media}.")

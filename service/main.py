@@ -23,7 +23,7 @@ from __future__ import annotations
 import os
 import shutil
 import weakref
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Final
@@ -37,7 +37,7 @@ from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
 from service.registry import GridRegistry, grid_name
 from service.routers import grids, health, lights, maps, sh, shade
-from service.settings import Settings, settings_environment
+from service.settings import Settings, load_settings, settings_environment
 
 __all__ = ["OPENAPI_TAGS", "app_from_environment", "create_app", "example_usage", "run"]
 
@@ -68,7 +68,7 @@ def create_app(
     probegrid.store.StoreError or ValueError
         A store cannot be opened, or two stores have the same name.
     """
-    settings = Settings() if settings is None else settings
+    settings = load_settings() if settings is None else settings
     registry = GridRegistry.open(list(store_paths))
     scratch = scratch_directory()
     remove_scratch: list[weakref.finalize] = []
@@ -120,7 +120,7 @@ def example_usage(store_path: str | os.PathLike[str], base_url: str) -> str:
 
 def app_from_environment() -> FastAPI:
     """App factory for uvicorn workers: stores and settings from ``PROBEGRID_*`` variables."""
-    settings = Settings()
+    settings = load_settings()
     if not settings.stores:
         raise ValueError("PROBEGRID_STORES lists no store to serve.")
     return create_app(settings.stores, settings)
@@ -134,20 +134,24 @@ def run(
     workers: int = 1,
     settings: Settings | None = None,
     log_level: str = "info",
+    on_ready: Callable[[], None] | None = None,
 ) -> None:
     """Serve the stores with uvicorn until interrupted.
 
     The stores are opened (and checked) here first, so a bad store fails before any worker
-    starts. With ``workers > 1`` each uvicorn worker process builds its app with
-    :func:`app_from_environment` from the ``PROBEGRID_*`` variables set here.
+    starts; ``on_ready`` is called then (the CLI prints where to look). With ``workers > 1``
+    each uvicorn worker process builds its app with :func:`app_from_environment` from the
+    ``PROBEGRID_*`` variables set here.
     """
     import uvicorn
 
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}.")
-    settings = Settings() if settings is None else settings
+    settings = load_settings() if settings is None else settings
     paths = [Path(p).resolve() for p in store_paths]
     app = create_app(paths, settings)
+    if on_ready is not None:
+        on_ready()
     if workers == 1:
         uvicorn.run(app, host=host, port=port, log_level=log_level)
         return

@@ -14,10 +14,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["ENV_PREFIX", "Settings", "settings_environment"]
+__all__ = ["ENV_PREFIX", "Settings", "load_settings", "settings_environment"]
 
 ENV_PREFIX = "PROBEGRID_"
 
@@ -62,3 +62,14 @@ def settings_environment(settings: Settings) -> dict[str, str]:
     """
     data = settings.model_dump(mode="json")
     return {f"{ENV_PREFIX}{k.upper()}": json.dumps(v) for k, v in data.items()}
+
+
+def load_settings() -> Settings:
+    """``Settings()`` from the ``PROBEGRID_*`` environment, with a one-line ValueError naming
+    the variable when one does not parse (instead of pydantic's multi-line report)."""
+    try:
+        return Settings()
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        name = ENV_PREFIX + str(err["loc"][0]).upper() if err.get("loc") else ENV_PREFIX + "*"
+        raise ValueError(f"environment variable {name}: {err['msg']}.") from None

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -163,6 +164,15 @@ def test_bake_info_export_on_the_sample_room(tmp_path):
     assert cross.shape == (12, 16, 3)
     assert "outside the grid" in _one_error_line(run_cli("export", store, "--probe", "3,0,0",
                                                          "--out", exp))
+
+
+def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path):
+    r = run_cli("serve", tmp_path / "nope.probes")
+    assert "not a probe store" in _one_error_line(r) and "serving" not in r.stdout
+    env = {**os.environ, "PROBEGRID_MAX_BATCH": "abc"}
+    r = subprocess.run([sys.executable, "-m", "probegrid.cli", "serve", tmp_path / "x.probes"],
+                       check=False, capture_output=True, text=True, timeout=600, env=env)
+    assert "PROBEGRID_MAX_BATCH" in _one_error_line(r) and "serving" not in r.stdout
 
 
 def test_bad_scenes_give_one_line_errors(tmp_path):

@@ -365,6 +365,18 @@ def test_bad_input_gets_a_clear_4xx_json_error(http, method, url, body, status, 
     assert http.get("/healthz").status_code == 200  # and the server keeps serving
 
 
+def test_bodies_must_be_json(http):
+    body = json.dumps({"points": [{"position": [0, 0, 0], "normal": [0, 1, 0],
+                                   "view": [0, 0, 1]}]})
+    for url in ("/v1/grids/lin/shade", "/v1/lights/maps"):
+        r = http.post(url, content=body, headers={"Content-Type": "text/plain"})
+        assert r.status_code == 415 and r.json()["error"] == "unsupported_media_type", r.text
+        assert "application/json" in r.json()["message"]
+    ok = http.post("/v1/grids/lin/shade", content=body,
+                   headers={"Content-Type": "application/json; charset=utf-8"})
+    assert ok.status_code == 200, ok.text
+
+
 def test_declared_oversized_body_is_refused_before_reading(server):
     host, port = server.url.removeprefix("http://").split(":")
     with socket.create_connection((host, int(port)), timeout=10) as sock:

@@ -11,17 +11,18 @@ from __future__ import annotations
 from typing import cast
 
 import numpy as np
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Depends, Response
 
 from probegrid.cubemap import CubeMap, mip_sizes
 from probegrid.lights import DirectionalLight, Light, PointLight, SpotLight, light_maps
-from service.deps import StateDep
+from service.deps import StateDep, require_json
 from service.encoding import MEDIA_TYPES, encode_cube
 from service.errors import ApiError
 from service.routers.maps import _BINARY, check_json_size
 from service.schemas import ErrorOut, LightIn, LightMapsRequest, PointLightIn, SpotLightIn
 
-router = APIRouter(prefix="/v1/lights", tags=["lights"])
+router = APIRouter(prefix="/v1/lights", tags=["lights"],
+                   dependencies=[Depends(require_json)])
 
 
 def to_light(spec: LightIn) -> Light:

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends
 
-from service.deps import GridDep, StateDep
+from service.deps import GridDep, StateDep, require_json
 from service.errors import ApiError
 from service.schemas import ErrorOut, ShadeOut, ShadeRequest
 
-router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"])
+router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"],
+                   dependencies=[Depends(require_json)])
 
 
 @router.post(
