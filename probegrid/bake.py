@@ -26,10 +26,15 @@ the number of workers or the batch size.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
+import json
+import math
+import os
 import shutil
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,7 +58,14 @@ from probegrid.render import (
     probe_irradiance_coefficients,
 )
 from probegrid.scene import Scene
-from probegrid.store import ArraySpec, ProbeStore, StoreWriter, open_store, partial_path
+from probegrid.store import (
+    ArraySpec,
+    ProbeStore,
+    StoreError,
+    StoreWriter,
+    open_store,
+    partial_path,
+)
 
 __all__ = ["BakeReport", "BakeSettings", "bake", "environment_hash", "store_arrays"]
 
@@ -299,8 +311,7 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     dif, chains = _filter_groups(res.incoming, st.diffuse_size, levels)
     spec = [[c[k] for c in chains] for k in range(levels)]
     for cube, d in zip(res.incoming, dif, strict=True):
-        energy.append(float(solid_angle_integral(d).sum())
-                      / max(float(solid_angle_integral(cube).sum()), 1e-30))
+        energy.append(_energy_ratio(d, float(solid_angle_integral(cube).sum())))
         seam.append(seams.seam_score(d))
     out["sh"] = np.stack(sh_l).astype(np.float32)
     out["sh_min"] = sh_min.astype(np.float32)
@@ -313,6 +324,21 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     out["_energy"] = np.array(energy)
     out["_seam"] = np.array(seam)
     return out
+
+
+def _energy_ratio(diffuse: NDArray[np.float32], incoming_integral: float) -> float:
+    """Solid-angle integral of a diffuse map over that of its incoming cube (all channels):
+    1 for an energy-conserving filter, since the clamped cosine / pi integrates to 1 over the
+    normals. NaN for a probe that receives no light (nothing to conserve)."""
+    if not incoming_integral > 0:
+        return math.nan
+    return float(solid_angle_integral(diffuse).sum()) / incoming_integral
+
+
+def _incoming_integral_from_sh(sh_l: NDArray[Any]) -> float:
+    """The incoming cube's integral over the sphere from its stored SH, all channels:
+    ``integral L = L_00 / Y_00 = 2 sqrt(pi) L_00`` (the projection is the same discrete sum)."""
+    return float(2.0 * math.sqrt(math.pi) * np.asarray(sh_l, np.float64)[0].sum())
 
 
 #: Probes filtered together, as channels of one cube (a fixed shape, see _filter_groups).
@@ -395,7 +421,7 @@ class BakeReport:
     quality: dict[str, Any]
 
     def summary(self) -> str:
-        q = self.quality
+        q = {k: (math.nan if v is None else v) for k, v in self.quality.items()}
         return "\n".join([
             f"baked {self.probes} probes ({self.store.grid.label}) into {self.store.path}/ in "
             f"{self.seconds:.1f} s, {self.rays / max(self.seconds, 1e-9) / 1e6:.2f} Mrays/s"
@@ -409,13 +435,27 @@ class BakeReport:
 
 
 def _jsonable(obj: Any) -> Any:
-    import json
-
     return json.loads(json.dumps(obj))
 
 
 def _work_dir(store_path: Path) -> Path:
     return store_path.with_name(store_path.name + ".work")
+
+
+@contextmanager
+def _bake_lock(work: Path, out: Path) -> Iterator[None]:
+    """One bake of a store at a time: an exclusive ``flock`` on its work directory, held for the
+    whole bake (a second bake of the same store, ``--overwrite`` or not, is refused instead of
+    deleting the first one's files)."""
+    fd = os.open(work, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise StoreError(f"another process is baking {out}") from None
+        yield
+    finally:
+        os.close(fd)
 
 
 def _run_stage(
@@ -505,93 +545,106 @@ def bake(
                            render.environment_footprint)},
             "filters": probefilter.describe(st.face_size, st.diffuse_size)}
     work = _work_dir(out)
-    if overwrite:  # start again: drop any interrupted bake of this store
-        shutil.rmtree(work, ignore_errors=True)
-        shutil.rmtree(partial_path(out), ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    totals: dict[str, Any] = {"rays": 0, "seconds": {}}
-    t0 = time.perf_counter()
-    base = _Context(scene, env, render, st, grid)
+    with _bake_lock(work, out):
+        # An interrupted bake of this store resumes when it had the same scene and plan; with
+        # ``overwrite`` one of another scene or plan is dropped (without it, an error).
+        stamp = work / "bake.json"
+        fingerprint = json.dumps({"scene": scene_hash, "plan": _jsonable(plan)}, sort_keys=True)
+        if overwrite and not (stamp.is_file() and stamp.read_text() == fingerprint):
+            for child in work.iterdir():
+                if child.is_dir():
+                    shutil.rmtree(child)
+                else:
+                    child.unlink()
+            shutil.rmtree(partial_path(out), ignore_errors=True)
+        stamp.write_text(fingerprint)
+        totals: dict[str, Any] = {"rays": 0, "seconds": {}}
+        t0 = time.perf_counter()
+        base = _Context(scene, env, render, st, grid)
 
-    # 1. classify
-    cls_arrays = {
-        "positions": ArraySpec((3,), "float64", "probe position"),
-        "valid": ArraySpec((), "bool", "probe is outside geometry"),
-        "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
-    }
-    w, resumed = _run_stage("classify", work / "classify.probes", cls_arrays, _classify_task,
-                            base, ex, plan, scene_hash, progress, totals)
-    cls_store = w.finish() if isinstance(w, StoreWriter) else w
-    positions = np.array(cls_store["positions"])
-    valid = np.array(cls_store["valid"])
-    lattice = grid.positions()
-    relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
-    # Workers on this machine memory-map the grid-sized arrays from the work directory; others
-    # (a Dask cluster) receive them.
-    files = bool(getattr(ex, "shares_files", False))
-    probe_pos: NDArray[np.float64] | str = positions
-    probe_valid: NDArray[np.bool_] | str = valid
-    if files:
-        probe_pos = str(work / "classify.probes" / "positions.npy")
-        probe_valid = str(work / "classify.probes" / "valid.npy")
-
-    # 2. bounces
-    m = render.moments_size
-    previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
-    for k in range(st.bounces):
-        ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
-        arrays = {"sh": ArraySpec((9, 3), "float64", "radiance SH of this bounce"),
-                  "moments": ArraySpec((6, m, m, 2), "float32", "distance moments")}
-        w, _ = _run_stage(f"bounce {k + 1}/{st.bounces + 1}", work / f"bounce{k}.probes",
-                          arrays, _bounce_task, ctx, ex, plan, scene_hash, progress, totals)
-        bstore = w.finish() if isinstance(w, StoreWriter) else w
+        # 1. classify
+        cls_arrays = {
+            "positions": ArraySpec((3,), "float64", "probe position"),
+            "valid": ArraySpec((), "bool", "probe is outside geometry"),
+            "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
+        }
+        w, resumed = _run_stage("classify", work / "classify.probes", cls_arrays, _classify_task,
+                                base, ex, plan, scene_hash, progress, totals)
+        cls_store = w.finish() if isinstance(w, StoreWriter) else w
+        positions = np.array(cls_store["positions"])
+        valid = np.array(cls_store["valid"])
+        lattice = grid.positions()
+        relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
+        # Workers on this machine memory-map the grid-sized arrays from the work directory; others
+        # (a Dask cluster) receive them.
+        files = bool(getattr(ex, "shares_files", False))
+        probe_pos: NDArray[np.float64] | str = positions
+        probe_valid: NDArray[np.bool_] | str = valid
         if files:
-            previous = write_field_files(
-                work / f"field{k}", bstore["sh"], bstore["moments"],
-                sh_file=work / f"bounce{k}.probes" / "sh.npy",
-                valid_file=work / "classify.probes" / "valid.npy",
-                positions_file=work / "classify.probes" / "positions.npy")
-        else:
-            previous = (np.array(bstore["sh"]), np.array(bstore["moments"]))
+            probe_pos = str(work / "classify.probes" / "positions.npy")
+            probe_valid = str(work / "classify.probes" / "valid.npy")
 
-    # 3. final
-    energy = np.full(grid.n_probes, np.nan)
-    seam = np.full(grid.n_probes, np.nan)
+        # 2. bounces
+        m = render.moments_size
+        previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
+        for k in range(st.bounces):
+            ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
+            arrays = {"sh": ArraySpec((9, 3), "float64", "radiance SH of this bounce"),
+                      "moments": ArraySpec((6, m, m, 2), "float32", "distance moments")}
+            w, _ = _run_stage(f"bounce {k + 1}/{st.bounces + 1}", work / f"bounce{k}.probes",
+                              arrays, _bounce_task, ctx, ex, plan, scene_hash, progress, totals)
+            bstore = w.finish() if isinstance(w, StoreWriter) else w
+            if files:
+                previous = write_field_files(
+                    work / f"field{k}", bstore["sh"], bstore["moments"],
+                    sh_file=work / f"bounce{k}.probes" / "sh.npy",
+                    valid_file=work / "classify.probes" / "valid.npy",
+                    positions_file=work / "classify.probes" / "positions.npy")
+            else:
+                previous = (np.array(bstore["sh"]), np.array(bstore["moments"]))
 
-    def keep(batch: NDArray[np.int64], result: dict[str, Any]) -> None:
-        energy[batch] = result["_energy"]
-        seam[batch] = result["_seam"]
+        # 3. final
+        energy = np.full(grid.n_probes, np.nan)
+        seam = np.full(grid.n_probes, np.nan)
 
-    ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
-    w, resumed = _run_stage(f"bounce {st.bounces + 1}/{st.bounces + 1} (final)", out,
-                            store_arrays(st), _final_task, ctx, ex, plan, scene_hash, progress,
-                            totals, overwrite=overwrite, intermediate=False, extra=keep)
-    assert isinstance(w, StoreWriter)
-    # quality over every probe (resumed ones included): recompute from the stored arrays
-    dif = w.array("diffuse")
-    sh_min = w.array("sh_min")
-    back = w.array("backface_fraction")
-    missing = np.isnan(energy)
-    if missing.any():
-        from probegrid import seams
+        def keep(batch: NDArray[np.int64], result: dict[str, Any]) -> None:
+            energy[batch] = result["_energy"]
+            seam[batch] = result["_seam"]
 
-        for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
-            seam[i] = seams.seam_score(np.asarray(dif[i]))
-    valid_e = energy[~np.isnan(energy)]
-    quality = {
-        "invalid_probes": int(np.count_nonzero(~valid)),
-        "relocated_probes": relocated,
-        "backface_ray_fraction": float(np.mean(back)),
-        "energy_max_error": float(np.max(np.abs(1 - valid_e))) if valid_e.size else None,
-        "energy_check": "solid-angle integral of each probe's diffuse map over that of its "
-                        "incoming cube (1 for a correct, energy-conserving filter)",
-        "sh_min_irradiance_over_pi": float(np.min(sh_min)),
-        "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
-        "seam_score_mean": float(np.nanmean(seam)),
-        "rays": int(totals["rays"]),
-        "stage_seconds": {k: round(v, 3) for k, v in totals["seconds"].items()},
-    }
-    store = w.finish(quality=quality)
-    shutil.rmtree(work, ignore_errors=True)
-    seconds = time.perf_counter() - t0
-    return BakeReport(store, seconds, int(totals["rays"]), grid.n_probes, resumed, quality)
+        ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
+        w, resumed = _run_stage(f"bounce {st.bounces + 1}/{st.bounces + 1} (final)", out,
+                                store_arrays(st), _final_task, ctx, ex, plan, scene_hash, progress,
+                                totals, overwrite=overwrite, intermediate=False, extra=keep)
+        assert isinstance(w, StoreWriter)
+        # quality over every probe (resumed ones included): recompute from the stored arrays
+        dif = w.array("diffuse")
+        sh_min = w.array("sh_min")
+        back = w.array("backface_fraction")
+        missing = np.isnan(seam)
+        if missing.any():
+            from probegrid import seams
+
+            stored_sh = w.array("sh")
+            for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
+                d = np.asarray(dif[i])
+                seam[i] = seams.seam_score(d)
+                energy[i] = _energy_ratio(d, _incoming_integral_from_sh(stored_sh[i]))
+        valid_e = energy[~np.isnan(energy)]
+        quality = {
+            "invalid_probes": int(np.count_nonzero(~valid)),
+            "relocated_probes": relocated,
+            "backface_ray_fraction": float(np.mean(back)),
+            "energy_max_error": float(np.max(np.abs(1 - valid_e))) if valid_e.size else None,
+            "energy_check": "solid-angle integral of each probe's diffuse map over that of its "
+                            "incoming cube (1 for a correct, energy-conserving filter)",
+            "sh_min_irradiance_over_pi": float(np.min(sh_min)),
+            "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
+            "seam_score_mean": float(np.nanmean(seam)),
+            "rays": int(totals["rays"]),
+            "stage_seconds": {k: round(v, 3) for k, v in totals["seconds"].items()},
+        }
+        store = w.finish(quality=quality)
+        shutil.rmtree(work, ignore_errors=True)
+        seconds = time.perf_counter() - t0
+        return BakeReport(store, seconds, int(totals["rays"]), grid.n_probes, resumed, quality)

@@ -4,7 +4,9 @@ Option checking lives here, so that every bad value ends as a one-line ``ValueEr
 any work starts. The default grid, when neither ``--grid`` nor ``--spacing`` is given, has 8
 probes along the longest axis of the box and proportionally fewer along the others; without
 ``--bounds`` the box is the scene's bounds and the probes sit at the *centres* of the grid's
-cells (half a cell inside the bounds), so none starts on a wall.
+cells (half a cell inside the bounds), so none starts on a wall. ``--spacing S`` places probes
+exactly ``S`` apart, centred in the box (without ``--bounds``, half a spacing inside the scene's
+bounds). A grid may have at most :data:`MAX_PROBES` probes.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
 from probegrid.bake import BakeReport, BakeSettings, bake
@@ -73,22 +76,42 @@ def grid_for(scene: Scene, *, grid: str | None = None, spacing: str | None = Non
             if np.any(hi < lo):
                 raise ValueError(f"margin {margin} leaves an empty box")
     extent = hi - lo
+    if not np.all(np.isfinite(extent)):
+        raise ValueError("the grid box is not finite; give smaller --bounds or --margin")
     if spacing is not None:
+        # probes exactly ``spacing`` apart, centred in the box (half a spacing in from the scene
+        # bounds by default, so no probe sits on an outer wall)
         step = np.broadcast_to(np.asarray(parse_spacing(spacing), dtype=np.float64), (3,))
-        counts = np.maximum(1, np.floor(extent / step * (1 + 1e-9)).astype(int) + (not inset))
-    elif grid is not None:
-        counts = np.array(parse_grid(grid))
+        if inset:
+            centre = 0.5 * (lo + hi)
+            lo = np.minimum(lo + 0.5 * step, centre)
+            hi = np.maximum(hi - 0.5 * step, centre)
+        counts_f = np.floor((hi - lo) / step * (1.0 + 1e-9)) + 1.0
+        _check_probe_count(counts_f)
+        return GridSpec.from_spacing(lo, hi, step)
+    if grid is not None:
+        counts = np.array(parse_grid(grid), dtype=np.float64)
     else:
         longest = float(extent.max())
         if longest <= 0:
             raise ValueError("the scene has no extent; give --bounds")
-        counts = np.maximum(1, np.rint(8 * extent / longest).astype(int))
+        counts = np.maximum(1, np.rint(8 * extent / longest))
+    _check_probe_count(counts)
     if inset:
         half = extent / (2 * counts)
         lo, hi = lo + half, hi - half
-    if int(np.prod(counts)) > 10_000_000:
-        raise ValueError(f"a grid of {'x'.join(map(str, counts))} probes is too large")
     return GridSpec.from_counts(lo, hi, tuple(int(c) for c in counts))
+
+
+#: Most probes a grid may have.
+MAX_PROBES = 10_000_000
+
+
+def _check_probe_count(counts: NDArray[np.float64]) -> None:
+    """Refuse more than MAX_PROBES probes (counted in float64: no integer overflow)."""
+    if math.prod(float(c) for c in counts) > MAX_PROBES:  # (inf if huge; no warning)
+        label = "x".join(f"{c:.0f}" if c < 1e15 else f"{c:.3g}" for c in counts)
+        raise ValueError(f"a grid of {label} probes is too large (at most {MAX_PROBES:,})")
 
 
 #: Largest default face size of a bake's environment cube (each worker holds a copy).

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -22,6 +24,8 @@ __all__ = ["build_parser", "main"]
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 EXIT_INTERNAL = 1
+#: Exit code when stdout's reader went away (as a process killed by SIGPIPE).
+EXIT_BROKEN_PIPE = 141
 
 
 def _positive_int(text: str) -> int:
@@ -166,7 +170,8 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="store directory NAME.probes")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--grid", help="probe counts NXxNYxNZ (default: 8 along the longest axis)")
-    g.add_argument("--spacing", help="probe spacing S or SX,SY,SZ (scene units)")
+    g.add_argument("--spacing", help="probes exactly S (or SX,SY,SZ) apart, centred in the box "
+                   "(scene units)")
     p.add_argument("--bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
                    "probes at the centres of the grid's cells)")
     p.add_argument("--margin", type=_finite_float,
@@ -269,6 +274,12 @@ def _serve(stores: Sequence[Path], host: str, port: int, workers: int) -> None:
 
     if not 0 < port < 65536:
         raise ValueError(f"--port must be in 1..65535, got {port}")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:  # a busy port is a one-line error here, not uvicorn's log and exit code 3
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ValueError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
     base = f"http://{host}:{port}"
 
     def ready() -> None:  # once the stores have opened
@@ -326,14 +337,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return int(args.handler(args))
+    except BrokenPipeError:  # the reader went away (``probegrid info S | head``): stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so the exit's flush does not fail again
+        return EXIT_BROKEN_PIPE
     except KeyboardInterrupt:
         print("probegrid: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except (ValueError, OSError, ExecutorError) as exc:  # every user-caused error
         if args.debug:
             raise
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"probegrid: error: {msg}", file=sys.stderr)
+        print(f"probegrid: error: {_error_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as exc:
         if args.debug:
@@ -343,6 +357,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _error_line(exc: BaseException) -> str:
+    """One line for a user-caused error; a settings model's validation error names the option
+    (``--face-size: Input should be greater than or equal to 2``) instead of pydantic's
+    multi-line report."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError) and exc.errors():
+        err = exc.errors()[0]
+        field = ".".join(str(part) for part in err.get("loc", ()))
+        option = f"--{field.replace('_', '-')}" if field else exc.title
+        more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+        return f"{option}: {err['msg']}{more}"
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _terminate(signum: int, frame: object) -> None:

@@ -50,6 +50,7 @@ import functools
 import multiprocessing
 import os
 import pickle
+import select
 import tempfile
 import threading
 import time
@@ -569,6 +570,8 @@ class LocalExecutor:
             self._pool = cf.ProcessPoolExecutor(
                 max_workers=self._workers,
                 mp_context=multiprocessing.get_context(self._start_method),
+                initializer=_exit_with_caller,
+                initargs=(os.getpid(),),
             )
         pool = self._pool
         token = uuid.uuid4().hex
@@ -625,6 +628,52 @@ class LocalExecutor:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _exit_with_caller(pid: int) -> None:
+    """Worker initializer: end this worker when the process that started the pool is gone.
+
+    A caller killed with SIGKILL (or crashing) cannot stop its workers; without this they would
+    run on, orphaned, and keep the forkserver and resource tracker alive. A daemon thread waits
+    on a pidfd of the caller (Linux 5.3+; polling its pid every second elsewhere) and exits the
+    worker at once when it dies.
+    """
+
+    def watch() -> None:
+        try:
+            fd = os.pidfd_open(pid)
+        except (AttributeError, OSError):  # no pidfd here, or the caller is already gone
+            fd = None
+        if fd is not None:
+            select.select([fd], [], [])
+        else:
+            while True:
+                time.sleep(1.0)
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    break
+                except PermissionError:
+                    continue
+        os._exit(1)
+
+    threading.Thread(target=watch, name="probegrid-exit-with-caller", daemon=True).start()
+
+
+def _check_scheduler_address(address: str) -> None:
+    """Refuse an address that is not ``[tcp|tls|ws|wss|ucx]://HOST:PORT`` (or ``HOST:PORT``)
+    before distributed.Client sees it (its failed construction would leave a client whose
+    clean-up waits 20 s at exit)."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"--scheduler {address!r} is not a Dask address such as "
+                         f"tcp://HOST:PORT ({_first_line(exc)})") from None
+    if scheme not in ("tcp", "tls", "ws", "wss", "ucx") or not host or not 0 < port < 65536:
+        raise ValueError(f"--scheduler {address!r} is not a Dask address such as tcp://HOST:PORT")
 
 
 #: Temporary context files are named ``probegrid-context-<pid of the caller>-<random>.pickle``.
@@ -755,6 +804,7 @@ class DaskExecutor:
         if isinstance(scheduler, distributed.Client):
             self._client, self._owns_client = scheduler, False
         elif isinstance(scheduler, str) and scheduler.strip():
+            _check_scheduler_address(scheduler.strip())
             try:
                 self._client = distributed.Client(
                     scheduler.strip(), timeout=timeout, set_as_default=False

@@ -33,13 +33,25 @@ An interrupted or failed run leaves either the old file or the complete new one,
 file; :func:`write_cube` writes all its files before renaming any of them. Formats:
 
 * ``.exr``: half (default) or float32, ZIP compression; carries string metadata.
-* ``.tif`` / ``.tiff``: half or float32 (no metadata).
+* ``.tif`` / ``.tiff``: float32 (no metadata). OpenImageIO's TIFF writer stores half data as
+  float32 (few TIFF readers handle 16-bit float), so ``half`` does not apply.
 * ``.hdr``: Radiance RGBE (8-bit shared exponent: ~1 % precision relative to the pixel's
   largest channel; negative and non-finite values become 0).
 * ``.pfm``: float32.
 * ``.png``: 8-bit sRGB-encoded (the OETF inverse to the EOTF above, values clipped to
   ``[0, 1]``, NaN -> 0), for previews of display-referred data. Use
   :func:`tonemap_preview` / :func:`write_preview_png` for HDR previews.
+
+``half=True`` (the default of the writers) is a *preference*: only ``.exr`` stores half, and
+every other format ignores the flag and writes its single pixel type above. An EXR with a
+finite value beyond the largest half, ``|x| > 65504`` (a real sun easily is), would hold
+``inf`` there, so such an image is written as float32 instead: lossless for those values,
+no clamp, no change of energy. (NaN and +-inf are kept as they are in either type.) The
+pixel type actually stored is reported: :func:`write_cube` returns a :class:`WrittenFiles`
+list with a ``pixel_type`` attribute (one type for all files of a cube: if any face needs
+float32, all six are float32, so a cube has one pixel type), and :func:`stored_pixel_type`
+reads it back from any written file's header. The names are :data:`PIXEL_TYPES`:
+``"half"``, ``"float"`` (32-bit), ``"rgbe"`` (``.hdr``) and ``"uint8"`` (``.png``).
 
 Face files of :func:`write_cube` are named ``<stem>_px``, ``_nx``, ``_py``, ``_ny``, ``_pz``,
 ``_nz`` plus the extension (:data:`FACE_SUFFIXES`); other layouts write ``<stem>.<ext>``.
@@ -82,11 +94,15 @@ from probegrid.layouts import (
 
 __all__ = [
     "FACE_SUFFIXES",
+    "HALF_MAX",
+    "PIXEL_TYPES",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
     "CubeFormat",
     "CubeLayout",
     "ImageError",
+    "PixelType",
+    "WrittenFiles",
     "clamp_radiance",
     "count_nonfinite",
     "cube_exposure",
@@ -95,6 +111,7 @@ __all__ = [
     "read_image",
     "read_metadata",
     "srgb_to_linear",
+    "stored_pixel_type",
     "tonemap_preview",
     "write_cube",
     "write_image",
@@ -117,6 +134,11 @@ FACE_SUFFIXES: Final[tuple[str, ...]] = ("_px", "_nx", "_py", "_ny", "_pz", "_nz
 
 CubeLayout = Literal["faces", "hcross", "vcross", "equirect"]
 CubeFormat = Literal["exr", "hdr"]
+PixelType = Literal["half", "float", "rgbe", "uint8"]
+#: Pixel types a written file can have (see "Writing" above).
+PIXEL_TYPES: Final[tuple[str, ...]] = get_args(PixelType)
+#: The largest finite half float, 65504 = (2 - 2**-10) * 2**15.
+HALF_MAX: Final[float] = float(np.finfo(np.float16).max)
 _CUBE_LAYOUTS: Final[tuple[str, ...]] = get_args(CubeLayout)
 _CUBE_FORMATS: Final[tuple[str, ...]] = get_args(CubeFormat)
 
@@ -359,7 +381,7 @@ def _read_checked(p: Path, clamp: float | None) -> NDArray[np.float32]:
     if bad:
         raise ImageError(
             f"{p}: {bad} non-finite pixel{'s' if bad != 1 else ''} (NaN or infinite); "
-            "give a clamp to replace them."
+            "repair the image (probegrid filter's --clamp replaces them)."
         )
     return image
 
@@ -368,8 +390,35 @@ def _read_checked(p: Path, clamp: float | None) -> NDArray[np.float32]:
 # Writing
 
 
-def _prepare(p: Path, image: ArrayLike, half: bool) -> tuple[NDArray, str]:
-    """Array and OpenImageIO pixel type to write ``image`` to ``p``."""
+class WrittenFiles(list[Path]):
+    """The paths :func:`write_cube` wrote, in order, and the pixel type they were stored in.
+
+    A ``list`` of :class:`~pathlib.Path` (so existing code indexing or iterating it works)
+    with one more attribute, ``pixel_type`` (one of :data:`PIXEL_TYPES`).
+    """
+
+    pixel_type: PixelType
+
+    def __init__(self, paths: Sequence[Path], pixel_type: PixelType) -> None:
+        super().__init__(paths)
+        self.pixel_type = pixel_type
+
+    def __repr__(self) -> str:
+        return f"WrittenFiles({list(self)!r}, pixel_type={self.pixel_type!r})"
+
+
+def _exceeds_half(a: NDArray[np.float32]) -> bool:
+    """Whether a finite value of ``a`` has a magnitude above :data:`HALF_MAX` (-> inf in half)."""
+    big = np.abs(a) > HALF_MAX  # NaN compares False
+    return bool(np.any(big & np.isfinite(a)))
+
+
+def _prepare(p: Path, image: ArrayLike, half: bool) -> tuple[NDArray, PixelType]:
+    """Array and pixel type to write ``image`` to ``p``.
+
+    ``half`` is honoured by ``.exr`` only, and there only if no finite value exceeds
+    :data:`HALF_MAX` in magnitude; otherwise the file is float32.
+    """
     ext = p.suffix.lower()
     if ext not in WRITE_EXTENSIONS:
         raise ImageError(
@@ -388,14 +437,15 @@ def _prepare(p: Path, image: ArrayLike, half: bool) -> tuple[NDArray, str]:
         enc = np.rint(linear_to_srgb(a) * 255.0).astype(np.uint8)
         return enc, "uint8"
     a = np.ascontiguousarray(a, dtype=np.float32)
-    if ext == ".hdr" and a.shape[2] == 1:
-        a = np.repeat(a, 3, axis=-1)
-    if ext in (".exr", ".tif", ".tiff") and half:
+    if ext == ".hdr":
+        return (np.repeat(a, 3, axis=-1) if a.shape[2] == 1 else a), "rgbe"
+    if ext == ".exr" and half and not _exceeds_half(a):
         return a, "half"
     return a, "float"
 
 
-def _write_tmp(p: Path, data: NDArray, pixel_type: str, metadata: Mapping[str, str]) -> Path:
+def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
+               metadata: Mapping[str, str]) -> Path:
     """Write ``data`` to a temporary sibling of ``p`` and flush it; return the temporary path."""
     directory = p.parent
     if not directory.is_dir():
@@ -408,7 +458,8 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: str, metadata: Mapping[str, s
         if out is None:
             raise ImageError(f"{p}: cannot create a writer ({_one_line(oiio.geterror())}).")
         h, w, c = data.shape
-        spec = oiio.ImageSpec(w, h, c, pixel_type)
+        # OpenImageIO's Radiance writer takes float data and encodes RGBE itself
+        spec = oiio.ImageSpec(w, h, c, "float" if pixel_type == "rgbe" else pixel_type)
         ext = p.suffix.lower()
         if ext == ".exr":
             spec.attribute("compression", "zip")
@@ -431,7 +482,8 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: str, metadata: Mapping[str, s
     return tmp
 
 
-def _write_all(items: Sequence[tuple[Path, NDArray, str]], metadata: Mapping[str, str]) -> None:
+def _write_all(items: Sequence[tuple[Path, NDArray, PixelType]],
+               metadata: Mapping[str, str]) -> None:
     """Write every item to a temporary file, then rename them all into place."""
     tmps: list[Path] = []
     try:
@@ -478,7 +530,10 @@ def write_image(
     image : (H, W), (H, W, 1) or (H, W, 3) float
         Linear values (a ``uint8`` array for ``.png`` is written as is: already encoded).
     half : bool
-        Half-float EXR / TIFF (default) instead of float32; ignored by other formats.
+        Prefer half-float EXR (default) to float32. Only ``.exr`` stores half: ``.tif``,
+        ``.tiff`` and ``.pfm`` are always float32, ``.hdr`` RGBE and ``.png`` 8-bit, whatever
+        ``half`` says. An EXR with a finite ``|value| > 65504`` (:data:`HALF_MAX`, beyond
+        which half overflows to inf) is written as float32 instead.
     metadata : mapping of str to str, optional
         String attributes stored in an EXR header (other formats have no place for them and
         ignore them).
@@ -486,7 +541,7 @@ def write_image(
     Returns
     -------
     Path
-        The written file.
+        The written file; :func:`stored_pixel_type` tells the pixel type it got.
     """
     p = Path(path)
     data, pixel_type = _prepare(p, image, half)
@@ -502,7 +557,7 @@ def write_cube(
     fmt: CubeFormat = "exr",
     half: bool = True,
     metadata: Mapping[str, str] | None = None,
-) -> list[Path]:
+) -> WrittenFiles:
     """Write a cube map atomically as six face files, a cross or an equirect image.
 
     Parameters
@@ -515,14 +570,18 @@ def write_cube(
         Equirect images have :func:`probegrid.layouts.from_cube`'s default size ``4n x 2n``.
     fmt : {"exr", "hdr"}
     half : bool
-        Half-float EXR (default) or float32.
+        Prefer half-float EXR (default) to float32; ignored for ``"hdr"`` (always RGBE). If a
+        finite texel of any face exceeds 65504 (:data:`HALF_MAX`) in magnitude, every file of
+        the cube is written as float32 instead, so the maps never hold inf for a bright sun.
     metadata : mapping of str to str, optional
         EXR header attributes (ignored for ``"hdr"``).
 
     Returns
     -------
-    list of Path
-        The written files (six, in face order, for ``"faces"``).
+    WrittenFiles
+        The written files (six, in face order, for ``"faces"``), a list of Path whose
+        ``pixel_type`` is the type they were stored in: ``"half"`` or ``"float"`` for EXR,
+        ``"rgbe"`` for ``"hdr"``.
     """
     if layout not in _CUBE_LAYOUTS:
         raise ValueError(
@@ -543,8 +602,43 @@ def write_cube(
     else:
         images = [(Path(f"{stem}.{fmt}"), from_cube(a, layout))]
     items = [(p, *_prepare(p, im, half)) for p, im in images]
+    types = {t for _, _, t in items}
+    if types == {"half", "float"}:  # some face overflows half: one pixel type per cube
+        items = [(p, data, "float") for p, data, _ in items]
     _write_all(items, _check_metadata(metadata))
-    return [p for p, _ in images]
+    return WrittenFiles([p for p, _ in images], items[0][2])
+
+
+def stored_pixel_type(path: str | os.PathLike[str]) -> PixelType:
+    """The pixel type an image file is stored in, read from its header.
+
+    Returns
+    -------
+    {"half", "float", "rgbe", "uint8"}
+        ``"rgbe"`` for a Radiance ``.hdr``; ``"float"`` for 32-bit float (EXR, TIFF, PFM).
+
+    Raises
+    ------
+    ImageError
+        A missing or unreadable file, or one whose pixel type is none of the four (e.g. a
+        16-bit integer PNG).
+    """
+    p = _check_readable(path)
+    inp = _open(p)
+    try:
+        fmt = inp.spec().format
+        if inp.format_name() == "hdr":
+            return "rgbe"
+    finally:
+        inp.close()
+    # TypeDesc comparison: the bindings' BASETYPE.UINT8 and .UCHAR are unequal aliases
+    if fmt == oiio.TypeHalf:
+        return "half"
+    if fmt == oiio.TypeFloat:
+        return "float"
+    if fmt == oiio.TypeUInt8:
+        return "uint8"
+    raise ImageError(f"{p}: pixel type {fmt} is none of {', '.join(PIXEL_TYPES)}.")
 
 
 # --------------------------------------------------------------------------------------------

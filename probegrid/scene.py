@@ -53,8 +53,11 @@ import hashlib
 import io
 import json
 import math
+import signal
 import struct
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -828,6 +831,28 @@ def _uri_bytes(uri: str, base: Path, what: str) -> bytes:
     return target.read_bytes()
 
 
+def _check_nodes(header: dict, name: str) -> None:
+    """The node hierarchy must be a forest (glTF 2.0, 3.5.3): valid child indices, at most one
+    parent per node, no cycles."""
+    nodes = header.get("nodes", [])
+    parent: dict[int, int] = {}
+    for i, node in enumerate(nodes):
+        for c in node.get("children", []):
+            if not isinstance(c, int) or not 0 <= c < len(nodes):
+                raise SceneError(f"{name}: node {i} has a child {c!r} that is not a node index.")
+            if c in parent or c == i:
+                raise SceneError(f"{name}: node {c} has more than one parent or is its own child "
+                                 "(the node hierarchy must be a tree).")
+            parent[c] = i
+    for start in range(len(nodes)):  # walk up from every node: a cycle never reaches a root
+        seen, n = set(), start
+        while n in parent:
+            if n in seen:
+                raise SceneError(f"{name}: the node hierarchy has a cycle through node {n}.")
+            seen.add(n)
+            n = parent[n]
+
+
 def _check_buffers(header: dict, binary: bytes | None, base: Path, name: str) -> None:
     """Every buffer exists and holds its declared byteLength (catches truncated files)."""
     for i, buf in enumerate(header.get("buffers", [])):
@@ -1056,6 +1081,19 @@ def load_gltf(path: str | Path) -> Scene:
     if not p.is_file():
         raise SceneError(f"scene file not found: {p}")
     data = p.read_bytes()
+    try:
+        return _load_gltf_data(p, data)
+    except SceneError:
+        raise
+    except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
+        # JSON of the wrong shape ("asset": "2.0", "materials": [5], a node cycle, ...)
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SceneError(f"{label} is not a well-formed glTF 2.0 scene ({msg}).") from None
+
+
+def _load_gltf_data(p: Path, data: bytes) -> Scene:
+    """:func:`load_gltf` of the file's bytes (its errors of malformed JSON not yet caught)."""
+    label, suffix = p.name, p.suffix.lower()
     if suffix == ".glb":
         header, binary = _parse_glb(data, label)
     else:
@@ -1073,6 +1111,7 @@ def load_gltf(path: str | Path) -> Scene:
     if unsupported:
         raise SceneError(f"{label} requires unsupported glTF extensions: {', '.join(unsupported)}.")
     _check_buffers(header, binary, p.parent, label)
+    _check_nodes(header, label)
     for i, img in enumerate(header.get("images", [])):
         if "uri" in img and not str(img["uri"]).startswith("data:"):
             _uri_bytes(img["uri"], p.parent, f"{label}: image {i} ({img['uri']})")
@@ -1151,10 +1190,16 @@ def load_gltf(path: str | Path) -> Scene:
 
 
 def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str):
-    """trimesh.Scene of a (re-encoded) glTF; any trimesh failure becomes a SceneError."""
+    """trimesh.Scene of a (re-encoded) glTF; any trimesh failure becomes a SceneError.
+
+    trimesh's loader catches ``BaseException`` around format handlers, which would swallow a
+    Ctrl-C (or the CLI's SIGTERM, turned into KeyboardInterrupt) arriving during the load; in
+    the main thread, SIGINT and SIGTERM are held during the call and delivered to their own
+    handlers right after it (loading takes a fraction of a second).
+    """
     import trimesh
 
-    try:
+    def load():
         if binary is not None or path.suffix.lower() == ".glb":
             return trimesh.load_scene(
                 io.BytesIO(_build_glb(header, binary)), file_type="glb", process=False
@@ -1166,8 +1211,34 @@ def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str):
             resolver=resolver,
             process=False,
         )
+
+    try:
+        with _signals_held():
+            return load()
     except SceneError:
         raise
     except Exception as exc:  # noqa: BLE001 -- trimesh raises arbitrary types on bad accessors
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise SceneError(f"{label} could not be read by trimesh: {msg}") from None
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM for the duration, then deliver those that arrived to the
+    handlers in place before (main thread only; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.getsignal(sig) for sig in sigs}
+    for sig in sigs:
+        signal.signal(sig, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for sig in sigs:
+            handler = previous[sig]
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        for sig in dict.fromkeys(held):
+            signal.raise_signal(sig)

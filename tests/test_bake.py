@@ -296,6 +296,66 @@ def test_sigterm_stops_a_bake_cleanly(tmp_path):
         open_store(out)
 
 
+def test_resume_after_a_kill_inside_finish_keeps_the_quality_figures(tmp_path):
+    """A bake killed after its manifest was written (inside ``finish``) resumes with every
+    probe done: the quality figures are recomputed from the stored arrays (the energy ratio
+    from the stored diffuse maps and SH), not lost."""
+    import shutil
+
+    from probegrid.store import partial_path
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 1, 2))
+    st = BakeSettings(bounces=1, **FAST)
+    first = bake(_room_scene(), grid, tmp_path / "a.probes", settings=st)
+    shutil.copytree(tmp_path / "a.probes", partial_path(tmp_path / "b.probes"))
+    again = bake(_room_scene(), grid, tmp_path / "b.probes", settings=st)
+    assert again.resumed_probes == grid.n_probes
+    for key in ("energy_max_error", "seam_score_mean", "sh_min_irradiance_over_pi"):
+        assert again.quality[key] == pytest.approx(first.quality[key], rel=1e-4, abs=1e-7), key
+    assert "energy" in again.summary()
+
+
+class _StopInFinalStage(InlineExecutor):
+    """Runs the bake in this process and raises KeyboardInterrupt after the first batch of the
+    final stage (the third map of a one-bounce bake), as a Ctrl-C would."""
+
+    def __init__(self) -> None:
+        super().__init__(check_pickle=False)
+        self.maps = 0
+
+    def map(self, fn, context, batches, *, progress=None):
+        self.maps += 1
+        for k, item in enumerate(super().map(fn, context, batches, progress=progress)):
+            yield item
+            if self.maps == 3 and k == 0:
+                raise KeyboardInterrupt
+
+
+def test_an_interrupted_overwrite_bake_resumes_and_a_running_bake_is_never_deleted(tmp_path):
+    from probegrid.bake import _bake_lock, _work_dir
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 1, 2))
+    st = BakeSettings(bounces=1, **{**FAST, "batch_size": 2})
+    out = tmp_path / "room.probes"
+    bake(_room_scene(), grid, out, settings=st)
+    with pytest.raises(KeyboardInterrupt):
+        bake(_room_scene(), grid, out, settings=st, overwrite=True, executor=_StopInFinalStage())
+    again = bake(_room_scene(), grid, out, settings=st, overwrite=True)
+    assert again.resumed_probes == 2  # the batch stored before the interrupt
+    fresh = bake(_room_scene(), grid, tmp_path / "fresh.probes", settings=st)
+    a, b = _arrays(again.store), _arrays(fresh.store)
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+    # another bake of the store holds its lock: an --overwrite bake is refused, deletes nothing
+    work = _work_dir(tmp_path / "busy.probes")
+    work.mkdir()
+    (work / "theirs").write_text("in use")
+    with (_bake_lock(work, tmp_path / "busy.probes"),
+          pytest.raises(StoreError, match="another process is baking")):
+        bake(_room_scene(), grid, tmp_path / "busy.probes", settings=st, overwrite=True)
+    assert (work / "theirs").read_text() == "in use"
+
+
 def test_environment_rotation_rotates_the_probes(tmp_path):
     from probegrid.sh import rotate_y
 

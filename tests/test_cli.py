@@ -173,6 +173,16 @@ def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path):
     r = subprocess.run([sys.executable, "-m", "probegrid.cli", "serve", tmp_path / "x.probes"],
                        check=False, capture_output=True, text=True, timeout=600, env=env)
     assert "PROBEGRID_MAX_BATCH" in _one_error_line(r) and "serving" not in r.stdout
+    import socket
+
+    store = tmp_path / "s.probes"
+    assert run_cli("bake", REPO / "data" / "sample_room.glb", "--out", store, "--grid", "2x1x2",
+                   "--face-size", "8", "--bounces", "0", "--workers", "1").returncode == 0
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        r = run_cli("serve", store, "--port", str(busy.getsockname()[1]))
+    assert "cannot listen on 127.0.0.1" in _one_error_line(r) and "serving" not in r.stdout
 
 
 def test_bad_scenes_give_one_line_errors(tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import socket
 import tempfile
+import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -267,8 +268,11 @@ def test_dask_unreachable_scheduler_is_one_line():
     with pytest.raises(ex.ExecutorError) as info:
         ex.DaskExecutor(address, timeout=1)
     assert "\n" not in str(info.value) and address in str(info.value)
-    with pytest.raises(ex.ExecutorError, match="cannot connect"):
-        ex.DaskExecutor("nosuchscheme://127.0.0.1:1", timeout=1)
+    for bad in ("nosuchscheme://127.0.0.1:1", "garbage", "tcp://:1", "tcp://host"):
+        t = time.perf_counter()
+        with pytest.raises(ValueError, match="is not a Dask address"):
+            ex.DaskExecutor(bad, timeout=1)
+        assert time.perf_counter() - t < 1.0  # refused before any connection attempt
     with pytest.raises(ValueError, match="scheduler must be"):
         ex.DaskExecutor("", timeout=1)
 
@@ -359,3 +363,52 @@ def subprocess_pid_that_exited() -> int:
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
     proc.wait()
     return proc.pid
+
+
+_ORPHAN_SCRIPT = """
+import os, sys, time
+from probegrid import executors as ex
+
+class Ctx:
+    def setup(self):
+        return None
+
+def task(state, batch):
+    time.sleep(0.5)
+    return os.getpid()
+
+if __name__ == "__main__":
+    with ex.LocalExecutor(2) as pool:
+        for _, pid in pool.map(task, Ctx(), ex.make_batches(400, batch_size=1)):
+            print(pid, flush=True)
+"""
+
+
+def test_workers_exit_when_their_caller_is_killed(tmp_path):
+    """SIGKILL of the process that owns a LocalExecutor leaves no worker running (they watch it)."""
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "orphans.py"
+    script.write_text(_ORPHAN_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).resolve().parents[1])
+    workers: set[int] = set()
+    while len(workers) < 2:  # both workers have run a task
+        line = proc.stdout.readline()
+        assert line, "the script ended early"
+        workers.add(int(line))
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+    deadline = time.time() + 10
+    alive = set(workers)
+    while alive and time.time() < deadline:
+        for pid in list(alive):
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                alive.discard(pid)
+        time.sleep(0.1)
+    assert not alive, f"workers {alive} outlived their caller"

@@ -181,3 +181,23 @@ def test_parse_helpers():
             parse_spacing(bad)
     lo, hi = parse_bounds("0,0,0,4,2,2")
     assert GridSpec.from_counts(lo, hi, parse_grid("5x3x3")).spacing.tolist() == [1.0, 1.0, 1.0]
+
+
+def test_cli_grid_options_honour_spacing_and_refuse_huge_grids():
+    """bakejob.grid_for: --spacing gives exactly that spacing (probes half a spacing in from the
+    scene bounds), and a grid over the probe limit is refused before any integer overflows."""
+    from probegrid.bakejob import MAX_PROBES, grid_for
+    from probegrid.scene import box_scene
+
+    scene = box_scene((-2, 0, -2), (2, 3, 2), albedo=0.5, emission=0.0, inward=True)
+    for spacing, counts in (("1.5", (2, 2, 2)), ("0.7", (5, 4, 5)), ("0.5,1,0.5", (8, 3, 8))):
+        g = grid_for(scene, spacing=spacing)
+        step = [float(x) for x in spacing.split(",")] * (3 if "," not in spacing else 1)
+        assert g.counts == counts
+        np.testing.assert_allclose(g.spacing, step, rtol=1e-12)
+        np.testing.assert_array_less(np.array(scene.bounds[0]) + np.array(step) / 2 - 1e-9,
+                                     g.bounds_min)
+    for kwargs in ({"spacing": "1e-300"}, {"spacing": "1e-6"},
+                   {"grid": "4294967296x4294967296x1"}, {"grid": "1000x1000x11"}):
+        with pytest.raises(ValueError, match=f"too large \\(at most {MAX_PROBES:,}\\)"):
+            grid_for(scene, **kwargs)

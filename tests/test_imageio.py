@@ -142,6 +142,74 @@ def test_write_cube_and_read_environment_round_trip(tmp_path, layout, fmt):
     assert sorted(os.listdir(tmp_path)) == sorted(p.name for p in paths)  # no temporaries
 
 
+def _oiio_read(path):
+    """Pixels and stored pixel type of a file, straight from OpenImageIO (no probegrid code)."""
+    inp = oiio.ImageInput.open(str(path))
+    assert inp is not None
+    try:
+        return inp.read_image(0, 0, 0, inp.spec().nchannels, oiio.FLOAT), inp.spec().format
+    finally:
+        inp.close()
+
+
+def test_exr_beyond_half_range_falls_back_to_float32(tmp_path):
+    # 65504 is the largest half; 65520 and up round to inf in half. Values of a real sun.
+    img = np.full((4, 5), 0.25, np.float32)
+    img[1, 2], img[3, 4], img[0, 0] = 1e5, -7.0e4, 65504.0
+    with np.errstate(over="ignore"):
+        assert np.isinf(img.astype(np.float16)).sum() == 2  # what half would have stored
+    p = io.write_image(tmp_path / "sun.exr", img, half=True)
+    data, fmt = _oiio_read(p)
+    assert fmt == oiio.FLOAT and io.stored_pixel_type(p) == "float"
+    assert np.isfinite(data).all()
+    np.testing.assert_array_equal(data[..., 0], img)  # exact, not clamped
+
+
+def test_exr_within_half_range_stays_half(tmp_path):
+    img = np.full((4, 5, 3), 1.5, np.float32)
+    img[0, 0] = [65504.0, -65504.0, 6e-5]
+    img[1, 1] = [np.inf, np.nan, 0.0]  # non-finite values are no reason for float32
+    p = io.write_image(tmp_path / "ok.exr", img, half=True)
+    data, fmt = _oiio_read(p)
+    assert fmt == oiio.HALF and io.stored_pixel_type(p) == "half"
+    np.testing.assert_array_equal(data, img.astype(np.float16).astype(np.float32))
+    q = io.write_image(tmp_path / "f.exr", img, half=False)
+    assert io.stored_pixel_type(q) == "float"
+
+
+def test_cube_beyond_half_range_is_float32_in_every_face(tmp_path):
+    cube = np.full((6, 4, 4, 3), 2.0, np.float32)
+    cube[4, 1:3, 1:3] = [1e5, 8e4, 3e4]  # a sun on +Z only
+    paths = io.write_cube(tmp_path / "spec", cube, half=True)
+    assert isinstance(paths, list) and len(paths) == 6 and paths.pixel_type == "float"
+    for f, path in enumerate(paths):
+        data, fmt = _oiio_read(path)
+        assert fmt == oiio.FLOAT  # one pixel type per cube, not just the +Z face
+        np.testing.assert_array_equal(data, cube[f])
+    assert io.read_environment(paths).max() == np.float32(1e5)
+    for layout in ("hcross", "equirect"):
+        (q,) = written = io.write_cube(tmp_path / layout, cube, layout=layout, half=True)
+        assert written.pixel_type == "float" and _oiio_read(q)[1] == oiio.FLOAT
+        data, _ = _oiio_read(q)
+        assert np.isfinite(data).all() and data.max() > io.HALF_MAX
+    dim = io.write_cube(tmp_path / "dim", cube / 2, half=True)
+    assert dim.pixel_type == "half" and all(_oiio_read(q)[1] == oiio.HALF for q in dim)
+    assert io.write_cube(tmp_path / "f", cube / 2, half=False).pixel_type == "float"
+
+
+@pytest.mark.parametrize("name, expected", [("a.hdr", "rgbe"), ("a.pfm", "float"),
+                                            ("a.tif", "float"), ("a.png", "uint8")])
+def test_half_is_ignored_by_formats_without_half(tmp_path, name, expected):
+    img = np.full((3, 4, 3), 0.5, np.float32)
+    img[0, 0] = 1e5 if expected != "uint8" else 1.0
+    p = io.write_image(tmp_path / name, img, half=True)
+    assert io.stored_pixel_type(p) == expected
+    back = io.read_image(p)
+    tol = {"rgbe": 0.01, "float": 0.0, "uint8": 0.5 / 255}[expected]
+    np.testing.assert_allclose(back, img, rtol=tol, atol=tol if expected == "uint8" else 0)
+    assert io.write_cube(tmp_path / "c", np.ones((6, 2, 2, 3)), fmt="hdr").pixel_type == "rgbe"
+
+
 # ---------------------------------------------------------------- errors
 
 

@@ -500,3 +500,41 @@ def test_content_hash_sensitivity() -> None:
 
 
 PINNED_BOX_HASH = "389ee4edf3cfd84b324afc288ed70f11f2c2981e6ec5454ea87bae77e53c8b2a"
+
+
+@pytest.mark.parametrize("change", [
+    {"asset": "2.0"}, {"buffers": "x"}, {"materials": [5]}, {"extensionsRequired": 5},
+    {"nodes": [{"mesh": 0, "children": [1]}, {"children": [0]}]},  # a cycle
+])
+def test_json_of_the_wrong_shape_is_a_scene_error(tmp_path: Path, change: dict) -> None:
+    path = _write_gltf(tmp_path)
+    header = json.loads(path.read_text())
+    header.update(change)
+    path.write_text(json.dumps(header))
+    with pytest.raises(SceneError) as e:
+        load_gltf(path)
+    assert path.name in _one_line_error(e)
+
+
+def test_an_interrupt_during_trimesh_loading_is_not_swallowed(tmp_path: Path, monkeypatch,
+                                                              shared_data: Path) -> None:
+    """trimesh's loaders catch BaseException: a Ctrl-C that lands inside them must still stop
+    the program once loading returns."""
+    import os
+    import signal
+
+    import trimesh
+
+    real = trimesh.load_scene
+
+    def interrupted_load(*args, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C, in the middle of trimesh's work
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)  # run the handler now
+        except BaseException:  # noqa: BLE001, S110 -- what trimesh does
+            pass
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trimesh, "load_scene", interrupted_load)
+    with pytest.raises(KeyboardInterrupt):
+        load_gltf(shared_data / "gltf" / "Cubes.glb")
