@@ -63,6 +63,7 @@ from probegrid.store import (
     ProbeStore,
     StoreError,
     StoreWriter,
+    create_npy,
     open_store,
     partial_path,
 )
@@ -173,13 +174,12 @@ def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArr
     coefficients and bordered distance moments, computed a chunk of probes at a time (the
     inputs may be memory maps), so that workers can memory-map the whole field."""
     directory.mkdir(parents=True, exist_ok=True)
-    coeffs = np.lib.format.open_memmap(directory / "coeffs.npy", mode="w+", dtype=np.float64,
-                                       shape=sh_l.shape)
+    # (create_npy reserves the disk blocks: a full disk is an OSError here, not a SIGBUS later)
+    coeffs = create_npy(directory / "coeffs.npy", np.float64, sh_l.shape)
     probe_irradiance_coefficients(sh_l, out=coeffs)
     coeffs.flush()
     p, _, m, _, c = moments.shape
-    bordered = np.lib.format.open_memmap(directory / "moments_bordered.npy", mode="w+",
-                                         dtype=np.float32, shape=(p, 6, m + 2, m + 2, c))
+    bordered = create_npy(directory / "moments_bordered.npy", np.float32, (p, 6, m + 2, m + 2, c))
     bordered_cubes(moments, out=bordered)
     bordered.flush()
     del coeffs, bordered

@@ -15,6 +15,12 @@ then applies the seam export mode to every map and level and writes the maps, ``
 LUT, PNG previews and, last, ``manifest.json``. Every image file is written atomically and the
 manifest of an earlier run in the same directory is removed first, so an interrupted run never
 leaves a manifest: a directory with a manifest holds a finished job.
+
+The output directory must be new, or hold an earlier output of the same kind (its
+``manifest.json`` has the same ``format``): :func:`prepare_output_dir` refuses a probe grid store
+(``NAME.probes``, or any directory whose manifest is a store's), an unfinished bake, and a
+directory whose ``manifest.json`` belongs to another kind of output or cannot be read, before
+anything is computed or written. ``probegrid export`` (:mod:`probegrid.export`) uses it too.
 """
 
 from __future__ import annotations
@@ -35,7 +41,22 @@ from probegrid import __version__
 from probegrid.conventions import conventions
 from probegrid.cubemap import mip_sizes, solid_angle_integral
 
-__all__ = ["FilterResult", "FilterSettings", "energy_ratio", "run_filter", "write_json_atomic"]
+__all__ = [
+    "FILTER_FORMAT",
+    "FilterResult",
+    "FilterSettings",
+    "energy_ratio",
+    "prepare_output_dir",
+    "run_filter",
+    "write_json_atomic",
+]
+
+#: ``format`` of the manifest of a filter output directory.
+FILTER_FORMAT = "probegrid.filter"
+#: Names of a grid store and of a bake's working directories (never an output directory).
+_STORE_SUFFIXES = (".probes", ".probes.partial", ".probes.work")
+#: Files only an unfinished bake holds (see probegrid.store).
+_BAKE_STATE_FILES = ("_bake.json", "_done.npy")
 
 Progress = Callable[[str], None]
 
@@ -113,6 +134,64 @@ def write_json_atomic(path: Path, data: Any) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+def _manifest_format(file: Path) -> str | None:
+    """The ``format`` string of a JSON manifest, or None when it has none or cannot be read."""
+    try:
+        doc = json.loads(file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    fmt = doc.get("format") if isinstance(doc, dict) else None
+    return fmt if isinstance(fmt, str) else None
+
+
+def prepare_output_dir(
+    out_dir: str | os.PathLike[str], output_format: str, *, create: bool = True
+) -> Path:
+    """Check that ``out_dir`` may receive an output whose manifest has format ``output_format``;
+    with ``create``, make it and remove an earlier output's manifest (the new one is written
+    last, so an interrupted run leaves none).
+
+    The directory may be new or hold an earlier output of the same format; anything else that
+    holds a ``manifest.json`` (a probe grid store, another kind of output, an unreadable file),
+    a directory named like a store (``NAME.probes``, ``.probes.partial``, ``.probes.work``) or
+    holding an unfinished bake's state is refused with a ``ValueError`` (one sentence), so that
+    no output ever overwrites a store.
+
+    Returns
+    -------
+    Path
+        ``out_dir`` as a Path.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output directory {out} exists and is not a directory")
+    names = {Path(os.path.abspath(out)).name, out.resolve().name}
+    if any(n.endswith(_STORE_SUFFIXES) for n in names) or any(
+        (out / f).exists() for f in _BAKE_STATE_FILES
+    ):
+        raise ValueError(
+            f"output directory {out} is a probe grid store or bake directory (NAME.probes, "
+            "NAME.probes.partial or NAME.probes.work); refusing to write into it, choose "
+            "another output directory"
+        )
+    manifest = out / "manifest.json"
+    if manifest.exists() or manifest.is_symlink():
+        found = _manifest_format(manifest)
+        if found != output_format:
+            what = ("a probe grid store's" if found == "probegrid.store"
+                    else f"a {found!r} output's" if found
+                    else "an unreadable or unknown")
+            raise ValueError(
+                f"output directory {out} holds {what} manifest.json, not an earlier "
+                f"{output_format!r} output; refusing to overwrite it, choose another output "
+                "directory"
+            )
+    if create:
+        out.mkdir(parents=True, exist_ok=True)
+        manifest.unlink(missing_ok=True)  # an interrupted run must not leave an old manifest
+    return out
 
 
 def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
@@ -193,7 +272,7 @@ def run_filter(
     settings = settings or FilterSettings()
     say: Progress = progress or (lambda _m: None)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
-    out = Path(out_dir)
+    out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -256,16 +335,13 @@ def run_filter(
     }
 
     # --- write ----------------------------------------------------------------------------
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_output_dir(out, FILTER_FORMAT)  # checked again: it may have changed meanwhile
     manifest_path = out / "manifest.json"
-    if manifest_path.exists():
-        manifest_path.unlink()  # an interrupted run must not leave an old manifest behind
     t = time.perf_counter()
     conv = conventions()
     attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
     files: list[dict[str, Any]] = []
     ext = settings.format
-    dtype = "half" if (settings.half and ext == "exr") else ("rgbe" if ext == "hdr" else "float")
     write_layout = settings.output_layout
     if settings.seam == "border" and write_layout != "faces":
         raise ValueError("seam mode 'border' writes (n+2)^2 faces; use --output-layout faces")
@@ -281,7 +357,7 @@ def run_filter(
             "layout": write_layout,
             "face_size": int(faces.shape[1]),
             "format": ext,
-            "dtype": dtype,
+            "dtype": written.pixel_type,  # half, or float where a value exceeds half's range
             "seam": settings.seam,
             **meta,
         })
@@ -333,7 +409,7 @@ def run_filter(
     timings["total"] = time.perf_counter() - t0
 
     manifest = {
-        "format": "probegrid.filter",
+        "format": FILTER_FORMAT,
         "format_version": 1,
         "probegrid_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

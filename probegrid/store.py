@@ -28,10 +28,16 @@ Atomic, resumable writes
 :class:`StoreWriter` never writes into ``NAME.probes`` itself. A bake works in
 ``NAME.probes.partial/``:
 
-1. ``create`` preallocates every array with ``np.lib.format.open_memmap`` (sparse files), an
-   all-false done mask ``_done.npy (P,) bool``, and last the bake plan ``_bake.json`` (grid,
-   arrays, bake settings, scene hash, conventions), written atomically. A ``.partial`` directory
-   without ``_bake.json`` is an interrupted start and holds nothing worth keeping.
+1. ``create`` preallocates every array with ``np.lib.format.open_memmap``, an all-false done
+   mask ``_done.npy (P,) bool``, and last the bake plan ``_bake.json`` (grid, arrays, bake
+   settings, scene hash, conventions), written atomically. A ``.partial`` directory without
+   ``_bake.json`` is an interrupted start and holds nothing worth keeping (a failed ``create``
+   removes it). ``open_memmap`` makes *sparse* files, whose blocks the file system only allocates
+   when a page of the map is first written; on a full disk that write cannot fail with an error
+   code and the kernel kills the process with ``SIGBUS``. So every array file's blocks are
+   reserved with ``posix_fallocate`` right after it is created: a full disk raises
+   ``OSError(ENOSPC)`` in ``create``, before any probe is baked. (File systems without
+   ``fallocate`` support, ``EOPNOTSUPP``/``EINVAL``, keep sparse files.)
 2. ``write(indices, values)`` stores a batch into the maps, ``msync``s them, and only *then* sets
    and ``msync``s the batch's entries of the done mask, so a probe marked done always has its data
    on disk, whenever the process dies. (``durable=False`` skips the ``msync``s: stores to shared
@@ -56,6 +62,7 @@ All failures of the store raise :class:`StoreError` with a one-line message.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import math
@@ -87,6 +94,7 @@ __all__ = [
     "StoreError",
     "StoreManifest",
     "StoreWriter",
+    "create_npy",
     "open_store",
     "partial_path",
     "partial_progress",
@@ -532,6 +540,63 @@ def open_store(path: str | os.PathLike[str]) -> ProbeStore:
 
 
 # ---------------------------------------------------------------------------- writing
+#: ``posix_fallocate`` errors meaning "this file system cannot reserve blocks" (keep it sparse).
+_NO_FALLOCATE: Final = frozenset({errno.EOPNOTSUPP, errno.ENOTSUP, errno.EINVAL, errno.ENOSYS})
+
+
+def _reserve_blocks(file: Path) -> None:
+    """Allocate every block of ``file`` now (``posix_fallocate``), so that writing through a
+    memory map of it can never meet a full disk (which is ``SIGBUS``, not an error code).
+
+    Raises ``OSError`` (``ENOSPC`` on a full disk) with a one-line message; does nothing on file
+    systems that do not support ``fallocate``.
+    """
+    fd = os.open(file, os.O_RDWR)
+    size = 0
+    try:
+        size = os.fstat(fd).st_size
+        if size:
+            os.posix_fallocate(fd, 0, size)
+    except OSError as exc:
+        if exc.errno in _NO_FALLOCATE:
+            return
+        raise OSError(
+            exc.errno, f"cannot reserve {_size_text(size)} on disk for {file}: {exc.strerror}"
+        ) from None
+    finally:
+        os.close(fd)
+
+
+def _size_text(nbytes: int) -> str:
+    return f"{nbytes} bytes" if nbytes < 2**20 else f"{nbytes / 2**20:.1f} MiB"
+
+
+def create_npy(file: str | os.PathLike[str], dtype: DTypeLike, shape: tuple[int, ...]
+               ) -> np.memmap:
+    """A new zero-filled ``.npy`` file, memory-mapped read-write, its disk blocks reserved.
+
+    ``np.lib.format.open_memmap(mode="w+")`` followed by ``posix_fallocate`` over the whole file
+    and an ``fsync``: a full disk raises ``OSError(ENOSPC)`` here instead of killing the process
+    with ``SIGBUS`` when a page of the map is first written (see the module docstring). Use it
+    for every memory-mapped array a bake writes.
+
+    Parameters
+    ----------
+    file : path of the new file (replaced if it exists)
+    dtype : numpy dtype
+    shape : tuple of int
+    """
+    file = Path(file)
+    mm = np.lib.format.open_memmap(file, mode="w+", dtype=np.dtype(dtype), shape=shape)
+    try:
+        _reserve_blocks(file)
+        _fsync_file(file)
+    except BaseException:
+        del mm
+        raise
+    return mm
+
+
 def _lock_dir(directory: Path) -> int:
     """An exclusive, non-blocking ``flock`` on a directory; the fd holds it until closed."""
     fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
@@ -714,18 +779,17 @@ class StoreWriter:
                 os.close(fd)
         partial.mkdir(parents=True)
         with _locked_setup(partial) as fd:
-            maps = {}
-            for name, info in plan.arrays.items():
-                file = partial / info.file
-                maps[name] = np.lib.format.open_memmap(
-                    file, mode="w+", dtype=np.dtype(info.dtype), shape=info.shape
-                )
-                _fsync_file(file)
-            done = np.lib.format.open_memmap(
-                partial / DONE_FILE, mode="w+", dtype=np.bool_, shape=(grid.n_probes,)
-            )
-            _fsync_file(partial / DONE_FILE)
-            _atomic_write_text(partial / PLAN_FILE, plan.model_dump_json(indent=2))
+            maps: dict[str, np.memmap] = {}
+            try:
+                for name, info in plan.arrays.items():
+                    maps[name] = create_npy(partial / info.file, info.dtype, info.shape)
+                done = create_npy(partial / DONE_FILE, "|b1", (grid.n_probes,))
+                _atomic_write_text(partial / PLAN_FILE, plan.model_dump_json(indent=2))
+            except BaseException:
+                # nothing here is worth keeping (no plan yet); give the reserved space back
+                maps.clear()
+                shutil.rmtree(partial, ignore_errors=True)
+                raise
         return cls(
             final=final,
             plan=plan,
@@ -785,6 +849,7 @@ class StoreWriter:
             if manifest is None:
                 for name, info in stored.arrays.items():
                     _check_array_file(partial, name, info)
+                    _reserve_blocks(partial / info.file)  # e.g. a bake started by an old version
                     maps[name] = np.load(partial / info.file, mmap_mode="r+")
                 done_info = ArrayInfo(file=DONE_FILE, dtype="|b1", shape=(grid.n_probes,))
                 _check_array_file(partial, "done mask", done_info)
