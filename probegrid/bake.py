@@ -538,7 +538,9 @@ def bake(
     scene_hash = hashlib.sha256(
         (scene.content_hash() + environment_hash(env)).encode()
     ).hexdigest()
-    plan = {"settings": st.model_dump(), "environment": env.describe(),
+    # (the batch size is left out: it changes no bit of the result, so a bake may resume with
+    # another one)
+    plan = {"settings": st.model_dump(exclude={"batch_size"}), "environment": env.describe(),
             "render": {"ray_offset": render.ray_offset, "max_distance": render.max_distance,
                        "moments_size": render.moments_size,
                        "environment_lookup_size": env.lookup_size(

@@ -1038,7 +1038,10 @@ class StoreWriter:
         _fsync_dir(self._final.parent)
         self.close()
         if aside is not None:
-            shutil.rmtree(aside, ignore_errors=True)
+            if aside.is_dir() and not aside.is_symlink():
+                shutil.rmtree(aside, ignore_errors=True)
+            else:  # a file (or link) stood where the store goes
+                aside.unlink(missing_ok=True)
         return open_store(self._final)
 
     def close(self) -> None:

@@ -247,6 +247,16 @@ def test_finish_needs_every_probe_and_overwrite(tmp_path):
     np.testing.assert_array_equal(new["sh"], make_values(np.arange(24))["sh"][::-1])
 
 
+def test_overwrite_replaces_a_file_in_the_way_without_leftovers(tmp_path):
+    path = tmp_path / "room.probes"
+    path.write_text("not a store")
+    w = StoreWriter.create(path, **writer_kwargs(), overwrite=True)
+    w.write(np.arange(24), make_values(np.arange(24)))
+    w.finish()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["room.probes"]
+    assert open_store(path).n_probes == 24
+
+
 def test_killed_during_finish_resumes_into_the_rename(tmp_path, monkeypatch):
     from probegrid import store as store_mod
 
