@@ -4,9 +4,12 @@ Stages (each a pass over the whole grid on the executor, each resumable):
 
 1. **classify** -- every probe shoots ``6 x 8^2`` rays; a probe whose rays hit backfaces more
    than ``invalid_threshold`` of the time is inside geometry (the RTXGI classifier's test, 25 %
-   by default). With ``relocate``, an invalid probe is moved to the nearest point of a small
-   lattice within ``relocate_fraction`` of a cell that passes the test; otherwise it stays
-   invalid and every reader gives it zero weight.
+   by default). So is a probe all of whose rays hit within ``enclosure`` times the smallest cell
+   size (default half a cell): inside a double-sided solid, whose inside shows no backface, or a
+   cavity smaller than the grid resolves (a closed room larger than that is not affected; 0
+   turns the test off). With ``relocate``, an invalid probe is moved to the nearest point of a
+   small lattice within ``relocate_fraction`` of a cell that passes the tests; otherwise it
+   stays invalid and every reader gives it zero weight.
 2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.render`)
    with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
    projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
@@ -88,6 +91,7 @@ class BakeSettings(BaseModel):
     direct: bool = True
     store_incoming: bool = False
     invalid_threshold: float = Field(default=0.25, gt=0, le=1)
+    enclosure: float = Field(default=0.5, ge=0, le=4)
     relocate: bool = True
     relocate_fraction: float = Field(default=0.45, ge=0, lt=0.5)
     ray_offset: float | None = Field(default=None, gt=0)
@@ -260,9 +264,17 @@ def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
 def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     ctx = state.ctx
     lattice = ctx.grid.positions()[batch]
-    frac = state.renderer.backface_fraction(lattice, face_size=CLASSIFY_FACE_SIZE)
+    cells = ctx.grid.cell_size[np.array(ctx.grid.counts) > 1]
+    # enclosed: every ray hits within this distance (inside a double-sided solid or a cavity
+    # smaller than the grid resolves); 0 (no cell, or the setting 0) disables the test
+    reach = ctx.settings.enclosure * (float(cells.min()) if cells.size else 0.0)
+
+    def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
+        return (frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach), frac
+
+    valid, frac = usable(lattice)
     pos = lattice.copy()
-    valid = frac <= ctx.settings.invalid_threshold
     rays_per_point = 6 * CLASSIFY_FACE_SIZE**2
     rays = len(batch) * rays_per_point
     if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
@@ -271,9 +283,9 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
         offsets = offsets[np.any(offsets != 0, axis=1)]
         for j in np.flatnonzero(~valid):  # loop over invalid probes, not rays
             cand = lattice[j] + offsets
-            f = state.renderer.backface_fraction(cand, face_size=CLASSIFY_FACE_SIZE)
+            good, f = usable(cand)
             rays += len(cand) * rays_per_point
-            ok = np.flatnonzero(f <= ctx.settings.invalid_threshold)
+            ok = np.flatnonzero(good)
             if ok.size:
                 pos[j] = cand[ok[0]]
                 frac[j] = f[ok[0]]

@@ -495,9 +495,22 @@ class ProbeRenderer:
         A cheap test for probes inside geometry; ``positions (B, 3)``, returns ``(B,)``.
         Double-sided materials have no back.
         """
+        return self.surroundings(positions, face_size=face_size)[0]
+
+    def surroundings(self, positions: NDArray[np.float64], *, face_size: int = 8
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """What ``6 face_size^2`` texel-centre rays from each point find: the fraction that hit a
+        backface (:meth:`backface_fraction`) and the distance of the farthest hit (inf when a
+        ray misses), which tells a point enclosed by a small closed surface -- inside a
+        double-sided solid, whose inside shows no backface -- from one in open space.
+
+        ``positions (B, 3)``; returns two ``(B,)`` float64 arrays.
+        """
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         d = texel_directions(face_size).reshape(-1, 3)
         dirs = np.tile(d, (len(pos), 1))
-        prim = self.tracer.intersect(np.repeat(pos, len(d), axis=0), dirs).prim_id
+        hits = self.tracer.intersect(np.repeat(pos, len(d), axis=0), dirs)
+        prim = hits.prim_id
         back = self.tracer.backface(prim, dirs) & ~self._double_sided[np.maximum(prim, 0)]
-        return back.reshape(len(pos), -1).mean(axis=1)
+        farthest = np.where(prim < 0, np.inf, hits.t).reshape(len(pos), -1).max(axis=1)
+        return back.reshape(len(pos), -1).mean(axis=1), farthest

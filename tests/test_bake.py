@@ -3,6 +3,7 @@ executors, and a killed bake that resumes (probegrid.bake, probegrid.render)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import subprocess
@@ -168,6 +169,29 @@ def test_probe_inside_solid_box_is_invalid(tmp_path):
               environment=Environment(color=(1, 1, 1))).store
     assert bool(s2["valid"][0]) and s2["positions"][0][0] > 1.0
     assert s2.manifest.quality["relocated_probes"] == 1
+
+
+def test_probe_inside_a_double_sided_solid_is_invalid(tmp_path):
+    """A double-sided box shows no backface from inside; the probe in it is still found (all
+    its rays hit within half a cell) and, with relocation, moved out of it. A probe in a closed
+    room larger than that stays valid."""
+    b = SceneBuilder()
+    room = b.add_material(Material.diffuse(0.5))
+    solid = b.add_material(dataclasses.replace(Material.diffuse(0.5), double_sided=True))
+    b.add_box((-3, -3, -3), (3, 3, 3), material=room, inward=True)  # a closed room
+    b.add_box((-0.3, -0.3, -0.3), (0.3, 0.3, 0.3), material=solid)  # a small solid
+    scene = b.build()
+    grid = GridSpec.from_counts((0, 0, 0), (2, 0, 0), (2, 1, 1))  # cell 2: reach 1
+    st = BakeSettings(bounces=0, relocate=False, **FAST)
+    s = bake(scene, grid, tmp_path / "s.probes", settings=st).store
+    assert s["valid"].tolist() == [False, True]
+    assert s["backface_fraction"][0] == 0.0  # the backface test alone would keep it
+    moved = bake(scene, grid, tmp_path / "m.probes",
+                 settings=BakeSettings(bounces=0, **FAST)).store
+    assert bool(moved["valid"][0]) and np.abs(moved["positions"][0]).max() > 0.3
+    off = bake(scene, grid, tmp_path / "o.probes",
+               settings=BakeSettings(bounces=0, relocate=False, enclosure=0, **FAST)).store
+    assert off["valid"].tolist() == [True, True]
 
 
 def _room_scene():
