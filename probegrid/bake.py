@@ -29,15 +29,13 @@ the number of workers or the batch size.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import math
-import os
 import shutil
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,9 +62,9 @@ from probegrid.scene import Scene
 from probegrid.store import (
     ArraySpec,
     ProbeStore,
-    StoreError,
     StoreWriter,
     create_npy,
+    directory_lock,
     open_store,
     partial_path,
 )
@@ -454,20 +452,11 @@ def _work_dir(store_path: Path) -> Path:
     return store_path.with_name(store_path.name + ".work")
 
 
-@contextmanager
-def _bake_lock(work: Path, out: Path) -> Iterator[None]:
-    """One bake of a store at a time: an exclusive ``flock`` on its work directory, held for the
+def _bake_lock(work: Path, out: Path) -> AbstractContextManager[None]:
+    """One bake of a store at a time: an exclusive lock on its work directory, held for the
     whole bake (a second bake of the same store, ``--overwrite`` or not, is refused instead of
     deleting the first one's files)."""
-    fd = os.open(work, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise StoreError(f"another process is baking {out}") from None
-        yield
-    finally:
-        os.close(fd)
+    return directory_lock(work, busy=f"another process is baking {out}")
 
 
 def _run_stage(

@@ -76,7 +76,7 @@ from probegrid.cubemap import CubeMap, direction_to_face_uv
 from probegrid.grid import GridSpec
 from probegrid.lobes import roughness_to_lod
 from probegrid.seams import add_border, border_sources
-from probegrid.shading import reflect, shade_split_sum
+from probegrid.shading import reflect, shade_split_sum, unit_vectors
 from probegrid.store import ProbeStore
 
 __all__ = [
@@ -149,11 +149,9 @@ def _points(points: ArrayLike, name: str) -> NDArray[np.float64]:
 
 def _unit_rows(v: NDArray[np.float64], name: str) -> NDArray[np.float64]:
     """Rows scaled to unit length, robust to huge or tiny components; zero rows are an error."""
-    scale = np.max(np.abs(v), axis=-1, keepdims=True)
-    if np.any(scale == 0):
+    if not np.all(np.any(v != 0, axis=-1)):
         raise ValueError(f"{name} must be non-zero vectors.")
-    s = v / scale
-    return s / np.linalg.norm(s, axis=-1, keepdims=True)
+    return unit_vectors(v)
 
 
 def _safe_unit(v: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -67,6 +67,7 @@ __all__ = [
     "shade_classic",
     "shade_split_sum",
     "transform_normals",
+    "unit_vectors",
 ]
 
 CubeLike = CubeMap | ArrayLike | Sequence[ArrayLike]
@@ -90,7 +91,7 @@ def _finite(value: ArrayLike, name: str) -> NDArray[np.float64]:
     return a
 
 
-def _unit(v: NDArray[np.float64]) -> NDArray[np.float64]:
+def unit_vectors(v: NDArray[np.float64]) -> NDArray[np.float64]:
     """Rows scaled to unit length; scaled by their largest component first, so vectors with
     tiny (1e-200) or huge components normalise instead of under- or overflowing."""
     scale = np.max(np.abs(v), axis=-1, keepdims=True)
@@ -150,7 +151,7 @@ def reflect(views: ArrayLike, normals: ArrayLike) -> NDArray[np.float64]:
         ``R``, pointing away from the surface (the direction to look up in a specular map).
     """
     v = _vectors(views, "views")
-    n = _unit(_vectors(normals, "normals", nonzero=True))
+    n = unit_vectors(_vectors(normals, "normals", nonzero=True))
     return 2.0 * np.einsum("...i,...i->...", n, v)[..., None] * n - v
 
 
@@ -294,7 +295,7 @@ def shade_split_sum(
     n = np.broadcast_to(n, (*lead, 3))
     v = np.broadcast_to(v, (*lead, 3))
     r = np.broadcast_to(r, lead)
-    n_dot_v = np.clip(np.einsum("...i,...i->...", _unit(n), _unit(v)), 0.0, 1.0)
+    n_dot_v = np.clip(np.einsum("...i,...i->...", unit_vectors(n), unit_vectors(v)), 0.0, 1.0)
     ab = np.asarray(dfg_lookup(dfg, n_dot_v, r), dtype=np.float64)
     s = spec_f0 * ab[..., 0:1] + ab[..., 1:2]
     prefiltered = s_s.trilinear(reflect(v, n), roughness_to_lod(r, s_s.num_levels))

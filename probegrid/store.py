@@ -95,6 +95,7 @@ __all__ = [
     "StoreManifest",
     "StoreWriter",
     "create_npy",
+    "directory_lock",
     "open_store",
     "partial_path",
     "partial_progress",
@@ -597,15 +598,28 @@ def create_npy(file: str | os.PathLike[str], dtype: DTypeLike, shape: tuple[int,
     return mm
 
 
-def _lock_dir(directory: Path) -> int:
-    """An exclusive, non-blocking ``flock`` on a directory; the fd holds it until closed."""
+def _lock_dir(directory: Path, busy: str | None = None) -> int:
+    """An exclusive, non-blocking ``flock`` on a directory; the fd holds it until closed.
+    ``busy`` is the StoreError's message when another process holds it."""
     fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        raise StoreError(f"another process is writing {directory}") from None
+        raise StoreError(busy or f"another process is writing {directory}") from None
     return fd
+
+
+@contextmanager
+def directory_lock(directory: str | os.PathLike[str], *, busy: str | None = None
+                   ) -> Iterator[None]:
+    """Hold :func:`_lock_dir`'s lock on ``directory`` for the block (StoreError ``busy`` if
+    another process holds it)."""
+    fd = _lock_dir(Path(directory), busy)
+    try:
+        yield
+    finally:
+        os.close(fd)
 
 
 @contextmanager
