@@ -43,11 +43,11 @@ from typing import Self
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from probegrid import raytrace
-from probegrid.bake import BakeSettings, bake
-from probegrid.bakejob import grid_for, load_environment
-from probegrid.environment import Environment
-from probegrid.executors import InlineExecutor, LocalExecutor
+from probegrid.bake import raytrace
+from probegrid.bake.driver import BakeSettings, bake
+from probegrid.bake.environment import Environment
+from probegrid.bake.executors import InlineExecutor, LocalExecutor
+from probegrid.jobs.bake import grid_for, load_environment
 from probegrid.scene import Material, Scene, load_gltf
 
 SCENE = REPO / "data" / "sample_room.glb"
@@ -119,8 +119,8 @@ class Split:
         setattr(owner, name, timed)
 
     def __enter__(self) -> Self:
-        from probegrid import bake as bake_module
-        from probegrid.render import IndirectField
+        from probegrid.bake import driver as bake_module
+        from probegrid.bake.render import IndirectField
 
         self._wrap(raytrace.RayTracer, "intersect", "cast")
         self._wrap(raytrace.RayTracer, "occluded", "cast")

@@ -3,7 +3,7 @@
 GGX prefiltered chain
 ---------------------
 Both tools get the *same* cube: a real HDR from ``../shared/data/hdr`` resampled to a 128^2 cube
-with :func:`probegrid.layouts.to_cube`, written as a float32 horizontal-cross EXR, which cmgen
+with :func:`probegrid.core.layouts.to_cube`, written as a float32 horizontal-cross EXR, which cmgen
 reads as a cube (its cross layout and face orientation are the project's: checked here, its
 level 0 must equal the input exactly). Both produce the full chain 128 -> 1 (8 levels):
 
@@ -17,14 +17,14 @@ level 0 must equal the input exactly). Both produce the full chain 128 -> 1 (8 l
   ``r = 1 - sqrt(1 - lod)`` (read from Filament's tools/cmgen/src/cmgen.cpp and checked against
   the roughness cmgen prints per level). cmgen clamps radiance with luminance above 4096
   (Karis' compressor); both inputs stay below that, asserted.
-* :func:`probegrid.specular.ggx_prefilter`: level ``k`` at ``r = k / 7`` (its default tiered
+* :func:`probegrid.core.specular.ggx_prefilter`: level ``k`` at ``r = k / 7`` (its default tiered
   method; its ``method="fis"`` filtered importance sampling is shown for comparison).
 
-Each tool's level is compared with :func:`probegrid.specular.reference_convolution` (every input
+Each tool's level is compared with :func:`probegrid.core.specular.reference_convolution` (every input
 texel, float64) *at the roughness that tool assigns to that level*: RMS and max of the per-texel,
 per-channel relative error. cmgen's lobes are narrower than probegrid's at the same level, so
 the last columns also filter with probegrid at cmgen's roughness
-(:func:`probegrid.specular.ggx_filter`) for a like-for-like comparison. References are cached
+(:func:`probegrid.core.specular.ggx_filter`) for a like-for-like comparison. References are cached
 on disk (``--cache``).
 
 Times are wall-clock, best of ``--repeat`` interleaved runs on the same (shared, 2-core)
@@ -36,9 +36,9 @@ grid filters many cubes of one size).
 
 Diffuse
 -------
-Band-2 SH diffuse (:func:`probegrid.diffuse.diffuse_sh`, raw and auto-windowed) against the exact
-clamped-cosine sum (:func:`probegrid.diffuse.diffuse_exact`), 32^2 from the 128^2 cube, both
-HDRs; and the time of :func:`probegrid.sh.project_cube` on 6 x 128^2 x 3.
+Band-2 SH diffuse (:func:`probegrid.core.diffuse.diffuse_sh`, raw and auto-windowed) against the exact
+clamped-cosine sum (:func:`probegrid.core.diffuse.diffuse_exact`), 32^2 from the 128^2 cube, both
+HDRs; and the time of :func:`probegrid.core.sh.project_cube` on 6 x 128^2 x 3.
 
 Usage::
 
@@ -60,11 +60,11 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from probegrid import sh
-from probegrid.dfg import dfg_lut
-from probegrid.diffuse import diffuse_exact, diffuse_sh
-from probegrid.layouts import faces_to_cross, to_cube
-from probegrid.specular import ggx_filter, ggx_prefilter, reference_convolution
+from probegrid.core import sh
+from probegrid.core.dfg import dfg_lut
+from probegrid.core.diffuse import diffuse_exact, diffuse_sh
+from probegrid.core.layouts import faces_to_cross, to_cube
+from probegrid.core.specular import ggx_filter, ggx_prefilter, reference_convolution
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "hdr"
@@ -116,7 +116,7 @@ def probegrid_cold(cube_path: Path, workers: int) -> float:
     """Wall time of ggx_prefilter in a fresh interpreter (after imports): plans not cached."""
     code = (
         "import time, numpy as np\n"
-        "from probegrid.specular import ggx_prefilter\n"
+        "from probegrid.core.specular import ggx_prefilter\n"
         f"c = np.load({str(cube_path)!r})\n"
         f"t = time.perf_counter(); ggx_prefilter(c, workers={workers})\n"
         "print(time.perf_counter() - t)\n"

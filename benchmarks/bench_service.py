@@ -50,9 +50,9 @@ import numpy as np
 import psutil
 import uvicorn
 
-from probegrid.conventions import conventions
-from probegrid.cubemap import mip_sizes
-from probegrid.grid import GridSpec
+from probegrid.core.conventions import conventions
+from probegrid.core.cubemap import mip_sizes
+from probegrid.core.grid import GridSpec
 from probegrid.store import ArraySpec, StoreWriter, open_store
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""Benchmark of :func:`probegrid.sh.project_cube` against the physical limit and the 10 ms target.
+"""Benchmark of :func:`probegrid.core.sh.project_cube` against the physical limit and the 10 ms target.
 
 Times the SH projection of a ``(6, n, n, 3)`` float32 cube (default n = 128) in-process: the
 median of many runs after warm-up (the first, cold call also builds the cached local basis and is
@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from probegrid import cubemap as cm
-from probegrid import sh
+from probegrid.core import cubemap as cm
+from probegrid.core import sh
 
 TARGET_MS = 10.0
 

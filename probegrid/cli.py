@@ -17,7 +17,14 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, Literal, NoReturn, get_args, get_origin
+
+from pydantic import BaseModel
+
+from probegrid._types import CubeLayout, ImageFormat, choices
+from probegrid.bake import BakeSettings
+from probegrid.jobs.bake import BakeJob
+from probegrid.jobs.filter import FilterSettings
 
 __all__ = ["build_parser", "main"]
 
@@ -28,11 +35,15 @@ EXIT_INTERNAL = 1
 EXIT_BROKEN_PIPE = 141
 
 
-def _positive_int(text: str) -> int:
+def _int(text: str) -> int:
     try:
-        v = int(text)
+        return int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def _positive_int(text: str) -> int:
+    v = _int(text)
     if v < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
     return v
@@ -48,6 +59,43 @@ def _finite_float(text: str) -> float:
     return v
 
 
+def _option(p: argparse.ArgumentParser, model: type[BaseModel], field: str, *flags: str,
+            help: str, **kwargs: Any) -> None:
+    """An option that fills ``model``'s ``field``: its type, choices and default come from the
+    model (the one place they are written). Options not given stay out of the namespace
+    (``argparse.SUPPRESS``), so the model's default applies and the model validates every value.
+
+    A boolean field defaulting to true is switched off by its flag (``--no-direct``), one
+    defaulting to false switched on (``--store-incoming``).
+    """
+    info = model.model_fields[field]
+    default = info.default
+    ann = info.annotation
+    kinds = [ann] if get_origin(ann) is Literal else [
+        a for a in (get_args(ann) or (ann,)) if a is not type(None)]
+    flags = flags or (f"--{field.replace('_', '-')}",)
+    kw: dict[str, Any] = {"dest": field, "default": argparse.SUPPRESS}
+    if info.annotation is bool:
+        kw["action"] = "store_false" if default else "store_true"
+    else:
+        literal = next((a for a in kinds if get_origin(a) is Literal), None)
+        if literal is not None:
+            kw["choices"] = get_args(literal)
+        elif int in kinds:
+            kw["type"] = _int
+        elif float in kinds:
+            kw["type"] = _finite_float
+        if default is not None:
+            help = f"{help} (default: {default})"
+    kw.update(kwargs)
+    p.add_argument(*flags, help=help, **kw)
+
+
+def _given(args: argparse.Namespace, model: type[BaseModel]) -> dict[str, Any]:
+    """The options of ``args`` that fill fields of ``model`` (those given on the command line)."""
+    return {k: v for k, v in vars(args).items() if k in model.model_fields}
+
+
 def _add_filter(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "filter",
@@ -60,71 +108,36 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("env", nargs="+", type=Path, help="environment image, or six face files")
     p.add_argument("--out", required=True, type=Path, help="output directory")
-    p.add_argument(
-        "--layout",
-        default="auto",
-        choices=["auto", "equirect", "angular", "hcross", "vcross", "faces"],
-        help="input layout (default: detected from the aspect ratio)",
-    )
-    p.add_argument("--size", type=_positive_int, help="cube face size of the specular level 0")
-    p.add_argument("--diffuse-size", type=_positive_int, default=32, help="diffuse face size")
-    p.add_argument(
-        "--diffuse-method", choices=["sh", "exact"], default="exact",
-        help="exact clamped-cosine integral (default) or via 9 SH coefficients",
-    )
-    p.add_argument("--specular-levels", type=_positive_int, help="mip levels (default: full chain)")
-    p.add_argument(
-        "--specular-method", choices=["tiered", "fis", "exact"], default="tiered",
-        help="GGX prefilter: tiered exact-kernel convolution (default), filtered importance "
-             "sampling, or the brute-force exact convolution (slow)",
-    )
-    p.add_argument("--samples", type=_positive_int,
-                   help="samples per texel for --specular-method fis")
-    p.add_argument(
-        "--sh-window", choices=["none", "hanning", "lanczos", "gauss", "auto"], default="none",
-        help="SH windowing against ringing (auto: the least that makes irradiance >= 0)",
-    )
-    p.add_argument("--sh-window-width", type=_finite_float, help="window width (bands)")
-    p.add_argument("--format", choices=["exr", "hdr"], default="exr", help="map file format")
-    p.add_argument("--float", action="store_true", help="write float32 EXR instead of half")
-    p.add_argument(
-        "--output-layout", choices=["faces", "hcross", "vcross", "equirect"], default="faces",
-        help="layout of the written maps",
-    )
-    p.add_argument(
-        "--seam", choices=["none", "average", "border"], default="none",
-        help="seam export mode for consumers without seamless cube filtering",
-    )
-    p.add_argument(
-        "--clamp", type=_finite_float,
-        help="clamp radiance to [0, CLAMP]; NaN becomes 0 (otherwise non-finite pixels are an error)",
-    )
-    p.add_argument("--lut-size", type=_positive_int, default=128, help="DFG LUT size")
-    p.add_argument("--no-previews", action="store_true", help="skip the PNG previews")
+    F = FilterSettings
+    _option(p, F, "layout", help="input layout (auto: detected from the aspect ratio)")
+    _option(p, F, "size", help="cube face size of the specular level 0 (default: from the input)")
+    _option(p, F, "diffuse_size", help="diffuse face size")
+    _option(p, F, "diffuse_method",
+            help="exact clamped-cosine integral, or via 9 SH coefficients")
+    _option(p, F, "specular_levels", help="mip levels (default: the full chain)")
+    _option(p, F, "specular_method",
+            help="GGX prefilter: tiered exact-kernel convolution, filtered importance sampling, "
+                 "or the brute-force exact convolution (slow)")
+    _option(p, F, "samples", help="samples per texel for --specular-method fis")
+    _option(p, F, "sh_window",
+            help="SH windowing against ringing (auto: the least that makes irradiance >= 0)")
+    _option(p, F, "sh_window_width", help="window width (bands)")
+    _option(p, F, "format", help="map file format")
+    _option(p, F, "half", "--float", help="write float32 EXR instead of half")
+    _option(p, F, "output_layout", help="layout of the written maps")
+    _option(p, F, "seam", help="seam export mode for consumers without seamless cube filtering")
+    _option(p, F, "clamp",
+            help="clamp radiance to [0, CLAMP]; NaN becomes 0 (otherwise non-finite pixels are "
+                 "an error)")
+    _option(p, F, "lut_size", help="DFG LUT size")
+    _option(p, F, "previews", "--no-previews", help="skip the PNG previews")
     p.set_defaults(handler=_run_filter)
 
 
 def _run_filter(args: argparse.Namespace) -> int:
-    from probegrid.filterjob import FilterSettings, run_filter
+    from probegrid.jobs.filter import run_filter
 
-    settings = FilterSettings(
-        layout=args.layout,
-        size=args.size,
-        diffuse_size=args.diffuse_size,
-        diffuse_method=args.diffuse_method,
-        specular_levels=args.specular_levels,
-        specular_method=args.specular_method,
-        samples=args.samples,
-        sh_window=args.sh_window,
-        sh_window_width=args.sh_window_width,
-        format=args.format,
-        half=not args.float,
-        output_layout=args.output_layout,
-        seam=args.seam,
-        clamp=args.clamp,
-        lut_size=args.lut_size,
-        previews=not args.no_previews,
-    )
+    settings = FilterSettings(**_given(args, FilterSettings))
     result = run_filter(args.env, args.out, settings, progress=_stderr_progress)
     print(result.summary())
     return 0
@@ -146,7 +159,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from probegrid.demo import run_demo
+    from probegrid.jobs.demo import run_demo
 
     print(run_demo(args.out, progress=_stderr_progress), flush=True)
     if not args.no_serve:
@@ -168,47 +181,44 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scene", type=Path, help="glTF 2.0 scene (.gltf or .glb)")
     p.add_argument("--out", required=True, type=Path, help="store directory NAME.probes")
+    J, S = BakeJob, BakeSettings
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--grid", help="probe counts NXxNYxNZ (default: 8 along the longest axis)")
-    g.add_argument("--spacing", help="probes exactly S (or SX,SY,SZ) apart, centred in the box "
-                   "(scene units)")
-    p.add_argument("--bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
-                   "probes at the centres of the grid's cells)")
-    p.add_argument("--margin", type=_finite_float,
-                   help="grow (or, negative, shrink) the scene bounds by this much")
-    p.add_argument("--environment", type=Path, nargs="+", metavar="FILE",
-                   help="HDR environment: one image (any layout) or six face files")
-    p.add_argument("--environment-layout", default="auto",
-                   choices=["auto", "equirect", "angular", "hcross", "vcross"])
-    p.add_argument("--environment-color", help="constant environment radiance R,G,B")
-    p.add_argument("--environment-intensity", type=_finite_float, default=1.0)
-    p.add_argument("--environment-rotation", type=_finite_float, default=0.0,
-                   help="degrees about +Y (right-handed)")
-    p.add_argument("--face-size", type=_positive_int, default=32, help="incoming cube face size")
-    p.add_argument("--bounces", type=int, default=2, help="indirect bounces (default 2)")
-    p.add_argument("--samples", type=_positive_int, default=1, help="rays per texel")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--diffuse-size", type=_positive_int, default=8)
-    p.add_argument("--specular-levels", type=_positive_int)
-    p.add_argument("--no-direct", action="store_true",
-                   help="leave the punctual lights' direct light out of the probes")
-    p.add_argument("--store-incoming", action="store_true", help="also store the raw cubes")
-    p.add_argument("--no-relocate", action="store_true",
-                   help="do not move probes that are inside geometry")
-    p.add_argument("--batch-size", type=_positive_int, default=8, help="probes per task")
+    _option(g, J, "grid", help="probe counts NXxNYxNZ (default: 8 along the longest axis)")
+    _option(g, J, "spacing",
+            help="probes exactly S (or SX,SY,SZ) apart, centred in the box (scene units)")
+    _option(p, J, "bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
+            "probes at the centres of the grid's cells)")
+    _option(p, J, "margin", help="grow (or, negative, shrink) the scene bounds by this much")
+    _option(p, J, "environment", type=Path, nargs="+", metavar="FILE",
+            help="HDR environment: one image (any layout) or six face files")
+    _option(p, J, "environment_layout", help="layout of --environment")
+    _option(p, J, "environment_color", help="constant environment radiance R,G,B")
+    _option(p, J, "environment_intensity", help="environment scale")
+    _option(p, J, "environment_rotation", help="degrees about +Y (right-handed)")
+    _option(p, S, "face_size", help="incoming cube face size")
+    _option(p, S, "bounces", help="indirect bounces")
+    _option(p, S, "samples", help="rays per texel")
+    _option(p, S, "seed", help="random seed of the ray jitter")
+    _option(p, S, "diffuse_size", help="diffuse cube face size")
+    _option(p, S, "specular_levels", help="specular mip levels (default: the full chain)")
+    _option(p, S, "direct", "--no-direct",
+            help="leave the punctual lights' direct light out of the probes")
+    _option(p, S, "store_incoming", help="also store the raw cubes")
+    _option(p, S, "relocate", "--no-relocate", help="do not move probes that are inside geometry")
+    _option(p, S, "batch_size", help="probes per task")
     x = p.add_mutually_exclusive_group()
-    x.add_argument("--workers", type=_positive_int, help="local worker processes (default: all)")
-    x.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://HOST:8786")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing store")
-    p.add_argument("--no-progress", action="store_true")
+    _option(x, J, "workers", help="local worker processes (default: all cores)")
+    _option(x, J, "scheduler", help="Dask scheduler address, e.g. tcp://HOST:8786")
+    _option(p, J, "overwrite", help="replace an existing store")
+    _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 
 
 def _run_bake(args: argparse.Namespace) -> int:
-    from probegrid.bakejob import BakeOptions, run_bake
+    from probegrid.jobs.bake import run_bake
 
-    opts = BakeOptions(**{k: v for k, v in vars(args).items() if k not in ("handler", "debug",
-                                                                           "command")})
+    settings = BakeSettings(**_given(args, BakeSettings))
+    opts = BakeJob(settings=settings, **_given(args, BakeJob))
     report = run_bake(opts)
     print(report.summary())
     print(f"look at it: probegrid info {args.out}   |   probegrid export {args.out} "
@@ -223,7 +233,7 @@ def _add_info(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_info(args: argparse.Namespace) -> int:
-    from probegrid.export import describe_store
+    from probegrid.jobs.export import describe_store
 
     print(describe_store(args.store))
     return 0
@@ -234,15 +244,14 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     p.add_argument("store", type=Path)
     p.add_argument("--probe", required=True, help="I,J,K")
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--layout", choices=["faces", "hcross", "vcross", "equirect"],
-                   default="faces")
-    p.add_argument("--format", choices=["exr", "hdr"], default="exr")
+    p.add_argument("--layout", choices=choices(CubeLayout), default="faces")
+    p.add_argument("--format", choices=choices(ImageFormat), default="exr")
     p.add_argument("--half", action="store_true", help="half-float EXR")
     p.set_defaults(handler=_run_export)
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from probegrid.export import export_probe
+    from probegrid.jobs.export import export_probe
 
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
                            fmt=args.format, half=args.half)
@@ -326,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
-    from probegrid.executors import ExecutorError
+    from probegrid.bake.executors import ExecutorError
 
     parser = build_parser()
     args = parser.parse_args(argv)

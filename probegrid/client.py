@@ -3,7 +3,7 @@
 :class:`ProbeGridClient` (blocking) and :class:`AsyncProbeGridClient` (``async``) have the same
 methods and options; both build requests and decode responses through one shared base, and differ
 only in how they send. Results are the library's types: numpy arrays,
-:class:`probegrid.cubemap.CubeMap` and :class:`probegrid.store.StoreManifest`.
+:class:`probegrid.core.cubemap.CubeMap` and :class:`probegrid.store.StoreManifest`.
 
 >>> with ProbeGridClient("http://127.0.0.1:8000") as pg:          # doctest: +SKIP
 ...     sample = pg.sh_at("sample", (1.0, 1.5, 0.5))
@@ -28,15 +28,17 @@ Exceptions
 ----------
 ::
 
-    ProbeGridError                 base of everything this module raises
-    +-- InvalidArgumentError       a bad argument, refused before any request (also a ValueError)
-    +-- ProbeGridConnectionError   the server could not be reached (after the retries)
-    +-- ProbeGridTimeoutError      the server did not answer in time
-    +-- ProbeGridResponseError     a success status with a body that is not the API's
-    +-- ProbeGridHTTPError         the server answered with an error status
-        +-- BadRequestError        400, 413, 422: the request was rejected (bad input, limits)
-        +-- NotFoundError          404: unknown grid, map kind or route
-        +-- ServerError            5xx (503 after the retries)
+    ProbegridError                 probegrid.errors: the library's one error tree (diagram there)
+    +-- ProbeGridError             base of everything this module raises
+        +-- InvalidArgumentError       a bad argument, refused before any request (a ValueError)
+        +-- ProbeGridConnectionError   the server could not be reached (after the retries)
+        +-- ProbeGridTimeoutError      the server did not answer in time
+        +-- ProbeGridResponseError     a success status with a body that is not the API's
+        +-- ProbeGridHTTPError         the server answered with an error status
+            +-- BadRequestError        400, 413, 422: the request was rejected (bad input, limits)
+            +-- NotFoundError          404: unknown grid, map kind or route
+            +-- ServerError            5xx: a server bug (500) or a store unavailable (503,
+                                       after the retries)
 
 An HTTP error carries the server's ``status``, ``code`` (e.g. ``"invalid_request"``) and
 ``message`` (one sentence), and its ``str()`` is that message.
@@ -58,9 +60,11 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.cubemap import CubeMap
-from probegrid.lights import DirectionalLight, Light, PointLight, SpotLight
-from probegrid.store import StoreManifest
+from probegrid._types import MapKind
+from probegrid.core.cubemap import CubeMap
+from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
+from probegrid.errors import ProbegridError
+from probegrid.store.manifest import StoreManifest
 
 __all__ = [
     "AsyncProbeGridClient",
@@ -78,12 +82,11 @@ __all__ = [
     "ServerError",
 ]
 
-MapKind = Literal["diffuse", "specular", "incoming"]
 
 
 # ------------------------------------------------------------------------------ exceptions
-class ProbeGridError(Exception):
-    """Base class of the client's errors."""
+class ProbeGridError(ProbegridError):
+    """Base class of the client's errors (under the library's :class:`ProbegridError`)."""
 
 
 class InvalidArgumentError(ProbeGridError, ValueError):

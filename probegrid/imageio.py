@@ -20,7 +20,7 @@ with the file name: missing file, unsupported extension, a file the format's rea
 and a *truncated* file (OpenImageIO's error state after reading, plus a check that the number
 of values returned is ``H W C``; a short read is never returned as partial data).
 
-:func:`read_environment` reads one image in any :mod:`probegrid.layouts` layout (detected from
+:func:`read_environment` reads one image in any :mod:`probegrid.core.layouts` layout (detected from
 the aspect ratio by default) or six face files (order ``+X, -X, +Y, -Y, +Z, -Z``) and
 resamples it, anti-aliased, to a cube map.
 
@@ -82,8 +82,16 @@ import numpy as np
 import OpenImageIO as oiio
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.cubemap import check_cube, texel_solid_angles
-from probegrid.layouts import (
+from probegrid._fs import fsync_dir, fsync_file
+from probegrid._types import CubeLayout, ImageFormat, PixelType
+from probegrid.core.color import (
+    auto_exposure,
+    linear_to_srgb,
+    srgb_to_linear,
+    tonemap_preview,
+)
+from probegrid.core.cubemap import check_cube, texel_solid_angles
+from probegrid.core.layouts import (
     LAYOUTS,
     Layout,
     default_face_size,
@@ -91,6 +99,7 @@ from probegrid.layouts import (
     from_cube,
     to_cube,
 )
+from probegrid.errors import ImageError
 
 __all__ = [
     "FACE_SUFFIXES",
@@ -98,9 +107,9 @@ __all__ = [
     "PIXEL_TYPES",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
-    "CubeFormat",
     "CubeLayout",
     "ImageError",
+    "ImageFormat",
     "PixelType",
     "WrittenFiles",
     "clamp_radiance",
@@ -119,10 +128,6 @@ __all__ = [
 ]
 
 
-class ImageError(ValueError):
-    """An image file cannot be read or written; the message is one line naming the file."""
-
-
 #: Extensions :func:`read_image` accepts (lower case).
 READ_EXTENSIONS: Final[tuple[str, ...]] = (
     ".hdr", ".exr", ".pfm", ".tif", ".tiff", ".png", ".jpg", ".jpeg",
@@ -132,37 +137,17 @@ WRITE_EXTENSIONS: Final[tuple[str, ...]] = (".exr", ".hdr", ".pfm", ".tif", ".ti
 #: File-name suffixes of the six faces, in face order.
 FACE_SUFFIXES: Final[tuple[str, ...]] = ("_px", "_nx", "_py", "_ny", "_pz", "_nz")
 
-CubeLayout = Literal["faces", "hcross", "vcross", "equirect"]
-CubeFormat = Literal["exr", "hdr"]
-PixelType = Literal["half", "float", "rgbe", "uint8"]
 #: Pixel types a written file can have (see "Writing" above).
 PIXEL_TYPES: Final[tuple[str, ...]] = get_args(PixelType)
 #: The largest finite half float, 65504 = (2 - 2**-10) * 2**15.
 HALF_MAX: Final[float] = float(np.finfo(np.float16).max)
 _CUBE_LAYOUTS: Final[tuple[str, ...]] = get_args(CubeLayout)
-_CUBE_FORMATS: Final[tuple[str, ...]] = get_args(CubeFormat)
+_CUBE_FORMATS: Final[tuple[str, ...]] = get_args(ImageFormat)
 
-#: Rec.709 / sRGB luminance weights.
-_LUMA: Final[NDArray[np.float64]] = np.array([0.2126, 0.7152, 0.0722])
-_KEY: Final[float] = 0.18
 
 
 # --------------------------------------------------------------------------------------------
 # Transfer functions
-
-
-def srgb_to_linear(encoded: ArrayLike) -> NDArray[np.float32]:
-    """The sRGB EOTF (IEC 61966-2-1): encoded ``[0, 1]`` values to linear, float32."""
-    v = np.asarray(encoded, dtype=np.float64)
-    lin = np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
-    return lin.astype(np.float32)
-
-
-def linear_to_srgb(linear: ArrayLike) -> NDArray[np.float32]:
-    """The inverse sRGB EOTF: linear values clipped to ``[0, 1]`` (NaN -> 0), encoded, float32."""
-    x = np.clip(np.nan_to_num(np.asarray(linear, dtype=np.float64), nan=0.0), 0.0, 1.0)
-    enc = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
-    return enc.astype(np.float32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -302,13 +287,13 @@ def read_environment(
     Parameters
     ----------
     paths : path or sequence of 1 or 6 paths
-        One image in any layout of :mod:`probegrid.layouts`, or six face images (square, same
+        One image in any layout of :mod:`probegrid.core.layouts`, or six face images (square, same
         size) in the order ``+X, -X, +Y, -Y, +Z, -Z``.
     layout : {"auto", "equirect", "angular", "hcross", "vcross", "faces"}
         ``"auto"`` detects a single image's layout from its aspect ratio
-        (:func:`probegrid.layouts.detect_layout`) and means ``"faces"`` for six files.
+        (:func:`probegrid.core.layouts.detect_layout`) and means ``"faces"`` for six files.
     size : int, optional
-        Output face size; default :func:`probegrid.layouts.default_face_size` of the source
+        Output face size; default :func:`probegrid.core.layouts.default_face_size` of the source
         (e.g. 1024 x 512 equirect -> 256).
     max_size : int, optional
         Upper bound on the default face size (ignored when ``size`` is given).
@@ -471,11 +456,7 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
         ok = out.close() and ok
         if not ok or out.has_error:
             raise ImageError(f"{p}: cannot write image ({_one_line(out.geterror())}).")
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        fsync_file(tmp)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -498,6 +479,8 @@ def _write_all(items: Sequence[tuple[Path, NDArray, PixelType]],
         for t, (p, _, _) in zip(tmps, items, strict=True):
             os.replace(t, p)
             done += 1
+        if items:
+            fsync_dir(items[0][0].parent)
     except OSError as exc:
         for t in tmps[done:]:
             t.unlink(missing_ok=True)
@@ -554,7 +537,7 @@ def write_cube(
     faces: ArrayLike,
     *,
     layout: CubeLayout = "faces",
-    fmt: CubeFormat = "exr",
+    fmt: ImageFormat = "exr",
     half: bool = True,
     metadata: Mapping[str, str] | None = None,
 ) -> WrittenFiles:
@@ -567,7 +550,7 @@ def write_cube(
         ``<stem>.<fmt>``.
     faces : (6, n, n, 3) float
     layout : {"faces", "hcross", "vcross", "equirect"}
-        Equirect images have :func:`probegrid.layouts.from_cube`'s default size ``4n x 2n``.
+        Equirect images have :func:`probegrid.core.layouts.from_cube`'s default size ``4n x 2n``.
     fmt : {"exr", "hdr"}
     half : bool
         Prefer half-float EXR (default) to float32; ignored for ``"hdr"`` (always RGBE). If a
@@ -645,61 +628,12 @@ def stored_pixel_type(path: str | os.PathLike[str]) -> PixelType:
 # Previews
 
 
-def _aces_filmic(x: NDArray[np.float64]) -> NDArray[np.float64]:
-    # Narkowicz 2015 fit of the ACES RRT + ODT, input in scene-linear (mid grey 0.18 -> 0.27).
-    return np.clip((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
-
-
-def _auto_exposure(rgb: NDArray[np.float64], weights: NDArray[np.float64] | None) -> float:
-    """Stops that bring the (weighted) log-average luminance of finite pixels to 0.18."""
-    lum = rgb @ _LUMA
-    ok = np.isfinite(lum)
-    if weights is None:
-        weights = np.ones_like(lum)
-    wts = np.where(ok, weights, 0.0)
-    if wts.sum() <= 0:
-        return 0.0
-    logavg = np.exp((wts * np.log(1e-4 + np.maximum(np.where(ok, lum, 0.0), 0.0))).sum()
-                    / wts.sum())
-    return float(np.log2(_KEY / logavg))
-
-
 def cube_exposure(faces: ArrayLike) -> float:
     """Automatic exposure (stops) of a cube map: its solid-angle-weighted log-average luminance
     maps to the key 0.18 (as :func:`tonemap_preview` does for images)."""
     cube = check_cube(faces, name="cube")
     w = np.broadcast_to(texel_solid_angles(cube.shape[1])[..., None], cube.shape[:3] + (1,))
-    return _auto_exposure(cube[..., :3].reshape(-1, 3).astype(np.float64), w.reshape(-1))
-
-
-def tonemap_preview(image: ArrayLike, *, exposure: float | None = None) -> NDArray[np.uint8]:
-    """Tone-map linear radiance to 8-bit display sRGB.
-
-    Parameters
-    ----------
-    image : (..., 3) float
-        Linear RGB radiance.
-    exposure : float, optional
-        Exposure in stops (the radiance is multiplied by ``2**exposure``). Default: automatic,
-        so that the log-average luminance (``exp(mean(log(1e-4 + Y)))`` over finite pixels,
-        Rec.709 ``Y``) maps to the key 0.18.
-
-    Returns
-    -------
-    (..., 3) uint8
-        ACES-filmic (Narkowicz fit) tone-mapped, sRGB-encoded. NaN and negative values show
-        black, +inf white.
-    """
-    a = np.asarray(image, dtype=np.float64)
-    if a.ndim < 1 or a.shape[-1] != 3:
-        raise ValueError(f"image must have shape (..., 3), got {a.shape}.")
-    if exposure is None:
-        exposure = _auto_exposure(a.reshape(-1, 3), None)
-    elif not np.isfinite(exposure):
-        raise ValueError(f"exposure must be a finite number of stops, got {exposure!r}.")
-    x = np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=0.0) * 2.0 ** float(exposure)
-    mapped = np.where(np.isinf(x), 1.0, _aces_filmic(np.where(np.isinf(x), 0.0, np.maximum(x, 0))))
-    return np.rint(linear_to_srgb(mapped) * 255.0).astype(np.uint8)
+    return auto_exposure(cube[..., :3].reshape(-1, 3).astype(np.float64), w.reshape(-1))
 
 
 def write_preview_png(

@@ -1,7 +1,7 @@
 """Compiled per-ray kernels of the bake (the one module that imports numba).
 
 A bake shades every ray hit with the same short sequence of scalar steps: the DDGI weights of the
-8 probes around the hit (:mod:`probegrid.interpolate`), a seamless bilinear lookup of each probe's
+8 probes around the hit (:mod:`probegrid.core.ddgi`), a seamless bilinear lookup of each probe's
 distance moments, and the SH irradiance of each probe at the hit's normal. Written as numpy array
 expressions these steps allocate a dozen ``(n, 8)`` and ``(n, 8, 3)`` temporaries per batch and
 cost about 30x the ray casting itself; here they are one fused loop per hit, compiled by numba
@@ -12,17 +12,17 @@ release the GIL.
 Each kernel restates, step for step, an array expression that stays the reference and the
 documentation of the maths; ``tests/test_kernels.py`` compares the two on random inputs:
 
-* :func:`indirect_irradiance` -- :meth:`probegrid.render.IndirectField.irradiance_reference`
-  (:func:`probegrid.interpolate.probe_weights` with normals and moments, then the SH basis at
+* :func:`indirect_irradiance` -- :meth:`probegrid.bake.render.IndirectField.irradiance_reference`
+  (:func:`probegrid.core.ddgi.probe_weights` with normals and moments, then the SH basis at
   the normal against the irradiance coefficients ``A_l L_lm``).
 * :func:`hit_surfaces`, :func:`multiply_texture` -- :meth:`probegrid.scene.Scene.surface_at`'s
   barycentric interpolation and :func:`probegrid.scene.sample_texture`.
-* :func:`light_rays` -- :func:`probegrid.lights.incident_many` and the renderer's choice of
+* :func:`light_rays` -- :func:`probegrid.core.lights.incident_many` and the renderer's choice of
   shadow rays; :func:`outgoing_radiance` -- ``emission + albedo / pi * E``.
 * :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
-  :func:`orient_hits` -- the render's sample pattern (:mod:`probegrid.cubemap`'s conversions),
+  :func:`orient_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
   per-texel means, distance moments and the backface rule.
-* :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
+* :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.bake.raytrace.RayTracer`'s
   conversions to and from Embree's float32 rays (tested through the tracer).
 
 Floating point: float64 throughout (float32 only where the data is), with FMA contraction and
@@ -31,9 +31,9 @@ so nan and inf keep their meaning). Results match the references to a few ulps, 
 float32 outputs come out bit-identical to the pure-numpy bake's in practice.
 
 Conventions are the owning modules' and are passed in, not restated: the cube faces' ``u``/``v``
-axes (:data:`probegrid.cubemap.FACE_U`, :data:`~probegrid.cubemap.FACE_V`), the corner order
-(:data:`probegrid.grid.CORNER_OFFSETS`), the SH basis constants
-(:data:`probegrid.sh.BASIS_SCALE`) and the DDGI constants of :mod:`probegrid.interpolate`.
+axes (:data:`probegrid.core.cubemap.FACE_U`, :data:`~probegrid.core.cubemap.FACE_V`), the corner order
+(:data:`probegrid.core.grid.CORNER_OFFSETS`), the SH basis constants
+(:data:`probegrid.core.sh.BASIS_SCALE`) and the DDGI constants of :mod:`probegrid.core.ddgi`.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ _JIT = {"nogil": True, "cache": True, "error_model": "numpy", "fastmath": {"cont
 @numba.njit(**_JIT)
 def _face_uv(dx: float, dy: float, dz: float, face_u: NDArray[np.float64],
              face_v: NDArray[np.float64]) -> tuple[int, float, float]:
-    """:func:`probegrid.cubemap.direction_to_face_uv` of one direction (same tie rules)."""
+    """:func:`probegrid.core.cubemap.direction_to_face_uv` of one direction (same tie rules)."""
     ax, ay, az = abs(dx), abs(dy), abs(dz)
     if ax >= ay and ax >= az:
         axis, comp = 0, dx
@@ -113,12 +113,12 @@ def indirect_irradiance(
         Grid box and lattice spacing (1 on an axis with a single probe).
     counts : (3,) int64
     corner_offsets : (8, 3) int64
-        :data:`probegrid.grid.CORNER_OFFSETS`.
+        :data:`probegrid.core.grid.CORNER_OFFSETS`.
     valid : (P,) bool
     positions : (P, 3) float64
         Probe positions (possibly moved).
     moments : (P * 6 (m + 2)^2, 2) float32
-        Bordered distance moments (:class:`probegrid.interpolate.BorderedCubes`' layout); an
+        Bordered distance moments (:class:`probegrid.core.ddgi.BorderedCubes`' layout); an
         empty array means no Chebyshev test.
     moments_n : int
         Face size ``m`` of the unbordered moments cubes.
@@ -127,10 +127,10 @@ def indirect_irradiance(
     coeffs : (P, 9, 3) float64
         Irradiance SH coefficients ``A_l L_lm`` per probe.
     basis_scale : (9,) float64
-        :data:`probegrid.sh.BASIS_SCALE`.
+        :data:`probegrid.core.sh.BASIS_SCALE`.
     face_u, face_v : (6, 3) float64
     normal_floor, min_weight, crush : float
-        DDGI constants (:mod:`probegrid.interpolate`).
+        DDGI constants (:mod:`probegrid.core.ddgi`).
 
     Returns
     -------
@@ -332,10 +332,10 @@ def light_rays(
            NDArray[np.float64]]:
     """The shadow rays of the punctual lights at surface points, and what each would deliver.
 
-    :func:`probegrid.lights.incident_many` (kinds 0 point, 1 spot, 2 directional; the spec's
+    :func:`probegrid.core.lights.incident_many` (kinds 0 point, 1 spot, 2 directional; the spec's
     range window ``clamp(1 - (d / range)^4, 0, 1) / d^2`` and spot cone
     ``saturate(cos * scale + offset)^2``) fused with the selection of
-    :meth:`probegrid.render.ProbeRenderer._visible_lights`: a (point, light) pair gets a shadow
+    :meth:`probegrid.bake.render.ProbeRenderer._visible_lights`: a (point, light) pair gets a shadow
     ray when the light delivers ``E_perp > 0`` and lies in front of the surface
     (``cos = dot(l, n) > 0``). The ray starts ``eps`` along the normal, with ``tmin = eps`` and
     ``tmax = distance - eps`` (inf for directional lights).
@@ -493,7 +493,7 @@ def cube_sample_directions(
 
     Sample ``k`` of texel ``(f, row, col)`` sits at continuous texel coordinates
     ``(col - 0.5 + jitter[k, 0], row - 0.5 + jitter[k, 1])`` (face coordinates
-    ``(c + 0.5) 2 / n - 1``, :func:`probegrid.cubemap.texel_to_uv`); its direction is
+    ``(c + 0.5) 2 / n - 1``, :func:`probegrid.core.cubemap.texel_to_uv`); its direction is
     ``normal + u U + v V`` normalised and its weight the area element ``|d|^-3``, normalised
     over the texel's samples.
 
@@ -618,7 +618,7 @@ def embree_rays(
     centre: NDArray[np.float64],
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], bool]:
     """Rays as Embree takes them: float32 origins moved to ``tmin`` and re-centred, directions,
-    and segment lengths ``tmax - tmin`` (:meth:`probegrid.raytrace.RayTracer._embree_rays`).
+    and segment lengths ``tmax - tmin`` (:meth:`probegrid.bake.raytrace.RayTracer._embree_rays`).
 
     ``origins (1 or m, 3)``, ``directions (m, 3)``, ``tmin``/``tmax (1 or m,)`` float64 (a single
     row is shared by every ray), ``centre (3,)``. The origin is ``(o - centre) + tmin d`` in

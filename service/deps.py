@@ -26,7 +26,7 @@ from fastapi import Depends, Request
 from fastapi import Path as PathParam
 from numpy.typing import NDArray
 
-from probegrid.dfg import dfg_lut
+from probegrid.core.dfg import dfg_lut
 from service.errors import ApiError
 from service.registry import GridRegistry, ServedGrid
 from service.settings import Settings

@@ -17,8 +17,8 @@ png       8-bit sRGB (linear values clamped to       8-bit sRGB of the cross
           [0, 1], sRGB transfer curve), same images
 ========  =========================================  ===========================================
 
-Faces are in the order ``+X, -X, +Y, -Y, +Z, -Z`` with row 0 at the top (:mod:`probegrid.cubemap`);
-the cross is :func:`probegrid.layouts.faces_to_cross` ``"hcross"`` (uncovered cells 0). The exr,
+Faces are in the order ``+X, -X, +Y, -Y, +Z, -Z`` with row 0 at the top (:mod:`probegrid.core.cubemap`);
+the cross is :func:`probegrid.core.layouts.faces_to_cross` ``"hcross"`` (uncovered cells 0). The exr,
 hdr and png encoders are :func:`probegrid.imageio.write_image`, which writes files: each image is
 written to a fresh file in the service's scratch directory (in ``/dev/shm`` when it exists, so it
 never touches a disk), read back and deleted. Every encoder is deterministic (EXRs carry no
@@ -49,8 +49,8 @@ from fastapi import Request, Response
 from numpy.typing import NDArray
 from pydantic_core import to_json
 
+from probegrid.core.layouts import faces_to_cross
 from probegrid.imageio import write_image
-from probegrid.layouts import faces_to_cross
 
 __all__ = [
     "MEDIA_TYPES",

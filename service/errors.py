@@ -1,4 +1,4 @@
-"""Error responses: every failure is a JSON :class:`service.schemas.ErrorOut` with a 4xx status.
+"""Error responses: every failure is a JSON :class:`service.schemas.ErrorOut`; a client's mistake is a 4xx.
 
 ===========================================  ======  ======================
 cause                                        status  ``error``
@@ -10,12 +10,13 @@ missing / non-finite / out-of-range values   422     ``invalid_request``
 a value the library rejects (ValueError)     422     ``invalid_request``
 body over ``max_body_bytes``, batch too big  413     ``too_large``
 store files unreadable (server side)         503     ``store_unavailable``
-anything else (a bug)                        400     ``request_failed``
+anything else (a server bug)                 500     ``internal_error``
 ===========================================  ======  ======================
 
 The last row is a last resort: :class:`LastResortMiddleware` logs the exception with its traceback
-and a reference that the response carries, so an unexpected error never becomes a 500 and never
-takes the server down. Tests fuzz the API and check that it never fires.
+and a reference that the response carries, and answers ``500 internal_error`` with a JSON body: a
+bug of the server is a server error, never blamed on the request, and never takes the server down.
+Tests fuzz the API and check that it never fires.
 
 :class:`BodyLimitMiddleware` refuses bodies over the limit before the app reads them: a declared
 ``Content-Length`` over the limit is answered at once; otherwise the body is read up to the limit
@@ -35,7 +36,7 @@ from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from probegrid.store import StoreError
+from probegrid.errors import StoreError
 
 __all__ = [
     "ApiError",
@@ -54,6 +55,7 @@ _CODES = {
     413: "too_large",
     415: "unsupported_media_type",
     422: "invalid_request",
+    500: "internal_error",
     503: "store_unavailable",
 }
 
@@ -114,7 +116,7 @@ def _validation(request: Request, exc: Exception) -> Response:
 
 def _http(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
-    status = exc.status_code if 400 <= exc.status_code < 500 else 400
+    status = exc.status_code if 400 <= exc.status_code < 600 else 500
     code = _CODES.get(status, "bad_request")
     if status == 404 and exc.detail == "Not Found":
         message = f"There is no route {request.url.path}; see /docs for the API."
@@ -158,7 +160,7 @@ async def _send_json(send: Send, status: int, body: bytes,
 
 
 class LastResortMiddleware:
-    """Turn an exception no handler took into a logged ``400 request_failed`` JSON response."""
+    """Turn an exception no handler took into a logged ``500 internal_error`` JSON response."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app
@@ -179,12 +181,12 @@ class LastResortMiddleware:
             await self.app(scope, receive, tracking_send)
         except Exception:
             ref = secrets.token_hex(6)
-            log.exception("request_failed %s: unhandled error on %s %s", ref,
+            log.exception("internal_error %s: unhandled error on %s %s", ref,
                           scope.get("method"), scope.get("path"))
             if not started:
                 msg = (f"The server could not process this request (reference {ref}); "
                        "the cause was logged.")
-                await _send_json(send, 400, error_body("request_failed", msg))
+                await _send_json(send, 500, error_body("internal_error", msg))
 
 
 class BodyLimitMiddleware:

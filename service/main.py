@@ -30,7 +30,7 @@ from typing import Final
 
 from fastapi import FastAPI
 
-from probegrid import __version__
+from probegrid._version import __version__
 from probegrid.store import read_manifest
 from service.deps import ServiceState
 from service.encoding import scratch_directory

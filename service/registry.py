@@ -6,7 +6,7 @@ names a grid, it never names a file: the name is only a key of this registry, so
 sends becomes a path.
 
 Each :class:`ServedGrid` keeps the open :class:`probegrid.store.ProbeStore` (read-only memory maps,
-shared between worker processes through the page cache), its :class:`probegrid.interpolate.ProbeField`
+shared between worker processes through the page cache), its :class:`probegrid.core.ddgi.ProbeField`
 and the JSON-ready summary the ``/v1/grids`` routes return.
 """
 
@@ -21,13 +21,13 @@ from typing import Any
 
 import numpy as np
 
-from probegrid.interpolate import ProbeField
+from probegrid.query import ProbeField
 from probegrid.store import ProbeStore, open_store
+from probegrid.store.manifest import store_name
 
 __all__ = ["GridRegistry", "ServedGrid", "grid_name"]
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-_SUFFIX = ".probes"
 
 
 def grid_name(path: str | os.PathLike[str]) -> str:
@@ -37,7 +37,7 @@ def grid_name(path: str | os.PathLike[str]) -> str:
     ``.``, ``_`` and ``-`` (at most 128, starting with a letter or digit).
     """
     name = Path(path).name
-    name = name.removesuffix(_SUFFIX) if name.endswith(_SUFFIX) else name
+    name = store_name(name)
     if not _NAME_RE.match(name):
         raise ValueError(
             f"cannot serve {str(path)!r}: a grid name must be 1-128 letters, digits, '.', '_' or "

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from probegrid.conventions import conventions
-from probegrid.cubemap import mip_sizes
-from probegrid.grid import GridSpec
+from probegrid.core.conventions import conventions
+from probegrid.core.cubemap import mip_sizes
+from probegrid.core.grid import GridSpec
 from probegrid.store import ArraySpec, ProbeStore, StoreWriter
 
 #: Grid of the standard test store: 3 x 2 x 3 probes, spacing 1.

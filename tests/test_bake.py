@@ -1,5 +1,5 @@
 """Baking probe grids: furnace, inverse-square law, shadows, invalid probes, determinism across
-executors, and a killed bake that resumes (probegrid.bake, probegrid.render)."""
+executors, and a killed bake that resumes (probegrid.bake.driver, probegrid.bake.render)."""
 
 from __future__ import annotations
 
@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid.bake import BakeSettings, bake
-from probegrid.environment import Environment
-from probegrid.executors import InlineExecutor, LocalExecutor
-from probegrid.grid import GridSpec
-from probegrid.lights import PointLight
+from probegrid.bake.driver import BakeSettings, bake
+from probegrid.bake.environment import Environment
+from probegrid.bake.executors import InlineExecutor, LocalExecutor
+from probegrid.core.grid import GridSpec
+from probegrid.core.lights import PointLight
+from probegrid.core.sh import K0
 from probegrid.scene import Material, SceneBuilder, box_scene
-from probegrid.sh import K0
 from probegrid.store import StoreError, open_store
 
 FAST = {"face_size": 8, "diffuse_size": 4, "moments_size": 4, "batch_size": 4}
@@ -71,7 +71,7 @@ def test_point_light_inverse_square(tmp_path):
     # the cube's integral is the irradiance: L00 = Y00 * E
     np.testing.assert_allclose(s["sh"][:, 0, :], np.repeat((K0 * e)[:, None], 3, 1), rtol=1e-5)
     # diffuse texel looking back at the light (-X): irradiance / pi, clamped cosine ~ 1
-    from probegrid.cubemap import direction_to_texel, texel_directions
+    from probegrid.core.cubemap import direction_to_texel, texel_directions
 
     f, r, c = (int(a) for a in direction_to_texel(np.array([-1.0, 0.0, 0.0]), 4))
     cosine = -texel_directions(4)[f, r, c, 0]
@@ -94,7 +94,7 @@ def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
     """A point light over an endless floor, nothing else: the floor is lit by the light alone,
     so the radiance a probe sees on it is rho / pi I cos / d^2 after any number of bounces (the
     bounce grids must not carry the light's direct term into the surfaces a second time)."""
-    from probegrid.cubemap import texel_directions
+    from probegrid.core.cubemap import texel_directions
 
     rho, intensity, light = 0.5, 20.0, np.array([0.0, 3.0, 0.0])
     b = SceneBuilder()
@@ -122,8 +122,8 @@ def test_a_sun_smaller_than_a_texel_keeps_its_energy(tmp_path):
     """Misses read the environment box-filtered to the texel's footprint: a bright 1-texel sun in
     a 128^2 sky reaches an 8^2 probe cube with its energy (a point lookup would catch it whole or
     miss it): the probe's texels are the sky's means over their solid angles."""
-    from probegrid.cubemap import texel_solid_angles
-    from probegrid.sampling import resample
+    from probegrid.core.cubemap import texel_solid_angles
+    from probegrid.core.sampling import resample
 
     sky = np.full((6, 128, 128, 3), 0.2, np.float32)
     sky[2, 37, 90] = 5000.0  # on +Y, between the probe texels' centres
@@ -217,9 +217,9 @@ def test_bake_is_bit_identical_across_executors_and_batches(tmp_path):
 
 def test_stored_maps_are_the_filters_of_the_stored_incoming_cube(tmp_path):
     """Diffuse and specular maps are the exact sums of the probe's own incoming cube (the
-    matrix path, :mod:`probegrid.probefilter`), and the manifest says so."""
-    from probegrid.diffuse import diffuse_exact
-    from probegrid.specular import ggx_prefilter
+    matrix path, :mod:`probegrid.core.probefilter`), and the manifest says so."""
+    from probegrid.core.diffuse import diffuse_exact
+    from probegrid.core.specular import ggx_prefilter
 
     grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 1, 2))
     st = BakeSettings(bounces=1, store_incoming=True, **FAST)
@@ -236,7 +236,7 @@ def test_stored_maps_are_the_filters_of_the_stored_incoming_cube(tmp_path):
 
 def test_dask_local_cluster_bake_equals_local_bake(tmp_path):
     distributed = pytest.importorskip("distributed")
-    from probegrid.executors import DaskExecutor
+    from probegrid.bake.executors import DaskExecutor
 
     scene = _room_scene()
     grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 2, 2))
@@ -282,7 +282,7 @@ def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
         open_store(out)
     with pytest.raises(StoreError):
         open_store(out.with_name(out.name + ".partial"))
-    from probegrid.export import describe_store
+    from probegrid.jobs.export import describe_store
 
     with pytest.raises(StoreError, match="unfinished bake"):
         describe_store(out)
@@ -356,7 +356,8 @@ class _StopInFinalStage(InlineExecutor):
 
 
 def test_an_interrupted_overwrite_bake_resumes_and_a_running_bake_is_never_deleted(tmp_path):
-    from probegrid.bake import _bake_lock, _work_dir
+    from probegrid.bake.driver import _bake_lock
+    from probegrid.store.manifest import work_path as _work_dir
 
     grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 1, 2))
     st = BakeSettings(bounces=1, **{**FAST, "batch_size": 2})
@@ -382,7 +383,7 @@ def test_an_interrupted_overwrite_bake_resumes_and_a_running_bake_is_never_delet
 
 
 def test_environment_rotation_rotates_the_probes(tmp_path):
-    from probegrid.sh import rotate_y
+    from probegrid.core.sh import rotate_y
 
     rng = np.random.default_rng(1)
     faces = rng.random((6, 16, 16, 3)).astype(np.float32) + np.linspace(0, 2, 16)[:, None, None]

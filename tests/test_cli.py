@@ -1,5 +1,5 @@
 """The command line: ``probegrid filter`` outputs and manifest, bad input, interrupted runs,
-``bake`` / ``info`` / ``export`` (probegrid.cli, probegrid.filterjob, probegrid.export)."""
+``bake`` / ``info`` / ``export`` (probegrid.cli, probegrid.jobs.filter, probegrid.jobs.export)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from probegrid import imageio
 from probegrid.cli import main
-from probegrid.cubemap import texel_solid_angles
+from probegrid.core.cubemap import texel_solid_angles
 
 REPO = Path(__file__).resolve().parents[1]
 SKY = REPO / "data" / "sample_sky.hdr"

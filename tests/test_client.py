@@ -33,10 +33,10 @@ from probegrid.client import (
     ServerError,
     SHSample,
 )
-from probegrid.cubemap import CubeMap
-from probegrid.dfg import dfg_lut
-from probegrid.interpolate import ProbeField
-from probegrid.lights import DirectionalLight, PointLight, light_maps
+from probegrid.core.cubemap import CubeMap
+from probegrid.core.dfg import dfg_lut
+from probegrid.core.lights import DirectionalLight, PointLight, light_maps
+from probegrid.query import ProbeField
 from probegrid.store import StoreManifest, open_store
 from service.deps import DFG_SIZE
 
@@ -277,6 +277,24 @@ class _Answer503(http.server.BaseHTTPRequestHandler):
         pass
 
 
+class _Answer500(http.server.BaseHTTPRequestHandler):
+    """A real HTTP server answering what the service's last resort sends for a server bug."""
+
+    def do_GET(self) -> None:
+        from service.errors import error_body
+
+        body = error_body("internal_error", "The server could not process this request "
+                          "(reference abc123); the cause was logged.")
+        self.send_response(500)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+
 class _AnswerHtml(http.server.BaseHTTPRequestHandler):
     """A real HTTP server that is not the service: 200 and a web page."""
 
@@ -312,6 +330,14 @@ def test_503_is_retried_then_raised_with_the_server_message():
     assert _Answer503.hits == 3  # 1 attempt + 2 retries
     assert e.value.status == 503 and e.value.code == "store_unavailable"
     assert e.value.message == "The grid's store cannot be read right now."
+
+
+def test_a_server_bug_is_a_server_error():
+    with _http_server(_Answer500) as url, ProbeGridClient(url, retries=0) as c:
+        with pytest.raises(ServerError) as e:
+            c.sh_at("g", POS)
+    assert e.value.status == 500 and e.value.code == "internal_error"
+    assert "reference abc123" in e.value.message
 
 
 def test_everything_the_client_raises_is_a_probegrid_error():

@@ -1,5 +1,5 @@
 """Every statement of the conventions record is checked against the module that owns it
-(probegrid.conventions)."""
+(probegrid.core.conventions)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from probegrid import cubemap, dfg, layouts, lights, sh
-from probegrid.conventions import conventions
+from probegrid.core import cubemap, dfg, layouts, lights, sh
+from probegrid.core.conventions import conventions
 
 
 @pytest.fixture(scope="module")

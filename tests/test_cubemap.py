@@ -1,11 +1,11 @@
-"""Tests of the face table, texel geometry and solid angles (probegrid.cubemap)."""
+"""Tests of the face table, texel geometry and solid angles (probegrid.core.cubemap)."""
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from probegrid import cubemap as cm
+from probegrid.core import cubemap as cm
 
 
 def test_face_table_matches_khr_table():

@@ -1,12 +1,12 @@
-"""Tests of probegrid.dfg: the split-sum DFG table and its lookup."""
+"""Tests of probegrid.core.dfg: the split-sum DFG table and its lookup."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from probegrid import lobes
-from probegrid.dfg import dfg_lookup, dfg_lut, smith_ggx_correlated_visibility
+from probegrid.core import lobes
+from probegrid.core.dfg import dfg_lookup, dfg_lut, smith_ggx_correlated_visibility
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +19,7 @@ def _brute_force(n_dot_v: float, roughness: float, n: int = 1500) -> tuple[float
 
     ``A = integral D V (1 - Fc) (n.l) dl`` over the upper hemisphere, in spherical coordinates
     of ``l`` about ``n`` (the table integrates over the half vector instead), with the GGX NDF
-    of probegrid.lobes and the visibility written out here.
+    of probegrid.core.lobes and the visibility written out here.
     """
     alpha = roughness**2
     v = np.array([np.sqrt(1.0 - n_dot_v**2), 0.0, n_dot_v])

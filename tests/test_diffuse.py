@@ -1,14 +1,14 @@
-"""Tests of probegrid.diffuse: exact clamped-cosine filter and band-2 SH diffuse maps."""
+"""Tests of probegrid.core.diffuse: exact clamped-cosine filter and band-2 SH diffuse maps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from probegrid import sh
-from probegrid.cubemap import texel_directions, texel_solid_angles
-from probegrid.diffuse import diffuse_exact, diffuse_sh
-from probegrid.layouts import to_cube
+from probegrid.core import sh
+from probegrid.core.cubemap import texel_directions, texel_solid_angles
+from probegrid.core.diffuse import diffuse_exact, diffuse_sh
+from probegrid.core.layouts import to_cube
 
 
 def _integral(cube: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests of the batch executors (probegrid.executors): same bits everywhere, setup once, errors."""
+"""Tests of the batch executors (probegrid.bake.executors): same bits everywhere, setup once, errors."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid import executors as ex
+from probegrid.bake import executors as ex
 
 P = 37  # probes; not a multiple of the batch sizes used below
 SEED = 20240917
@@ -367,7 +367,7 @@ def subprocess_pid_that_exited() -> int:
 
 _ORPHAN_SCRIPT = """
 import os, sys, time
-from probegrid import executors as ex
+from probegrid.bake import executors as ex
 
 class Ctx:
     def setup(self):

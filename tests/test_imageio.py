@@ -7,9 +7,9 @@ import numpy as np
 import OpenImageIO as oiio  # only to make inputs the library does not write (8-bit, grey, alpha)
 import pytest
 
-from probegrid import cubemap as cm
 from probegrid import imageio as io
-from probegrid import layouts as L
+from probegrid.core import cubemap as cm
+from probegrid.core import layouts as L
 
 
 def _hdr_image(h=24, w=48, seed=0):

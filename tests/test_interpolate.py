@@ -1,4 +1,4 @@
-"""Tests of probe blending at arbitrary positions (probegrid.interpolate)."""
+"""Tests of probe blending at arbitrary positions (probegrid.core.ddgi)."""
 
 from __future__ import annotations
 
@@ -6,19 +6,13 @@ import numpy as np
 import pytest
 from probe_stores import GRID, linear_arrays, linear_shapes, linear_store, linear_values
 
-from probegrid.cubemap import CubeMap
-from probegrid.dfg import dfg_lut
-from probegrid.grid import GridSpec
-from probegrid.interpolate import (
-    CRUSH_THRESHOLD,
-    ProbeField,
-    _probe_bilinear,
-    blend,
-    blend_lookup,
-    probe_weights,
-)
-from probegrid.sampling import CubeSampler
-from probegrid.shading import shade_split_sum
+from probegrid.core.cubemap import CubeMap
+from probegrid.core.ddgi import CRUSH_THRESHOLD, _probe_bilinear, blend, blend_lookup, probe_weights
+from probegrid.core.dfg import dfg_lut
+from probegrid.core.grid import GridSpec
+from probegrid.core.sampling import CubeSampler
+from probegrid.core.shading import shade_split_sum
+from probegrid.query import ProbeField
 
 RNG_SEED = 20240611
 
@@ -317,7 +311,7 @@ def test_moments_of_the_wrong_shape_raise_value_error():
 
 
 def test_bordered_cubes_lookup_matches_the_seamless_filter():
-    from probegrid.interpolate import BorderedCubes, _probe_bilinear
+    from probegrid.core.ddgi import BorderedCubes, _probe_bilinear
 
     rng = np.random.default_rng(5)
     cubes = rng.random((7, 6, 4, 4, 2)).astype(np.float32)

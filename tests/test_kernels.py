@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from probegrid.grid import GridSpec
-from probegrid.render import IndirectField
+from probegrid.bake.render import IndirectField
+from probegrid.core.grid import GridSpec
 
 
 def _field(rng: np.random.Generator, counts=(4, 3, 5), moments=True, invalid=0.2,
@@ -56,7 +56,7 @@ def test_indirect_kernel_all_invalid_is_zero() -> None:
 
 def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The sample pattern in numpy array expressions (cubemap's own conversions)."""
-    from probegrid.cubemap import face_uv_to_direction, texel_to_uv
+    from probegrid.core.cubemap import face_uv_to_direction, texel_to_uv
 
     k = np.arange(n, dtype=np.float64)
     u = texel_to_uv(k[:, None] - 0.5 + jitter[None, :, 0], n)[None, :, :]
@@ -70,7 +70,7 @@ def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 @pytest.mark.parametrize("samples", [1, 5])
 def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
-    from probegrid.render import RenderSettings, _jitter, sample_pattern
+    from probegrid.bake.render import RenderSettings, _jitter, sample_pattern
 
     st = RenderSettings(face_size=8, samples=samples, seed=3, moments_size=8)
     d, w = sample_pattern(st, 11)
@@ -83,7 +83,7 @@ def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
 @pytest.mark.parametrize("wrap", [("repeat", "repeat"), ("clamp", "mirror"), ("mirror", "clamp")])
 def test_texture_kernel_matches_sample_texture(wrap) -> None:
     from probegrid.kernels import multiply_texture
-    from probegrid.scene import _WRAPS, sample_texture
+    from probegrid.scene.textures import _WRAPS, sample_texture
 
     rng = np.random.default_rng(5)
     tex = rng.random((5, 7, 4)).astype(np.float32)
@@ -138,14 +138,14 @@ def test_orient_hits_flips_toward_the_ray_and_flags_one_sided_backs() -> None:
 
 def test_light_rays_match_incident_many() -> None:
     """The shadow-ray set-up equals lights.incident_many plus the renderer's selection rule."""
-    from probegrid.kernels import light_rays
-    from probegrid.lights import (
+    from probegrid.core.lights import (
         DirectionalLight,
         PointLight,
         SpotLight,
         incident_many,
         pack_lights,
     )
+    from probegrid.kernels import light_rays
 
     lights = [
         PointLight((0.0, 2.0, 0.0), (1.0, 0.8, 0.6), 40.0, range=3.0),

@@ -1,11 +1,11 @@
-"""Tests of environment layouts and anti-aliased resampling (probegrid.layouts)."""
+"""Tests of environment layouts and anti-aliased resampling (probegrid.core.layouts)."""
 
 import numpy as np
 import pytest
 
-from probegrid import cubemap as cm
-from probegrid import layouts as L
-from probegrid.sampling import sample_bilinear
+from probegrid.core import cubemap as cm
+from probegrid.core import layouts as L
+from probegrid.core.sampling import sample_bilinear
 
 ALL = ("equirect", "angular", "hcross", "vcross", "faces")
 

@@ -1,13 +1,13 @@
-"""Tests of punctual lights, analytic light maps and delta splatting (probegrid.lights)."""
+"""Tests of punctual lights, analytic light maps and delta splatting (probegrid.core.lights)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from probegrid import lights as lt
-from probegrid.cubemap import CubeMap, texel_directions, texel_solid_angles
-from probegrid.lobes import ggx_kernel_integral
+from probegrid.core import lights as lt
+from probegrid.core.cubemap import CubeMap, texel_directions, texel_solid_angles
+from probegrid.core.lobes import ggx_kernel_integral
 
 
 def _integral(faces: np.ndarray) -> np.ndarray:
@@ -173,7 +173,7 @@ def test_incident_rejects_bad_input():
 
 
 def _hand_irradiance(position):
-    """E_perp and direction of _scene()'s lights, computed without probegrid.lights."""
+    """E_perp and direction of _scene()'s lights, computed without probegrid.core.lights."""
     p = np.asarray(position, dtype=np.float64)
     out = []
     # point 1: inverse square

@@ -1,5 +1,5 @@
 """Output safety of ``export`` / ``filter`` / ``info`` and of the store writer
-(probegrid.export, probegrid.filterjob.prepare_output_dir, probegrid.store.create_npy):
+(probegrid.jobs.export, probegrid.jobs.filter.prepare_output_dir, probegrid.store.create_npy):
 
 * an ``--out`` directory that holds a store, an unfinished bake or another kind of output is
   refused (and left untouched); an earlier output of the same kind is replaced;
@@ -26,9 +26,9 @@ from probe_stores import linear_store
 
 from probegrid import imageio
 from probegrid.cli import main
-from probegrid.export import describe_store, export_probe
-from probegrid.filterjob import FilterSettings, run_filter
-from probegrid.grid import GridSpec
+from probegrid.core.grid import GridSpec
+from probegrid.jobs.export import describe_store, export_probe
+from probegrid.jobs.filter import FilterSettings, run_filter
 from probegrid.store import ArraySpec, StoreError, StoreWriter, open_store, partial_path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -190,7 +190,7 @@ FULL_TMPFS = textwrap.dedent(
     """
     import errno, sys
     import numpy as np
-    from probegrid.grid import GridSpec
+    from probegrid.core.grid import GridSpec
     from probegrid.store import ArraySpec, StoreWriter
     grid = GridSpec.from_counts((0, 0, 0), (1, 1, 1), (2, 2, 2))
     try:

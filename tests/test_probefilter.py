@@ -1,15 +1,15 @@
-"""Tests of probegrid.probefilter: the cached-matrix diffuse map and GGX chain of probe cubes."""
+"""Tests of probegrid.core.probefilter: the cached-matrix diffuse map and GGX chain of probe cubes."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from probegrid import lobes, probefilter
-from probegrid.cubemap import texel_directions
-from probegrid.diffuse import diffuse_exact
-from probegrid.layouts import to_cube
-from probegrid.specular import ggx_prefilter
+from probegrid.core import lobes, probefilter
+from probegrid.core.cubemap import texel_directions
+from probegrid.core.diffuse import diffuse_exact
+from probegrid.core.layouts import to_cube
+from probegrid.core.specular import ggx_prefilter
 
 
 def _mean_cosine_ggx(alpha: float) -> float:

@@ -1,4 +1,4 @@
-"""Tests of probegrid.samples: the analytic sky and the hand-written sample room, and that the
+"""Tests of probegrid.jobs.samples: the analytic sky and the hand-written sample room, and that the
 committed files in data/ are what the code generates."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid.layouts import direction_to_equirect, equirect_directions
-from probegrid.lights import PointLight
-from probegrid.raytrace import RayTracer
-from probegrid.samples import (
+from probegrid.bake.raytrace import RayTracer
+from probegrid.core.layouts import direction_to_equirect, equirect_directions
+from probegrid.core.lights import PointLight
+from probegrid.jobs.samples import (
     LAMP_INTENSITY,
     LAMP_POSITION,
     PANEL_EMISSION,

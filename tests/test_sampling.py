@@ -1,4 +1,4 @@
-"""Tests of seamless cube-map sampling, mip chains and resizing (probegrid.sampling)."""
+"""Tests of seamless cube-map sampling, mip chains and resizing (probegrid.core.sampling)."""
 
 import itertools
 
@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from probegrid import cubemap as cm
-from probegrid import sampling as smp
-from probegrid import seams
+from probegrid.core import cubemap as cm
+from probegrid.core import sampling as smp
+from probegrid.core import seams
 
 CORNERS = np.array(list(itertools.product((-1.0, 1.0), repeat=3)))
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid.lights import DirectionalLight, PointLight, SpotLight
+from probegrid.core.color import srgb_to_linear
+from probegrid.core.lights import DirectionalLight, PointLight, SpotLight
 from probegrid.scene import (
     Material,
     Scene,
@@ -24,7 +25,6 @@ from probegrid.scene import (
     load_gltf,
     quad_mesh,
     sample_texture,
-    srgb_to_linear,
 )
 
 # --------------------------------------------------------------------------------------------

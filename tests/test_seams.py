@@ -1,10 +1,10 @@
-"""Tests of the cube-edge topology, bordered faces and seam export modes (probegrid.seams)."""
+"""Tests of the cube-edge topology, bordered faces and seam export modes (probegrid.core.seams)."""
 
 import numpy as np
 import pytest
 
-from probegrid import cubemap as cm
-from probegrid import seams
+from probegrid.core import cubemap as cm
+from probegrid.core import seams
 
 SIZES = [1, 2, 3, 4, 5, 8]
 

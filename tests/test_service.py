@@ -20,12 +20,12 @@ from live_server import serve
 from probe_stores import GRID, linear_arrays, linear_store, write_store
 from schemathesis import GenerationMode
 
-from probegrid.dfg import dfg_lut
-from probegrid.grid import GridSpec
+from probegrid.core.dfg import dfg_lut
+from probegrid.core.grid import GridSpec
+from probegrid.core.layouts import faces_to_cross
+from probegrid.core.lights import PointLight, SpotLight, light_maps
 from probegrid.imageio import linear_to_srgb
-from probegrid.interpolate import ProbeField
-from probegrid.layouts import faces_to_cross
-from probegrid.lights import PointLight, SpotLight, light_maps
+from probegrid.query import ProbeField
 from probegrid.store import StoreError, open_store
 from service.deps import DFG_SIZE
 from service.main import create_app, example_usage
@@ -467,7 +467,7 @@ def test_fuzz_openapi_never_gives_5xx(server):
             continue
     assert ran >= 20 and sum(seen.values()) > 300, (ran, seen)
     assert all(s < 500 for s in seen) and 200 in seen and 422 in seen
-    assert "request_failed" not in server.log_text()  # the last resort never fired
+    assert "internal_error" not in server.log_text()  # the last resort never fired
 
 
 # ------------------------------------------------------------------------------ fast path
@@ -652,9 +652,11 @@ def test_multiple_workers_share_the_stores(stores, tmp_path):
         assert c.get("/v1/grids").json()["grids"][0]["name"] == "lin"
 
 
-def test_last_resort_turns_a_bug_into_a_logged_4xx(stores, caplog):
-    """The mechanism the fuzz run proves idle: an unexpected exception is logged with a
-    reference and answered 400 ``request_failed`` (in-process app, a route that fails on purpose)."""
+def test_last_resort_turns_a_bug_into_a_logged_500(stores, caplog):
+    """The mechanism the fuzz run proves idle: an unexpected exception is logged with its
+    traceback and a reference, and answered 500 ``internal_error`` with a JSON body (a server bug
+    is a server error; in-process app, a route that fails on purpose). The client maps it to
+    its ServerError."""
     app = create_app([stores["lin"]])
 
     @app.get("/fail")
@@ -670,7 +672,8 @@ def test_last_resort_turns_a_bug_into_a_logged_4xx(stores, caplog):
 
     with caplog.at_level("ERROR", logger="probegrid.service"):
         bad, ok = asyncio.run(main())
-    assert bad.status_code == 400 and bad.json()["error"] == "request_failed"
+    assert bad.status_code == 500 and bad.json()["error"] == "internal_error"
+    assert bad.headers["content-type"] == "application/json"
     ref = bad.json()["message"].split("reference ")[1].split(")")[0]
     assert any(ref in r.getMessage() and r.exc_info for r in caplog.records)
     assert ok.status_code == 200

@@ -1,12 +1,12 @@
-"""Tests of the SH convention, projection, irradiance, windowing and rotation (probegrid.sh)."""
+"""Tests of the SH convention, projection, irradiance, windowing and rotation (probegrid.core.sh)."""
 
 import numpy as np
 import pytest
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from probegrid import cubemap as cm
-from probegrid import sh
+from probegrid.core import cubemap as cm
+from probegrid.core import sh
 
 # --------------------------------------------------------------------------------------------
 # Helpers

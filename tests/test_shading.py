@@ -1,11 +1,11 @@
-"""Tests of normal transforms, reflection and the two shading formulas (probegrid.shading)."""
+"""Tests of normal transforms, reflection and the two shading formulas (probegrid.core.shading)."""
 
 import numpy as np
 import pytest
 
-from probegrid import shading as sh
-from probegrid.cubemap import FACE_NORMALS, CubeMap
-from probegrid.dfg import dfg_lookup, dfg_lut
+from probegrid.core import shading as sh
+from probegrid.core.cubemap import FACE_NORMALS, CubeMap
+from probegrid.core.dfg import dfg_lookup, dfg_lut
 
 
 @pytest.fixture(scope="module")

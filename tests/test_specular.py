@@ -1,14 +1,14 @@
-"""Tests of probegrid.specular: GGX chain (tiered and exact), Phong, references."""
+"""Tests of probegrid.core.specular: GGX chain (tiered and exact), Phong, references."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from probegrid import lobes, specular
-from probegrid.cubemap import texel_directions, texel_solid_angles
-from probegrid.layouts import to_cube
-from probegrid.specular import (
+from probegrid.core import lobes, specular
+from probegrid.core.cubemap import texel_directions, texel_solid_angles
+from probegrid.core.layouts import to_cube
+from probegrid.core.specular import (
     ggx_prefilter,
     ggx_tier_plan,
     phong_chain,

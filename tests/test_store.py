@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid.grid import GridSpec
+from probegrid.core.grid import GridSpec
 from probegrid.store import (
     FORMAT_VERSION,
     ArraySpec,
@@ -258,7 +258,7 @@ def test_overwrite_replaces_a_file_in_the_way_without_leftovers(tmp_path):
 
 
 def test_killed_during_finish_resumes_into_the_rename(tmp_path, monkeypatch):
-    from probegrid import store as store_mod
+    from probegrid.store import writer as store_mod
 
     path = tmp_path / "room.probes"
     w = StoreWriter.create(path, **writer_kwargs())

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from probegrid.grid import GridSpec
-from probegrid.interpolate import ProbeWeights
+from probegrid.core.ddgi import ProbeWeights
+from probegrid.core.grid import GridSpec
 
 
 def _used(weights: ProbeWeights, row: int) -> list[tuple[int, float]]:
@@ -17,7 +17,7 @@ def _used(weights: ProbeWeights, row: int) -> list[tuple[int, float]]:
 def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dict[str, Any]]:
     """The probes with non-zero weight for one point, in corner order, as
     :class:`service.schemas.ProbeUse` dicts."""
-    _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.grid
+    _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.core.grid
     return [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
             for i, w in _used(weights, row)]
 

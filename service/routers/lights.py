@@ -1,6 +1,6 @@
 """``POST /v1/lights/maps``: analytic cube maps of lights that were not baked (dynamic lights).
 
-The maps are :func:`probegrid.lights.light_maps` (diffuse = irradiance / pi, GGX specular chain,
+The maps are :func:`probegrid.core.lights.light_maps` (diffuse = irradiance / pi, GGX specular chain,
 no shadows). With ``grid``, the grid's blended map at the position is added, so the response is
 "baked + dynamic" lighting there, at the grid's map sizes (blended with the visibility-aware
 weights when the request gives the surface ``normal``).
@@ -13,8 +13,8 @@ from typing import cast
 import numpy as np
 from fastapi import APIRouter, Depends, Response
 
-from probegrid.cubemap import CubeMap, mip_sizes
-from probegrid.lights import DirectionalLight, Light, PointLight, SpotLight, light_maps
+from probegrid.core.cubemap import CubeMap, mip_sizes
+from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight, light_maps
 from service.deps import StateDep, require_json
 from service.encoding import MEDIA_TYPES, encode_cube
 from service.errors import ApiError

@@ -7,8 +7,8 @@ from typing import Annotated, Any, Final, cast, get_args
 from fastapi import APIRouter, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from probegrid.interpolate import MapKind
-from probegrid.lobes import level_roughness
+from probegrid._types import MapKind
+from probegrid.core.lobes import level_roughness
 from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep, plain_query, probe_query
 from service.encoding import MEDIA_TYPES, conditional_response, encode_cube
 from service.errors import ApiError

@@ -1,0 +1,63 @@
+"""Every option set of the library, defined once as a ``Literal``.
+
+Settings models, function signatures, the CLI's argparse ``choices`` (through
+:func:`typing.get_args`) and the service's schemas all use these, so a new choice is added in one
+place. :func:`choices` gives the tuple of values of one of them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, get_args
+
+__all__ = [
+    "CrossLayout",
+    "CubeLayout",
+    "DiffuseMethod",
+    "GGXMethod",
+    "ImageFormat",
+    "InputLayout",
+    "Layout",
+    "MapKind",
+    "PixelType",
+    "SHWindow",
+    "SeamMode",
+    "StartMethod",
+    "WindowKind",
+    "Wrap",
+    "choices",
+]
+
+#: Cube-map kinds a probe or a store holds: diffuse (irradiance / pi), the GGX specular chain, the
+#: unfiltered incoming light.
+MapKind = Literal["diffuse", "specular", "incoming"]
+#: Image layouts of an environment or a cube map (see :mod:`probegrid.core.layouts`).
+Layout = Literal["equirect", "angular", "hcross", "vcross", "faces"]
+#: An input's layout, or ``auto`` to detect it from the image's shape.
+InputLayout = Literal["auto", "equirect", "angular", "hcross", "vcross", "faces"]
+#: The two cross layouts.
+CrossLayout = Literal["hcross", "vcross"]
+#: Layouts cube maps are written in.
+CubeLayout = Literal["faces", "hcross", "vcross", "equirect"]
+#: HDR image file formats maps are written in.
+ImageFormat = Literal["exr", "hdr"]
+#: Pixel types of written image files.
+PixelType = Literal["half", "float", "rgbe", "uint8"]
+#: Seam handling of filtered cube maps (see :mod:`probegrid.core.seams`).
+SeamMode = Literal["none", "average", "border"]
+#: SH windows (ringing suppression); ``auto`` picks the weakest window that removes negatives.
+SHWindow = Literal["none", "hanning", "lanczos", "gauss", "auto"]
+#: The explicit SH windows.
+WindowKind = Literal["none", "hanning", "lanczos", "gauss"]
+#: Diffuse (irradiance / pi) methods: band-2 SH, or the exact cosine sum.
+DiffuseMethod = Literal["sh", "exact"]
+#: GGX prefilter methods (see :mod:`probegrid.core.specular`).
+GGXMethod = Literal["tiered", "fis", "exact"]
+#: Start methods of the local worker processes.
+StartMethod = Literal["forkserver", "spawn"]
+#: glTF texture wrap modes.
+Wrap = Literal["repeat", "clamp", "mirror"]
+
+
+def choices(option: Any) -> tuple[str, ...]:
+    """The values of one of this module's ``Literal`` option sets, in order."""
+    return tuple(get_args(option))

@@ -1,0 +1,621 @@
+"""``probegrid bake``: a probe grid of a scene, multi-bounce, into a memory-mappable store.
+
+Stages (each a pass over the whole grid on the executor, each resumable):
+
+1. **classify** -- every probe shoots ``6 x 8^2`` rays; a probe whose rays hit backfaces more
+   than ``invalid_threshold`` of the time is inside geometry (the RTXGI classifier's test, 25 %
+   by default). So is a probe all of whose rays hit within ``enclosure`` times the smallest cell
+   size (default half a cell): inside a double-sided solid, whose inside shows no backface, or a
+   cavity smaller than the grid resolves (a closed room larger than that is not affected; 0
+   turns the test off). With ``relocate``, an invalid probe is moved to the nearest point of a
+   small lattice within ``relocate_fraction`` of a cell that passes the tests; otherwise it
+   stays invalid and every reader gives it zero weight.
+2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.bake.render`)
+   with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
+   projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
+   the punctual lights' direct light at the probe (the surface points that read them get it
+   from their own shadow rays; through the grid it would count twice).
+3. **final** (bounce B) -- the same render, then per probe: SH coefficients, the diffuse cube
+   (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the distance
+   moments and, optionally, the raw incoming cube, written to the store.
+
+So ``bounces = B`` gives light that has bounced B times off the scene's surfaces (a furnace box
+reads ``Le (1 - rho^(B+1)) / (1 - rho)``). The store's manifest records the settings, the scene
+and environment hash, the conventions and the quality figures. A killed bake leaves only
+``.partial``/``.work`` directories, which never load as a store, and the same command resumes
+from the probes it finished. Results depend only on the settings and seed, not on the executor,
+the number of workers or the batch size.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid.bake.environment import Environment
+from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.bake.raytrace import RayTracer
+from probegrid.bake.render import (
+    IndirectField,
+    ProbeRenderer,
+    RenderSettings,
+    probe_irradiance_coefficients,
+)
+from probegrid.bake.settings import BakeSettings
+from probegrid.core import probefilter, sh
+from probegrid.core.conventions import conventions
+from probegrid.core.cubemap import solid_angle_integral
+from probegrid.core.ddgi import BorderedCubes, bordered_cubes
+from probegrid.core.grid import GridSpec
+from probegrid.scene import Scene
+from probegrid.store import (
+    ArraySpec,
+    ProbeStore,
+    StoreWriter,
+    create_npy,
+    directory_lock,
+    open_store,
+    partial_path,
+)
+from probegrid.store.manifest import check_store_name, work_path
+
+__all__ = ["BakeReport", "BakeSettings", "bake", "environment_hash", "store_arrays"]
+
+ProgressFn = Callable[[str, Progress, int], None]
+
+
+def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
+    """The arrays of a store baked with ``settings`` (name -> per-probe shape and dtype)."""
+    n, d = settings.face_size, settings.diffuse_size
+    m = min(settings.moments_size, n)
+    levels = settings.levels()
+    arrays = {
+        "sh": ArraySpec((9, 3), "float32", "radiance SH coefficients L_lm, index l(l+1)+m, RGB"),
+        "diffuse": ArraySpec((6, d, d, 3), "float32", "diffuse cube: irradiance / pi"),
+        "valid": ArraySpec((), "bool", "probe is not inside geometry"),
+        "positions": ArraySpec((3,), "float64", "probe position (moved if relocated), world"),
+        "moments": ArraySpec((6, m, m, 2), "float32",
+                             "mean distance and mean squared distance per direction"),
+        "backface_fraction": ArraySpec((), "float32", "fraction of rays hitting backfaces"),
+        "sh_min": ArraySpec((3,), "float32", "minimum over the sphere of SH irradiance / pi"),
+    }
+    for k in range(levels):
+        s = n >> k
+        r = k / (levels - 1) if levels > 1 else 0.0
+        arrays[f"specular_{k}"] = ArraySpec(
+            (6, s, s, 3), "float32", f"GGX prefiltered radiance, roughness {r:.4g}"
+        )
+    if settings.store_incoming:
+        arrays["incoming"] = ArraySpec((6, n, n, 3), "float32", "incoming radiance cube")
+    return arrays
+
+
+def environment_hash(env: Environment) -> str:
+    """Content hash of an environment (part of the store's scene hash)."""
+    h = hashlib.sha256()
+    h.update(repr((env.intensity, env.rotation, env.color.tolist())).encode())
+    if env.faces is not None:
+        h.update(np.ascontiguousarray(env.faces, dtype="<f4").tobytes())
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------ field files
+@dataclass(frozen=True)
+class FieldFiles:
+    """``.npy`` files in the work directory holding a bounce's :class:`IndirectField`."""
+
+    sh: str
+    valid: str
+    positions: str
+    coeffs: str
+    moments_bordered: str
+
+    def open(self, grid: GridSpec) -> IndirectField:
+        """The field, every array memory-mapped read-only."""
+        return IndirectField(grid, _load(self.sh), _load(self.valid), _load(self.positions),
+                             BorderedCubes.from_bordered(_load(self.moments_bordered)),
+                             _load(self.coeffs))
+
+
+def _load(path: str) -> NDArray[Any]:
+    """The read-only memory map of an ``.npy`` file."""
+    return np.load(path, mmap_mode="r", allow_pickle=False)
+
+
+def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArray[np.float32],
+                      *, sh_file: Path, valid_file: Path, positions_file: Path) -> FieldFiles:
+    """Write the derived arrays of a bounce's field into ``directory``: its irradiance
+    coefficients and bordered distance moments, computed a chunk of probes at a time (the
+    inputs may be memory maps), so that workers can memory-map the whole field."""
+    directory.mkdir(parents=True, exist_ok=True)
+    # (create_npy reserves the disk blocks: a full disk is an OSError here, not a SIGBUS later)
+    coeffs = create_npy(directory / "coeffs.npy", np.float64, sh_l.shape)
+    probe_irradiance_coefficients(sh_l, out=coeffs)
+    coeffs.flush()
+    p, _, m, _, c = moments.shape
+    bordered = create_npy(directory / "moments_bordered.npy", np.float32, (p, 6, m + 2, m + 2, c))
+    bordered_cubes(moments, out=bordered)
+    bordered.flush()
+    del coeffs, bordered
+    return FieldFiles(str(sh_file), str(valid_file), str(positions_file),
+                      str(directory / "coeffs.npy"), str(directory / "moments_bordered.npy"))
+
+
+# ------------------------------------------------------------------------------ worker side
+@dataclass(frozen=True, eq=False)
+class _Context:
+    """Per-bake-stage worker context: pickled once per worker, ``setup`` builds the BVH.
+
+    The grid-sized arrays (probe positions and validity, the previous bounce's field) travel
+    either as arrays (``previous`` a tuple ``(sh, moments)``; for Dask workers, which may not
+    share this machine's files) or as ``.npy`` paths in the bake's work directory that
+    ``setup`` memory-maps (``positions``/``valid`` strings, ``previous`` a
+    :class:`~probegrid.bake.render.FieldFiles`), so that a local worker's memory is bounded by its
+    batch, not by the grid.
+    """
+
+    scene: Scene
+    environment: Environment
+    render: RenderSettings
+    settings: BakeSettings
+    grid: GridSpec
+    positions: NDArray[np.float64] | str | None = None
+    valid: NDArray[np.bool_] | str | None = None
+    previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
+
+    def setup(self) -> _State:
+        import multiprocessing
+
+        if multiprocessing.parent_process() is not None:
+            # a worker process: one BLAS thread, the executor already runs one task per core
+            from threadpoolctl import threadpool_limits
+
+            threadpool_limits(1)
+        positions, valid = _array(self.positions), _array(self.valid)
+        field = None
+        if isinstance(self.previous, FieldFiles):
+            field = self.previous.open(self.grid)
+        elif self.previous is not None:
+            assert positions is not None and valid is not None
+            field = IndirectField(self.grid, self.previous[0], valid, positions,
+                                  self.previous[1])
+        renderer = ProbeRenderer(self.scene, self.environment, self.render,
+                                 tracer=RayTracer.shared(self.scene))
+        return _State(renderer, self, field, positions, valid)
+
+
+def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
+    """An array, or the read-only memory map of an ``.npy`` path."""
+    return _load(a) if isinstance(a, str) else a
+
+
+@dataclass
+class _State:
+    renderer: ProbeRenderer
+    ctx: _Context
+    field: IndirectField | None
+    positions: NDArray[np.float64] | None
+    valid: NDArray[np.bool_] | None
+
+
+#: Face size of the texel-centre rays that classify a probe as inside geometry.
+CLASSIFY_FACE_SIZE = 8
+
+
+def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
+    """Lattice offsets in [-1, 1]^3 (without 0), nearest first, ties in a fixed order."""
+    k = np.arange(-steps, steps + 1) / steps
+    g = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
+    g = g[np.any(g != 0, axis=1)]
+    order = np.lexsort((g[:, 2], g[:, 1], g[:, 0], np.linalg.norm(g, axis=1)))
+    return g[order]
+
+
+def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    ctx = state.ctx
+    lattice = ctx.grid.positions()[batch]
+    cells = ctx.grid.cell_size[np.array(ctx.grid.counts) > 1]
+    # enclosed: every ray hits within this distance (inside a double-sided solid or a cavity
+    # smaller than the grid resolves); 0 (no cell, or the setting 0) disables the test
+    reach = ctx.settings.enclosure * (float(cells.min()) if cells.size else 0.0)
+
+    def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
+        return (frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach), frac
+
+    valid, frac = usable(lattice)
+    pos = lattice.copy()
+    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2
+    rays = len(batch) * rays_per_point
+    if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
+        cell = np.where(np.array(ctx.grid.counts) > 1, ctx.grid.cell_size, 0.0)
+        offsets = _relocation_offsets() * (ctx.settings.relocate_fraction * cell)
+        offsets = offsets[np.any(offsets != 0, axis=1)]
+        for j in np.flatnonzero(~valid):  # loop over invalid probes, not rays
+            cand = lattice[j] + offsets
+            good, f = usable(cand)
+            rays += len(cand) * rays_per_point
+            ok = np.flatnonzero(good)
+            if ok.size:
+                pos[j] = cand[ok[0]]
+                frac[j] = f[ok[0]]
+                valid[j] = True
+    return {"positions": pos, "valid": valid, "backface_fraction": frac, "rays": rays}
+
+
+def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    assert state.positions is not None
+    # without the punctual lights folded in at the probe: this grid is the next bounce's
+    # indirect light, and its surface points get the lights' direct light by shadow rays
+    res = state.renderer.render(state.positions[batch], batch, field=state.field, direct=False)
+    coeffs = np.stack([sh.project_cube(c) for c in res.incoming])  # (B, 9, 3), per probe
+    return {"sh": coeffs, "moments": res.moments, "rays": res.rays}
+
+
+def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    from probegrid.core import seams
+
+    ctx = state.ctx
+    st = ctx.settings
+    assert state.positions is not None and state.valid is not None
+    res = state.renderer.render(state.positions[batch], batch, field=state.field)
+    levels = st.levels()
+    out: dict[str, Any] = {
+        "positions": state.positions[batch],
+        "valid": state.valid[batch],
+        "moments": res.moments,
+        "rays": res.rays,
+    }
+    energy, seam = [], []
+    # per probe: results must not depend on the batch
+    sh_l = [sh.project_cube(cube) for cube in res.incoming]
+    sh_min = _sh_minima(np.stack(sh_l))
+    dif, chains = _filter_groups(res.incoming, st.diffuse_size, levels)
+    spec = [[c[k] for c in chains] for k in range(levels)]
+    for cube, d in zip(res.incoming, dif, strict=True):
+        energy.append(_energy_ratio(d, float(solid_angle_integral(cube).sum())))
+        seam.append(seams.seam_score(d))
+    out["sh"] = np.stack(sh_l).astype(np.float32)
+    out["sh_min"] = sh_min.astype(np.float32)
+    out["diffuse"] = np.stack(dif)
+    for k in range(levels):
+        out[f"specular_{k}"] = np.stack(spec[k])
+    if st.store_incoming:
+        out["incoming"] = res.incoming
+    out["backface_fraction"] = res.backface_fraction.astype(np.float32)
+    out["_energy"] = np.array(energy)
+    out["_seam"] = np.array(seam)
+    return out
+
+
+def _energy_ratio(diffuse: NDArray[np.float32], incoming_integral: float) -> float:
+    """Solid-angle integral of a diffuse map over that of its incoming cube (all channels):
+    1 for an energy-conserving filter, since the clamped cosine / pi integrates to 1 over the
+    normals. NaN for a probe that receives no light (nothing to conserve)."""
+    if not incoming_integral > 0:
+        return math.nan
+    return float(solid_angle_integral(diffuse).sum()) / incoming_integral
+
+
+def _incoming_integral_from_sh(sh_l: NDArray[Any]) -> float:
+    """The incoming cube's integral over the sphere from its stored SH, all channels:
+    ``integral L = L_00 / Y_00 = 2 sqrt(pi) L_00`` (the projection is the same discrete sum)."""
+    return float(2.0 * math.sqrt(math.pi) * np.asarray(sh_l, np.float64)[0].sum())
+
+
+#: Probes filtered together, as channels of one cube (a fixed shape, see _filter_groups).
+FILTER_GROUP = 8
+
+
+def _padded_groups(items: NDArray[Any]) -> Iterator[tuple[int, int, NDArray[Any]]]:
+    """``(start, count, group)`` for FILTER_GROUP items of ``items (B, ...)`` at a time, the
+    last group padded with zeros: every group has the same shape, so what is computed from an
+    item does not depend on which items share its group, i.e. on the batch."""
+    b = len(items)
+    for g0 in range(0, b, FILTER_GROUP):  # loop over groups of probes
+        k = min(FILTER_GROUP, b - g0)
+        group = np.zeros((FILTER_GROUP, *items.shape[1:]), items.dtype)
+        group[:k] = items[g0:g0 + k]
+        yield g0, k, group
+
+
+def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``,
+    FILTER_GROUP probes per :func:`probegrid.core.sh.min_over_sphere` call."""
+    out = np.empty((len(coeffs), 3))
+    for g0, k, group in _padded_groups(coeffs):
+        vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(np.moveaxis(group, 1, 0)))
+        out[g0:g0 + k] = vmin[:k] / np.pi
+    return out
+
+
+def _unstack_probes(cube: NDArray[np.float32], channels: int) -> NDArray[np.float32]:
+    """``(6, m, m, G * C)`` -> ``(G, 6, m, m, C)``: undo the probes-as-channels stacking."""
+    m = cube.shape[1]
+    return np.moveaxis(cube.reshape(6, m, m, -1, channels), 3, 0)
+
+
+def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
+                   ) -> tuple[list[NDArray[np.float32]], list[list[NDArray[np.float32]]]]:
+    """Diffuse maps and GGX chains of ``cubes (B, 6, n, n, 3)``.
+
+    The filters are linear and act on each channel alike, so FILTER_GROUP probes go through one
+    call as the channels of a single cube, which amortises the per-call work
+    (:func:`_padded_groups`: every call has the same shape). Faces up to
+    :data:`probegrid.core.probefilter.MAX_FACE` go through the exact sums as one cached matrix
+    (:func:`probegrid.core.probefilter.filter_cube`); larger ones through
+    :func:`~probegrid.core.diffuse.diffuse_exact` and the tiered
+    :func:`~probegrid.core.specular.ggx_prefilter` (:func:`probegrid.core.probefilter.describe`, in the
+    manifest, says which).
+    """
+    from probegrid.core import diffuse, specular
+
+    _, _, n, _, c = cubes.shape
+    dense = probefilter.supported(n, diffuse_size)
+    dif: list[NDArray[np.float32]] = []
+    chains: list[list[NDArray[np.float32]]] = []
+    for _, k, group in _padded_groups(cubes):
+        stacked = np.ascontiguousarray(np.moveaxis(group, 0, 3).reshape(6, n, n, -1))
+        if dense:
+            d, chain = probefilter.filter_cube(stacked, diffuse_size, levels)
+        else:
+            d = diffuse.diffuse_exact(stacked, diffuse_size)
+            chain = specular.ggx_prefilter(stacked, levels=levels)
+
+        ds = _unstack_probes(d, c)
+        cs = [_unstack_probes(lv, c) for lv in chain]
+        for j in range(k):
+            dif.append(np.ascontiguousarray(ds[j]))
+            chains.append([np.ascontiguousarray(lv[j]) for lv in cs])
+    return dif, chains
+
+
+# ------------------------------------------------------------------------------ driver
+@dataclass
+class BakeReport:
+    """What a bake did: the store, timing and throughput, quality figures."""
+
+    store: ProbeStore
+    seconds: float
+    rays: int
+    probes: int
+    resumed_probes: int
+    quality: dict[str, Any]
+
+    def summary(self) -> str:
+        q = {k: (math.nan if v is None else v) for k, v in self.quality.items()}
+        return "\n".join([
+            f"baked {self.probes} probes ({self.store.grid.label}) into {self.store.path}/ in "
+            f"{self.seconds:.1f} s, {self.rays / max(self.seconds, 1e-9) / 1e6:.2f} Mrays/s"
+            + (f" ({self.resumed_probes} probes resumed)" if self.resumed_probes else ""),
+            (f"  invalid probes: {q['invalid_probes']} (relocated {q['relocated_probes']}); "
+            f"backface rays {q['backface_ray_fraction']:.3%}"),
+            (f"  energy (diffuse / incoming): worst |1 - ratio| {q['energy_max_error']:.2e}; "
+            f"SH min irradiance/pi {q['sh_min_irradiance_over_pi']:.4g}; "
+            f"seam score {q['seam_score_mean']:.2e}"),
+        ])
+
+
+def _jsonable(obj: Any) -> Any:
+    return json.loads(json.dumps(obj))
+
+
+def _bake_lock(work: Path, out: Path) -> AbstractContextManager[None]:
+    """One bake of a store at a time: an exclusive lock on its work directory, held for the
+    whole bake (a second bake of the same store, ``--overwrite`` or not, is refused instead of
+    deleting the first one's files)."""
+    return directory_lock(work, busy=f"another process is baking {out}")
+
+
+@dataclass
+class _Stages:
+    """Runs the bake's stages into (resumable) stores and counts their rays and seconds.
+
+    Holds what every stage shares: the executor, the bake's plan and scene hash (a finished
+    intermediate stage of the same bake is reused) and the progress callback.
+    """
+
+    executor: Executor
+    plan: dict[str, Any]
+    scene_hash: str
+    on_progress: ProgressFn | None
+    rays: int = 0
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def run(
+        self,
+        name: str,
+        path: Path,
+        arrays: dict[str, ArraySpec],
+        fn: Callable[[_State, NDArray[np.int64]], dict[str, Any]],
+        ctx: _Context,
+        *,
+        overwrite: bool = False,
+        intermediate: bool = True,
+        extra: Callable[[NDArray[np.int64], dict[str, Any]], None] | None = None,
+    ) -> tuple[StoreWriter | ProbeStore, int]:
+        """Run one stage into a store; returns the writer (unfinished) and the probes resumed."""
+        grid = ctx.grid
+        if intermediate and path.exists():
+            done = open_store(path)
+            if (done.manifest.scene_hash != self.scene_hash
+                    or done.manifest.bake != _jsonable(self.plan)):
+                raise ValueError(
+                    f"{path.parent} holds an interrupted bake with other settings or another "
+                    "scene; pass --overwrite to start again"
+                )
+            return done, grid.n_probes
+        writer = StoreWriter.create_or_resume(
+            path, arrays=arrays, grid=grid, conventions=conventions(),
+            scene_hash=self.scene_hash, bake=self.plan, overwrite=overwrite, durable=False,
+        )
+        resumed = writer.n_done
+        batches = make_batches(grid.n_probes, batch_size=ctx.settings.batch_size,
+                               done=writer.done)
+        started = time.perf_counter()
+
+        def progress(p: Progress) -> None:
+            if self.on_progress is not None:
+                self.on_progress(name, p, self.rays)
+
+        for batch, result in self.executor.map(fn, ctx, batches, progress=progress):
+            self.rays += int(result.pop("rays"))
+            if extra is not None:
+                extra(batch, result)
+            writer.write(batch, {k: v for k, v in result.items() if not k.startswith("_")})
+        self.seconds[name] = time.perf_counter() - started
+        return writer, resumed
+
+
+def bake(
+    scene: Scene,
+    grid: GridSpec,
+    out: str | Path,
+    *,
+    settings: BakeSettings | None = None,
+    environment: Environment | None = None,
+    executor: Executor | None = None,
+    progress: ProgressFn | None = None,
+    overwrite: bool = False,
+) -> BakeReport:
+    """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
+
+    Resumes an interrupted bake of the same scene and settings. ``executor`` defaults to the
+    calling process (:class:`~probegrid.bake.executors.InlineExecutor`); the CLI passes local
+    processes or a Dask cluster.
+    """
+    st = settings or BakeSettings()
+    env = environment or Environment()
+    ex = executor or InlineExecutor(check_pickle=False)
+    out = Path(out)
+    check_store_name(out)
+    if out.exists() and not overwrite:
+        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+    st.levels()  # validate
+    render = st.render_settings(scene, grid)
+    scene_hash = hashlib.sha256(
+        (scene.content_hash() + environment_hash(env)).encode()
+    ).hexdigest()
+    # (the batch size is left out: it changes no bit of the result, so a bake may resume with
+    # another one)
+    plan = {"settings": st.model_dump(exclude={"batch_size"}), "environment": env.describe(),
+            "render": {"ray_offset": render.ray_offset, "max_distance": render.max_distance,
+                       "moments_size": render.moments_size,
+                       "environment_lookup_size": env.lookup_size(
+                           render.environment_footprint)},
+            "filters": probefilter.describe(st.face_size, st.diffuse_size)}
+    work = work_path(out)
+    work.mkdir(parents=True, exist_ok=True)
+    with _bake_lock(work, out):
+        # An interrupted bake of this store resumes when it had the same scene and plan; with
+        # ``overwrite`` one of another scene or plan is dropped (without it, an error).
+        stamp = work / "bake.json"
+        fingerprint = json.dumps({"scene": scene_hash, "plan": _jsonable(plan)}, sort_keys=True)
+        if overwrite and not (stamp.is_file() and stamp.read_text() == fingerprint):
+            for child in work.iterdir():
+                if child.is_dir():
+                    shutil.rmtree(child)
+                else:
+                    child.unlink()
+            shutil.rmtree(partial_path(out), ignore_errors=True)
+        stamp.write_text(fingerprint)
+        stages = _Stages(ex, plan, scene_hash, progress)
+        t0 = time.perf_counter()
+        base = _Context(scene, env, render, st, grid)
+
+        # 1. classify
+        cls_arrays = {
+            "positions": ArraySpec((3,), "float64", "probe position"),
+            "valid": ArraySpec((), "bool", "probe is outside geometry"),
+            "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
+        }
+        w, resumed = stages.run("classify", work / "classify.probes", cls_arrays, _classify_task,
+                                base)
+        cls_store = w.finish() if isinstance(w, StoreWriter) else w
+        positions = np.array(cls_store["positions"])
+        valid = np.array(cls_store["valid"])
+        lattice = grid.positions()
+        relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
+        # Workers on this machine memory-map the grid-sized arrays from the work directory; others
+        # (a Dask cluster) receive them.
+        files = bool(getattr(ex, "shares_files", False))
+        probe_pos: NDArray[np.float64] | str = positions
+        probe_valid: NDArray[np.bool_] | str = valid
+        if files:
+            probe_pos = str(work / "classify.probes" / "positions.npy")
+            probe_valid = str(work / "classify.probes" / "valid.npy")
+
+        # 2. bounces
+        m = render.moments_size
+        previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
+        for k in range(st.bounces):
+            ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
+            arrays = {"sh": ArraySpec((9, 3), "float64", "radiance SH of this bounce"),
+                      "moments": ArraySpec((6, m, m, 2), "float32", "distance moments")}
+            w, _ = stages.run(f"bounce {k + 1}/{st.bounces + 1}", work / f"bounce{k}.probes",
+                              arrays, _bounce_task, ctx)
+            bstore = w.finish() if isinstance(w, StoreWriter) else w
+            if files:
+                previous = write_field_files(
+                    work / f"field{k}", bstore["sh"], bstore["moments"],
+                    sh_file=work / f"bounce{k}.probes" / "sh.npy",
+                    valid_file=work / "classify.probes" / "valid.npy",
+                    positions_file=work / "classify.probes" / "positions.npy")
+            else:
+                previous = (np.array(bstore["sh"]), np.array(bstore["moments"]))
+
+        # 3. final
+        energy = np.full(grid.n_probes, np.nan)
+        seam = np.full(grid.n_probes, np.nan)
+
+        def keep(batch: NDArray[np.int64], result: dict[str, Any]) -> None:
+            energy[batch] = result["_energy"]
+            seam[batch] = result["_seam"]
+
+        ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
+        w, resumed = stages.run(f"bounce {st.bounces + 1}/{st.bounces + 1} (final)", out,
+                                store_arrays(st), _final_task, ctx, overwrite=overwrite,
+                                intermediate=False, extra=keep)
+        assert isinstance(w, StoreWriter)
+        # quality over every probe (resumed ones included): recompute from the stored arrays
+        dif = w.array("diffuse")
+        sh_min = w.array("sh_min")
+        back = w.array("backface_fraction")
+        missing = np.isnan(seam)
+        if missing.any():
+            from probegrid.core import seams
+
+            stored_sh = w.array("sh")
+            for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
+                d = np.asarray(dif[i])
+                seam[i] = seams.seam_score(d)
+                energy[i] = _energy_ratio(d, _incoming_integral_from_sh(stored_sh[i]))
+        valid_e = energy[~np.isnan(energy)]
+        quality = {
+            "invalid_probes": int(np.count_nonzero(~valid)),
+            "relocated_probes": relocated,
+            "backface_ray_fraction": float(np.mean(back)),
+            "energy_max_error": float(np.max(np.abs(1 - valid_e))) if valid_e.size else None,
+            "energy_check": "solid-angle integral of each probe's diffuse map over that of its "
+                            "incoming cube (1 for a correct, energy-conserving filter)",
+            "sh_min_irradiance_over_pi": float(np.min(sh_min)),
+            "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
+            "seam_score_mean": float(np.nanmean(seam)),
+            "rays": stages.rays,
+            "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
+        }
+        store = w.finish(quality=quality)
+        shutil.rmtree(work, ignore_errors=True)
+        seconds = time.perf_counter() - t0
+        return BakeReport(store, seconds, stages.rays, grid.n_probes, resumed, quality)

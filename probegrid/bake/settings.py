@@ -1,0 +1,62 @@
+"""The bake's settings: everything that decides the bits of a store (stored in its manifest).
+
+One pydantic model, :class:`BakeSettings`, with each option's default and bounds written once; the
+CLI's ``probegrid bake`` options are generated from it and parse straight into it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from probegrid.core.cubemap import mip_sizes
+
+if TYPE_CHECKING:
+    from probegrid.bake.render import RenderSettings
+    from probegrid.core.grid import GridSpec
+    from probegrid.scene import Scene
+
+__all__ = ["BakeSettings"]
+
+
+class BakeSettings(BaseModel):
+    """Everything that decides the bits of a bake (stored in the manifest, checked on resume)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    face_size: int = Field(default=32, ge=2, le=512)
+    samples: int = Field(default=1, ge=1, le=1024)
+    seed: int = Field(default=0, ge=0)
+    bounces: int = Field(default=2, ge=0, le=16)
+    diffuse_size: int = Field(default=8, ge=1, le=128)
+    specular_levels: int | None = Field(default=None, ge=1, le=10)
+    moments_size: int = Field(default=8, ge=1, le=64)
+    direct: bool = True
+    store_incoming: bool = False
+    invalid_threshold: float = Field(default=0.25, gt=0, le=1)
+    enclosure: float = Field(default=0.5, ge=0, le=4)
+    relocate: bool = True
+    relocate_fraction: float = Field(default=0.45, ge=0, lt=0.5)
+    ray_offset: float | None = Field(default=None, gt=0)
+    batch_size: int = Field(default=8, ge=1, le=4096)
+
+    def levels(self) -> int:
+        """Specular mip levels (the full chain of ``face_size`` by default)."""
+        return len(mip_sizes(self.face_size, self.specular_levels))
+
+    def render_settings(self, scene: Scene, grid: GridSpec) -> RenderSettings:
+        """The renderer's settings for ``scene`` and ``grid`` (ray offsets from their size)."""
+        from probegrid.bake.render import RenderSettings
+
+        extent = float(np.linalg.norm(np.ptp(np.vstack([scene.bounds, grid.lo, grid.hi]), axis=0)))
+        return RenderSettings(
+            face_size=self.face_size,
+            samples=self.samples,
+            seed=self.seed,
+            moments_size=min(self.moments_size, self.face_size),
+            direct=self.direct,
+            ray_offset=self.ray_offset or max(extent, 1e-6) * 1e-5,
+            max_distance=max(extent, 1e-6) * 2.0,
+        )

@@ -1,0 +1,84 @@
+"""Colour transfer functions and tone mapping: sRGB encoding and decoding, ACES filmic, exposure.
+
+Values are linear scene-referred Rec.709 RGB (the library's colour space); the sRGB functions are
+the IEC 61966-2-1 EOTF and its inverse; :func:`tonemap_preview` maps radiance to display sRGB
+bytes for PNG previews (scale by ``2**exposure``, Narkowicz's ACES filmic fit, sRGB encoding).
+
+References: IEC 61966-2-1:1999 (sRGB); K. Narkowicz, "ACES Filmic Tone Mapping Curve", 2016.
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+#: Rec.709 / sRGB luminance weights.
+_LUMA: Final[NDArray[np.float64]] = np.array([0.2126, 0.7152, 0.0722])
+_KEY: Final[float] = 0.18
+
+__all__ = ["aces_filmic", "auto_exposure", "linear_to_srgb", "srgb_to_linear", "tonemap_preview"]
+
+
+def srgb_to_linear(encoded: ArrayLike) -> NDArray[np.float32]:
+    """The sRGB EOTF (IEC 61966-2-1): encoded ``[0, 1]`` values to linear, float32."""
+    v = np.asarray(encoded, dtype=np.float64)
+    lin = np.where(v <= 0.04045, v / 12.92, ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4)
+    return lin.astype(np.float32)
+
+
+def linear_to_srgb(linear: ArrayLike) -> NDArray[np.float32]:
+    """The inverse sRGB EOTF: linear values clipped to ``[0, 1]`` (NaN -> 0), encoded, float32."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, dtype=np.float64), nan=0.0), 0.0, 1.0)
+    enc = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+    return enc.astype(np.float32)
+
+
+def aces_filmic(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    # Narkowicz 2015 fit of the ACES RRT + ODT, input in scene-linear (mid grey 0.18 -> 0.27).
+    return np.clip((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
+
+
+def auto_exposure(rgb: NDArray[np.float64], weights: NDArray[np.float64] | None) -> float:
+    """Stops that bring the (weighted) log-average luminance of finite pixels to 0.18."""
+    lum = rgb @ _LUMA
+    ok = np.isfinite(lum)
+    if weights is None:
+        weights = np.ones_like(lum)
+    wts = np.where(ok, weights, 0.0)
+    if wts.sum() <= 0:
+        return 0.0
+    logavg = np.exp((wts * np.log(1e-4 + np.maximum(np.where(ok, lum, 0.0), 0.0))).sum()
+                    / wts.sum())
+    return float(np.log2(_KEY / logavg))
+
+
+def tonemap_preview(image: ArrayLike, *, exposure: float | None = None) -> NDArray[np.uint8]:
+    """Tone-map linear radiance to 8-bit display sRGB.
+
+    Parameters
+    ----------
+    image : (..., 3) float
+        Linear RGB radiance.
+    exposure : float, optional
+        Exposure in stops (the radiance is multiplied by ``2**exposure``). Default: automatic,
+        so that the log-average luminance (``exp(mean(log(1e-4 + Y)))`` over finite pixels,
+        Rec.709 ``Y``) maps to the key 0.18.
+
+    Returns
+    -------
+    (..., 3) uint8
+        ACES-filmic (Narkowicz fit) tone-mapped, sRGB-encoded. NaN and negative values show
+        black, +inf white.
+    """
+    a = np.asarray(image, dtype=np.float64)
+    if a.ndim < 1 or a.shape[-1] != 3:
+        raise ValueError(f"image must have shape (..., 3), got {a.shape}.")
+    if exposure is None:
+        exposure = auto_exposure(a.reshape(-1, 3), None)
+    elif not np.isfinite(exposure):
+        raise ValueError(f"exposure must be a finite number of stops, got {exposure!r}.")
+    x = np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=0.0) * 2.0 ** float(exposure)
+    mapped = np.where(np.isinf(x), 1.0, aces_filmic(np.where(np.isinf(x), 0.0, np.maximum(x, 0))))
+    return np.rint(linear_to_srgb(mapped) * 255.0).astype(np.uint8)

@@ -1,0 +1,450 @@
+"""``probegrid filter``: one HDR environment in; diffuse, specular, SH, DFG LUT and a manifest out.
+
+The job, in order: read the environment (any layout :mod:`probegrid.core.layouts` knows, or six face
+files), check it for non-finite pixels (an error with their count unless ``clamp`` is given),
+resample it to a cube without aliasing, and compute
+
+* the diffuse map (irradiance / pi) by the exact clamped-cosine integral or through 9 SH
+  coefficients (:mod:`probegrid.core.diffuse`),
+* the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
+  (:mod:`probegrid.core.specular`),
+* the 9 radiance SH coefficients (:mod:`probegrid.core.sh`) and the minimum irradiance they imply,
+* the split-sum DFG lookup table (:mod:`probegrid.core.dfg`),
+
+then applies the seam export mode to every map and level and writes the maps, ``sh.json``, the
+LUT, PNG previews and, last, ``manifest.json``. Every image file is written atomically and the
+manifest of an earlier run in the same directory is removed first, so an interrupted run never
+leaves a manifest: a directory with a manifest holds a finished job.
+
+The output directory must be new, or hold an earlier output of the same kind (its
+``manifest.json`` has the same ``format``): :func:`prepare_output_dir` refuses a probe grid store
+(``NAME.probes``, or any directory whose manifest is a store's), an unfinished bake, and a
+directory whose ``manifest.json`` belongs to another kind of output or cannot be read, before
+anything is computed or written. ``probegrid export`` (:mod:`probegrid.jobs.export`) uses it too.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from probegrid._fs import atomic_write_json
+from probegrid._types import (
+    CubeLayout,
+    DiffuseMethod,
+    GGXMethod,
+    ImageFormat,
+    InputLayout,
+    SeamMode,
+    SHWindow,
+)
+from probegrid._version import __version__
+from probegrid.core.conventions import conventions
+from probegrid.core.cubemap import mip_sizes, solid_angle_integral
+from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
+
+__all__ = [
+    "FILTER_FORMAT",
+    "FilterResult",
+    "FilterSettings",
+    "energy_ratio",
+    "prepare_output_dir",
+    "run_filter",
+]
+
+#: ``format`` of the manifest of a filter output directory.
+FILTER_FORMAT = "probegrid.filter"
+#: Files only an unfinished bake holds (see probegrid.store).
+_BAKE_STATE_FILES = (PLAN_FILE, DONE_FILE)
+
+Progress = Callable[[str], None]
+
+
+class FilterSettings(BaseModel):
+    """Options of ``probegrid filter`` (see ``probegrid filter --help``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    layout: InputLayout = "auto"
+    size: int | None = Field(default=None, ge=1, le=4096)
+    diffuse_size: int = Field(default=32, ge=1, le=1024)
+    diffuse_method: DiffuseMethod = "exact"
+    specular_levels: int | None = Field(default=None, ge=1, le=16)
+    specular_method: GGXMethod = "tiered"
+    samples: int | None = Field(default=None, ge=1, le=65536)
+    sh_window: SHWindow = "none"
+    sh_window_width: float | None = Field(default=None, gt=0)
+    format: ImageFormat = "exr"
+    half: bool = True
+    output_layout: CubeLayout = "faces"
+    seam: SeamMode = "none"
+    clamp: float | None = Field(default=None, gt=0)
+    lut_size: int = Field(default=128, ge=2, le=1024)
+    previews: bool = True
+
+
+@dataclass
+class FilterResult:
+    """What a filter run wrote: the output directory and the manifest's content."""
+
+    out_dir: Path
+    manifest: dict[str, Any]
+    files: list[dict[str, Any]] = field(default_factory=list)
+
+    def summary(self) -> str:
+        """A few lines for the terminal: where things are and the quality figures."""
+        q = self.manifest["quality"]
+        kinds: dict[str, int] = {}
+        count = 0
+        for f in self.files:
+            kinds[f["kind"]] = kinds.get(f["kind"], 0) + 1
+            count += len(f["path"]) if isinstance(f["path"], list) else 1
+        lines = [
+            f"wrote {count + 1} files to {self.out_dir}/: "
+            + ", ".join(f"{v} {k} {'map' if k in ('diffuse', 'specular') else 'file'}"
+                        + ("s" if v > 1 else "") for k, v in sorted(kinds.items()))
+            + ", manifest.json",
+            f"  manifest:  {self.out_dir / 'manifest.json'}",
+            (
+                f"  SH:        {self.out_dir / 'sh.json'}  (min irradiance/pi over the sphere "
+                f"{_fmt3(q['sh_min_irradiance_over_pi'])})"
+            ),
+            (
+                f"  energy:    diffuse/input {q['energy']['diffuse']:.4f}, specular/input "
+                f"{min(q['energy']['specular']):.4f}..{max(q['energy']['specular']):.4f}"
+            ),
+        ]
+        previews = [f["path"] for f in self.files if f["kind"] == "preview"]
+        if previews:
+            lines.append("  previews:  " + ", ".join(str(self.out_dir / p) for p in previews))
+        return "\n".join(lines)
+
+
+def _fmt3(v: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+
+
+def _manifest_format(file: Path) -> str | None:
+    """The ``format`` string of a JSON manifest, or None when it has none or cannot be read."""
+    try:
+        doc = json.loads(file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    fmt = doc.get("format") if isinstance(doc, dict) else None
+    return fmt if isinstance(fmt, str) else None
+
+
+def prepare_output_dir(
+    out_dir: str | os.PathLike[str], output_format: str, *, create: bool = True
+) -> Path:
+    """Check that ``out_dir`` may receive an output whose manifest has format ``output_format``;
+    with ``create``, make it and remove an earlier output's manifest (the new one is written
+    last, so an interrupted run leaves none).
+
+    The directory may be new or hold an earlier output of the same format; anything else that
+    holds a ``manifest.json`` (a probe grid store, another kind of output, an unreadable file),
+    a directory named like a store (``NAME.probes``, ``.probes.partial``, ``.probes.work``) or
+    holding an unfinished bake's state is refused with a ``ValueError`` (one sentence), so that
+    no output ever overwrites a store.
+
+    Returns
+    -------
+    Path
+        ``out_dir`` as a Path.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output directory {out} exists and is not a directory")
+    names = {Path(os.path.abspath(out)).name, out.resolve().name}
+    if any(n.endswith(STORE_DIR_SUFFIXES) for n in names) or any(
+        (out / f).exists() for f in _BAKE_STATE_FILES
+    ):
+        raise ValueError(
+            f"output directory {out} is a probe grid store or bake directory (NAME.probes, "
+            "NAME.probes.partial or NAME.probes.work); refusing to write into it, choose "
+            "another output directory"
+        )
+    manifest = out / "manifest.json"
+    if manifest.exists() or manifest.is_symlink():
+        found = _manifest_format(manifest)
+        if found != output_format:
+            what = ("a probe grid store's" if found == "probegrid.store"
+                    else f"a {found!r} output's" if found
+                    else "an unreadable or unknown")
+            raise ValueError(
+                f"output directory {out} holds {what} manifest.json, not an earlier "
+                f"{output_format!r} output; refusing to overwrite it, choose another output "
+                "directory"
+            )
+    if create:
+        out.mkdir(parents=True, exist_ok=True)
+        manifest.unlink(missing_ok=True)  # an interrupted run must not leave an old manifest
+    return out
+
+
+def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
+    """Ratio of the solid-angle integrals (summed over channels) of two cubes of any sizes.
+
+    A diffuse map (irradiance / pi) and every level of a normalised specular filter integrate to
+    the same value as the radiance they came from (the kernels are symmetric and normalised), so
+    this ratio is 1 for a correct filter.
+    """
+    r = float(solid_angle_integral(ref).sum())
+    return float(solid_angle_integral(out).sum()) / r if r != 0 else float("nan")
+
+
+def _load_environment(
+    paths: Sequence[Path], settings: FilterSettings, progress: Progress
+) -> tuple[NDArray[np.float32], str, int]:
+    """Read, check and resample the environment; returns (cube, layout, nonfinite count)."""
+    from probegrid import imageio
+    from probegrid.core import layouts
+
+    paths = [Path(p) for p in paths]
+    layout = settings.layout
+    if len(paths) == 6 and layout in ("auto", "faces"):
+        images = [imageio.read_image(p) for p in paths]
+        shapes = {im.shape for im in images}
+        if len(shapes) != 1 or images[0].shape[0] != images[0].shape[1]:
+            raise ValueError(
+                "six face files must be square images of one size, got "
+                + ", ".join(f"{im.shape[1]}x{im.shape[0]}" for im in images)
+            )
+        source = np.stack(images)
+        layout = "faces"
+    elif len(paths) == 1:
+        if layout == "faces":
+            raise ValueError("layout 'faces' needs six face files (+X, -X, +Y, -Y, +Z, -Z)")
+        source = imageio.read_image(paths[0])
+        if layout == "auto":
+            layout = layouts.detect_layout(source.shape[0], source.shape[1])
+    else:
+        raise ValueError(f"give one environment image or six face files, got {len(paths)} files")
+
+    bad = int(np.count_nonzero(~np.isfinite(source)))
+    if bad:
+        if settings.clamp is None:
+            pixels = imageio.count_nonfinite(source)
+            raise ValueError(
+                f"{paths[0]}: {pixels} pixels have non-finite values (NaN or inf); "
+                "pass --clamp to replace them"
+            )
+        progress(f"replacing {bad} non-finite values (NaN -> 0, inf -> clamp)")
+    if settings.clamp is not None:
+        source = imageio.clamp_radiance(source, settings.clamp)
+    elif (source < 0).any():
+        progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
+
+    if layout == "faces":
+        n = settings.size or int(source.shape[1])
+    else:
+        n = settings.size or layouts.default_face_size(source.shape[0], source.shape[1], layout)
+    progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube")
+    cube = layouts.to_cube(source, layout, n)
+    return cube, layout, bad
+
+
+def run_filter(
+    env: Sequence[str | os.PathLike[str]] | str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    settings: FilterSettings | None = None,
+    *,
+    progress: Progress | None = None,
+) -> FilterResult:
+    """Run the whole filter job; see the module docstring. Returns what was written.
+
+    Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
+    for bad input, before anything is written to ``out_dir``.
+    """
+    from probegrid import imageio
+    from probegrid.core import dfg, diffuse, seams, sh, specular
+
+    settings = settings or FilterSettings()
+    say: Progress = progress or (lambda _m: None)
+    paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
+    out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    cube, in_layout, nonfinite = _load_environment([Path(p) for p in paths], settings, say)
+    n = cube.shape[1]
+    # the full chain by default; a cube that is not a power of two gets its level 0 only
+    default_levels = None if n & (n - 1) == 0 else 1
+    levels = len(mip_sizes(n, settings.specular_levels or default_levels))
+    timings["read"] = time.perf_counter() - t0
+
+    # --- compute everything before touching the output directory -----------------------
+    t = time.perf_counter()
+    coeffs = sh.project_cube(cube)
+    irr_min, irr_min_dir = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
+    timings["sh"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method})")
+    sh_window: dict[str, Any] = {"window": "none"}
+    if settings.diffuse_method == "exact":
+        diff = diffuse.diffuse_exact(cube, settings.diffuse_size)
+    else:
+        width = settings.sh_window_width
+        if settings.sh_window not in ("none", "auto") and width is None:
+            raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
+        diff, info = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
+                                        width=width)
+        sh_window = {
+            "window": info.window,
+            "width": info.width if np.isfinite(info.width) else None,
+            "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
+            "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
+        }
+    timings["diffuse"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    say(f"GGX specular chain: {levels} levels from {n}^2")
+    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
+    if settings.samples is not None:
+        if settings.specular_method != "fis":
+            raise ValueError("--samples applies to --specular-method fis (importance sampling)")
+        spec_kwargs["samples"] = settings.samples
+    spec = specular.ggx_prefilter(cube, **spec_kwargs)
+    timings["specular"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    lut = dfg.dfg_lut(settings.lut_size)
+    timings["dfg"] = time.perf_counter() - t
+
+    energy = {
+        "diffuse": energy_ratio(diff, cube),
+        "specular": [energy_ratio(lv, cube) for lv in spec],
+    }
+    diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
+    spec_out = seams.apply_seam_mode(list(spec), settings.seam)
+    seam_scores = {
+        "diffuse": float(seams.seam_score(diff_out if settings.seam != "border" else diff)),
+        "specular": [float(seams.seam_score(lv)) for lv in
+                     (spec_out if settings.seam != "border" else spec)],
+    }
+
+    # --- write ----------------------------------------------------------------------------
+    prepare_output_dir(out, FILTER_FORMAT)  # checked again: it may have changed meanwhile
+    manifest_path = out / "manifest.json"
+    t = time.perf_counter()
+    conv = conventions()
+    attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
+    files: list[dict[str, Any]] = []
+    ext = settings.format
+    write_layout = settings.output_layout
+    if settings.seam == "border" and write_layout != "faces":
+        raise ValueError("seam mode 'border' writes (n+2)^2 faces; use --output-layout faces")
+
+    def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
+        written = imageio.write_cube(
+            out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
+            metadata={**attrs, "probegrid:kind": meta["kind"]},
+        )
+        rel = [str(Path(p).relative_to(out)) for p in written]
+        files.append({
+            "path": rel[0] if len(rel) == 1 else rel,
+            "layout": write_layout,
+            "face_size": int(faces.shape[1]),
+            "format": ext,
+            "dtype": written.pixel_type,  # half, or float where a value exceeds half's range
+            "seam": settings.seam,
+            **meta,
+        })
+
+    say("writing maps")
+    write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
+               content="irradiance / pi", method=settings.diffuse_method,
+               sh_window=sh_window["window"])
+    for k, lv in enumerate(spec_out):
+        r = k / (levels - 1) if levels > 1 else 0.0
+        write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
+
+    sh_doc = {
+        "coefficients": [[float(x) for x in row] for row in coeffs],
+        "basis": conv["sh_basis"],
+        "constants": conv["sh_constants"],
+        "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm Y_lm(n), "
+                   "A = (pi, 2pi/3, pi/4)",
+        "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+        "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
+        "diffuse_map": {"method": settings.diffuse_method, **sh_window},
+    }
+    atomic_write_json(out / "sh.json", sh_doc)
+    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                  "layout": None, "format": "json"})
+
+    lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
+    imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                        metadata={**attrs, "probegrid:kind": "lut"})
+    files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
+                  "layout": "x = N.V (columns), y = perceptual roughness (rows)",
+                  "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
+                  "size": settings.lut_size})
+
+    if settings.previews:
+        say("writing previews")
+        exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
+        for name, faces in (("input", cube), ("diffuse", diff)):
+            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure)
+            files.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
+                          "level": None, "roughness": None, "layout": "hcross",
+                          "format": "png"})
+        sheet = _specular_sheet(spec)
+        imageio.write_preview_png(out / "preview_specular.png", sheet, exposure=exposure)
+        files.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
+                      "level": None, "roughness": None,
+                      "layout": "hcross per level, level 0 at the top", "format": "png"})
+    timings["write"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t0
+
+    manifest = {
+        "format": FILTER_FORMAT,
+        "format_version": 1,
+        "probegrid_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "input": {"paths": [str(p) for p in paths], "layout": in_layout,
+                  "nonfinite_values_replaced": nonfinite, "cube_size": n},
+        "settings": settings.model_dump(),
+        "conventions": conv,
+        "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
+                     "roughness": [k / (levels - 1) if levels > 1 else 0.0
+                                   for k in range(levels)]},
+        "quality": {
+            "sh_min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+            "diffuse_sh_window": sh_window,
+            "energy": energy,
+            "seam_score": seam_scores,
+        },
+        "timings_s": {k: round(v, 4) for k, v in timings.items()},
+        "files": files,
+    }
+    atomic_write_json(manifest_path, manifest)
+    return FilterResult(out, manifest, files)
+
+
+def _specular_sheet(levels: Sequence[NDArray[np.float32]]) -> NDArray[np.float32]:
+    """Every specular level as a horizontal cross, nearest-upsampled to one size, stacked."""
+    from probegrid.core import layouts
+
+    n = min(int(levels[0].shape[1]), 64)
+    rows = []
+    for lv in levels:
+        m = int(lv.shape[1])
+        if m >= n:
+            step = m // n
+            faces = lv[:, ::step, ::step][:, :n, :n]
+        else:
+            rep = n // m
+            faces = np.repeat(np.repeat(lv, rep, axis=1), rep, axis=2)
+        rows.append(layouts.faces_to_cross(faces, "hcross"))
+    return np.concatenate(rows, axis=0)

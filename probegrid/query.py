@@ -1,0 +1,207 @@
+"""The store-backed probe field: weights at points, blended SH and maps, and split-sum shading.
+
+:class:`ProbeField` wraps an open grid store (:mod:`probegrid.store`) and answers every question
+about a point with the DDGI weights and blends of :mod:`probegrid.core.ddgi`; only the probes a
+query needs are read from the memory maps. The service and the Python API query through it.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import cached_property
+from typing import Any, cast
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from probegrid._types import MapKind
+from probegrid.core.cubemap import CubeMap
+from probegrid.core.ddgi import (
+    DEFAULT_NORMAL_BIAS,
+    MAP_KINDS,
+    ProbeWeights,
+    _points,
+    blend,
+    blend_lookup,
+    probe_weights,
+)
+from probegrid.core.grid import GridSpec
+from probegrid.core.lobes import roughness_to_lod
+from probegrid.core.shading import reflect, shade_split_sum
+from probegrid.store import ProbeStore
+
+__all__ = ['ProbeField']
+
+
+_SPECULAR_RE = re.compile(r"^specular_(\d+)$")
+
+
+# ------------------------------------------------------------------------------ stores
+class ProbeField:
+    """Interpolation over one grid store: weights at points, blended SH and maps, shading.
+
+    Parameters
+    ----------
+    store : ProbeStore
+        An open store (its arrays stay memory-mapped; only the probes a query needs are read).
+    normal_bias : float
+        See :func:`probe_weights`.
+
+    Attributes
+    ----------
+    grid : GridSpec
+    kinds : tuple of str
+        Map kinds the store holds, among ``"diffuse"``, ``"specular"``, ``"incoming"``.
+    specular_levels : int
+        Levels of the specular chain (0 if none).
+    """
+
+    def __init__(self, store: ProbeStore, *, normal_bias: float = DEFAULT_NORMAL_BIAS) -> None:
+        if not (np.isfinite(normal_bias) and normal_bias >= 0):
+            raise ValueError(f"normal_bias must be finite and >= 0, got {normal_bias!r}.")
+        self.store = store
+        self.grid: GridSpec = store.grid
+        self.normal_bias = float(normal_bias)
+        names = set(store.names)
+        spec = sorted(int(m.group(1)) for s in names if (m := _SPECULAR_RE.match(s)))
+        if spec != list(range(len(spec))):
+            raise ValueError(
+                f"store {store.path.name} has specular levels {spec}; they must be 0..L-1."
+            )
+        self._specular = [f"specular_{k}" for k in spec]
+        self.specular_levels = len(spec)
+        self.kinds: tuple[MapKind, ...] = tuple(
+            cast(MapKind, k) for k in MAP_KINDS
+            if (k == "specular" and spec) or (k != "specular" and k in names)
+        )
+
+    def __repr__(self) -> str:
+        return f"ProbeField({self.store!r}, kinds={self.kinds})"
+
+    def _array(self, name: str) -> NDArray[Any] | None:
+        return self.store.arrays[name] if name in self.store.manifest.arrays else None
+
+    @cached_property
+    def _visibility(self) -> tuple[NDArray[np.bool_] | None, NDArray[Any] | None,
+                                   NDArray[Any] | None]:
+        """``valid`` (in memory: P bytes), ``positions`` and ``moments`` (maps), mapped once."""
+        valid = self._array("valid")
+        return (None if valid is None else np.array(valid, dtype=bool),
+                self._array("positions"), self._array("moments"))
+
+    def map_levels(self, kind: MapKind) -> int:
+        """Number of levels of a map kind (1 for diffuse and incoming)."""
+        self._check_kind(kind)
+        return self.specular_levels if kind == "specular" else 1
+
+    def map_size(self, kind: MapKind, level: int = 0) -> int:
+        """Face size of a map kind's level."""
+        return int(self._level(kind, level).shape[2])
+
+    def _check_kind(self, kind: str) -> None:
+        if kind not in self.kinds:
+            raise ValueError(
+                f"this store has no {kind!r} maps; it has {', '.join(map(repr, self.kinds))}."
+            )
+
+    def _level(self, kind: MapKind, level: int) -> NDArray[Any]:
+        levels = self.map_levels(kind)
+        if not isinstance(level, (int, np.integer)) or isinstance(level, bool) or not (
+            0 <= level < levels
+        ):
+            raise ValueError(
+                f"level must be an integer in 0..{levels - 1} for {kind} maps, got {level!r}."
+            )
+        name = self._specular[level] if kind == "specular" else kind
+        return self.store.arrays[name]
+
+    def weights(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> ProbeWeights:
+        """:func:`probe_weights` with the store's validity, probe positions and moments."""
+        valid, positions, moments = self._visibility
+        return probe_weights(
+            self.grid,
+            points,
+            valid=valid,
+            normals=normals,
+            probe_positions=positions,
+            moments=moments,
+            normal_bias=self.normal_bias,
+        )
+
+    def sh(self, weights: ProbeWeights) -> NDArray[np.float64]:
+        """``(n, 9, 3)`` float64 blended SH radiance coefficients."""
+        return blend(self.store.arrays["sh"], weights)
+
+    def cube(self, weights: ProbeWeights, kind: MapKind, *, level: int = 0) -> NDArray[np.float32]:
+        """``(n, 6, s, s, 3)`` float32 blended cube of one map kind and level."""
+        return blend(self._level(kind, level), weights, dtype=np.float32)
+
+    def cubemap(self, weights: ProbeWeights, kind: MapKind) -> list[CubeMap]:
+        """Blended maps of every point as :class:`CubeMap` s (all levels for specular)."""
+        levels = [self.cube(weights, kind, level=k) for k in range(self.map_levels(kind))]
+        return [CubeMap(tuple(lv[i] for lv in levels), kind=kind) for i in range(len(weights))]
+
+    def shade(
+        self,
+        points: ArrayLike,
+        normals: ArrayLike,
+        views: ArrayLike,
+        *,
+        albedo: ArrayLike,
+        roughness: ArrayLike,
+        f0: ArrayLike,
+        dfg: ArrayLike,
+    ) -> tuple[NDArray[np.float32], ProbeWeights]:
+        """Split-sum shading of surface points with the blended probe maps.
+
+        ``out = kd Diffuse[N] + ks Prefiltered[R, roughness (L - 1)]`` with ``kd = albedo (1 - s)``,
+        ``ks = s = F0 A + B`` exactly as :func:`probegrid.core.shading.shade_split_sum` (whose
+        formula is used: the two factors are obtained by shading unit maps), and the lookups of
+        the blended maps done per probe (:func:`blend_lookup`). The weights use the normals
+        (DDGI visibility).
+
+        Parameters
+        ----------
+        points, normals, views : (n, 3) float
+            Positions, normals and surface-to-eye vectors (any non-zero length).
+        albedo, f0 : (n, 3) or (3,) float
+        roughness : (n,) or scalar float in [0, 1]
+        dfg : (S, S, 2) float
+            :func:`probegrid.core.dfg.dfg_lut`.
+
+        Returns
+        -------
+        rgb : (n, 3) float32
+        weights : ProbeWeights
+        """
+        if "diffuse" not in self.kinds or "specular" not in self.kinds:
+            raise ValueError("shading needs a store with diffuse and specular maps.")
+        p = _points(points, "points")
+        nrm = _points(normals, "normals")
+        v = _points(views, "views")
+        if not nrm.shape[0] == v.shape[0] == p.shape[0]:
+            raise ValueError("points, normals and views must have the same number of rows.")
+        w = self.weights(p, normals=nrm)
+        alb = np.broadcast_to(np.asarray(albedo, dtype=np.float64), p.shape)
+        spec_f0 = np.broadcast_to(np.asarray(f0, dtype=np.float64), p.shape)
+        r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), p.shape[:1])
+        # shade_split_sum is linear in its two lookups: with unit maps in channels 0-2 (diffuse)
+        # and 3-5 (specular) it returns the factors kd and ks of each lookup.
+        unit_d = np.zeros((6, 1, 1, 6), np.float32)
+        unit_d[..., :3] = 1.0
+        factors = shade_split_sum(
+            nrm, v,
+            albedo=np.concatenate([alb, alb], axis=-1),
+            roughness=r,
+            f0=np.concatenate([spec_f0, spec_f0], axis=-1),
+            diffuse=unit_d,
+            specular_levels=[1.0 - unit_d],
+            dfg=dfg,
+        ).astype(np.float64)
+        diffuse = blend_lookup([self.store.arrays["diffuse"]], w, nrm)
+        levels = [self.store.arrays[name] for name in self._specular]
+        lod = roughness_to_lod(r, len(levels))
+        prefiltered = blend_lookup(levels, w, reflect(v, nrm), lod=lod)
+        rgb = factors[:, :3] * diffuse + factors[:, 3:] * prefiltered
+        return rgb.astype(np.float32), w
+

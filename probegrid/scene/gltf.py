@@ -1,0 +1,563 @@
+"""Scenes for the probe baker: world-space triangles, glTF materials and punctual lights.
+
+A :class:`Scene` is what the baker needs to shade a ray hit: one flat triangle soup in world space
+(every mesh instance already transformed by its node's world matrix), a material index per
+triangle, per-vertex UVs and colours, the list of :class:`Material` s and the punctual lights of
+:mod:`probegrid.core.lights`. Scenes come from glTF 2.0 files (:func:`load_gltf`) or from Python
+(:meth:`Scene.from_arrays`, :class:`SceneBuilder`, :func:`box_scene`). This is the only module of
+the project that imports ``trimesh``.
+
+Conventions
+-----------
+* World frame: glTF's, kept as is -- right-handed, +Y up, -Z forward, in the file's units (glTF
+  says metres; ``CornellBox.glb`` is in millimetres and is *not* rescaled).
+* Winding: a triangle ``(a, b, c)`` faces the side of its geometric normal
+  ``normalize((b - a) x (c - a))`` (counter-clockwise seen from the front, glTF's front face).
+  A mesh instanced under a node whose world matrix has a negative determinant is re-wound
+  (glTF 2.0 spec, "Transformations": a negative determinant makes the winding clockwise), so the
+  rule above holds for every triangle of a :class:`Scene`.
+* Barycentrics: a point of triangle ``(a, b, c)`` is ``(1 - u - v) a + u b + v c`` (Embree's
+  and Moller-Trumbore's ``u, v``).
+* UVs are glTF's: ``(0, 0)`` is the upper-left corner of the image, ``v`` grows downward. trimesh
+  flips ``v`` on load ("origin lower-left"); :func:`load_gltf` flips it back.
+* Colours are linear Rec.709 RGB. ``baseColorTexture`` and ``emissiveTexture`` are sRGB-encoded
+  (glTF spec, "Metallic-Roughness Material") and are decoded to linear once on load with the
+  exact sRGB EOTF (IEC 61966-2-1); alpha stays linear. Textures are filtered bilinearly in
+  linear space, wrapping as the texture's sampler says (default REPEAT), like a GPU with an
+  sRGB texture format.
+* Shading albedo = ``baseColorFactor.rgb * baseColorTexture.rgb * COLOR_0.rgb`` (glTF: COLOR_0
+  "acts as an additional linear multiplier to base color"). Emission (radiance, cd/m^2 in the
+  photometric reading of :mod:`probegrid.core.lights`) = ``emissiveFactor *
+  KHR_materials_emissive_strength.emissiveStrength * emissiveTexture.rgb``.
+* Lights (``KHR_lights_punctual``): position = the node's world translation, direction = the
+  node's world matrix applied to -Z (normalised); point/spot intensity in candela, directional in
+  lux, ``range`` kept; see :mod:`probegrid.core.lights` for units and falloff.
+
+Not supported (stated rather than guessed): textures on ``TEXCOORD_1`` or higher (rejected
+with a :class:`SceneError`), ``KHR_texture_transform`` (ignored), alpha modes and
+metallic/roughness (the baker treats every surface as opaque Lambertian), morph targets and
+skins (the bind pose is used), points and lines (ignored). A file whose ``extensionsRequired``
+names anything but ``KHR_lights_punctual`` and ``KHR_materials_emissive_strength`` is refused,
+as the glTF specification asks of a loader.
+
+References: glTF 2.0 specification (Khronos, 2021); KHR_lights_punctual and
+KHR_materials_emissive_strength extension specifications; IEC 61966-2-1 (sRGB).
+"""
+
+from __future__ import annotations
+
+import base64
+import copy
+import io
+import json
+import math
+import signal
+import struct
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Final
+from urllib.parse import unquote
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid.core.color import srgb_to_linear
+from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
+from probegrid.scene.model import Material, Scene, SceneError
+
+__all__ = ['load_gltf']
+
+
+#: glTF sampler wrap codes (OpenGL enums) -> our names.
+_GL_WRAP: Final[dict[int, str]] = {10497: "repeat", 33071: "clamp", 33648: "mirror"}
+
+
+#: Extensions a file may list in ``extensionsRequired`` (glTF: refuse files needing others).
+_SUPPORTED_EXTENSIONS: Final[frozenset[str]] = frozenset(
+    {"KHR_lights_punctual", "KHR_materials_emissive_strength"}
+)
+
+
+#: Prefix given to material names before trimesh sees the file, to map its materials back.
+_TAG: Final[str] = "__probegrid_material_"
+
+
+_GLB_MAGIC: Final[bytes] = b"glTF"
+
+
+_CHUNK_JSON: Final[int] = 0x4E4F534A
+
+
+_CHUNK_BIN: Final[int] = 0x004E4942
+
+
+def _parse_glb(data: bytes, name: str) -> tuple[dict, bytes | None]:
+    """(JSON header, BIN chunk or None) of a binary glTF; checks the container's lengths."""
+    if len(data) < 12 or data[:4] != _GLB_MAGIC:
+        raise SceneError(f"{name} is not a binary glTF file (bad magic).")
+    version, length = struct.unpack_from("<II", data, 4)
+    if version != 2:
+        raise SceneError(f"{name} is binary glTF version {version}; only version 2 is supported.")
+    if length > len(data):
+        raise SceneError(f"{name} is truncated: header says {length} bytes, file has {len(data)}.")
+    header, binary, offset = None, None, 12
+    while offset < length:
+        if offset + 8 > length:
+            raise SceneError(f"{name} is truncated inside a chunk header at byte {offset}.")
+        chunk_len, chunk_type = struct.unpack_from("<II", data, offset)
+        start, end = offset + 8, offset + 8 + chunk_len
+        if end > length:
+            raise SceneError(f"{name} is truncated: a chunk runs past the end of the file.")
+        if header is None:
+            if chunk_type != _CHUNK_JSON:
+                raise SceneError(f"{name}: the first chunk of a .glb must be JSON.")
+            try:
+                header = json.loads(data[start:end].decode("utf-8"))
+            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise SceneError(f"{name} has an unreadable JSON chunk ({exc}).") from None
+        elif chunk_type == _CHUNK_BIN and binary is None:
+            binary = data[start:end]
+        offset = end
+    if not isinstance(header, dict):
+        raise SceneError(f"{name} has no JSON chunk.")
+    return header, binary
+
+
+def _build_glb(header: dict, binary: bytes | None) -> bytes:
+    """A binary glTF container (spec section "Binary glTF Layout")."""
+    js = json.dumps(header, separators=(",", ":")).encode("utf-8")
+    js += b" " * (-len(js) % 4)
+    chunks = struct.pack("<II", len(js), _CHUNK_JSON) + js
+    if binary is not None:
+        b = binary + b"\x00" * (-len(binary) % 4)
+        chunks += struct.pack("<II", len(b), _CHUNK_BIN) + b
+    return _GLB_MAGIC + struct.pack("<II", 2, 12 + len(chunks)) + chunks
+
+
+def _uri_bytes(uri: str, base: Path, what: str) -> bytes:
+    """Bytes of a glTF URI: a data URI or a path relative to the .gltf file."""
+    if uri.startswith("data:"):
+        try:
+            return base64.b64decode(uri.split(",", 1)[1], validate=False)
+        except (IndexError, ValueError) as exc:
+            raise SceneError(f"{what} has a malformed data URI ({exc}).") from None
+    target = base / unquote(uri)
+    if not target.is_file():
+        raise SceneError(f"{what} not found: {target}")
+    return target.read_bytes()
+
+
+def _check_nodes(header: dict, name: str) -> None:
+    """The node hierarchy must be a forest (glTF 2.0, 3.5.3): valid child indices, at most one
+    parent per node, no cycles."""
+    nodes = header.get("nodes", [])
+    parent: dict[int, int] = {}
+    for i, node in enumerate(nodes):
+        for c in node.get("children", []):
+            if not isinstance(c, int) or not 0 <= c < len(nodes):
+                raise SceneError(f"{name}: node {i} has a child {c!r} that is not a node index.")
+            if c in parent or c == i:
+                raise SceneError(f"{name}: node {c} has more than one parent or is its own child "
+                                 "(the node hierarchy must be a tree).")
+            parent[c] = i
+    for start in range(len(nodes)):  # walk up from every node: a cycle never reaches a root
+        seen, n = set(), start
+        while n in parent:
+            if n in seen:
+                raise SceneError(f"{name}: the node hierarchy has a cycle through node {n}.")
+            seen.add(n)
+            n = parent[n]
+
+
+def _check_buffers(header: dict, binary: bytes | None, base: Path, name: str) -> None:
+    """Every buffer exists and holds its declared byteLength (catches truncated files)."""
+    for i, buf in enumerate(header.get("buffers", [])):
+        need = int(buf.get("byteLength", 0))
+        if "uri" in buf:
+            have = len(_uri_bytes(buf["uri"], base, f"{name}: buffer {i} ({buf['uri']})"))
+        elif i == 0 and binary is not None:
+            have = len(binary)
+        else:
+            raise SceneError(f"{name}: buffer {i} has no data (no uri and no .glb BIN chunk).")
+        if have < need:
+            raise SceneError(f"{name}: buffer {i} is truncated ({have} of {need} bytes).")
+
+
+def _node_world_matrices(header: dict, name: str) -> dict[int, NDArray[np.float64]]:
+    """World matrix (4x4, column vectors) of every node reachable from the default scene."""
+    nodes = header.get("nodes", [])
+    scenes = header.get("scenes", [])
+    if not scenes:
+        return {}
+    roots = scenes[int(header.get("scene", 0))].get("nodes", [])
+    world: dict[int, NDArray[np.float64]] = {}
+    stack = [(int(r), np.eye(4)) for r in roots]
+    while stack:  # loop over scene-graph nodes (not rays or pixels)
+        i, parent = stack.pop()
+        if i in world or not 0 <= i < len(nodes):
+            raise SceneError(f"{name}: node {i} is out of range or reached twice (not a tree).")
+        node = nodes[i]
+        if "matrix" in node:
+            local = np.array(node["matrix"], dtype=np.float64).reshape(4, 4).T
+        else:
+            t = np.array(node.get("translation", [0, 0, 0]), dtype=np.float64)
+            x, y, z, w = np.array(node.get("rotation", [0, 0, 0, 1]), dtype=np.float64)
+            s = np.array(node.get("scale", [1, 1, 1]), dtype=np.float64)
+            rot = np.array(
+                [
+                    [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+                ]
+            )
+            local = np.eye(4)
+            local[:3, :3] = rot * s[None, :]
+            local[:3, 3] = t
+        if not np.all(np.isfinite(local)):
+            raise SceneError(f"{name}: node {i} has a non-finite transform.")
+        world[i] = parent @ local
+        stack.extend((int(c), world[i]) for c in node.get("children", []))
+    return world
+
+
+def _parse_lights(header: dict, name: str) -> tuple[Light, ...]:
+    """KHR_lights_punctual lights placed by the default scene's nodes, in node order."""
+    defs = header.get("extensions", {}).get("KHR_lights_punctual", {}).get("lights", [])
+    if not defs:
+        return ()
+    world = _node_world_matrices(header, name)
+    lights: list[Light] = []
+    for i in sorted(world):
+        ext = header["nodes"][i].get("extensions", {}).get("KHR_lights_punctual")
+        if ext is None:
+            continue
+        k = int(ext["light"])
+        if not 0 <= k < len(defs):
+            raise SceneError(f"{name}: node {i} refers to missing light {k}.")
+        d = defs[k]
+        m = world[i]
+        position = m[:3, 3]
+        direction = m[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        color = d.get("color", [1.0, 1.0, 1.0])
+        intensity = d.get("intensity", 1.0)
+        kind = d.get("type")
+        try:
+            if kind == "point":
+                lights.append(PointLight(position, color, intensity, range=d.get("range")))
+            elif kind == "spot":
+                spot = d.get("spot", {})
+                lights.append(
+                    SpotLight(
+                        position,
+                        direction,
+                        color,
+                        intensity,
+                        range=d.get("range"),
+                        inner_cone_angle=spot.get("innerConeAngle", 0.0),
+                        outer_cone_angle=spot.get("outerConeAngle", math.pi / 4),
+                    )
+                )
+            elif kind == "directional":
+                lights.append(DirectionalLight(direction, color, intensity))
+            else:
+                raise SceneError(
+                    f"{name}: light {k} has type {kind!r}; expected point, spot or directional."
+                )
+        except SceneError:
+            raise
+        except (ValueError, TypeError) as exc:
+            raise SceneError(f"{name}: light {k} ({kind}) is invalid: {exc}") from None
+    return tuple(lights)
+
+
+def _texture_array(image: object, channels: int, what: str) -> NDArray[np.float32]:
+    """A PIL image (as trimesh decoded it) -> (H, W, channels) float32 linear RGB(A)."""
+    try:
+        a = np.asarray(image)
+        if a.dtype == np.uint16 or a.dtype == np.int32:  # 16-bit greyscale PNG modes
+            a = np.clip(a.astype(np.float64) / 65535.0, 0.0, 1.0)
+            a = np.repeat(a[..., None], 3, axis=-1) if a.ndim == 2 else a
+            if channels == 4:
+                a = np.concatenate([a[..., :3], np.ones_like(a[..., :1])], axis=-1)
+        else:
+            mode = "RGBA" if channels == 4 else "RGB"
+            rgb = image.convert(mode)  # type: ignore[attr-defined]
+            a = np.asarray(rgb, dtype=np.float64) / 255.0
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise SceneError(f"{what} could not be decoded ({exc}).") from None
+    out = np.array(a[..., :channels], dtype=np.float64)
+    out[..., :3] = srgb_to_linear(out[..., :3])
+    return out.astype(np.float32)
+
+
+def _texture_info(
+    header: dict, info: dict | None, mat_name: str, slot: str
+) -> tuple[str, tuple[str, str]] | None:
+    """(image description, wrap modes) of a textureInfo, after validating what we support."""
+    if info is None:
+        return None
+    if int(info.get("texCoord", 0)) != 0:
+        raise SceneError(
+            f"material {mat_name!r}: {slot} uses TEXCOORD_{info['texCoord']}; only TEXCOORD_0 "
+            "is supported."
+        )
+    try:
+        tex = header["textures"][int(info["index"])]
+        sampler = header.get("samplers", [])[tex["sampler"]] if "sampler" in tex else {}
+        source = tex.get("source")
+        image = header["images"][source] if source is not None else {}
+    except (KeyError, IndexError, TypeError):
+        raise SceneError(f"material {mat_name!r}: {slot} refers to a missing texture.") from None
+    desc = image.get("uri", f"bufferView {image.get('bufferView')}")
+    if isinstance(desc, str) and desc.startswith("data:"):
+        desc = "embedded data URI"
+    wrap = tuple(_GL_WRAP.get(int(sampler.get(k, 10497)), "repeat") for k in ("wrapS", "wrapT"))
+    return f"{slot} of material {mat_name!r} (image {desc})", wrap  # type: ignore[return-value]
+
+
+def _material_from_json(header: dict, index: int, tm_material: object | None) -> Material:
+    """Material ``index`` of the glTF JSON; texture pixels come from trimesh's decoded images."""
+    mj = header["materials"][index]
+    mname = str(mj.get("name", f"#{index}"))
+    pbr = mj.get("pbrMetallicRoughness", {})
+    strength = mj.get("extensions", {}).get("KHR_materials_emissive_strength", {})
+    emissive = np.array(mj.get("emissiveFactor", [0.0, 0.0, 0.0]), dtype=np.float64)
+    emissive = emissive * float(strength.get("emissiveStrength", 1.0))
+    textures: dict[str, NDArray[np.float32] | None] = {}
+    wraps: dict[str, tuple[str, str]] = {}
+    for slot, info, attr, channels in (
+        ("baseColorTexture", pbr.get("baseColorTexture"), "baseColorTexture", 4),
+        ("emissiveTexture", mj.get("emissiveTexture"), "emissiveTexture", 3),
+    ):
+        found = _texture_info(header, info, mname, slot)
+        textures[slot] = None
+        wraps[slot] = ("repeat", "repeat")
+        if found is None or tm_material is None:
+            continue
+        what, wraps[slot] = found
+        image = getattr(tm_material, attr, None)
+        if image is None:
+            raise SceneError(f"{what} is missing or could not be decoded.")
+        textures[slot] = _texture_array(image, channels, what)
+    try:
+        return Material(
+            base_color=pbr.get("baseColorFactor", [1.0, 1.0, 1.0, 1.0]),
+            base_color_texture=textures["baseColorTexture"],
+            emissive=emissive,
+            emissive_texture=textures["emissiveTexture"],
+            double_sided=bool(mj.get("doubleSided", False)),
+            name=mname,
+            base_color_wrap=wraps["baseColorTexture"],  # type: ignore[arg-type]
+            emissive_wrap=wraps["emissiveTexture"],  # type: ignore[arg-type]
+        )
+    except ValueError as exc:
+        raise SceneError(f"material {mname!r} is invalid: {exc}") from None
+
+
+def _vertex_colors(raw: NDArray) -> NDArray[np.float64]:
+    """COLOR_0 accessor data -> (V, 4) float64; integer types are normalized (glTF spec)."""
+    a = np.asarray(raw)
+    if np.issubdtype(a.dtype, np.integer):
+        a = a.astype(np.float64) / float(np.iinfo(a.dtype).max)
+    a = np.asarray(a, dtype=np.float64).reshape(len(a), -1)
+    if a.shape[1] == 3:
+        a = np.concatenate([a, np.ones((len(a), 1))], axis=1)
+    return a[:, :4]
+
+
+def load_gltf(path: str | Path) -> Scene:
+    """Load a glTF 2.0 scene (.gltf or .glb) into world space.
+
+    trimesh reads the meshes, the node hierarchy and the images; factors, samplers, the
+    emissive-strength extension and ``KHR_lights_punctual`` (which trimesh ignores) are read
+    from the glTF JSON (trimesh stores ``baseColorFactor`` as 8-bit, losing precision). Every
+    primitive of every mesh node of the default scene becomes triangles in world space; points
+    and lines are skipped. Primitives without a material get glTF's default material.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.gltf`` (with its buffers and images beside it, or embedded as data URIs) or ``.glb``.
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    SceneError
+        Missing or unreadable file, truncated .glb or buffer, missing or undecodable texture,
+        non-finite vertices, no triangles, unsupported features (see module docstring).
+    """
+    p = Path(path)
+    label = p.name
+    suffix = p.suffix.lower()
+    if suffix not in (".gltf", ".glb"):
+        raise SceneError(f"{label}: expected a .gltf or .glb file, got suffix {p.suffix!r}.")
+    if not p.is_file():
+        raise SceneError(f"scene file not found: {p}")
+    data = p.read_bytes()
+    try:
+        return _load_gltf_data(p, data)
+    except SceneError:
+        raise
+    except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
+        # JSON of the wrong shape ("asset": "2.0", "materials": [5], a node cycle, ...)
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SceneError(f"{label} is not a well-formed glTF 2.0 scene ({msg}).") from None
+
+
+def _load_gltf_data(p: Path, data: bytes) -> Scene:
+    """:func:`load_gltf` of the file's bytes (its errors of malformed JSON not yet caught)."""
+    label, suffix = p.name, p.suffix.lower()
+    if suffix == ".glb":
+        header, binary = _parse_glb(data, label)
+    else:
+        binary = None
+        try:
+            header = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise SceneError(f"{label} is not valid glTF JSON ({exc}).") from None
+        if not isinstance(header, dict):
+            raise SceneError(f"{label} is not a glTF JSON object.")
+    version = str(header.get("asset", {}).get("version", ""))
+    if not version.startswith("2."):
+        raise SceneError(f"{label} is glTF version {version or '?'}; only 2.x is supported.")
+    unsupported = sorted(set(header.get("extensionsRequired", [])) - _SUPPORTED_EXTENSIONS)
+    if unsupported:
+        raise SceneError(f"{label} requires unsupported glTF extensions: {', '.join(unsupported)}.")
+    _check_buffers(header, binary, p.parent, label)
+    _check_nodes(header, label)
+    for i, img in enumerate(header.get("images", [])):
+        if "uri" in img and not str(img["uri"]).startswith("data:"):
+            _uri_bytes(img["uri"], p.parent, f"{label}: image {i} ({img['uri']})")
+
+    # Tag material names so trimesh's materials map back to their glTF indices.
+    tagged = copy.deepcopy(header)
+    for i, m in enumerate(tagged.get("materials", [])):
+        m["name"] = f"{_TAG}{i}"
+    tm_scene = _trimesh_load(tagged, binary, p, label)
+
+    n_json_mats = len(header.get("materials", []))
+    tm_materials: dict[int, object] = {}
+    instances = []
+    order = list(tm_scene.geometry.keys())
+    for node in tm_scene.graph.nodes_geometry:
+        matrix, geom_name = tm_scene.graph[node]
+        geom = tm_scene.geometry[geom_name]
+        if not hasattr(geom, "faces") or len(geom.faces) == 0:
+            continue  # points, lines
+        instances.append((order.index(geom_name), np.asarray(matrix, np.float64).tobytes(), geom))
+    instances.sort(key=lambda item: (item[0], item[1]))  # deterministic (graph order is not)
+
+    verts, tris, mats, uvs, cols = [], [], [], [], []
+    any_uv = any_col = False
+    count = 0
+    for _, mbytes, geom in instances:
+        m = np.frombuffer(mbytes, dtype=np.float64).reshape(4, 4)
+        v = np.asarray(geom.vertices, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+        f = np.asarray(geom.faces, dtype=np.int64)
+        if np.linalg.det(m[:3, :3]) < 0:
+            f = f[:, [0, 2, 1]]
+        visual = geom.visual
+        material = getattr(visual, "material", None)
+        mname = getattr(material, "name", None)
+        if isinstance(mname, str) and mname.startswith(_TAG):
+            idx = int(mname[len(_TAG) :])
+            tm_materials.setdefault(idx, material)
+        else:
+            idx = n_json_mats  # glTF default material
+        uv = getattr(visual, "uv", None)
+        if uv is not None and len(uv) == len(v):
+            uv = np.asarray(uv, dtype=np.float64) * [1.0, -1.0] + [0.0, 1.0]  # undo trimesh flip
+            any_uv = True
+        else:
+            uv = np.zeros((len(v), 2))
+        attrs = getattr(visual, "vertex_attributes", {}) or {}
+        col = attrs.get("color") if hasattr(attrs, "get") else None
+        if col is not None and len(col) == len(v):
+            col = _vertex_colors(col)
+            any_col = True
+        else:
+            col = np.ones((len(v), 4))
+        verts.append(v)
+        tris.append(f + count)
+        mats.append(np.full(len(f), idx, np.int64))
+        uvs.append(uv)
+        cols.append(col)
+        count += len(v)
+    if not tris:
+        raise SceneError(f"{label} has no triangles in its default scene.")
+
+    materials = [_material_from_json(header, i, tm_materials.get(i)) for i in range(n_json_mats)]
+    material = np.concatenate(mats)
+    if np.any(material == n_json_mats):
+        materials.append(Material(name="glTF default"))
+    return Scene(
+        vertices=np.concatenate(verts),
+        triangles=np.concatenate(tris),
+        material=material,
+        materials=tuple(materials),
+        uvs=np.concatenate(uvs) if any_uv else None,
+        colors=np.concatenate(cols) if any_col else None,
+        lights=_parse_lights(header, label),
+        name=label,
+    )
+
+
+def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str):
+    """trimesh.Scene of a (re-encoded) glTF; any trimesh failure becomes a SceneError.
+
+    trimesh's loader catches ``BaseException`` around format handlers, which would swallow a
+    Ctrl-C (or the CLI's SIGTERM, turned into KeyboardInterrupt) arriving during the load; in
+    the main thread, SIGINT and SIGTERM are held during the call and delivered to their own
+    handlers right after it (loading takes a fraction of a second).
+    """
+    import trimesh
+
+    def load():
+        if binary is not None or path.suffix.lower() == ".glb":
+            return trimesh.load_scene(
+                io.BytesIO(_build_glb(header, binary)), file_type="glb", process=False
+            )
+        resolver = trimesh.resolvers.FilePathResolver(str(path))
+        return trimesh.load_scene(
+            io.BytesIO(json.dumps(header).encode("utf-8")),
+            file_type="gltf",
+            resolver=resolver,
+            process=False,
+        )
+
+    try:
+        with _signals_held():
+            return load()
+    except SceneError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- trimesh raises arbitrary types on bad accessors
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise SceneError(f"{label} could not be read by trimesh: {msg}") from None
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM for the duration, then deliver those that arrived to the
+    handlers in place before (main thread only; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    sigs = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.getsignal(sig) for sig in sigs}
+    for sig in sigs:
+        signal.signal(sig, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for sig in sigs:
+            handler = previous[sig]
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        for sig in dict.fromkeys(held):
+            signal.raise_signal(sig)
+

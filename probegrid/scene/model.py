@@ -1,0 +1,464 @@
+"""Scenes for the probe baker: world-space triangles, glTF materials and punctual lights.
+
+A :class:`Scene` is what the baker needs to shade a ray hit: one flat triangle soup in world space
+(every mesh instance already transformed by its node's world matrix), a material index per
+triangle, per-vertex UVs and colours, the list of :class:`Material` s and the punctual lights of
+:mod:`probegrid.core.lights`. Scenes come from glTF 2.0 files (:func:`load_gltf`) or from Python
+(:meth:`Scene.from_arrays`, :class:`SceneBuilder`, :func:`box_scene`). This is the only module of
+the project that imports ``trimesh``.
+
+Conventions
+-----------
+* World frame: glTF's, kept as is -- right-handed, +Y up, -Z forward, in the file's units (glTF
+  says metres; ``CornellBox.glb`` is in millimetres and is *not* rescaled).
+* Winding: a triangle ``(a, b, c)`` faces the side of its geometric normal
+  ``normalize((b - a) x (c - a))`` (counter-clockwise seen from the front, glTF's front face).
+  A mesh instanced under a node whose world matrix has a negative determinant is re-wound
+  (glTF 2.0 spec, "Transformations": a negative determinant makes the winding clockwise), so the
+  rule above holds for every triangle of a :class:`Scene`.
+* Barycentrics: a point of triangle ``(a, b, c)`` is ``(1 - u - v) a + u b + v c`` (Embree's
+  and Moller-Trumbore's ``u, v``).
+* UVs are glTF's: ``(0, 0)`` is the upper-left corner of the image, ``v`` grows downward. trimesh
+  flips ``v`` on load ("origin lower-left"); :func:`load_gltf` flips it back.
+* Colours are linear Rec.709 RGB. ``baseColorTexture`` and ``emissiveTexture`` are sRGB-encoded
+  (glTF spec, "Metallic-Roughness Material") and are decoded to linear once on load with the
+  exact sRGB EOTF (IEC 61966-2-1); alpha stays linear. Textures are filtered bilinearly in
+  linear space, wrapping as the texture's sampler says (default REPEAT), like a GPU with an
+  sRGB texture format.
+* Shading albedo = ``baseColorFactor.rgb * baseColorTexture.rgb * COLOR_0.rgb`` (glTF: COLOR_0
+  "acts as an additional linear multiplier to base color"). Emission (radiance, cd/m^2 in the
+  photometric reading of :mod:`probegrid.core.lights`) = ``emissiveFactor *
+  KHR_materials_emissive_strength.emissiveStrength * emissiveTexture.rgb``.
+* Lights (``KHR_lights_punctual``): position = the node's world translation, direction = the
+  node's world matrix applied to -Z (normalised); point/spot intensity in candela, directional in
+  lux, ``range`` kept; see :mod:`probegrid.core.lights` for units and falloff.
+
+Not supported (stated rather than guessed): textures on ``TEXCOORD_1`` or higher (rejected
+with a :class:`SceneError`), ``KHR_texture_transform`` (ignored), alpha modes and
+metallic/roughness (the baker treats every surface as opaque Lambertian), morph targets and
+skins (the bind pose is used), points and lines (ignored). A file whose ``extensionsRequired``
+names anything but ``KHR_lights_punctual`` and ``KHR_materials_emissive_strength`` is refused,
+as the glTF specification asks of a loader.
+
+References: glTF 2.0 specification (Khronos, 2021); KHR_lights_punctual and
+KHR_materials_emissive_strength extension specifications; IEC 61966-2-1 (sRGB).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Final, NamedTuple
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
+from probegrid.errors import SceneError
+from probegrid.kernels import hit_surfaces, multiply_texture
+from probegrid.scene.textures import _WRAPS, Wrap, _check_wrap
+
+__all__ = ['Material', 'Scene', 'SceneError', 'Surface']
+
+_LIGHT_TYPES: Final = (PointLight, SpotLight, DirectionalLight)
+
+
+def _readonly(a: NDArray) -> NDArray:
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Material:
+    """A glTF material reduced to what a Lambertian light bake uses.
+
+    Attributes
+    ----------
+    base_color : (4,) float64
+        Linear RGBA ``baseColorFactor`` (a 3-vector gets alpha 1). glTF default ``(1, 1, 1, 1)``.
+    base_color_texture : (H, W, 4) float32 or None
+        ``baseColorTexture``, decoded to linear RGB (alpha linear as stored).
+    emissive : (3,) float64
+        ``emissiveFactor * emissiveStrength``, linear RGB radiance. glTF default 0.
+    emissive_texture : (H, W, 3) float32 or None
+        ``emissiveTexture``, decoded to linear RGB.
+    double_sided : bool
+        glTF ``doubleSided`` (default False: the back of a triangle is not a surface).
+    name : str
+        For messages only; not part of :meth:`Scene.content_hash`.
+    base_color_wrap, emissive_wrap : (2,) of {"repeat", "clamp", "mirror"}
+        The textures' sampler wrap modes along u and v.
+    """
+
+    base_color: NDArray[np.float64] = field(default_factory=lambda: np.ones(4))
+    base_color_texture: NDArray[np.float32] | None = None
+    emissive: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    emissive_texture: NDArray[np.float32] | None = None
+    double_sided: bool = False
+    name: str = ""
+    base_color_wrap: tuple[Wrap, Wrap] = ("repeat", "repeat")
+    emissive_wrap: tuple[Wrap, Wrap] = ("repeat", "repeat")
+
+    def __post_init__(self) -> None:
+        bc = np.array(self.base_color, dtype=np.float64).reshape(-1)
+        if bc.shape == (3,):
+            bc = np.append(bc, 1.0)
+        if bc.shape != (4,) or not np.all(np.isfinite(bc)) or np.any(bc < 0):
+            raise ValueError(
+                f"base_color must be 3 or 4 finite non-negative numbers, got {self.base_color!r}."
+            )
+        em = np.array(self.emissive, dtype=np.float64)
+        if em.ndim == 0:
+            em = np.full(3, float(em))
+        if em.shape != (3,) or not np.all(np.isfinite(em)) or np.any(em < 0):
+            raise ValueError(
+                f"emissive must be 3 finite non-negative numbers, got {self.emissive!r}."
+            )
+        object.__setattr__(self, "base_color", _readonly(bc))
+        object.__setattr__(self, "emissive", _readonly(em))
+        for name, channels in (("base_color_texture", 4), ("emissive_texture", 3)):
+            tex = getattr(self, name)
+            if tex is None:
+                continue
+            t = np.array(tex, dtype=np.float32)
+            if t.ndim != 3 or t.shape[2] != channels or t.shape[0] < 1 or t.shape[1] < 1:
+                raise ValueError(f"{name} must have shape (H, W, {channels}), got {t.shape}.")
+            if not np.all(np.isfinite(t)):
+                raise ValueError(f"{name} must be finite.")
+            object.__setattr__(self, name, _readonly(t))
+        object.__setattr__(self, "double_sided", bool(self.double_sided))
+        object.__setattr__(self, "base_color_wrap", _check_wrap(self.base_color_wrap))
+        object.__setattr__(self, "emissive_wrap", _check_wrap(self.emissive_wrap))
+
+    @classmethod
+    def diffuse(
+        cls, albedo: ArrayLike, *, emission: ArrayLike = 0.0, double_sided: bool = False
+    ) -> Material:
+        """An untextured material: ``albedo`` (scalar or RGB) and ``emission`` (scalar or RGB)."""
+        a = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (3,))
+        e = np.broadcast_to(np.asarray(emission, dtype=np.float64), (3,))
+        return cls(base_color=a, emissive=e, double_sided=double_sided)
+
+    def _hash_into(self, h: hashlib._Hash) -> None:
+        _hash_array(h, self.base_color, "<f8")
+        _hash_array(h, self.emissive, "<f8")
+        for tex in (self.base_color_texture, self.emissive_texture):
+            _hash_array(h, tex, "<f4")
+        h.update(json.dumps([self.double_sided, self.base_color_wrap, self.emissive_wrap]).encode())
+
+
+def _hash_array(h: hashlib._Hash, a: NDArray | None, dtype: str) -> None:
+    if a is None:
+        h.update(b"None;")
+        return
+    c = np.ascontiguousarray(a, dtype=np.dtype(dtype))
+    h.update(f"{dtype}{c.shape};".encode())
+    h.update(c.tobytes())
+
+
+class Surface(NamedTuple):
+    """Shading data at surface points (see :meth:`Scene.surface_at`)."""
+
+    position: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    albedo: NDArray[np.float64]
+    emission: NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """World-space triangles with materials and punctual lights (immutable).
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64
+        World-space positions, finite.
+    triangles : (T, 3) int64
+        Vertex indices, wound so the geometric normal faces the front (module docstring). T >= 1.
+    material : (T,) int64
+        Index into ``materials`` of each triangle.
+    materials : tuple of Material
+    uvs : (V, 2) float64 or None
+        glTF texture coordinates (``TEXCOORD_0``); vertices without them hold 0.
+    colors : (V, 4) float64 or None
+        Linear RGBA vertex colours (``COLOR_0``); vertices without them hold 1.
+    lights : tuple of PointLight, SpotLight, DirectionalLight
+    name : str
+        For messages only; not part of :meth:`content_hash`.
+
+    Invalid data raises :class:`SceneError` (a ``ValueError``).
+    """
+
+    vertices: NDArray[np.float64]
+    triangles: NDArray[np.int64]
+    material: NDArray[np.int64]
+    materials: tuple[Material, ...]
+    uvs: NDArray[np.float64] | None = None
+    colors: NDArray[np.float64] | None = None
+    lights: tuple[Light, ...] = ()
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        v = np.array(self.vertices, dtype=np.float64)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise SceneError(f"vertices must have shape (V, 3), got {v.shape}.")
+        bad = ~np.all(np.isfinite(v), axis=1)
+        if np.any(bad):
+            raise SceneError(
+                f"scene {self.name!r} has {int(bad.sum())} vertices with NaN or infinite "
+                "coordinates."
+            )
+        t = np.asarray(self.triangles)
+        if t.size == 0:
+            raise SceneError(f"scene {self.name!r} has no triangles.")
+        if t.ndim != 2 or t.shape[1] != 3 or not np.issubdtype(t.dtype, np.integer):
+            raise SceneError(
+                f"triangles must be integer vertex indices of shape (T, 3), got {t.dtype} "
+                f"{t.shape}."
+            )
+        t = np.array(t, dtype=np.int64)
+        if t.min() < 0 or t.max() >= len(v):
+            raise SceneError(
+                f"triangle vertex indices must be in [0, {len(v)}), got "
+                f"[{int(t.min())}, {int(t.max())}]."
+            )
+        mats = tuple(self.materials)
+        if not mats or not all(isinstance(m, Material) for m in mats):
+            raise SceneError("materials must be a non-empty sequence of Material.")
+        m = np.array(self.material, dtype=np.int64).reshape(-1)
+        if m.shape != (len(t),):
+            raise SceneError(f"material must have shape ({len(t)},), got {m.shape}.")
+        if m.min() < 0 or m.max() >= len(mats):
+            raise SceneError(f"material indices must be in [0, {len(mats)}).")
+        for name, width, fill in (("uvs", 2, 0.0), ("colors", 4, 1.0)):
+            a = getattr(self, name)
+            if a is None:
+                continue
+            a = np.array(a, dtype=np.float64)
+            if name == "colors" and a.ndim == 2 and a.shape[1] == 3:
+                a = np.concatenate([a, np.full((len(a), 1), fill)], axis=1)
+            if a.shape != (len(v), width):
+                raise SceneError(f"{name} must have shape ({len(v)}, {width}), got {a.shape}.")
+            if not np.all(np.isfinite(a)):
+                raise SceneError(f"{name} must be finite.")
+            object.__setattr__(self, name, _readonly(a))
+        lights = tuple(self.lights)
+        for light in lights:
+            if not isinstance(light, _LIGHT_TYPES):
+                raise SceneError(
+                    f"lights must be PointLight, SpotLight or DirectionalLight, got {light!r}."
+                )
+        object.__setattr__(self, "vertices", _readonly(v))
+        object.__setattr__(self, "triangles", _readonly(t))
+        object.__setattr__(self, "material", _readonly(m))
+        object.__setattr__(self, "materials", mats)
+        object.__setattr__(self, "lights", lights)
+
+    # -- construction ----------------------------------------------------------------------
+
+    @classmethod
+    def from_arrays(
+        cls,
+        vertices: ArrayLike,
+        triangles: ArrayLike,
+        *,
+        material: ArrayLike | None = None,
+        materials: Sequence[Material] | None = None,
+        uvs: ArrayLike | None = None,
+        colors: ArrayLike | None = None,
+        lights: Sequence[Light] = (),
+        name: str = "",
+    ) -> Scene:
+        """A scene from arrays; by default one material (glTF's default: white, single-sided).
+
+        Parameters
+        ----------
+        vertices : (V, 3) float
+        triangles : (T, 3) int
+        material : (T,) int, optional
+            Material index per triangle (default 0 everywhere).
+        materials : sequence of Material, optional
+        uvs : (V, 2) float, optional
+        colors : (V, 3) or (V, 4) float, optional
+        lights : sequence of lights
+        name : str
+        """
+        mats = tuple(materials) if materials is not None else (Material(),)
+        t = np.asarray(triangles)
+        n_tri = t.shape[0] if t.ndim == 2 else 0
+        m = np.zeros(n_tri, np.int64) if material is None else material
+        return cls(
+            vertices=vertices,  # type: ignore[arg-type]
+            triangles=t,  # type: ignore[arg-type]
+            material=m,  # type: ignore[arg-type]
+            materials=mats,
+            uvs=uvs,  # type: ignore[arg-type]
+            colors=colors,  # type: ignore[arg-type]
+            lights=tuple(lights),
+            name=name,
+        )
+
+    # -- derived data ----------------------------------------------------------------------
+
+    @property
+    def n_triangles(self) -> int:
+        """Number of triangles T."""
+        return len(self.triangles)
+
+    @cached_property
+    def bounds(self) -> NDArray[np.float64]:
+        """(2, 3) float64: min and max corner of the vertices used by triangles."""
+        used = self.vertices[np.unique(self.triangles)]
+        return _readonly(np.stack([used.min(axis=0), used.max(axis=0)]))
+
+    @cached_property
+    def triangle_normals(self) -> NDArray[np.float64]:
+        """(T, 3) float64: unit geometric normals as wound; zero for degenerate triangles."""
+        p = self.vertices[self.triangles]
+        n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return _readonly(np.divide(n, length, out=np.zeros_like(n), where=length > 0))
+
+    @cached_property
+    def triangle_areas(self) -> NDArray[np.float64]:
+        """(T,) float64 triangle areas, in squared scene units."""
+        p = self.vertices[self.triangles]
+        return _readonly(
+            0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        )
+
+    @cached_property
+    def double_sided(self) -> NDArray[np.bool_]:
+        """(T,) bool: the material of each triangle is double-sided."""
+        flags = np.array([m.double_sided for m in self.materials], dtype=bool)
+        return _readonly(flags[self.material])
+
+    @cached_property
+    def _factor_tables(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        base = np.stack([m.base_color[:3] for m in self.materials])
+        emis = np.stack([m.emissive for m in self.materials])
+        return _readonly(base), _readonly(emis)
+
+    def content_hash(self) -> str:
+        """SHA-256 (hex) of the geometry, materials and lights: equal scenes hash equal.
+
+        Covers vertices, triangles, material indices, UVs, colours, every material's factors,
+        textures, sidedness and wrap modes, and every light's type and parameters, all in a
+        fixed little-endian encoding; ``name`` fields are excluded. Stable across runs and
+        machines.
+        """
+        h = hashlib.sha256(b"probegrid-scene-v1;")
+        _hash_array(h, self.vertices, "<f8")
+        _hash_array(h, self.triangles, "<i8")
+        _hash_array(h, self.material, "<i8")
+        _hash_array(h, self.uvs, "<f8")
+        _hash_array(h, self.colors, "<f8")
+        h.update(f"materials{len(self.materials)};".encode())
+        for m in self.materials:
+            m._hash_into(h)
+        for light in self.lights:
+            record = [type(light).__name__] + [
+                [f.name, getattr(light, f.name)] for f in dataclasses.fields(light)
+            ]
+            h.update(json.dumps(record).encode())
+        return h.hexdigest()
+
+    # -- shading -----------------------------------------------------------------------------
+
+    @cached_property
+    def _kernel_tables(self) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Contiguous vertices, triangles, normals and material indices for the kernels."""
+        return (np.ascontiguousarray(self.vertices, dtype=np.float64),
+                np.ascontiguousarray(self.triangles, dtype=np.int64),
+                np.ascontiguousarray(self.triangle_normals, dtype=np.float64),
+                np.ascontiguousarray(self.material, dtype=np.int64))
+
+    @cached_property
+    def _kernel_colors(self) -> NDArray[np.float64]:
+        if self.colors is None:
+            return np.zeros((0, 3))
+        return np.ascontiguousarray(self.colors[:, :3], dtype=np.float64)
+
+    @cached_property
+    def _kernel_uvs(self) -> NDArray[np.float64]:
+        if self.uvs is None:
+            return np.zeros((0, 2))
+        return np.ascontiguousarray(self.uvs, dtype=np.float64)
+
+    @cached_property
+    def _textured_materials(self) -> NDArray[np.int64]:
+        return np.array([i for i, m in enumerate(self.materials)
+                         if m.base_color_texture is not None or m.emissive_texture is not None],
+                        dtype=np.int64)
+
+    def _apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
+                        v: NDArray[np.float64], albedo: NDArray[np.float64],
+                        emission: NDArray[np.float64]) -> None:
+        """Multiply ``albedo``/``emission (n, 3)`` in place by the textures sampled at the
+        interpolated UV of the hits (:func:`sample_texture`'s bilinear filter and wrap modes,
+        compiled as :func:`probegrid.kernels.multiply_texture`)."""
+        if not self._textured_materials.size or not pid.size:
+            return
+        mat = self.material[pid]
+        tris, uvs = self._kernel_tables[1], self._kernel_uvs
+        for i in self._textured_materials:  # loop over textured materials, not hits
+            sel = np.flatnonzero(mat == i)
+            if not sel.size:
+                continue
+            m = self.materials[int(i)]
+            for tex, wrap, target in ((m.base_color_texture, m.base_color_wrap, albedo),
+                                      (m.emissive_texture, m.emissive_wrap, emission)):
+                if tex is not None:
+                    multiply_texture(target, sel, pid, u, v, tris, uvs,
+                                     np.ascontiguousarray(tex, dtype=np.float32),
+                                     _WRAPS.index(wrap[0]), _WRAPS.index(wrap[1]))
+
+    def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
+        """Position, geometric normal, albedo and emission at barycentric points of triangles.
+
+        Parameters
+        ----------
+        prim_ids : (...) int
+            Triangle indices in ``[0, T)`` (filter out misses first).
+        u, v : (...) float
+            Barycentrics: the point is ``(1 - u - v) a + u b + v c``; broadcast with prim_ids.
+
+        Returns
+        -------
+        Surface
+            ``position (..., 3)`` float64 world position; ``normal (..., 3)`` unit geometric
+            normal as wound; ``albedo (..., 3)`` linear shading albedo
+            ``baseColor.rgb * texture.rgb * COLOR_0.rgb``; ``emission (..., 3)`` emitted
+            radiance ``emissive * emissiveTexture.rgb``. Textures are sampled bilinearly at the
+            interpolated UV with the material's wrap modes.
+        """
+        pid, uu, vv = np.broadcast_arrays(
+            np.asarray(prim_ids), np.asarray(u, np.float64), np.asarray(v, np.float64)
+        )
+        if pid.size and not np.issubdtype(pid.dtype, np.integer):
+            raise ValueError(f"prim_ids must be integers, got dtype {pid.dtype}.")
+        shape = pid.shape
+        pid = pid.reshape(-1).astype(np.int64)
+        uu = uu.reshape(-1)
+        vv = vv.reshape(-1)
+        if pid.size and (pid.min() < 0 or pid.max() >= self.n_triangles):
+            raise ValueError(
+                f"prim_ids must be triangle indices in [0, {self.n_triangles}); filter misses "
+                "(-1) out first."
+            )
+        base, emis = self._factor_tables
+        position, normal, albedo, emission = hit_surfaces(
+            pid, np.ascontiguousarray(uu), np.ascontiguousarray(vv), *self._kernel_tables,
+            base, emis, self._kernel_colors)
+        self._apply_textures(pid, uu, vv, albedo, emission)
+        return Surface(
+            position.reshape(*shape, 3),
+            normal.reshape(*shape, 3),
+            albedo.reshape(*shape, 3),
+            emission.reshape(*shape, 3),
+        )
+

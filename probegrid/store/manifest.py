@@ -1,0 +1,336 @@
+"""The grid store: a directory of memory-mappable per-probe arrays with a versioned manifest.
+
+Layout
+------
+A finished store is one directory, by convention ``NAME.probes/``::
+
+    NAME.probes/
+        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 1
+        sh.npy              one .npy file per array, named after the array
+        diffuse.npy
+        ...
+
+Every array is *per probe*: its first axis is the probe's linear index (``(i * ny + j) * nz + k``,
+see :mod:`probegrid.core.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6, n, n, 3) float16``,
+``valid (P,) bool``. The files are plain NumPy ``.npy`` (format 1.0/2.0, C order, little-endian,
+dtype kinds bool / int / uint / float), so any reader can memory-map them; :func:`open_store`
+maps them read-only (``np.load(mmap_mode="r")``, i.e. ``MAP_SHARED`` + ``PROT_READ``), so many
+reader processes share the same page-cache pages and touch only the probes they index. The
+manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape and a
+description; the reader refuses a store whose files disagree with it in size, shape or dtype.
+
+The manifest also carries the conventions record (built by :mod:`probegrid.core.conventions`; the store
+treats it as opaque JSON), the grid (:class:`probegrid.core.grid.GridSpec`), the bake settings, the
+scene's content hash, per-bake quality figures, the creation time and the probegrid version.
+
+Atomic, resumable writes
+------------------------
+:class:`StoreWriter` never writes into ``NAME.probes`` itself. A bake works in
+``NAME.probes.partial/``:
+
+1. ``create`` preallocates every array with ``np.lib.format.open_memmap``, an all-false done
+   mask ``_done.npy (P,) bool``, and last the bake plan ``_bake.json`` (grid, arrays, bake
+   settings, scene hash, conventions), written atomically. A ``.partial`` directory without
+   ``_bake.json`` is an interrupted start and holds nothing worth keeping (a failed ``create``
+   removes it). ``open_memmap`` makes *sparse* files, whose blocks the file system only allocates
+   when a page of the map is first written; on a full disk that write cannot fail with an error
+   code and the kernel kills the process with ``SIGBUS``. So every array file's blocks are
+   reserved with ``posix_fallocate`` right after it is created: a full disk raises
+   ``OSError(ENOSPC)`` in ``create``, before any probe is baked. (File systems without
+   ``fallocate`` support, ``EOPNOTSUPP``/``EINVAL``, keep sparse files.)
+2. ``write(indices, values)`` stores a batch into the maps, ``msync``s them, and only *then* sets
+   and ``msync``s the batch's entries of the done mask, so a probe marked done always has its data
+   on disk, whenever the process dies. (``durable=False`` skips the ``msync``s: stores to shared
+   maps outlive a killed process in program order, so this still holds for a killed process,
+   not for an OS crash.)
+3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, writes
+   ``manifest.json`` atomically (temporary file, ``fsync``, ``os.replace``, ``fsync`` of the
+   directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
+   (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``: it is
+   renamed aside, the new one renamed in, the old one deleted; readers that still map the old
+   files keep valid maps).
+
+Nothing in a ``.partial`` directory ever loads: :func:`open_store` refuses a ``.partial`` name, a
+directory holding a bake plan, one without a valid manifest, and arrays that disagree with the
+manifest. ``resume`` reopens the partial directory, checks that the grid, arrays, bake settings,
+scene hash and conventions are the ones it was started with, and carries on: ``remaining()`` lists
+the probes still to bake. A bake killed during ``finish`` after the manifest was written resumes
+straight into the final rename. One writer at a time: the partial directory is ``flock``-ed.
+
+All failures of the store raise :class:`StoreError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any, Final, Literal
+
+import numpy as np
+from numpy.typing import DTypeLike
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    PlainSerializer,
+    PlainValidator,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from probegrid._version import __version__
+from probegrid.core.grid import GridSpec
+from probegrid.errors import StoreError
+
+#: A manifest's grid: validated by :meth:`GridSpec.from_dict`, written by :meth:`GridSpec.as_dict`.
+GridField = Annotated[GridSpec, PlainValidator(GridSpec.from_dict),
+                      PlainSerializer(GridSpec.as_dict)]
+
+__all__ = ['FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS', 'ArrayInfo', 'ArraySpec', 'StoreError', 'StoreManifest', 'partial_path']
+
+
+FORMAT_NAME: Final = "probegrid.store"
+
+
+#: Version of the store layout and manifest schema written by this module.
+FORMAT_VERSION: Final = 1
+
+
+#: Versions :func:`open_store` reads.
+SUPPORTED_FORMAT_VERSIONS: Final = frozenset({1})
+
+
+MANIFEST_FILE: Final = "manifest.json"
+
+
+PLAN_FILE: Final = "_bake.json"  # partial directories only
+
+
+DONE_FILE: Final = "_done.npy"  # partial directories only
+
+
+PARTIAL_SUFFIX: Final = ".partial"
+
+#: A finished store's directory name ends in this (the one ``.probes`` naming rule).
+STORE_SUFFIX: Final = ".probes"
+#: A bake's own working directory beside the store (``NAME.probes.work``).
+WORK_SUFFIX: Final = ".work"
+#: Every directory name a store or a bake of one uses; no other output may be written there.
+STORE_DIR_SUFFIXES: Final = (STORE_SUFFIX, STORE_SUFFIX + PARTIAL_SUFFIX,
+                             STORE_SUFFIX + WORK_SUFFIX)
+
+
+_NAME_RE = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
+
+
+_DTYPE_KINDS = "biuf"
+
+
+# ---------------------------------------------------------------------------- array declarations
+def _check_name(name: str) -> str:
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise ValueError(
+            f"array name must be 1-64 characters of a-z, 0-9 and _, starting with a letter, "
+            f"got {name!r}"
+        )
+    return name
+
+
+def _check_dtype(dtype: DTypeLike) -> str:
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"unknown dtype {dtype!r}") from None
+    if dt.kind not in _DTYPE_KINDS or dt.byteorder == ">" or dt.shape or dt.names:
+        raise ValueError(
+            f"array dtype must be a little-endian bool, int, uint or float scalar, got {dt}"
+        )
+    return dt.str
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Declaration of one per-probe array for :meth:`StoreWriter.create`.
+
+    Attributes
+    ----------
+    shape : tuple of int >= 1
+        Shape of one probe's entry (the store array is ``(P, *shape)``); ``()`` for a scalar.
+    dtype : str
+        NumPy dtype; normalised to its ``dtype.str`` (e.g. ``"<f2"``, ``"|b1"``).
+    description : str
+        Words for the manifest (what it holds, units).
+    """
+
+    shape: tuple[int, ...]
+    dtype: str
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        shape = tuple(self.shape)
+        if not all(
+            isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1 for n in shape
+        ):
+            raise ValueError(f"per-probe shape must be positive integers, got {self.shape!r}")
+        object.__setattr__(self, "shape", tuple(int(n) for n in shape))
+        object.__setattr__(self, "dtype", _check_dtype(self.dtype))
+        if not isinstance(self.description, str):
+            raise TypeError(f"description must be a string, got {self.description!r}")
+
+
+class ArrayInfo(BaseModel):
+    """Manifest entry of one array: file name, dtype string, full shape ``(P, ...)``, words."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    file: str
+    dtype: str
+    shape: tuple[int, ...]
+    description: str = ""
+
+    @field_validator("dtype")
+    @classmethod
+    def _dtype(cls, v: str) -> str:
+        if _check_dtype(v) != v:
+            raise ValueError(f"dtype must be a numpy dtype string such as '<f4', got {v!r}")
+        return v
+
+    @field_validator("shape")
+    @classmethod
+    def _shape(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if len(v) < 1 or min(v) < 1:
+            raise ValueError(f"array shape must be (P, ...) with positive sizes, got {v}")
+        return v
+
+    @property
+    def nbytes(self) -> int:
+        """Size of the array's data in bytes."""
+        return math.prod(self.shape) * np.dtype(self.dtype).itemsize
+
+
+class _Plan(BaseModel):
+    """What a bake writes; persisted in a partial directory and checked on resume."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    format: Literal["probegrid.store"] = FORMAT_NAME
+    format_version: int = FORMAT_VERSION
+    probegrid_version: str = __version__
+    bake_started: datetime
+    conventions: dict[str, Any]
+    grid: GridField
+    bake: dict[str, Any]
+    scene_hash: str
+    arrays: dict[str, ArrayInfo]
+
+    @model_validator(mode="after")
+    def _arrays_match_grid(self) -> _Plan:
+        if not self.arrays:
+            raise ValueError("a store needs at least one array")
+        for name, info in self.arrays.items():
+            _check_name(name)
+            if info.file != f"{name}.npy":
+                raise ValueError(f"array {name!r} must live in {name}.npy, not {info.file!r}")
+            if info.shape[0] != self.grid.n_probes:
+                raise ValueError(
+                    f"array {name!r} has {info.shape[0]} entries for a grid of "
+                    f"{self.grid.n_probes} probes"
+                )
+        return self
+
+
+class StoreManifest(_Plan):
+    """The ``manifest.json`` of a finished store.
+
+    Attributes
+    ----------
+    format, format_version : "probegrid.store", int
+        Layout identifier and version (see :data:`SUPPORTED_FORMAT_VERSIONS`).
+    probegrid_version : str
+        Version of probegrid that wrote the store.
+    created, bake_started : datetime (UTC)
+    conventions : dict
+        The conventions record (:func:`probegrid.core.conventions.conventions`).
+    grid : GridSpec
+    bake : dict
+        Bake settings (face size, bounces, samples, seed, ...).
+    scene_hash : str
+        Content hash of the scene (and environment) the store was baked from.
+    quality : dict
+        Per-bake quality figures (furnace error, SH minimum, seam score, invalid probes, ...).
+    arrays : dict of str -> ArrayInfo
+    """
+
+    created: datetime
+    quality: dict[str, Any]
+
+
+# ---------------------------------------------------------------------------- JSON helpers
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, (np.generic, np.ndarray)):
+        return obj.tolist()
+    if isinstance(obj, BaseModel):
+        return obj.model_dump(mode="json")
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
+
+
+def _jsonable(obj: Any, what: str) -> dict[str, Any]:
+    """A JSON-normalised copy of a mapping or pydantic model (tuples become lists)."""
+    if isinstance(obj, BaseModel):
+        obj = obj.model_dump(mode="json")
+    if not isinstance(obj, Mapping):
+        raise TypeError(f"{what} must be a mapping or a pydantic model, got {type(obj).__name__}")
+    try:
+        text = json.dumps(dict(obj), default=_json_default, allow_nan=False, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what} must be JSON-serialisable with finite numbers: {exc}") from None
+    return json.loads(text)
+
+
+def _validation_message(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    more = f" (and {exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+    return f"{loc}: {str(err['msg']).removeprefix('Value error, ')}{more}"
+
+
+# ---------------------------------------------------------------------------- reading
+def check_store_name(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a Path when it names a store ``NAME.probes``; ValueError otherwise."""
+    p = Path(path)
+    if not p.name.endswith(STORE_SUFFIX) or p.name == STORE_SUFFIX:
+        raise ValueError(f"a store must be named NAME.probes, got {str(p)!r}")
+    return p
+
+
+def store_name(path: str | os.PathLike[str]) -> str:
+    """A store's name: its directory name without ``.probes`` (the whole name without it)."""
+    name = Path(path).name
+    return name.removesuffix(STORE_SUFFIX) if name.endswith(STORE_SUFFIX) else name
+
+
+def work_path(path: str | os.PathLike[str]) -> Path:
+    """The bake's working directory ``NAME.probes.work`` beside the store ``path``."""
+    p = Path(path)
+    return p.with_name(p.name + WORK_SUFFIX)
+
+
+def partial_path(path: str | os.PathLike[str]) -> Path:
+    """The working directory ``NAME.probes.partial`` of a bake that will produce ``path``."""
+    p = Path(path)
+    return p.with_name(p.name + PARTIAL_SUFFIX)
+
+
+def _final_path(path: str | os.PathLike[str]) -> Path:
+    p = Path(path)
+    if p.name.endswith(PARTIAL_SUFFIX) or not p.name:
+        raise ValueError(f"store path must name the finished store (NAME.probes), got {str(p)!r}")
+    return p

@@ -1,0 +1,624 @@
+"""The grid store: a directory of memory-mappable per-probe arrays with a versioned manifest.
+
+Layout
+------
+A finished store is one directory, by convention ``NAME.probes/``::
+
+    NAME.probes/
+        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 1
+        sh.npy              one .npy file per array, named after the array
+        diffuse.npy
+        ...
+
+Every array is *per probe*: its first axis is the probe's linear index (``(i * ny + j) * nz + k``,
+see :mod:`probegrid.core.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6, n, n, 3) float16``,
+``valid (P,) bool``. The files are plain NumPy ``.npy`` (format 1.0/2.0, C order, little-endian,
+dtype kinds bool / int / uint / float), so any reader can memory-map them; :func:`open_store`
+maps them read-only (``np.load(mmap_mode="r")``, i.e. ``MAP_SHARED`` + ``PROT_READ``), so many
+reader processes share the same page-cache pages and touch only the probes they index. The
+manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape and a
+description; the reader refuses a store whose files disagree with it in size, shape or dtype.
+
+The manifest also carries the conventions record (built by :mod:`probegrid.core.conventions`; the store
+treats it as opaque JSON), the grid (:class:`probegrid.core.grid.GridSpec`), the bake settings, the
+scene's content hash, per-bake quality figures, the creation time and the probegrid version.
+
+Atomic, resumable writes
+------------------------
+:class:`StoreWriter` never writes into ``NAME.probes`` itself. A bake works in
+``NAME.probes.partial/``:
+
+1. ``create`` preallocates every array with ``np.lib.format.open_memmap``, an all-false done
+   mask ``_done.npy (P,) bool``, and last the bake plan ``_bake.json`` (grid, arrays, bake
+   settings, scene hash, conventions), written atomically. A ``.partial`` directory without
+   ``_bake.json`` is an interrupted start and holds nothing worth keeping (a failed ``create``
+   removes it). ``open_memmap`` makes *sparse* files, whose blocks the file system only allocates
+   when a page of the map is first written; on a full disk that write cannot fail with an error
+   code and the kernel kills the process with ``SIGBUS``. So every array file's blocks are
+   reserved with ``posix_fallocate`` right after it is created: a full disk raises
+   ``OSError(ENOSPC)`` in ``create``, before any probe is baked. (File systems without
+   ``fallocate`` support, ``EOPNOTSUPP``/``EINVAL``, keep sparse files.)
+2. ``write(indices, values)`` stores a batch into the maps, ``msync``s them, and only *then* sets
+   and ``msync``s the batch's entries of the done mask, so a probe marked done always has its data
+   on disk, whenever the process dies. (``durable=False`` skips the ``msync``s: stores to shared
+   maps outlive a killed process in program order, so this still holds for a killed process,
+   not for an OS crash.)
+3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, writes
+   ``manifest.json`` atomically (temporary file, ``fsync``, ``os.replace``, ``fsync`` of the
+   directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
+   (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``: it is
+   renamed aside, the new one renamed in, the old one deleted; readers that still map the old
+   files keep valid maps).
+
+Nothing in a ``.partial`` directory ever loads: :func:`open_store` refuses a ``.partial`` name, a
+directory holding a bake plan, one without a valid manifest, and arrays that disagree with the
+manifest. ``resume`` reopens the partial directory, checks that the grid, arrays, bake settings,
+scene hash and conventions are the ones it was started with, and carries on: ``remaining()`` lists
+the probes still to bake. A bake killed during ``finish`` after the manifest was written resumes
+straight into the final rename. One writer at a time: the partial directory is ``flock``-ed.
+
+All failures of the store raise :class:`StoreError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Final, Self
+
+import numpy as np
+from numpy.typing import ArrayLike, DTypeLike, NDArray
+from pydantic import BaseModel
+
+from probegrid._fs import atomic_write_text, fsync_dir, fsync_file, lock_dir
+from probegrid.core.grid import GridSpec
+from probegrid.store.manifest import (
+    DONE_FILE,
+    MANIFEST_FILE,
+    PLAN_FILE,
+    ArrayInfo,
+    ArraySpec,
+    StoreError,
+    StoreManifest,
+    _check_name,
+    _final_path,
+    _jsonable,
+    _Plan,
+    partial_path,
+)
+from probegrid.store.reader import (
+    ProbeStore,
+    _check_array_file,
+    _load_manifest_json,
+    _validate_store_dir,
+    open_store,
+)
+
+__all__ = ['StoreWriter', 'create_npy']
+
+
+# ---------------------------------------------------------------------------- writing
+#: ``posix_fallocate`` errors meaning "this file system cannot reserve blocks" (keep it sparse).
+_NO_FALLOCATE: Final = frozenset({errno.EOPNOTSUPP, errno.ENOTSUP, errno.EINVAL, errno.ENOSYS})
+
+
+def _reserve_blocks(file: Path) -> None:
+    """Allocate every block of ``file`` now (``posix_fallocate``), so that writing through a
+    memory map of it can never meet a full disk (which is ``SIGBUS``, not an error code).
+
+    Raises ``OSError`` (``ENOSPC`` on a full disk) with a one-line message; does nothing on file
+    systems that do not support ``fallocate``.
+    """
+    fd = os.open(file, os.O_RDWR)
+    size = 0
+    try:
+        size = os.fstat(fd).st_size
+        if size:
+            os.posix_fallocate(fd, 0, size)
+    except OSError as exc:
+        if exc.errno in _NO_FALLOCATE:
+            return
+        raise OSError(
+            exc.errno, f"cannot reserve {_size_text(size)} on disk for {file}: {exc.strerror}"
+        ) from None
+    finally:
+        os.close(fd)
+
+
+def _size_text(nbytes: int) -> str:
+    return f"{nbytes} bytes" if nbytes < 2**20 else f"{nbytes / 2**20:.1f} MiB"
+
+
+def create_npy(file: str | os.PathLike[str], dtype: DTypeLike, shape: tuple[int, ...]
+               ) -> np.memmap:
+    """A new zero-filled ``.npy`` file, memory-mapped read-write, its disk blocks reserved.
+
+    ``np.lib.format.open_memmap(mode="w+")`` followed by ``posix_fallocate`` over the whole file
+    and an ``fsync``: a full disk raises ``OSError(ENOSPC)`` here instead of killing the process
+    with ``SIGBUS`` when a page of the map is first written (see the module docstring). Use it
+    for every memory-mapped array a bake writes.
+
+    Parameters
+    ----------
+    file : path of the new file (replaced if it exists)
+    dtype : numpy dtype
+    shape : tuple of int
+    """
+    file = Path(file)
+    mm = np.lib.format.open_memmap(file, mode="w+", dtype=np.dtype(dtype), shape=shape)
+    try:
+        _reserve_blocks(file)
+        fsync_file(file)
+    except BaseException:
+        del mm
+        raise
+    return mm
+
+
+@contextmanager
+def _locked_setup(directory: Path) -> Iterator[int]:
+    """Lock ``directory`` (:func:`lock_dir`) and yield the fd; release it if the block raises.
+
+    On success the fd stays open: the new :class:`StoreWriter` holds the lock until it closes.
+    """
+    fd = lock_dir(directory)
+    try:
+        yield fd
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def _check_target(final: Path, overwrite: bool) -> None:
+    if final.exists() and not overwrite:
+        raise StoreError(f"{final} already exists; pass overwrite=True (--overwrite) to replace it")
+
+
+def _plan_differences(old: _Plan, new: _Plan) -> list[str]:
+    diffs = []
+    if old.grid != new.grid:
+        diffs.append(f"grid ({old.grid.label} {old.grid.bounds_min}..{old.grid.bounds_max} "
+                     f"vs {new.grid.label} {new.grid.bounds_min}..{new.grid.bounds_max})")
+    old_arrays = {n: (a.shape, a.dtype) for n, a in old.arrays.items()}
+    new_arrays = {n: (a.shape, a.dtype) for n, a in new.arrays.items()}
+    if old_arrays != new_arrays:
+        changed = sorted(set(old_arrays) ^ set(new_arrays)) + sorted(
+            n for n in set(old_arrays) & set(new_arrays) if old_arrays[n] != new_arrays[n]
+        )
+        diffs.append(f"arrays ({', '.join(changed)})")
+    if old.scene_hash != new.scene_hash:
+        diffs.append(f"scene_hash ({old.scene_hash[:16]} vs {new.scene_hash[:16]})")
+    if old.bake != new.bake:
+        keys = sorted(
+            k for k in set(old.bake) | set(new.bake) if old.bake.get(k) != new.bake.get(k)
+        )
+        diffs.append(f"bake settings ({', '.join(keys)})")
+    if old.conventions != new.conventions:
+        diffs.append("conventions")
+    return diffs
+
+
+class StoreWriter:
+    """Writes a grid store atomically and resumably (see the module docstring).
+
+    Build it with :meth:`create`, :meth:`resume` or :meth:`create_or_resume`; then ``write``
+    batches and ``finish``. Usable as a context manager: leaving the block without ``finish``
+    (an exception, say) closes the writer and keeps the partial directory for ``resume``.
+    """
+
+    def __init__(
+        self,
+        *,
+        final: Path,
+        plan: _Plan,
+        lock_fd: int,
+        overwrite: bool,
+        durable: bool,
+        maps: dict[str, np.memmap],
+        done_map: np.memmap | None,
+        manifest: StoreManifest | None = None,
+    ) -> None:
+        self._final = final
+        self._partial = partial_path(final)
+        self._plan = plan
+        self._lock_fd: int | None = lock_fd
+        self._overwrite = overwrite
+        self._durable = durable
+        self._maps = maps
+        self._done_map = done_map
+        self._finished_manifest = manifest  # resumed after manifest.json was written
+        self._done = (
+            np.ones(plan.grid.n_probes, dtype=bool) if done_map is None else done_map
+        )
+
+    # ------------------------------------------------------------------ construction
+    @staticmethod
+    def _make_plan(
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None,
+    ) -> _Plan:
+        if not isinstance(grid, GridSpec):
+            raise TypeError(f"grid must be a GridSpec, got {type(grid).__name__}")
+        if not isinstance(scene_hash, str) or not scene_hash:
+            raise ValueError(f"scene_hash must be a non-empty string, got {scene_hash!r}")
+        if not arrays:
+            raise ValueError("a store needs at least one array")
+        infos = {}
+        for name, spec in arrays.items():
+            _check_name(name)
+            if not isinstance(spec, ArraySpec):
+                raise TypeError(f"array {name!r} must be declared with an ArraySpec")
+            infos[name] = ArrayInfo(
+                file=f"{name}.npy",
+                dtype=spec.dtype,
+                shape=(grid.n_probes, *spec.shape),
+                description=spec.description,
+            )
+        conv = _jsonable(conventions, "conventions")
+        if not conv:
+            raise ValueError("conventions must be a non-empty record (probegrid.core.conventions)")
+        return _Plan(
+            bake_started=datetime.now(UTC),
+            conventions=conv,
+            grid=grid,
+            bake=_jsonable({} if bake is None else bake, "bake settings"),
+            scene_hash=scene_hash,
+            arrays=infos,
+        )
+
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> StoreWriter:
+        """Start a new bake of the store ``path`` (``NAME.probes``) in ``NAME.probes.partial``.
+
+        Parameters
+        ----------
+        path : path of the finished store
+        arrays : name -> ArraySpec
+            The per-probe arrays every :meth:`write` must fill.
+        grid : GridSpec
+        conventions : mapping or pydantic model
+            The conventions record (JSON-serialisable, non-empty).
+        scene_hash : str
+            Content hash of the scene; ``resume`` refuses a different one.
+        bake : mapping or pydantic model, optional
+            Bake settings (JSON-serialisable); ``resume`` refuses different ones.
+        overwrite : bool
+            Replace an existing store at ``path`` on ``finish`` and discard an unfinished bake
+            in ``NAME.probes.partial``; without it either one is an error.
+        durable : bool
+            ``msync`` the data, then the done mask, after every batch (the default), so the
+            mask never runs ahead of the data even across a power loss or an OS crash. With
+            False, batches stay in the page cache until ``finish``: still safe when the *process*
+            is killed (its writes to shared maps survive it, in order), several times faster on
+            slow disks, but an OS crash may leave probes marked done without their data.
+        """
+        final = _final_path(path)
+        plan = cls._make_plan(
+            arrays=arrays, grid=grid, conventions=conventions, scene_hash=scene_hash, bake=bake
+        )
+        _check_target(final, overwrite)
+        partial = partial_path(final)
+        if partial.exists():
+            has_state = (partial / PLAN_FILE).exists() or (partial / MANIFEST_FILE).exists()
+            if has_state and not overwrite:
+                raise StoreError(
+                    f"an unfinished bake exists at {partial}; resume it or pass overwrite=True"
+                )
+            fd = lock_dir(partial)  # never delete a directory another writer is using
+            try:
+                shutil.rmtree(partial)
+            finally:
+                os.close(fd)
+        partial.mkdir(parents=True)
+        with _locked_setup(partial) as fd:
+            maps: dict[str, np.memmap] = {}
+            try:
+                for name, info in plan.arrays.items():
+                    maps[name] = create_npy(partial / info.file, info.dtype, info.shape)
+                done = create_npy(partial / DONE_FILE, "|b1", (grid.n_probes,))
+                atomic_write_text(partial / PLAN_FILE, plan.model_dump_json(indent=2))
+            except BaseException:
+                # nothing here is worth keeping (no plan yet); give the reserved space back
+                maps.clear()
+                shutil.rmtree(partial, ignore_errors=True)
+                raise
+        return cls(
+            final=final,
+            plan=plan,
+            lock_fd=fd,
+            overwrite=overwrite,
+            durable=durable,
+            maps=maps,
+            done_map=done,
+        )
+
+    @classmethod
+    def resume(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> StoreWriter:
+        """Continue the unfinished bake of ``path`` from the probes it finished.
+
+        Takes the same arguments as :meth:`create`; the grid, arrays (shapes and dtypes), bake
+        settings, scene hash and conventions must equal those the bake was started with,
+        otherwise a :class:`StoreError` names what differs.
+        """
+        final = _final_path(path)
+        plan = cls._make_plan(
+            arrays=arrays, grid=grid, conventions=conventions, scene_hash=scene_hash, bake=bake
+        )
+        partial = partial_path(final)
+        if not partial.is_dir():
+            raise StoreError(f"no unfinished bake at {partial} to resume")
+        with _locked_setup(partial) as fd:
+            _check_target(final, overwrite)
+            if (partial / PLAN_FILE).is_file():
+                stored: _Plan = _load_manifest_json(partial / PLAN_FILE, _Plan)
+                manifest = None
+            elif (partial / MANIFEST_FILE).is_file():
+                manifest = _validate_store_dir(partial, allow_partial=True)
+                stored = manifest
+            else:
+                raise StoreError(
+                    f"{partial} holds no bake state (interrupted while starting); start again"
+                )
+            diffs = _plan_differences(stored, plan)
+            if diffs:
+                raise StoreError(
+                    f"the unfinished bake at {partial} was started with different "
+                    f"{'; '.join(diffs)}; start again with overwrite=True"
+                )
+            maps: dict[str, np.memmap] = {}
+            done = None
+            if manifest is None:
+                for name, info in stored.arrays.items():
+                    _check_array_file(partial, name, info)
+                    _reserve_blocks(partial / info.file)  # e.g. a bake started by an old version
+                    maps[name] = np.load(partial / info.file, mmap_mode="r+")
+                done_info = ArrayInfo(file=DONE_FILE, dtype="|b1", shape=(grid.n_probes,))
+                _check_array_file(partial, "done mask", done_info)
+                done = np.load(partial / DONE_FILE, mmap_mode="r+")
+        return cls(
+            final=final,
+            plan=stored,
+            lock_fd=fd,
+            overwrite=overwrite,
+            durable=durable,
+            maps=maps,
+            done_map=done,
+            manifest=manifest,
+        )
+
+    @classmethod
+    def create_or_resume(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> StoreWriter:
+        """:meth:`resume` when ``NAME.probes.partial`` holds a resumable bake, else :meth:`create`.
+
+        A partial bake started with different settings is an error (as in :meth:`resume`);
+        ``overwrite`` only concerns an existing finished store at ``path``.
+        """
+        kw: dict[str, Any] = {
+            "arrays": arrays,
+            "grid": grid,
+            "conventions": conventions,
+            "scene_hash": scene_hash,
+            "bake": bake,
+            "overwrite": overwrite,
+            "durable": durable,
+        }
+        partial = partial_path(_final_path(path))
+        if (partial / PLAN_FILE).is_file() or (partial / MANIFEST_FILE).is_file():
+            return cls.resume(path, **kw)
+        return cls.create(path, **kw)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def path(self) -> Path:
+        """Path of the finished store (``NAME.probes``)."""
+        return self._final
+
+    @property
+    def partial_path(self) -> Path:
+        """The working directory ``NAME.probes.partial``."""
+        return self._partial
+
+    @property
+    def grid(self) -> GridSpec:
+        return self._plan.grid
+
+    @property
+    def n_probes(self) -> int:
+        return self._plan.grid.n_probes
+
+    @property
+    def array_infos(self) -> dict[str, ArrayInfo]:
+        """The declared arrays (full shapes ``(P, ...)``)."""
+        return dict(self._plan.arrays)
+
+    @property
+    def done(self) -> NDArray[np.bool_]:
+        """``(P,)`` bool copy of the done mask."""
+        return np.array(self._done, dtype=bool)
+
+    @property
+    def n_done(self) -> int:
+        return int(np.count_nonzero(self._done))
+
+    def remaining(self) -> NDArray[np.int64]:
+        """Linear indices of the probes not written yet, ascending, int64."""
+        return np.flatnonzero(~np.asarray(self._done)).astype(np.int64)
+
+    def array(self, name: str) -> NDArray[Any]:
+        """Read-only view of one array as written so far (e.g. for quality figures)."""
+        self._require_open()
+        if self._finished_manifest is not None:
+            return np.load(self._partial / self._plan.arrays[name].file, mmap_mode="r")
+        view = self._maps[name].view(np.ndarray)
+        view.flags.writeable = False
+        return view
+
+    def _require_open(self) -> None:
+        if self._lock_fd is None:
+            raise StoreError(f"the writer of {self._final} is closed")
+
+    # ------------------------------------------------------------------ writing
+    def write(self, indices: ArrayLike, values: Mapping[str, ArrayLike]) -> None:
+        """Store one batch of probes and mark them done (durably, data first).
+
+        Parameters
+        ----------
+        indices : (B,) int
+            Distinct linear probe indices.
+        values : name -> (B, *shape) array
+            Every declared array, castable to its dtype (``same_kind``; e.g. float32 into a
+            float16 array). Everything is checked before anything is written.
+        """
+        self._require_open()
+        idx = np.asarray(indices)
+        if idx.ndim != 1 or (idx.size and not np.issubdtype(idx.dtype, np.integer)):
+            raise ValueError(f"indices must be a 1-D integer array, got {idx.dtype} {idx.shape}")
+        idx = idx.astype(np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.n_probes):
+            raise ValueError(f"probe indices must lie in 0..{self.n_probes - 1}")
+        if np.unique(idx).size != idx.size:
+            raise ValueError("probe indices of a batch must be distinct")
+        missing = sorted(set(self._plan.arrays) - set(values))
+        unknown = sorted(set(values) - set(self._plan.arrays))
+        if missing or unknown:
+            raise ValueError(
+                f"a batch must give exactly the store's arrays; missing {missing}, unknown "
+                f"{unknown}"
+            )
+        checked = {}
+        for name, info in self._plan.arrays.items():
+            v = np.asarray(values[name])
+            want = (idx.size, *info.shape[1:])
+            if v.shape != want:
+                raise ValueError(f"array {name!r} needs shape {want} for this batch, got {v.shape}")
+            if not np.can_cast(v.dtype, info.dtype, casting="same_kind"):
+                raise ValueError(f"array {name!r} is {info.dtype}; cannot store {v.dtype} in it")
+            checked[name] = v
+        if idx.size == 0:
+            return
+        if self._finished_manifest is not None:
+            raise StoreError(f"every probe of {self._partial} is already written; call finish()")
+        for name, v in checked.items():
+            self._maps[name][idx] = v
+        if self._durable:
+            for mm in self._maps.values():
+                mm.flush()  # msync(MS_SYNC): the data is on disk before the mask says so
+        assert self._done_map is not None
+        self._done_map[idx] = True
+        if self._durable:
+            self._done_map.flush()
+
+    def finish(self, *, quality: Mapping[str, Any] | BaseModel | None = None) -> ProbeStore:
+        """Publish the finished store atomically and return it opened for reading.
+
+        Parameters
+        ----------
+        quality : mapping, optional
+            Per-bake quality figures for the manifest (JSON-serialisable). When resuming a bake
+            that was killed during a previous ``finish``, ``None`` keeps the recorded figures.
+        """
+        self._require_open()
+        left = self.n_probes - self.n_done
+        if left:
+            raise StoreError(
+                f"cannot finish {self._final}: {left} of {self.n_probes} probes are not written"
+            )
+        if quality is None and self._finished_manifest is not None:
+            q = self._finished_manifest.quality
+        else:
+            q = _jsonable({} if quality is None else quality, "quality figures")
+        for name, mm in self._maps.items():
+            mm.flush()
+            fsync_file(self._partial / self._plan.arrays[name].file)
+        self._maps = {}
+        plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
+        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q)
+        atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
+        self._done = np.ones(self.n_probes, dtype=bool)
+        self._done_map = None
+        for state in (PLAN_FILE, DONE_FILE):
+            (self._partial / state).unlink(missing_ok=True)
+        fsync_dir(self._partial)
+        _check_target(self._final, self._overwrite)
+        aside = None
+        if self._final.exists():
+            aside = self._final.with_name(f"{self._final.name}.replaced-{os.getpid()}")
+            os.rename(self._final, aside)
+        os.rename(self._partial, self._final)
+        fsync_dir(self._final.parent)
+        self.close()
+        if aside is not None:
+            if aside.is_dir() and not aside.is_symlink():
+                shutil.rmtree(aside, ignore_errors=True)
+            else:  # a file (or link) stood where the store goes
+                aside.unlink(missing_ok=True)
+        return open_store(self._final)
+
+    def close(self) -> None:
+        """Release the maps and the lock without finishing (the partial bake stays resumable)."""
+        for mm in self._maps.values():
+            mm.flush()
+        self._maps = {}
+        if self._done_map is not None:
+            self._done_map.flush()
+            self._done = np.array(self._done_map)
+            self._done_map = None
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        # A writer dropped without close() still releases its lock (as a dead process does).
+        fd = getattr(self, "_lock_fd", None)
+        if fd is not None:
+            os.close(fd)
+            self._lock_fd = None
+
