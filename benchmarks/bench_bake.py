@@ -43,7 +43,7 @@ from typing import Self
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from probegrid.bake import raytrace
+from probegrid import raytrace
 from probegrid.bake.driver import BakeSettings, bake
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import InlineExecutor, LocalExecutor

@@ -6,7 +6,7 @@ import and fails on an upward or sideways one)::
     errors, _types, _version         the error tree, every option Literal, the version
     _fs, kernels                     durable writes and locks; the numba kernels
     core/                            pure math on numpy arrays, no I/O
-    imageio | scene/ | store/        OpenImageIO; trimesh and the glTF loader; the grid store
+    imageio | scene/ | store/ | raytrace   OpenImageIO; trimesh, glTF; the grid store; Embree
     bake/ | query                    the baker (Embree, executors); the store-backed probe field
     jobs/                            bake, filter, export, samples, demo: options -> library
     cli, client                      the command line; the HTTP client

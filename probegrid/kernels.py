@@ -22,7 +22,7 @@ documentation of the maths; ``tests/test_kernels.py`` compares the two on random
 * :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
   :func:`orient_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
   per-texel means, distance moments and the backface rule.
-* :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.bake.raytrace.RayTracer`'s
+* :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
   conversions to and from Embree's float32 rays (tested through the tracer).
 
 Floating point: float64 throughout (float32 only where the data is), with FMA contraction and
@@ -618,7 +618,7 @@ def embree_rays(
     centre: NDArray[np.float64],
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], bool]:
     """Rays as Embree takes them: float32 origins moved to ``tmin`` and re-centred, directions,
-    and segment lengths ``tmax - tmin`` (:meth:`probegrid.bake.raytrace.RayTracer._embree_rays`).
+    and segment lengths ``tmax - tmin`` (:meth:`probegrid.raytrace.RayTracer._embree_rays`).
 
     ``origins (1 or m, 3)``, ``directions (m, 3)``, ``tmin``/``tmax (1 or m,)`` float64 (a single
     row is shared by every ray), ``centre (3,)``. The origin is ``(o - centre) + tmin d`` in

@@ -333,9 +333,9 @@ def test_503_is_retried_then_raised_with_the_server_message():
 
 
 def test_a_server_bug_is_a_server_error():
-    with _http_server(_Answer500) as url, ProbeGridClient(url, retries=0) as c:
-        with pytest.raises(ServerError) as e:
-            c.sh_at("g", POS)
+    with (_http_server(_Answer500) as url, ProbeGridClient(url, retries=0) as c,
+          pytest.raises(ServerError) as e):
+        c.sh_at("g", POS)
     assert e.value.status == 500 and e.value.code == "internal_error"
     assert "reference abc123" in e.value.message
 

@@ -6,7 +6,7 @@ import each other)::
     0  probegrid.errors, probegrid._types, probegrid._version
     1  probegrid._fs, probegrid.kernels
     2  probegrid.core
-    3  probegrid.imageio | probegrid.scene | probegrid.store
+    3  probegrid.imageio | probegrid.scene | probegrid.store | probegrid.raytrace
     4  probegrid.bake | probegrid.query
     5  probegrid.jobs | service
     6  probegrid.cli | probegrid.client
@@ -37,7 +37,7 @@ RANKS: dict[str, int] = {
     "probegrid.errors": 0, "probegrid._types": 0, "probegrid._version": 0,
     "probegrid._fs": 1, "probegrid.kernels": 1,
     "probegrid.core": 2,
-    "probegrid.imageio": 3, "probegrid.scene": 3, "probegrid.store": 3,
+    "probegrid.imageio": 3, "probegrid.scene": 3, "probegrid.store": 3, "probegrid.raytrace": 3,
     "probegrid.bake": 4, "probegrid.query": 4,
     "probegrid.jobs": 5, "service": 5,
     "probegrid.cli": 6, "probegrid.client": 6,
@@ -48,7 +48,7 @@ CLIENT_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version
                      "probegrid.core", "probegrid.store.manifest")
 SERVICE_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
                       "probegrid._fs", "probegrid.core", "probegrid.imageio", "probegrid.store",
-                      "probegrid.query", "service")
+                      "probegrid.raytrace", "probegrid.query", "service")
 #: The one import of the HTTP layer from the library: ``probegrid serve`` starts it.
 SERVICE_FROM_LIBRARY = {("probegrid.cli", "service.main")}
 CORE_THIRD_PARTY = {"numpy", "threadpoolctl"}
@@ -108,11 +108,10 @@ def violations(root: Path) -> list[str]:
         for line, target in imports(path, module, root):
             top = target.split(".")[0]
             where = f"{path.relative_to(root)}:{line} imports {target}"
-            if here == "probegrid.core" and top not in ("probegrid", "__future__"):
-                if top in CORE_FORBIDDEN_STDLIB or (
-                    top not in sys.stdlib_module_names and top not in CORE_THIRD_PARTY
-                ):
-                    found.append(f"{where}: probegrid.core is pure math (numpy only, no I/O)")
+            impure = top in CORE_FORBIDDEN_STDLIB or (
+                top not in sys.stdlib_module_names and top not in CORE_THIRD_PARTY)
+            if here == "probegrid.core" and top not in ("probegrid", "__future__") and impure:
+                found.append(f"{where}: probegrid.core is pure math (numpy only, no I/O)")
             if top not in ("probegrid", "service"):
                 continue
             there = room(target)

@@ -1,4 +1,4 @@
-"""Tests of probegrid.bake.raytrace: analytic hits on known quads, segments (tmin/tmax), occlusion,
+"""Tests of probegrid.raytrace: analytic hits on known quads, segments (tmin/tmax), occlusion,
 back faces, broadcasting, chunking, pickling, and agreement with Scene.surface_at."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid.bake.raytrace import RayTracer
+from probegrid.raytrace import RayTracer
 from probegrid.scene import box_scene, load_gltf, quad_mesh
 
 
@@ -188,7 +188,7 @@ def test_bad_arguments() -> None:
 
 
 def test_shared_tracer_is_reused_per_geometry() -> None:
-    from probegrid.bake.raytrace import RayTracer
+    from probegrid.raytrace import RayTracer
     from probegrid.scene import box_scene
 
     a = box_scene((-1, -1, -1), (1, 1, 1), albedo=0.5)

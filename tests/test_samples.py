@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probegrid.bake.raytrace import RayTracer
 from probegrid.core.layouts import direction_to_equirect, equirect_directions
 from probegrid.core.lights import PointLight
 from probegrid.jobs.samples import (
@@ -25,6 +24,7 @@ from probegrid.jobs.samples import (
     sample_room_gltf,
     sample_sky,
 )
+from probegrid.raytrace import RayTracer
 from probegrid.scene import load_gltf
 
 DATA = Path(__file__).resolve().parents[1] / "data"

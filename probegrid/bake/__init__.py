@@ -1,8 +1,8 @@
 """Baking a probe grid: settings, environment, ray tracing, rendering, executors and the driver.
 
-``settings`` (:class:`BakeSettings`), ``environment`` (the distant light), ``raytrace`` (the one
-embreex importer), ``render`` (one probe's incoming light), ``executors`` (local processes or
-Dask: the one dask importer) and ``driver`` (:func:`bake`: stages, work directory, store).
+``settings`` (:class:`BakeSettings`), ``environment`` (the distant light), ``render`` (one
+probe's incoming light, traced through :mod:`probegrid.raytrace`), ``executors`` (local processes
+or Dask: the one dask importer) and ``driver`` (:func:`bake`: stages, work directory, store).
 :func:`bake` and :class:`BakeReport` load the driver (Embree, numba) on first use, so importing
 the settings stays cheap.
 """

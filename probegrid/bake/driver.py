@@ -45,7 +45,6 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
-from probegrid.bake.raytrace import RayTracer
 from probegrid.bake.render import (
     IndirectField,
     ProbeRenderer,
@@ -58,6 +57,7 @@ from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import solid_angle_integral
 from probegrid.core.ddgi import BorderedCubes, bordered_cubes
 from probegrid.core.grid import GridSpec
+from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 from probegrid.store import (
     ArraySpec,

@@ -500,7 +500,7 @@ class LocalExecutor:
     The worker processes start with the first :meth:`map` call and serve every later one
     until :meth:`close` (or the end of a ``with`` block), so a bake's stages do not each pay for
     starting processes, importing the library and building the BVH
-    (:meth:`probegrid.bake.raytrace.RayTracer.shared`). Each call's context travels once, as a
+    (:meth:`probegrid.raytrace.RayTracer.shared`). Each call's context travels once, as a
     temporary file each process reads before its first batch of the call and runs
     ``setup()`` on. A call that fails or is abandoned shuts the processes down (pending batches
     are cancelled); the next call starts new ones.

@@ -55,7 +55,6 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import probe_rng
-from probegrid.bake.raytrace import RayTracer
 from probegrid.core import sh
 from probegrid.core.cubemap import (
     FACE_NORMALS,
@@ -83,6 +82,7 @@ from probegrid.kernels import (
     outgoing_radiance,
     texel_means,
 )
+from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
 __all__ = [
