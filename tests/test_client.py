@@ -258,6 +258,14 @@ def test_a_silent_server_times_out():
             assert time.perf_counter() - t < 2.0  # read timeouts are not retried
 
 
+def _send_json(handler: http.server.BaseHTTPRequestHandler, status: int, body: bytes) -> None:
+    handler.send_response(status)
+    handler.send_header("Content-Type", "application/json")
+    handler.send_header("Content-Length", str(len(body)))
+    handler.end_headers()
+    handler.wfile.write(body)
+
+
 class _Answer503(http.server.BaseHTTPRequestHandler):
     """A real HTTP server that is "temporarily unavailable", in the service's words."""
 
@@ -265,13 +273,8 @@ class _Answer503(http.server.BaseHTTPRequestHandler):
 
     def do_GET(self) -> None:
         type(self).hits += 1
-        body = json.dumps({"error": "store_unavailable",
-                           "message": "The grid's store cannot be read right now."}).encode()
-        self.send_response(503)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
+        _send_json(self, 503, json.dumps({"error": "store_unavailable",
+                   "message": "The grid's store cannot be read right now."}).encode())
 
     def log_message(self, *args: object) -> None:
         pass
@@ -283,13 +286,8 @@ class _Answer500(http.server.BaseHTTPRequestHandler):
     def do_GET(self) -> None:
         from service.errors import error_body
 
-        body = error_body("internal_error", "The server could not process this request "
-                          "(reference abc123); the cause was logged.")
-        self.send_response(500)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
+        _send_json(self, 500, error_body("internal_error", "The server could not process this "
+                                         "request (reference abc123); the cause was logged."))
 
     def log_message(self, *args: object) -> None:
         pass

@@ -1,23 +1,16 @@
-"""Scenes for the probe baker: world-space triangles, glTF materials and punctual lights.
+"""The glTF 2.0 loader (:func:`load_gltf`): the one module of the project that imports trimesh.
 
-A :class:`Scene` is what the baker needs to shade a ray hit: one flat triangle soup in world space
-(every mesh instance already transformed by its node's world matrix), a material index per
-triangle, per-vertex UVs and colours, the list of :class:`Material` s and the punctual lights of
-:mod:`probegrid.core.lights`. Scenes come from glTF 2.0 files (:func:`load_gltf`) or from Python
-(:meth:`Scene.from_arrays`, :class:`SceneBuilder`, :func:`box_scene`). This is the only module of
-the project that imports ``trimesh``.
+trimesh parses the meshes; materials, lights, node transforms, buffers and extensions are read
+from the glTF JSON here (trimesh stores ``baseColorFactor`` as 8-bit, losing precision), and every
+mesh instance becomes world-space triangles of a :class:`~probegrid.scene.model.Scene`.
 
 Conventions
 -----------
 * World frame: glTF's, kept as is -- right-handed, +Y up, -Z forward, in the file's units (glTF
   says metres; ``CornellBox.glb`` is in millimetres and is *not* rescaled).
-* Winding: a triangle ``(a, b, c)`` faces the side of its geometric normal
-  ``normalize((b - a) x (c - a))`` (counter-clockwise seen from the front, glTF's front face).
-  A mesh instanced under a node whose world matrix has a negative determinant is re-wound
+* A mesh instanced under a node whose world matrix has a negative determinant is re-wound
   (glTF 2.0 spec, "Transformations": a negative determinant makes the winding clockwise), so the
-  rule above holds for every triangle of a :class:`Scene`.
-* Barycentrics: a point of triangle ``(a, b, c)`` is ``(1 - u - v) a + u b + v c`` (Embree's
-  and Moller-Trumbore's ``u, v``).
+  scene's winding rule holds for every triangle.
 * UVs are glTF's: ``(0, 0)`` is the upper-left corner of the image, ``v`` grows downward. trimesh
   flips ``v`` on load ("origin lower-left"); :func:`load_gltf` flips it back.
 * Colours are linear Rec.709 RGB. ``baseColorTexture`` and ``emissiveTexture`` are sRGB-encoded

@@ -1,47 +1,23 @@
-"""Scenes for the probe baker: world-space triangles, glTF materials and punctual lights.
+"""The scene model the baker shades: world-space triangles, glTF materials and punctual lights.
 
 A :class:`Scene` is what the baker needs to shade a ray hit: one flat triangle soup in world space
 (every mesh instance already transformed by its node's world matrix), a material index per
 triangle, per-vertex UVs and colours, the list of :class:`Material` s and the punctual lights of
-:mod:`probegrid.core.lights`. Scenes come from glTF 2.0 files (:func:`load_gltf`) or from Python
-(:meth:`Scene.from_arrays`, :class:`SceneBuilder`, :func:`box_scene`). This is the only module of
-the project that imports ``trimesh``.
+:mod:`probegrid.core.lights`. Scenes come from glTF 2.0 files (:func:`probegrid.scene.load_gltf`)
+or from Python (:meth:`Scene.from_arrays`, :mod:`probegrid.scene.builders`).
 
 Conventions
 -----------
-* World frame: glTF's, kept as is -- right-handed, +Y up, -Z forward, in the file's units (glTF
-  says metres; ``CornellBox.glb`` is in millimetres and is *not* rescaled).
+* World frame: glTF's, kept as is -- right-handed, +Y up, -Z forward, in the scene's units.
 * Winding: a triangle ``(a, b, c)`` faces the side of its geometric normal
   ``normalize((b - a) x (c - a))`` (counter-clockwise seen from the front, glTF's front face).
-  A mesh instanced under a node whose world matrix has a negative determinant is re-wound
-  (glTF 2.0 spec, "Transformations": a negative determinant makes the winding clockwise), so the
-  rule above holds for every triangle of a :class:`Scene`.
 * Barycentrics: a point of triangle ``(a, b, c)`` is ``(1 - u - v) a + u b + v c`` (Embree's
   and Moller-Trumbore's ``u, v``).
-* UVs are glTF's: ``(0, 0)`` is the upper-left corner of the image, ``v`` grows downward. trimesh
-  flips ``v`` on load ("origin lower-left"); :func:`load_gltf` flips it back.
-* Colours are linear Rec.709 RGB. ``baseColorTexture`` and ``emissiveTexture`` are sRGB-encoded
-  (glTF spec, "Metallic-Roughness Material") and are decoded to linear once on load with the
-  exact sRGB EOTF (IEC 61966-2-1); alpha stays linear. Textures are filtered bilinearly in
-  linear space, wrapping as the texture's sampler says (default REPEAT), like a GPU with an
-  sRGB texture format.
-* Shading albedo = ``baseColorFactor.rgb * baseColorTexture.rgb * COLOR_0.rgb`` (glTF: COLOR_0
-  "acts as an additional linear multiplier to base color"). Emission (radiance, cd/m^2 in the
-  photometric reading of :mod:`probegrid.core.lights`) = ``emissiveFactor *
-  KHR_materials_emissive_strength.emissiveStrength * emissiveTexture.rgb``.
-* Lights (``KHR_lights_punctual``): position = the node's world translation, direction = the
-  node's world matrix applied to -Z (normalised); point/spot intensity in candela, directional in
-  lux, ``range`` kept; see :mod:`probegrid.core.lights` for units and falloff.
-
-Not supported (stated rather than guessed): textures on ``TEXCOORD_1`` or higher (rejected
-with a :class:`SceneError`), ``KHR_texture_transform`` (ignored), alpha modes and
-metallic/roughness (the baker treats every surface as opaque Lambertian), morph targets and
-skins (the bind pose is used), points and lines (ignored). A file whose ``extensionsRequired``
-names anything but ``KHR_lights_punctual`` and ``KHR_materials_emissive_strength`` is refused,
-as the glTF specification asks of a loader.
-
-References: glTF 2.0 specification (Khronos, 2021); KHR_lights_punctual and
-KHR_materials_emissive_strength extension specifications; IEC 61966-2-1 (sRGB).
+* Colours are linear Rec.709 RGB; textures are filtered bilinearly in linear space
+  (:mod:`probegrid.scene.textures`).
+* Shading albedo = ``base_color.rgb * base_color_texture.rgb * vertex colour.rgb``; emission
+  (radiance, cd/m^2 in the photometric reading of :mod:`probegrid.core.lights`) =
+  ``emissive * emissive_strength * emissive_texture.rgb``. Every surface is opaque Lambertian.
 """
 
 from __future__ import annotations

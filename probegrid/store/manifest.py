@@ -1,4 +1,4 @@
-"""The grid store: a directory of memory-mappable per-probe arrays with a versioned manifest.
+"""The grid store's format: a directory of memory-mappable per-probe arrays and a versioned manifest.
 
 Layout
 ------
@@ -23,39 +23,10 @@ The manifest also carries the conventions record (built by :mod:`probegrid.core.
 treats it as opaque JSON), the grid (:class:`probegrid.core.grid.GridSpec`), the bake settings, the
 scene's content hash, per-bake quality figures, the creation time and the probegrid version.
 
-Atomic, resumable writes
-------------------------
-:class:`StoreWriter` never writes into ``NAME.probes`` itself. A bake works in
-``NAME.probes.partial/``:
-
-1. ``create`` preallocates every array with ``np.lib.format.open_memmap``, an all-false done
-   mask ``_done.npy (P,) bool``, and last the bake plan ``_bake.json`` (grid, arrays, bake
-   settings, scene hash, conventions), written atomically. A ``.partial`` directory without
-   ``_bake.json`` is an interrupted start and holds nothing worth keeping (a failed ``create``
-   removes it). ``open_memmap`` makes *sparse* files, whose blocks the file system only allocates
-   when a page of the map is first written; on a full disk that write cannot fail with an error
-   code and the kernel kills the process with ``SIGBUS``. So every array file's blocks are
-   reserved with ``posix_fallocate`` right after it is created: a full disk raises
-   ``OSError(ENOSPC)`` in ``create``, before any probe is baked. (File systems without
-   ``fallocate`` support, ``EOPNOTSUPP``/``EINVAL``, keep sparse files.)
-2. ``write(indices, values)`` stores a batch into the maps, ``msync``s them, and only *then* sets
-   and ``msync``s the batch's entries of the done mask, so a probe marked done always has its data
-   on disk, whenever the process dies. (``durable=False`` skips the ``msync``s: stores to shared
-   maps outlive a killed process in program order, so this still holds for a killed process,
-   not for an OS crash.)
-3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, writes
-   ``manifest.json`` atomically (temporary file, ``fsync``, ``os.replace``, ``fsync`` of the
-   directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
-   (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``: it is
-   renamed aside, the new one renamed in, the old one deleted; readers that still map the old
-   files keep valid maps).
-
-Nothing in a ``.partial`` directory ever loads: :func:`open_store` refuses a ``.partial`` name, a
-directory holding a bake plan, one without a valid manifest, and arrays that disagree with the
-manifest. ``resume`` reopens the partial directory, checks that the grid, arrays, bake settings,
-scene hash and conventions are the ones it was started with, and carries on: ``remaining()`` lists
-the probes still to bake. A bake killed during ``finish`` after the manifest was written resumes
-straight into the final rename. One writer at a time: the partial directory is ``flock``-ed.
+Writing (:mod:`probegrid.store.writer`) is atomic and resumable; reading
+(:mod:`probegrid.store.reader`) memory-maps the arrays. This module holds the format: the
+manifest models, the array declarations and the naming rule (``NAME.probes``, its
+``.partial`` and ``.work`` siblings).
 
 All failures of the store raise :class:`StoreError` with a one-line message.
 """

@@ -1,27 +1,6 @@
-"""The grid store: a directory of memory-mappable per-probe arrays with a versioned manifest.
+"""Writing grid stores atomically and resumably (:class:`StoreWriter`, :func:`create_npy`).
 
-Layout
-------
-A finished store is one directory, by convention ``NAME.probes/``::
-
-    NAME.probes/
-        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 1
-        sh.npy              one .npy file per array, named after the array
-        diffuse.npy
-        ...
-
-Every array is *per probe*: its first axis is the probe's linear index (``(i * ny + j) * nz + k``,
-see :mod:`probegrid.core.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6, n, n, 3) float16``,
-``valid (P,) bool``. The files are plain NumPy ``.npy`` (format 1.0/2.0, C order, little-endian,
-dtype kinds bool / int / uint / float), so any reader can memory-map them; :func:`open_store`
-maps them read-only (``np.load(mmap_mode="r")``, i.e. ``MAP_SHARED`` + ``PROT_READ``), so many
-reader processes share the same page-cache pages and touch only the probes they index. The
-manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape and a
-description; the reader refuses a store whose files disagree with it in size, shape or dtype.
-
-The manifest also carries the conventions record (built by :mod:`probegrid.core.conventions`; the store
-treats it as opaque JSON), the grid (:class:`probegrid.core.grid.GridSpec`), the bake settings, the
-scene's content hash, per-bake quality figures, the creation time and the probegrid version.
+The format is :mod:`probegrid.store.manifest`'s.
 
 Atomic, resumable writes
 ------------------------
@@ -57,7 +36,7 @@ scene hash and conventions are the ones it was started with, and carries on: ``r
 the probes still to bake. A bake killed during ``finish`` after the manifest was written resumes
 straight into the final rename. One writer at a time: the partial directory is ``flock``-ed.
 
-All failures of the store raise :class:`StoreError` with a one-line message.
+All failures raise :class:`~probegrid.errors.StoreError` with a one-line message.
 """
 
 from __future__ import annotations
