@@ -223,7 +223,7 @@ def _add_info(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_info(args: argparse.Namespace) -> int:
-    from probegrid.export import describe_store
+    from probegrid.jobs.export import describe_store
 
     print(describe_store(args.store))
     return 0
@@ -242,7 +242,7 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from probegrid.export import export_probe
+    from probegrid.jobs.export import export_probe
 
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
                            fmt=args.format, half=args.half)

@@ -20,7 +20,7 @@ The output directory must be new, or hold an earlier output of the same kind (it
 ``manifest.json`` has the same ``format``): :func:`prepare_output_dir` refuses a probe grid store
 (``NAME.probes``, or any directory whose manifest is a store's), an unfinished bake, and a
 directory whose ``manifest.json`` belongs to another kind of output or cannot be read, before
-anything is computed or written. ``probegrid export`` (:mod:`probegrid.export`) uses it too.
+anything is computed or written. ``probegrid export`` (:mod:`probegrid.jobs.export`) uses it too.
 """
 
 from __future__ import annotations

@@ -282,7 +282,7 @@ def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
         open_store(out)
     with pytest.raises(StoreError):
         open_store(out.with_name(out.name + ".partial"))
-    from probegrid.export import describe_store
+    from probegrid.jobs.export import describe_store
 
     with pytest.raises(StoreError, match="unfinished bake"):
         describe_store(out)

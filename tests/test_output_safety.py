@@ -26,7 +26,7 @@ from probe_stores import linear_store
 
 from probegrid import imageio
 from probegrid.cli import main
-from probegrid.export import describe_store, export_probe
+from probegrid.jobs.export import describe_store, export_probe
 from probegrid.filterjob import FilterSettings, run_filter
 from probegrid.grid import GridSpec
 from probegrid.store import ArraySpec, StoreError, StoreWriter, open_store, partial_path

@@ -1,0 +1,1 @@
+"""Jobs: the commands' work, composed from the library (filter, bake, export, ...)."""
