@@ -230,9 +230,16 @@ def _run_info(args: argparse.Namespace) -> int:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="write one probe's maps as image files")
+    p = sub.add_parser("export", help="write one probe's maps as image files, or the grid for "
+                       "an engine (--target)")
     p.add_argument("store", type=Path)
-    p.add_argument("--probe", required=True, help="I,J,K")
+    p.add_argument("--probe", help="I,J,K")
+    p.add_argument("--target", choices=["threejs", "bevy", "ktx2"],
+                   help="the whole grid as an engine loads it (three.js LightProbeGrid atlas, "
+                        "Bevy IrradianceVolume, KTX2 cube-map arrays); see manifest.json")
+    p.add_argument("--vk-format", help="KTX2 format: R16G16B16A16_SFLOAT, R32G32B32A32_SFLOAT "
+                   "or E5B9G9R9_UFLOAT_PACK32 (default: the target's)")
+    p.add_argument("--zstd", action="store_true", help="Zstandard-supercompressed KTX2")
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--layout", choices=["faces", "hcross", "vcross", "equirect"],
                    default="faces")
@@ -244,6 +251,19 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 def _run_export(args: argparse.Namespace) -> int:
     from probegrid.jobs.export import export_probe
 
+    if args.target is not None:
+        from probegrid.jobs.engine_export import export_grid
+
+        written = export_grid(args.store, args.out, target=args.target,
+                              vk_format=args.vk_format, zstd=args.zstd, probe=args.probe)
+        print(f"wrote {len(written)} files for {args.target} to {args.out}/ (manifest.json "
+              "states the consumer and conventions)")
+        return 0
+    if args.probe is None:
+        raise ValueError("export needs --probe I,J,K (one probe's maps) or --target "
+                         "threejs|bevy|ktx2 (the grid)")
+    if args.vk_format is not None or args.zstd:
+        raise ValueError("--vk-format and --zstd apply to --target exports")
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
                            fmt=args.format, half=args.half)
     print(f"wrote {len(written)} files to {args.out}/ (manifest.json lists them with the "

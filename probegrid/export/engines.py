@@ -1,0 +1,184 @@
+"""Probe grids packed the way engines sample them: three.js' ``LightProbeGrid`` SH atlas and
+Bevy's ``IrradianceVolume`` ambient cubes; filling invalid probes first.
+
+Pure functions on grid-shaped numpy arrays (``(nx, ny, nz, ...)``, probe ``(i, j, k)`` at
+``bounds_min + (i, j, k) * spacing``); no I/O. Every layout below was read from the engine's own
+source, not from its documentation:
+
+three.js (``examples/jsm/lighting/LightProbeGridWebGL.js`` and
+``src/renderers/shaders/ShaderChunk/lightprobes_pars_fragment.glsl.js``, three r187)
+    One RGBA 3D texture of width ``nx``, height ``ny`` and depth ``7 (nz + 2)``: seven
+    sub-volumes stacked along z, sub-volume ``t`` in slices ``t (nz + 2) + 1 .. t (nz + 2) + nz``
+    with one padding slice at each end copying its first and last data slice. The 27 SH floats
+    ``c0.rgb .. c8.rgb`` are packed four per texel in order: ``t = 0: (c0.rgb, c1.r)``, ``1:
+    (c1.gb, c2.rg)``, ``2: (c2.b, c3.rgb)``, ``3: (c4.rgb, c5.r)``, ``4: (c5.gb, c6.rg)``, ``5:
+    (c6.b, c7.rgb)``, ``6: (c8.rgb, 0)``. The coefficients are *radiance* ``L_lm`` in the world
+    frame with three's basis (index ``l(l+1)+m``, ``0.282095``, ``0.488603 y/z/x``, ``1.092548
+    xy``, ...: the same basis and sign as probegrid's, no Condon-Shortley phase; three projects
+    its CubeCamera renders with ``textureCube(env, dir)`` and evaluates the same ``dir``); the
+    shader turns them into irradiance with ``0.886227 c0 + 2 * 0.511664 (c1 y + c2 z + c3 x) +
+    ...`` (= ``A_l Y_lm``), then the Lambert BRDF divides by pi. The volume is centred at the
+    object's position with ``width = nx * cell`` etc.: three places probe ``i`` at the centre of
+    cell ``i`` (``min + (i + 0.5) size / n``), so a corner-inclusive probegrid lattice maps to a
+    three volume grown by half a cell on each side.
+
+Bevy (``crates/bevy_pbr/src/light_probe/irradiance_volume.wesl``)
+    One 3D texture of ``(nx, 2 ny, 3 nz)`` texels (width, height, depth) holding an *ambient
+    cube* per probe (Valve's basis, the shader blends ``rgb_x N.x^2 + rgb_y N.y^2 + rgb_z
+    N.z^2``): slab ``a`` of ``nz`` slices for axis x, y, z (``uvw + (0, 0, a / 3)``), and within
+    it rows ``0 .. ny - 1`` for the *positive* direction and ``ny .. 2 ny - 1`` for the negative
+    one -- the shader adds ``0.5`` to ``v`` when ``N < 0`` ("the bottom half of each cube slice
+    is the negative part"). Texel ``(i, j, k)`` of a slab is sampled at the unit-cube point
+    ``(i + 0.5) / nx - 0.5`` (the shader's ``(unit_pos + 0.5) * resolution`` clamped to texel
+    centres), so the volume's transform is translation = box centre, scale = ``counts * cell``.
+    The values are multiplied by the diffuse colour with no 1/pi: they are irradiance / pi,
+    probegrid's diffuse map read along the six axes (Bevy's frame is glTF's: right-handed, +Y
+    up; the volume is sampled with world-space normals, unflipped).
+
+Invalid probes (inside geometry) hold meaningless light and engines have no validity test, so
+:func:`fill_invalid` replaces each with the mean of its valid face neighbours, growing outward
+from the valid ones until every probe has a value.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "ambient_cube",
+    "bevy_transform",
+    "bevy_volume",
+    "fill_invalid",
+    "threejs_atlas",
+    "threejs_placement",
+    "threejs_unpack",
+]
+
+#: Padding slices at each end of a three.js sub-volume (``ATLAS_PADDING``).
+THREEJS_PADDING = 1
+
+
+def fill_invalid(values: ArrayLike, valid: ArrayLike) -> tuple[NDArray[np.float32], int]:
+    """Replace invalid probes by the mean of their valid face neighbours, repeatedly.
+
+    Parameters
+    ----------
+    values : (nx, ny, nz, ...) array
+    valid : (nx, ny, nz) bool
+
+    Returns
+    -------
+    (filled, count)
+        ``filled`` float32 with every probe holding a value (valid probes unchanged); ``count``
+        the number of probes filled. Each pass fills the invalid probes that touch a valid or
+        already-filled probe (up to six neighbours, the mean of those that have values), so a
+        probe ``d`` steps from the nearest valid one is filled in pass ``d``. Raises ValueError
+        when no probe is valid.
+    """
+    out = np.array(values, dtype=np.float32, copy=True)
+    have = np.array(valid, dtype=bool, copy=True)
+    if have.shape != out.shape[:3]:
+        raise ValueError(f"valid has shape {have.shape}, values {out.shape}: they must match "
+                         "on (nx, ny, nz)")
+    if not have.any():
+        raise ValueError("every probe is invalid (inside geometry); nothing to fill from")
+    count = int((~have).sum())
+    extra = out.ndim - 3
+    while not have.all():
+        total = np.zeros_like(out, dtype=np.float64)
+        n = np.zeros(have.shape, dtype=np.int64)
+        for axis in range(3):
+            for step in (1, -1):
+                # neighbour along +-axis, with nothing past the edges
+                src = [slice(None)] * 3
+                dst = [slice(None)] * 3
+                src[axis] = slice(step, None) if step == 1 else slice(None, -1)
+                dst[axis] = slice(None, -1) if step == 1 else slice(1, None)
+                h = have[tuple(src)]
+                total[tuple(dst)] += np.where(h.reshape(h.shape + (1,) * extra),
+                                              out[tuple(src)], 0.0)
+                n[tuple(dst)] += h
+        new = ~have & (n > 0)
+        out[new] = (total[new] / n[new].reshape((-1,) + (1,) * extra)).astype(np.float32)
+        have |= new
+    return out, count
+
+
+def threejs_atlas(sh: ArrayLike) -> NDArray[np.float32]:
+    """``(nx, ny, nz, 9, 3)`` radiance SH -> the ``(7 (nz + 2), ny, nx, 4)`` RGBA atlas (z
+    slices, rows, texels: the order of a KTX2 3D texture and of three's ``Data3DTexture``)."""
+    c = np.asarray(sh, dtype=np.float32)
+    if c.ndim != 5 or c.shape[3:] != (9, 3):
+        raise ValueError(f"SH grid must be (nx, ny, nz, 9, 3), got shape {c.shape}")
+    nx, ny, nz = c.shape[:3]
+    flat = np.zeros((nx, ny, nz, 28), dtype=np.float32)
+    flat[..., :27] = c.reshape(nx, ny, nz, 27)  # c0.rgb, c1.rgb, ..., c8.rgb, then 0
+    packed = flat.reshape(nx, ny, nz, 7, 4).transpose(3, 2, 1, 0, 4)  # (7, nz, ny, nx, 4)
+    padded = np.concatenate([packed[:, :1], packed, packed[:, -1:]], axis=1)
+    return np.ascontiguousarray(padded.reshape(7 * (nz + 2), ny, nx, 4))
+
+
+def threejs_unpack(atlas: ArrayLike, nz: int) -> NDArray[np.float32]:
+    """Inverse of :func:`threejs_atlas` (the data slices only): ``(nx, ny, nz, 9, 3)``."""
+    a = np.asarray(atlas, dtype=np.float32)
+    depth, ny, nx, _ = a.shape
+    if depth != 7 * (nz + 2):
+        raise ValueError(f"atlas depth {depth} is not 7 (nz + 2) for nz = {nz}")
+    sub = a.reshape(7, nz + 2, ny, nx, 4)[:, 1:-1]  # (7, nz, ny, nx, 4)
+    flat = sub.transpose(3, 2, 1, 0, 4).reshape(nx, ny, nz, 28)
+    return np.ascontiguousarray(flat[..., :27].reshape(nx, ny, nz, 9, 3))
+
+
+def ambient_cube(diffuse: ArrayLike) -> NDArray[np.float32]:
+    """``(..., 6, n, n, 3)`` diffuse cubes -> ``(..., 6, 3)`` their values toward +X, -X, +Y,
+    -Y, +Z, -Z: what a bilinear ``texture(cube, axis)`` returns, i.e. the face's centre texel
+    (odd n) or the mean of its four central texels (even n)."""
+    d = np.asarray(diffuse, dtype=np.float32)
+    if d.ndim < 4 or d.shape[-4] != 6 or d.shape[-3] != d.shape[-2] or d.shape[-1] != 3:
+        raise ValueError(f"diffuse cubes must be (..., 6, n, n, 3), got shape {d.shape}")
+    n = d.shape[-2]
+    lo, hi = (n - 1) // 2, n // 2 + 1
+    centre = d[..., lo:hi, lo:hi, :].astype(np.float64)
+    return centre.mean(axis=(-3, -2)).astype(np.float32)
+
+
+def bevy_volume(ambient: ArrayLike) -> NDArray[np.float32]:
+    """``(nx, ny, nz, 6, 3)`` ambient cubes (+X, -X, +Y, -Y, +Z, -Z) -> Bevy's ``(3 nz, 2 ny,
+    nx, 3)`` texels (z slices, rows, texels): slab ``a`` = axis, top rows the positive side."""
+    a = np.asarray(ambient, dtype=np.float32)
+    if a.ndim != 5 or a.shape[3:] != (6, 3):
+        raise ValueError(f"ambient cubes must be (nx, ny, nz, 6, 3), got shape {a.shape}")
+    nx, ny, nz = a.shape[:3]
+    # (axis, sign, nz, ny, nx, 3): sign 0 = positive (rows 0..ny-1), 1 = negative
+    s = a.reshape(nx, ny, nz, 3, 2, 3).transpose(3, 2, 4, 1, 0, 5)
+    return np.ascontiguousarray(s.reshape(3 * nz, 2 * ny, nx, 3))
+
+
+def _cell(grid: Any) -> NDArray[np.float64]:
+    """Cell size per axis (1 where a single-probe axis has an empty extent)."""
+    cell = np.asarray(grid.cell_size, dtype=np.float64)
+    return np.where(cell > 0, cell, 1.0)
+
+
+def threejs_placement(grid: Any) -> dict[str, list[float] | list[int]]:
+    """Where a three.js ``LightProbeGrid(width, height, depth, nx, ny, nz)`` must sit so that its
+    probes land on the store's: ``position`` = box centre, ``size`` = counts * cell, and the
+    ``min``/``max`` the shader's ``probesMin``/``probesMax`` then hold."""
+    lo, hi = np.asarray(grid.lo), np.asarray(grid.hi)
+    centre = 0.5 * (lo + hi)
+    size = np.asarray(grid.counts, dtype=np.float64) * _cell(grid)
+    return {"position": centre.tolist(), "size": size.tolist(),
+            "resolution": [int(n) for n in grid.counts],
+            "min": (centre - 0.5 * size).tolist(), "max": (centre + 0.5 * size).tolist()}
+
+
+def bevy_transform(grid: Any) -> dict[str, list[float]]:
+    """The ``Transform`` of Bevy's ``LightProbe`` entity that samples the store's probes at the
+    volume's cell centres: translation = box centre, scale = counts * cell, no rotation."""
+    lo, hi = np.asarray(grid.lo), np.asarray(grid.hi)
+    size = np.asarray(grid.counts, dtype=np.float64) * _cell(grid)
+    return {"translation": (0.5 * (lo + hi)).tolist(), "rotation_xyzw": [0.0, 0.0, 0.0, 1.0],
+            "scale": size.tolist()}
