@@ -240,6 +240,9 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--vk-format", help="KTX2 format: R16G16B16A16_SFLOAT, R32G32B32A32_SFLOAT "
                    "or E5B9G9R9_UFLOAT_PACK32 (default: the target's)")
     p.add_argument("--zstd", action="store_true", help="Zstandard-supercompressed KTX2")
+    p.add_argument("--cube-convention", choices=["gltf", "threejs", "bevy"], default="gltf",
+                   help="--target ktx2 cube faces for that consumer's lookup (default: the "
+                        "OpenGL/KTX2 table, as glTF-IBL-Sampler writes)")
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--layout", choices=["faces", "hcross", "vcross", "equirect"],
                    default="faces")
@@ -255,15 +258,16 @@ def _run_export(args: argparse.Namespace) -> int:
         from probegrid.jobs.engine_export import export_grid
 
         written = export_grid(args.store, args.out, target=args.target,
-                              vk_format=args.vk_format, zstd=args.zstd, probe=args.probe)
+                              vk_format=args.vk_format, zstd=args.zstd, probe=args.probe,
+                              cube_convention=args.cube_convention)
         print(f"wrote {len(written)} files for {args.target} to {args.out}/ (manifest.json "
               "states the consumer and conventions)")
         return 0
     if args.probe is None:
         raise ValueError("export needs --probe I,J,K (one probe's maps) or --target "
                          "threejs|bevy|ktx2 (the grid)")
-    if args.vk_format is not None or args.zstd:
-        raise ValueError("--vk-format and --zstd apply to --target exports")
+    if args.vk_format is not None or args.zstd or args.cube_convention != "gltf":
+        raise ValueError("--vk-format, --zstd and --cube-convention apply to --target exports")
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
                            fmt=args.format, half=args.half)
     print(f"wrote {len(written)} files to {args.out}/ (manifest.json lists them with the "

@@ -35,6 +35,14 @@ Bevy (``crates/bevy_pbr/src/light_probe/irradiance_volume.wesl``)
     probegrid's diffuse map read along the six axes (Bevy's frame is glTF's: right-handed, +Y
     up; the volume is sampled with world-space normals, unflipped).
 
+Cube maps (environment and per-probe maps) are stored in the OpenGL/Vulkan/KTX2 face table, so a
+raw ``texture(cube, world_dir)`` in glTF's world frame (the glTF Sample Viewer's lookup) returns
+``world_dir``'s light. Engines that treat cube maps as left-handed mirror the lookup: three.js
+samples ``(-x, y, z)`` for a ``CubeTexture`` (``flipEnvMap = -1`` in ``PMREMGenerator.js`` and
+the envmap shader chunks), Bevy samples ``(x, y, -z)`` (``compute_cubemap_sample_dir`` in
+``environment_map.wesl``: "Cubemaps are left-handed, so we negate the Z coordinate").
+:func:`mirror_cube` writes a cube for those lookups (``CUBE_MIRROR`` names the axis).
+
 Invalid probes (inside geometry) hold meaningless light and engines have no validity test, so
 :func:`fill_invalid` replaces each with the mean of its valid face neighbours, growing outward
 from the valid ones until every probe has a value.
@@ -42,20 +50,28 @@ from the valid ones until every probe has a value.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid.cubemap import direction_to_texel, texel_directions
+
 __all__ = [
+    "CUBE_MIRROR",
     "ambient_cube",
     "bevy_transform",
     "bevy_volume",
     "fill_invalid",
+    "mirror_cube",
     "threejs_atlas",
     "threejs_placement",
     "threejs_unpack",
 ]
+
+#: The axis each consumer's cube lookup mirrors (None: the raw OpenGL/KTX2 lookup).
+CUBE_MIRROR: dict[str, int | None] = {"gltf": None, "threejs": 0, "bevy": 2}
 
 #: Padding slices at each end of a three.js sub-volume (``ATLAS_PADDING``).
 THREEJS_PADDING = 1
@@ -182,3 +198,24 @@ def bevy_transform(grid: Any) -> dict[str, list[float]]:
     size = np.asarray(grid.counts, dtype=np.float64) * _cell(grid)
     return {"translation": (0.5 * (lo + hi)).tolist(), "rotation_xyzw": [0.0, 0.0, 0.0, 1.0],
             "scale": size.tolist()}
+
+
+@lru_cache(maxsize=32)
+def _mirror_index(n: int, axis: int) -> tuple[NDArray[np.intp], ...]:
+    d = np.array(texel_directions(n, normalized=False))
+    d[..., axis] = -d[..., axis]
+    return direction_to_texel(d, n)  # texel centres map onto texel centres exactly
+
+
+def mirror_cube(faces: ArrayLike, axis: int | None) -> NDArray[np.float32]:
+    """``(..., 6, n, n, C)`` cubes -> the cubes ``c'`` with ``c'(d) = c(M d)``, ``M`` mirroring
+    ``axis`` (0 = x, 1 = y, 2 = z; None returns the input): a consumer that looks up ``M w``
+    for world direction ``w`` then reads ``c(w)``. A reflection maps texel centres onto texel
+    centres, so this is an exact permutation of texels (no resampling)."""
+    c = np.asarray(faces, dtype=np.float32)
+    if axis is None:
+        return c
+    if c.ndim < 4 or c.shape[-4] != 6 or c.shape[-3] != c.shape[-2]:
+        raise ValueError(f"cubes must be (..., 6, n, n, C), got shape {c.shape}")
+    f, r, col = _mirror_index(int(c.shape[-2]), int(axis))
+    return np.ascontiguousarray(c[..., f, r, col, :])

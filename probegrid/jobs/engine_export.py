@@ -18,8 +18,9 @@ Targets (layouts and conventions in :mod:`probegrid.export.engines`):
     ``diffuse.ktx2`` (one level) and ``specular.ktx2`` (the GGX chain as mips, level ``k`` at
     roughness ``k / (levels - 1)``): cube-map arrays with one layer per probe in store order
     (``index = (i ny + j) nz + k``), or plain cube maps with ``probe=(i, j, k)``; ``sh.json``
-    the radiance SH. Faces +X, -X, +Y, -Y, +Z, -Z in the OpenGL/KTX2 table, ``RGBA16F`` by
-    default.
+    the radiance SH. Faces +X, -X, +Y, -Y, +Z, -Z in the OpenGL/KTX2 table (``cube_convention
+    ="gltf"``), or mirrored for three.js (x) or Bevy (z) so that their lookups read each world
+    direction's light (:func:`probegrid.export.engines.mirror_cube`); ``RGBA16F`` by default.
 
 Invalid probes are filled from their valid neighbours first (the manifest says how many).
 Everything is read and checked before the output directory is touched; the manifest is written
@@ -65,6 +66,17 @@ _CONSUMERS = {
 }
 
 
+_CUBE_WORDS = {
+    "gltf": ("+X, -X, +Y, -Y, +Z, -Z in the OpenGL/Vulkan/KTX2 table: a raw texture(cube, "
+             "world_dir) in glTF's world frame (glTF Sample Viewer, glTF-IBL-Sampler's files) "
+             "returns world_dir's light"),
+    "threejs": ("mirrored in x for three.js, which samples a CubeTexture at (-x, y, z) "
+                "(flipEnvMap = -1): three.js reads world_dir's light"),
+    "bevy": ("mirrored in z for Bevy, which samples environment maps at (x, y, -z) "
+             "(environment_map.wesl): Bevy reads world_dir's light"),
+}
+
+
 def _format_code(target: str, vk_format: int | str | None) -> int:
     code = _DEFAULT_FORMAT[target] if vk_format is None else ktx2._check_format(vk_format)
     if code not in _ALLOWED_FORMATS[target]:
@@ -89,6 +101,7 @@ def export_grid(
     vk_format: int | str | None = None,
     zstd: bool = False,
     probe: str | tuple[int, int, int] | None = None,
+    cube_convention: Literal["gltf", "threejs", "bevy"] = "gltf",
 ) -> list[Path]:
     """Export a store for ``target`` into ``out_dir``; returns the files written (manifest last).
 
@@ -101,6 +114,11 @@ def export_grid(
     fmt = _format_code(target, vk_format)
     if probe is not None and target != "ktx2":
         raise ValueError("--probe applies to --target ktx2 (three.js and Bevy take the grid)")
+    if cube_convention not in engines.CUBE_MIRROR:
+        raise ValueError(f"--cube-convention must be one of {', '.join(engines.CUBE_MIRROR)}, "
+                         f"got {cube_convention!r}")
+    if cube_convention != "gltf" and target != "ktx2":
+        raise ValueError("--cube-convention applies to --target ktx2 (cube maps)")
     t0 = time.perf_counter()
     store = open_store(store_path)
     grid = store.grid
@@ -188,6 +206,9 @@ def export_grid(
             sh = engines.fill_invalid(sh.reshape(nx, ny, nz, 9, 3), vgrid)[0].reshape(sh.shape)
         for name, a in [("diffuse", diffuse), ("sh", sh)] + list(zip(names, chain)):
             _finite(store.path, name, a)
+        mirror = engines.CUBE_MIRROR[cube_convention]
+        diffuse = engines.mirror_cube(diffuse, mirror)
+        chain = [engines.mirror_cube(c, mirror) for c in chain]
         layered = ijk is None
         sc: Literal["none", "zstd"] = "zstd" if zstd else "none"
         payload[out / "diffuse.ktx2"] = ktx2.encode_ktx2(
@@ -214,9 +235,8 @@ def export_grid(
         files.append({"path": "sh.json", "kind": "sh"})
         doc = {"ktx2": {"layers": ("one cube per probe, layer = store probe index "
                                    "(i ny + j) nz + k") if layered else f"probe {list(ijk)}",
-                        "faces": "+X, -X, +Y, -Y, +Z, -Z; texture(cube, world_dir) in an "
-                                 "OpenGL/Vulkan renderer with glTF's world frame returns "
-                                 "world_dir's light (Bevy samples (x, y, -z): mirror z for it)"}}
+                        "cube_convention": cube_convention,
+                        "faces": _CUBE_WORDS[cube_convention]}}
 
     # --- write ------------------------------------------------------------------------------
     prepare_output_dir(out, output_format)
