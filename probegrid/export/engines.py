@@ -90,36 +90,36 @@ def fill_invalid(values: ArrayLike, valid: ArrayLike) -> tuple[NDArray[np.float3
     (filled, count)
         ``filled`` float32 with every probe holding a value (valid probes unchanged); ``count``
         the number of probes filled. Each pass fills the invalid probes that touch a valid or
-        already-filled probe (up to six neighbours, the mean of those that have values), so a
-        probe ``d`` steps from the nearest valid one is filled in pass ``d``. Raises ValueError
-        when no probe is valid.
+        already-filled probe (the mean of those of its up to six face neighbours that have
+        values), so a probe ``d`` steps from the nearest valid one is filled in pass ``d``. The
+        work is proportional to the number of invalid probes (index arrays over them only).
+        Raises ValueError when no probe is valid.
     """
     out = np.array(values, dtype=np.float32, copy=True)
-    have = np.array(valid, dtype=bool, copy=True)
-    if have.shape != out.shape[:3]:
-        raise ValueError(f"valid has shape {have.shape}, values {out.shape}: they must match "
-                         "on (nx, ny, nz)")
+    have = np.array(valid, dtype=bool, copy=True).reshape(-1)
+    dims = np.array(out.shape[:3])
+    if have.size != int(np.prod(dims)) or np.shape(valid) != out.shape[:3]:
+        raise ValueError(f"valid has shape {np.shape(valid)}, values {out.shape}: they must "
+                         "match on (nx, ny, nz)")
     if not have.any():
         raise ValueError("every probe is invalid (inside geometry); nothing to fill from")
-    count = int((~have).sum())
-    extra = out.ndim - 3
-    while not have.all():
-        total = np.zeros_like(out, dtype=np.float64)
-        n = np.zeros(have.shape, dtype=np.int64)
-        for axis in range(3):
-            for step in (1, -1):
-                # neighbour along +-axis, with nothing past the edges
-                src = [slice(None)] * 3
-                dst = [slice(None)] * 3
-                src[axis] = slice(step, None) if step == 1 else slice(None, -1)
-                dst[axis] = slice(None, -1) if step == 1 else slice(1, None)
-                h = have[tuple(src)]
-                total[tuple(dst)] += np.where(h.reshape(h.shape + (1,) * extra),
-                                              out[tuple(src)], 0.0)
-                n[tuple(dst)] += h
-        new = ~have & (n > 0)
-        out[new] = (total[new] / n[new].reshape((-1,) + (1,) * extra)).astype(np.float32)
-        have |= new
+    flat = out.reshape(have.size, -1)
+    todo = np.flatnonzero(~have)
+    count = int(todo.size)
+    steps = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+    while todo.size:
+        ijk = np.stack(np.unravel_index(todo, tuple(dims)), axis=-1)  # (M, 3)
+        nb = ijk[:, None, :] + steps[None]  # (M, 6, 3)
+        inside = np.all((nb >= 0) & (nb < dims), axis=-1)
+        idx = np.ravel_multi_index(tuple(np.clip(nb, 0, dims - 1).transpose(2, 0, 1)),
+                                   tuple(dims))
+        ok = inside & have[idx]
+        n = ok.sum(axis=1)
+        sel = n > 0
+        vals = np.where(ok[sel][..., None], flat[idx[sel]], 0.0).sum(axis=1, dtype=np.float64)
+        flat[todo[sel]] = (vals / n[sel][:, None]).astype(np.float32)
+        have[todo[sel]] = True
+        todo = todo[~sel]
     return out, count
 
 

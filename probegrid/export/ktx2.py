@@ -53,7 +53,7 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Final, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -70,9 +70,11 @@ __all__ = [
     "basic_dfd",
     "decode_rgb9e5",
     "encode_ktx2",
+    "encode_ktx2_parts",
     "encode_rgb9e5",
     "read_ktx2",
     "write_ktx2",
+    "write_parts",
 ]
 
 IDENTIFIER: Final[bytes] = bytes([0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB,
@@ -224,24 +226,55 @@ def _check_format(vk_format: int | str) -> int:
     return int(vk_format)
 
 
-def _encode_texels(a: NDArray[np.floating], vk_format: int) -> bytes:
-    """``(..., C)`` float texels (C = 3 or 4) -> the level's bytes in ``vk_format``."""
+def _check_range(a: NDArray[np.floating], p: int, vk_format: int) -> None:
+    """KTX2Error unless level ``p`` is finite and within the format's range (one pass each for
+    the minimum and maximum; the counts are computed only on failure)."""
+    lo, hi = (float(a.min()), float(a.max())) if a.size else (0.0, 0.0)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        bad = int(np.count_nonzero(~np.isfinite(a)))
+        raise KTX2Error(f"level {p} holds {bad} non-finite values (NaN or inf)")
+    if vk_format == VK_FORMAT_E5B9G9R9_UFLOAT_PACK32 and hi > RGB9E5_MAX:
+        big = int(np.count_nonzero(a[..., :3] > RGB9E5_MAX))
+        raise KTX2Error(f"{big} values exceed E5B9G9R9's largest value {RGB9E5_MAX:g}; use "
+                        "vkFormat 109 (R32G32B32A32_SFLOAT)")
+    if vk_format == VK_FORMAT_R16G16B16A16_SFLOAT and max(-lo, hi) > HALF_MAX:
+        big = int(np.count_nonzero(np.abs(a) > HALF_MAX))
+        raise KTX2Error(f"{big} values exceed half float's largest value {HALF_MAX:g}; use "
+                        "vkFormat 109 (R32G32B32A32_SFLOAT)")
+
+
+#: Texels per block of the threaded conversion (numpy releases the GIL while casting).
+_BLOCK_TEXELS = 1 << 20
+
+
+def _encode_rows(src: NDArray[np.floating], dst: NDArray[Any], vk_format: int) -> None:
     if vk_format == VK_FORMAT_E5B9G9R9_UFLOAT_PACK32:
-        big = a[..., :3] > RGB9E5_MAX
-        if big.any():
-            raise KTX2Error(f"{int(big.sum())} values exceed E5B9G9R9's largest value "
-                            f"{RGB9E5_MAX:g}; use vkFormat 109 (R32G32B32A32_SFLOAT)")
-        return encode_rgb9e5(a[..., :3]).astype("<u4").tobytes()
-    dtype = "<f2" if vk_format == VK_FORMAT_R16G16B16A16_SFLOAT else "<f4"
-    if dtype == "<f2":
-        big = np.abs(a) > HALF_MAX
-        if big.any():
-            raise KTX2Error(f"{int(big.sum())} values exceed half float's largest value "
-                            f"{HALF_MAX:g}; use vkFormat 109 (R32G32B32A32_SFLOAT)")
-    out = np.empty(a.shape[:-1] + (4,), dtype=dtype)
-    out[..., :3] = a[..., :3]
-    out[..., 3] = a[..., 3] if a.shape[-1] == 4 else 1.0
-    return out.tobytes()
+        dst[:] = encode_rgb9e5(src[:, :3])
+    else:
+        dst[:, :3] = src[:, :3]
+        dst[:, 3] = src[:, 3] if src.shape[1] == 4 else 1.0
+
+
+def _encode_texels(a: NDArray[np.floating], vk_format: int) -> memoryview:
+    """``(..., C)`` float texels (C = 3 or 4) -> the level's bytes in ``vk_format`` (large
+    levels converted in blocks on all cores)."""
+    src = a.reshape(-1, a.shape[-1])
+    if vk_format == VK_FORMAT_E5B9G9R9_UFLOAT_PACK32:
+        out = np.empty(src.shape[0], dtype="<u4")
+    else:
+        dtype = "<f2" if vk_format == VK_FORMAT_R16G16B16A16_SFLOAT else "<f4"
+        out = np.empty((src.shape[0], 4), dtype=dtype)
+    starts = range(0, src.shape[0], _BLOCK_TEXELS)
+    workers = min(len(starts), os.cpu_count() or 1)
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(lambda s: _encode_rows(src[s:s + _BLOCK_TEXELS],
+                                                 out[s:s + _BLOCK_TEXELS], vk_format), starts))
+    else:
+        _encode_rows(src, out, vk_format)
+    return memoryview(out.reshape(-1).view(np.uint8))
 
 
 def _decode_texels(raw: bytes, shape: tuple[int, ...], vk_format: int) -> NDArray[np.float32]:
@@ -284,7 +317,12 @@ def _base_and_layers(kind: Kind, level0: NDArray[np.floating], layered: bool
     return (int(s[2]), int(s[1]), int(s[0])), layers
 
 
-def encode_ktx2(
+def encode_ktx2(levels: Sequence[ArrayLike], **options: Any) -> bytes:
+    """The bytes of a KTX2 file holding ``levels``; see :func:`encode_ktx2_parts`."""
+    return b"".join(encode_ktx2_parts(levels, **options))
+
+
+def encode_ktx2_parts(
     levels: Sequence[ArrayLike],
     *,
     kind: Kind,
@@ -293,8 +331,9 @@ def encode_ktx2(
     supercompression: Literal["none", "zstd"] = "none",
     zstd_level: int = 10,
     key_values: Mapping[str, str | bytes] | None = None,
-) -> bytes:
-    """The bytes of a KTX2 file holding ``levels`` (level 0, the largest, first).
+) -> list[bytes | memoryview]:
+    """The pieces of a KTX2 file holding ``levels`` (level 0, the largest, first), in file
+    order (joined, they are the file; :func:`write_ktx2` writes them without joining).
 
     Parameters
     ----------
@@ -336,9 +375,7 @@ def encode_ktx2(
         want = lead + {"2d": (h, w), "cube": (6, h, w), "3d": (d, h, w)}[kind]
         if a.shape[:-1] != want or a.shape[-1] != arrays[0].shape[-1]:
             raise KTX2Error(f"level {p} has shape {a.shape}, expected {want + a.shape[-1:]}")
-        bad = int(np.count_nonzero(~np.isfinite(a)))
-        if bad:
-            raise KTX2Error(f"level {p} holds {bad} non-finite values (NaN or inf)")
+        _check_range(a, p, fmt)
     kv: dict[str, bytes] = {"KTXwriter": f"probegrid {__version__}".encode() + b"\0"}
     for key, value in (key_values or {}).items():
         if not key or key[:3].upper() == "KTX" or "\0" in key:
@@ -355,7 +392,8 @@ def encode_ktx2(
         compressor = zstandard.ZstdCompressor(level=zstd_level, write_content_size=True)
 
     raw = [_encode_texels(a, fmt) for a in arrays]
-    payload = [compressor.compress(r) if compressor else r for r in raw]
+    payload: list[bytes | memoryview] = [compressor.compress(r) if compressor else r
+                                         for r in raw]
 
     _, type_size, block, _ = _FORMATS[fmt]
     n_levels = len(arrays)
@@ -371,34 +409,43 @@ def encode_ktx2(
     alignment = math.lcm(block, 4) if compressor is None else 1
     offsets = [0] * n_levels
     pos = data_start
-    chunks: list[bytes] = []
+    chunks: list[bytes | memoryview] = []
     for p in reversed(range(n_levels)):  # smallest level first in the file
         pad = _align(pos, alignment)
-        chunks.append(b"\0" * pad + payload[p])
+        chunks += [b"\0" * pad, payload[p]]
         offsets[p] = pos + pad
-        pos += pad + len(payload[p])
+        pos += pad + _nbytes(payload[p])
     header = IDENTIFIER + struct.pack(
         "<9I", fmt, type_size, base[0], base[1], base[2], layers,
         6 if kind == "cube" else 1, n_levels,
         SUPERCOMPRESSION_ZSTD if compressor else SUPERCOMPRESSION_NONE,
     ) + struct.pack("<IIIIQQ", dfd_offset, len(dfd), kvd_offset if kvd else 0, len(kvd), 0, 0)
-    index = b"".join(struct.pack("<QQQ", offsets[p], len(payload[p]), len(raw[p]))
+    index = b"".join(struct.pack("<QQQ", offsets[p], _nbytes(payload[p]), _nbytes(raw[p]))
                      for p in range(n_levels))
-    out = header + index + dfd + kvd + b"".join(chunks)
-    assert len(header) == 80 and len(out) == pos
-    return out
+    assert len(header) == 80
+    return [header + index + dfd + kvd, *chunks]
+
+
+def _nbytes(b: bytes | memoryview) -> int:
+    return b.nbytes if isinstance(b, memoryview) else len(b)
 
 
 def write_ktx2(path: str | os.PathLike[str], levels: Sequence[ArrayLike], **options: object
                ) -> Path:
     """:func:`encode_ktx2` into ``path``, written atomically (a temporary file, then
     ``os.replace``: never a half-written file). Returns the path."""
-    data = encode_ktx2(levels, **options)  # type: ignore[arg-type]
+    parts = encode_ktx2_parts(levels, **options)  # type: ignore[arg-type]
+    return write_parts(path, parts)
+
+
+def write_parts(path: str | os.PathLike[str], parts: Sequence[bytes | memoryview]) -> Path:
+    """Write ``parts`` one after the other into ``path`` atomically (temporary file, then
+    ``os.replace``). Returns the path."""
     target = Path(path)
     tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, "wb") as fh:
-            fh.write(data)
+            fh.writelines(parts)
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)

@@ -150,7 +150,7 @@ def export_grid(
         sh, filled = engines.fill_invalid(grid_array("sh"), vgrid)
         atlas = engines.threejs_atlas(sh)
         place = engines.threejs_placement(grid)
-        payload[out / "lightprobegrid.ktx2"] = ktx2.encode_ktx2(
+        payload[out / "lightprobegrid.ktx2"] = ktx2.encode_ktx2_parts(
             [atlas], kind="3d", vk_format=fmt, supercompression="zstd" if zstd else "none",
             key_values={**kv, "probegrid:content": "three.js LightProbeGrid SH atlas"})
         header = {
@@ -175,7 +175,7 @@ def export_grid(
         if fmt == ktx2.VK_FORMAT_E5B9G9R9_UFLOAT_PACK32 and (volume < 0).any():
             raise ValueError(f"{int((volume < 0).sum())} negative diffuse values cannot be "
                              "stored as E5B9G9R9; use --vk-format R16G16B16A16_SFLOAT")
-        payload[out / "irradiance_volume.ktx2"] = ktx2.encode_ktx2(
+        payload[out / "irradiance_volume.ktx2"] = ktx2.encode_ktx2_parts(
             [volume], kind="3d", vk_format=fmt, supercompression="zstd" if zstd else "none",
             key_values={**kv, "probegrid:content": "Bevy IrradianceVolume ambient cubes"})
         transform = engines.bevy_transform(grid)
@@ -211,14 +211,14 @@ def export_grid(
         chain = [engines.mirror_cube(c, mirror) for c in chain]
         layered = ijk is None
         sc: Literal["none", "zstd"] = "zstd" if zstd else "none"
-        payload[out / "diffuse.ktx2"] = ktx2.encode_ktx2(
+        payload[out / "diffuse.ktx2"] = ktx2.encode_ktx2_parts(
             [diffuse], kind="cube", vk_format=fmt, layered=layered, supercompression=sc,
             key_values={**kv, "probegrid:content": "diffuse: irradiance / pi"})
         files.append({"path": "diffuse.ktx2", "kind": "diffuse", "levels": 1,
                       "vk_format": ktx2._FORMATS[fmt][0], "layers": grid.n_probes if layered
                       else None})
         if chain:
-            payload[out / "specular.ktx2"] = ktx2.encode_ktx2(
+            payload[out / "specular.ktx2"] = ktx2.encode_ktx2_parts(
                 chain, kind="cube", vk_format=fmt, layered=layered, supercompression=sc,
                 key_values={**kv, "probegrid:content": "GGX specular chain, level k at "
                             "perceptual roughness k / (levels - 1)"})
@@ -242,10 +242,11 @@ def export_grid(
     prepare_output_dir(out, output_format)
     written: list[Path] = []
     for path, data in payload.items():
-        if isinstance(data, bytes):
-            tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-            tmp.write_bytes(data)
-            os.replace(tmp, path)
+        if isinstance(data, list):  # a KTX2 file's parts
+            ktx2.write_parts(path, data)
+        elif path.name == "sh.json":  # thousands of numbers: compact
+            text = json.dumps(data, separators=(",", ":"), allow_nan=False) + "\n"
+            ktx2.write_parts(path, [text.encode()])
         else:
             write_json_atomic(path, data)
         written.append(path)
