@@ -85,7 +85,9 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
         help="SH windowing against ringing (auto: the least that makes irradiance >= 0)",
     )
     p.add_argument("--sh-window-width", type=_finite_float, help="window width (bands)")
-    p.add_argument("--format", choices=["exr", "hdr"], default="exr", help="map file format")
+    p.add_argument("--format", choices=["exr", "hdr", "ktx2"], default="exr",
+                   help="map file format (ktx2: specular.ktx2 with the chain as mips and "
+                        "diffuse.ktx2, RGBA16F, or RGBA32F with --float)")
     p.add_argument("--float", action="store_true", help="write float32 EXR instead of half")
     p.add_argument(
         "--output-layout", choices=["faces", "hcross", "vcross", "equirect"], default="faces",

@@ -119,6 +119,7 @@ def bevy_irradiance(volume, transform, p, n) -> np.ndarray:
     return rgb_x[:3] * nn[0] + rgb_y[:3] * nn[1] + rgb_z[:3] * nn[2]
 
 
+SUFFIXES = ("px", "nx", "py", "ny", "pz", "nz")
 AXES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
 
 
@@ -363,3 +364,70 @@ def test_cli_bad_options_are_one_line_errors(store, tmp_path, capsys, args, mess
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not out.exists()
+
+
+# ------------------------------------------------------------------------ SH forms, filter ktx2
+def test_sh_forms_evaluate_to_the_same_irradiance_in_each_consumer():
+    from probegrid.export import shforms
+
+    L = sh.project_cube(_lopsided_cube())
+    rng = np.random.default_rng(9)
+    n = rng.normal(size=(50, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    x, y, z = n.T
+    want = sh.irradiance(L, n)  # (50, 3)
+    # Filament: Irradiance_SphericalHarmonics (light_indirect.fs), irradiance / pi
+    f = shforms.filament_prescaled(L)
+    poly = np.stack([np.ones_like(x), y, z, x, y * x, y * z, 3 * z * z - 1, z * x,
+                     x * x - y * y], -1)
+    np.testing.assert_allclose(poly @ f, want / np.pi, rtol=1e-12, atol=1e-12)
+    # Babylon: SH3ylmBasisConstants x SH3ylmBasisTrigonometricTerms, irradiance coefficients
+    const = np.array([np.sqrt(1 / (4 * np.pi)), -np.sqrt(3 / (4 * np.pi)),
+                      np.sqrt(3 / (4 * np.pi)), -np.sqrt(3 / (4 * np.pi)),
+                      np.sqrt(15 / (4 * np.pi)), -np.sqrt(15 / (4 * np.pi)),
+                      np.sqrt(5 / (16 * np.pi)), -np.sqrt(15 / (4 * np.pi)),
+                      np.sqrt(15 / (16 * np.pi))])
+    e = shforms.ext_lights_image_based(L)
+    np.testing.assert_allclose((poly * const) @ e, want, rtol=1e-12, atol=1e-12)
+    # three.js: shGetIrradianceAt on the radiance coefficients as they are
+    t = np.asarray(shforms.sh_forms(L)["threejs"]["coefficients"])
+    three = (t[0] * 0.886227 + np.outer(y, t[1]) * 2 * 0.511664 + np.outer(z, t[2]) * 2 * 0.511664
+             + np.outer(x, t[3]) * 2 * 0.511664 + np.outer(x * y, t[4]) * 2 * 0.429043
+             + np.outer(y * z, t[5]) * 2 * 0.429043 + np.outer(0.743125 * z * z - 0.247708, t[6])
+             + np.outer(x * z, t[7]) * 2 * 0.429043 + np.outer(x * x - y * y, t[8]) * 0.429043)
+    np.testing.assert_allclose(three, want, rtol=1e-5, atol=2e-5)  # three: 6-digit constants
+
+
+def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
+    from probegrid import imageio
+    from probegrid.filterjob import FilterSettings, run_filter
+
+    cube = _lopsided_cube(16)
+    faces = []
+    for f, name in enumerate(SUFFIXES):
+        faces.append(tmp_path / f"{name}.exr")
+        imageio.write_image(faces[-1], cube[f], half=False)
+    common = dict(layout="faces", size=16, diffuse_size=4, lut_size=4, previews=False)
+    run_filter(faces, tmp_path / "k", FilterSettings(format="ktx2", **common))
+    run_filter(faces, tmp_path / "e", FilterSettings(format="exr", **common))
+    spec = ktx2.read_ktx2(tmp_path / "k" / "specular.ktx2")
+    diff = ktx2.read_ktx2(tmp_path / "k" / "diffuse.ktx2")
+    assert spec.kind == "cube" and spec.level_count == 5 and spec.vk_format == 97
+    assert diff.level_count == 1 and diff.pixel_width == 4
+    for k, lv in enumerate(spec.levels):
+        exr = np.stack([imageio.read_image(tmp_path / "e" / f"specular_m{k}_{s}.exr")
+                        for s in SUFFIXES])
+        np.testing.assert_array_equal(lv[..., :3], exr)
+    # level 0 is the unblurred input; a raw GL lookup (Sample Viewer) reads red at +X
+    np.testing.assert_array_equal(spec.levels[0][..., :3],
+                                  cube.astype(np.float16).astype(np.float32))
+    assert cube_sample(spec.levels[0], [1.0, 0, 0])[0] > 10
+    assert cube_sample(spec.levels[0], [0, 0, 1.0])[1] > 10
+    man = json.loads((tmp_path / "k" / "manifest.json").read_text())
+    assert {f["path"] for f in man["files"]} >= {"specular.ktx2", "diffuse.ktx2", "sh.json"}
+    shdoc = json.loads((tmp_path / "k" / "sh.json").read_text())
+    assert set(shdoc["consumers"]) == {"threejs", "filament", "ext_lights_image_based"}
+    base = node_package_dir(tmp_path_factory, "ktx-parse")
+    for d in ktx_parse_dump(base, [tmp_path / "k" / "specular.ktx2",
+                                   tmp_path / "k" / "diffuse.ktx2"]):
+        assert d["rewriteIdentical"] and d["faceCount"] == 6 and d["vkFormat"] == 97
