@@ -431,3 +431,33 @@ def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
     for d in ktx_parse_dump(base, [tmp_path / "k" / "specular.ktx2",
                                    tmp_path / "k" / "diffuse.ktx2"]):
         assert d["rewriteIdentical"] and d["faceCount"] == 6 and d["vkFormat"] == 97
+
+
+def test_service_maps_answer_format_ktx2(store):
+    """``/maps?format=ktx2``: a one-level float32 cube equal to the npy answer; layout=cross is a
+    422 (the service's fast path and FastAPI agree on both)."""
+    import asyncio
+    import io
+
+    import httpx
+
+    from service.main import create_app
+    from service.settings import Settings
+
+    app = create_app([store], Settings())
+    q = "/v1/grids/s/maps/specular?x=0.75&y=0.25&z=1.5&level=1"
+
+    async def fetch() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return [await c.get(q + "&format=ktx2"), await c.get(q + "&format=npy"),
+                    await c.get(q + "&format=ktx2&layout=cross")]
+
+    ktx, npy, cross = asyncio.run(fetch())
+    assert ktx.status_code == 200 and ktx.headers["content-type"] == "image/ktx2"
+    tex = ktx2.read_ktx2(ktx.content)
+    assert tex.kind == "cube" and tex.level_count == 1 and tex.vk_format == 109
+    np.testing.assert_array_equal(tex.levels[0][..., :3],
+                                  np.load(io.BytesIO(npy.content), allow_pickle=False))
+    assert json.loads(tex.key_values["probegrid:meta"].rstrip(b"\0"))["level"] == 1
+    assert cross.status_code == 422 and "layout=faces" in cross.json()["message"]
