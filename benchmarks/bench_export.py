@@ -94,7 +94,8 @@ def main() -> None:
             t_read = median_s(read, args.runs)
             sizes = ", ".join(f"{p.name} {p.stat().st_size / 2**20:.1f} MiB"
                               for p in sorted(out.glob("*.ktx2")))
-            print(f"{target:<8} {t_export * 1e3:10.1f} {t_read * 1e3:9.2f} {t_export / t_read:7.1f}  "
+            ratio = t_export / t_read
+            print(f"{target:<8} {t_export * 1e3:10.1f} {t_read * 1e3:9.2f} {ratio:7.1f}  "
                   f"{sizes}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

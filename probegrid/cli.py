@@ -88,6 +88,9 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", choices=["exr", "hdr", "ktx2"], default="exr",
                    help="map file format (ktx2: specular.ktx2 with the chain as mips and "
                         "diffuse.ktx2, RGBA16F, or RGBA32F with --float)")
+    p.add_argument("--cube-convention", choices=["gltf", "threejs", "bevy"], default="gltf",
+                   help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table "
+                        "(default, glTF Sample Viewer), mirrored in x (three.js) or z (Bevy)")
     p.add_argument("--float", action="store_true", help="write float32 EXR instead of half")
     p.add_argument(
         "--output-layout", choices=["faces", "hcross", "vcross", "equirect"], default="faces",
@@ -120,6 +123,7 @@ def _run_filter(args: argparse.Namespace) -> int:
         sh_window=args.sh_window,
         sh_window_width=args.sh_window_width,
         format=args.format,
+        cube_convention=args.cube_convention,
         half=not args.float,
         output_layout=args.output_layout,
         seam=args.seam,

@@ -76,6 +76,7 @@ class FilterSettings(BaseModel):
     sh_window: Literal["none", "hanning", "lanczos", "gauss", "auto"] = "none"
     sh_window_width: float | None = Field(default=None, gt=0)
     format: Literal["exr", "hdr", "ktx2"] = "exr"
+    cube_convention: Literal["gltf", "threejs", "bevy"] = "gltf"
     half: bool = True
     output_layout: Literal["faces", "hcross", "vcross", "equirect"] = "faces"
     seam: Literal["none", "average", "border"] = "none"
@@ -278,6 +279,8 @@ def run_filter(
                                       or settings.seam == "border"):
         raise ValueError("--format ktx2 writes cube maps: it needs --output-layout faces and a "
                          "seam mode other than 'border'")
+    if settings.cube_convention != "gltf" and settings.format != "ktx2":
+        raise ValueError("--cube-convention applies to --format ktx2")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -373,6 +376,7 @@ def run_filter(
 
         files += write_environment_ktx2(out, diff_out, spec_out,
                                         vk_format=97 if settings.half else 109,
+                                        cube_convention=settings.cube_convention,
                                         key_values={"probegrid:conventions": json.dumps(conv)})
     else:
         write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,

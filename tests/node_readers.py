@@ -39,6 +39,7 @@ def node_package_dir(tmp_path_factory: pytest.TempPathFactory, package: str) -> 
         try:
             run = subprocess.run(["npm", "install", "--prefix", str(base), "--no-audit",
                                   "--no-fund", "--loglevel=error"], capture_output=True,
+                                 check=False,
                                  text=True, timeout=180)
         except subprocess.TimeoutExpired:
             pytest.skip(f"npm install of {package} timed out (no registry?)")
@@ -52,7 +53,7 @@ def node_package_dir(tmp_path_factory: pytest.TempPathFactory, package: str) -> 
 def ktx_parse_dump(base: Path, files: list[Path]) -> list[dict]:
     """Every file as ktx-parse reads it (see tests/js/ktx_dump.mjs)."""
     run = subprocess.run(["node", str(JS_DIR / "ktx_dump.mjs"), *map(str, files)],
-                         capture_output=True, text=True, timeout=120,
+                         capture_output=True, text=True, timeout=120, check=False,
                          env={"KTX_PARSE_DIR": str(base), "PATH": _path()})
     assert run.returncode == 0, run.stderr
     return json.loads(run.stdout)

@@ -407,7 +407,8 @@ def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
     for f, name in enumerate(SUFFIXES):
         faces.append(tmp_path / f"{name}.exr")
         imageio.write_image(faces[-1], cube[f], half=False)
-    common = dict(layout="faces", size=16, diffuse_size=4, lut_size=4, previews=False)
+    common = {"layout": "faces", "size": 16, "diffuse_size": 4, "lut_size": 4,
+              "previews": False}
     run_filter(faces, tmp_path / "k", FilterSettings(format="ktx2", **common))
     run_filter(faces, tmp_path / "e", FilterSettings(format="exr", **common))
     spec = ktx2.read_ktx2(tmp_path / "k" / "specular.ktx2")
@@ -427,6 +428,12 @@ def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
     assert {f["path"] for f in man["files"]} >= {"specular.ktx2", "diffuse.ktx2", "sh.json"}
     shdoc = json.loads((tmp_path / "k" / "sh.json").read_text())
     assert set(shdoc["consumers"]) == {"threejs", "filament", "ext_lights_image_based"}
+    # mirrored for three.js: its (-x, y, z) lookup of world +X reads the red texels
+    run_filter(faces, tmp_path / "t", FilterSettings(format="ktx2", cube_convention="threejs",
+                                                     **common))
+    three = ktx2.read_ktx2(tmp_path / "t" / "specular.ktx2").levels[0]
+    assert cube_sample(three, [-1.0, 0, 0])[0] > 10 and cube_sample(three, [1.0, 0, 0])[0] < 0.1
+    assert cube_sample(three, [0, 0, 1.0])[1] > 10
     base = node_package_dir(tmp_path_factory, "ktx-parse")
     for d in ktx_parse_dump(base, [tmp_path / "k" / "specular.ktx2",
                                    tmp_path / "k" / "diffuse.ktx2"]):

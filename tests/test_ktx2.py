@@ -137,7 +137,7 @@ def test_round_trip_through_our_reader(written):
 def test_layout_levels_smallest_first_with_mip_padding(written):
     for (path, _), (_, _, levels, fmt, sc, _) in zip(written, CASES, strict=True):
         data = path.read_bytes()
-        head, index = _raw_index(data)
+        _, index = _raw_index(data)
         offsets = [off for off, _, _ in index]
         assert offsets == sorted(offsets, reverse=True)  # level 0 (largest) is last
         block = {97: 8, 109: 16, 123: 4}[fmt]

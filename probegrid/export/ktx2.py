@@ -62,11 +62,11 @@ from probegrid import __version__
 
 __all__ = [
     "IDENTIFIER",
-    "KTX2Error",
-    "KTX2Texture",
     "VK_FORMAT_E5B9G9R9_UFLOAT_PACK32",
     "VK_FORMAT_R16G16B16A16_SFLOAT",
     "VK_FORMAT_R32G32B32A32_SFLOAT",
+    "KTX2Error",
+    "KTX2Texture",
     "basic_dfd",
     "decode_rgb9e5",
     "encode_ktx2",
@@ -365,7 +365,7 @@ def encode_ktx2_parts(
     base, layers = _base_and_layers(kind, arrays[0], layered)
     if kind == "3d" and layered:
         raise KTX2Error("3D array textures are not supported")
-    max_levels = int(math.floor(math.log2(max(base)))) + 1
+    max_levels = max(base).bit_length()  # floor(log2(max)) + 1
     if len(arrays) > max_levels:
         raise KTX2Error(f"{len(arrays)} levels for a {base[0]}x{base[1]} texture; at most "
                         f"{max_levels}")
@@ -499,7 +499,7 @@ def read_ktx2(source: str | os.PathLike[str] | bytes) -> KTX2Texture:
         raise KTX2Error("not a KTX 2.0 file (bad identifier)")
     (fmt, type_size, width, height, depth, layers, faces, n_levels, scheme) = struct.unpack_from(
         "<9I", data, 12)
-    dfd_off, dfd_len, kvd_off, kvd_len, sgd_off, sgd_len = struct.unpack_from("<IIIIQQ", data, 48)
+    dfd_off, dfd_len, kvd_off, kvd_len, _sgd_off, sgd_len = struct.unpack_from("<IIIIQQ", data, 48)
     if fmt not in _FORMATS:
         raise KTX2Error(f"vkFormat {fmt} is not supported (97, 109 or 123)")
     if scheme not in (SUPERCOMPRESSION_NONE, SUPERCOMPRESSION_ZSTD):

@@ -198,8 +198,8 @@ def export_grid(
         chain = [np.asarray(store[n][select], dtype=np.float32) for n in names]
         sh = np.asarray(store["sh"][select], dtype=np.float64)
         if ijk is None:
-            filled_d, filled = engines.fill_invalid(diffuse.reshape((nx, ny, nz) + diffuse.shape[1:]),
-                                                    vgrid)
+            filled_d, filled = engines.fill_invalid(
+                diffuse.reshape((nx, ny, nz) + diffuse.shape[1:]), vgrid)
             diffuse = filled_d.reshape(diffuse.shape)
             chain = [engines.fill_invalid(c.reshape((nx, ny, nz) + c.shape[1:]), vgrid)[0]
                      .reshape(c.shape) for c in chain]
