@@ -1,5 +1,4 @@
-"""Independent readers from npm, run under node by the tests: ``ktx-parse`` (KTX2) and the
-Khronos ``gltf-validator``.
+"""Independent readers from npm, run under node by the tests: ``ktx-parse`` (KTX2).
 
 They are looked for in ``tests/js/node_modules`` (``npm install --prefix tests/js``, which CI
 runs); otherwise, when node and npm are on PATH, installed once per test session into a
