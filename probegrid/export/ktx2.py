@@ -329,7 +329,7 @@ def encode_ktx2_parts(
     vk_format: int | str = VK_FORMAT_R16G16B16A16_SFLOAT,
     layered: bool = False,
     supercompression: Literal["none", "zstd"] = "none",
-    zstd_level: int = 10,
+    zstd_level: int = 3,
     key_values: Mapping[str, str | bytes] | None = None,
 ) -> list[bytes | memoryview]:
     """The pieces of a KTX2 file holding ``levels`` (level 0, the largest, first), in file
@@ -346,7 +346,8 @@ def encode_ktx2_parts(
     vk_format
         97, 109 or 123 (or their names without ``VK_FORMAT_``).
     supercompression
-        ``"zstd"``: each level is one Zstandard frame (scheme 2; needs ``zstandard``).
+        ``"zstd"``: each level is one Zstandard frame (scheme 2; needs ``zstandard``),
+        compressed at ``zstd_level`` (default 3, as ``toktx --zcmp``) on all cores.
     key_values
         Extra key/value pairs (str values are written NUL-terminated); ``KTXwriter`` is always
         written. Keys starting with ``KTX``/``ktx`` are reserved and refused.
@@ -389,7 +390,8 @@ def encode_ktx2_parts(
             import zstandard
         except ImportError:  # pragma: no cover - it is a dependency
             raise KTX2Error("Zstandard supercompression needs the 'zstandard' package") from None
-        compressor = zstandard.ZstdCompressor(level=zstd_level, write_content_size=True)
+        compressor = zstandard.ZstdCompressor(level=zstd_level, write_content_size=True,
+                                              threads=-1)  # one frame, all cores
 
     raw = [_encode_texels(a, fmt) for a in arrays]
     payload: list[bytes | memoryview] = [compressor.compress(r) if compressor else r
