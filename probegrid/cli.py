@@ -263,6 +263,10 @@ def _run_export(args: argparse.Namespace) -> int:
     if args.target is not None:
         from probegrid.jobs.engine_export import export_grid
 
+        if args.layout != "faces" or args.format != "exr" or args.half:
+            raise ValueError("--layout, --format and --half apply to image exports (--probe "
+                             "without --target); --target writes KTX2 (see --vk-format)")
+
         written = export_grid(args.store, args.out, target=args.target,
                               vk_format=args.vk_format, zstd=args.zstd, probe=args.probe,
                               cube_convention=args.cube_convention)

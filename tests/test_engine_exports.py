@@ -357,6 +357,7 @@ def test_invalid_probes_are_filled_and_counted(tmp_path):
     (["--target", "bevy", "--cube-convention", "bevy"], "cube-convention"),
     ([], "needs --probe"),
     (["--probe", "0,0,0", "--zstd"], "apply to --target"),
+    (["--target", "bevy", "--layout", "hcross"], "apply to image exports"),
 ])
 def test_cli_bad_options_are_one_line_errors(store, tmp_path, capsys, args, message):
     out = tmp_path / "o"

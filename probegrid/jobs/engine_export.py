@@ -163,6 +163,9 @@ def export_grid(
             "sh": ("radiance L_lm, world frame (glTF/three.js: right-handed, +Y up), basis "
                    "index l(l+1)+m without Condon-Shortley phase: three's shGetIrradianceAt "
                    "applies the cosine lobe (0.886227 c0 ...)"),
+            "conventions": {k: conv[k] for k in ("world_frame", "color_space",
+                                                 "radiance_units", "sh_basis",
+                                                 "sh_coefficients")},
         }
         payload[out / "lightprobegrid.json"] = header
         files += [{"path": "lightprobegrid.ktx2", "kind": "threejs-atlas",
@@ -235,6 +238,7 @@ def export_grid(
         files.append({"path": "sh.json", "kind": "sh"})
         doc = {"ktx2": {"layers": ("one cube per probe, layer = store probe index "
                                    "(i ny + j) nz + k") if layered else f"probe {list(ijk)}",
+                        "probe_valid": None if layered else bool(valid[select]),
                         "cube_convention": cube_convention,
                         "faces": _CUBE_WORDS[cube_convention]}}
 
