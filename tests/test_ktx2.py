@@ -273,3 +273,13 @@ def test_reader_refuses_damaged_files(tmp_path):
     struct.pack_into("<I", bad, 12, 37)
     with pytest.raises(ktx2.KTX2Error, match="vkFormat 37"):
         ktx2.read_ktx2(bytes(bad))
+
+
+def test_independent_reader_skips_with_a_reason_without_node(monkeypatch, tmp_path_factory):
+    import shutil
+
+    import node_readers
+
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    with pytest.raises(pytest.skip.Exception, match="node is not installed"):
+        node_readers.node_package_dir(tmp_path_factory, "ktx-parse")
