@@ -11,12 +11,15 @@ from typing import Any, Literal, get_args
 
 __all__ = [
     "CrossLayout",
+    "CubeConvention",
     "CubeLayout",
     "DiffuseMethod",
+    "EngineTarget",
     "GGXMethod",
     "ImageFormat",
     "InputLayout",
     "Layout",
+    "MapFormat",
     "MapKind",
     "PixelType",
     "SHWindow",
@@ -40,6 +43,13 @@ CrossLayout = Literal["hcross", "vcross"]
 CubeLayout = Literal["faces", "hcross", "vcross", "equirect"]
 #: HDR image file formats maps are written in.
 ImageFormat = Literal["exr", "hdr"]
+#: File formats a filtered environment's maps are written in (ktx2: one cube-map file each).
+MapFormat = Literal["exr", "hdr", "ktx2"]
+#: Whose cube-map lookup a written cube map is arranged for: glTF/OpenGL/KTX2's face table (the
+#: store's), three.js' (x mirrored) or Bevy's (z mirrored).
+CubeConvention = Literal["gltf", "threejs", "bevy"]
+#: Engines a probe grid is exported for (``probegrid export --target``).
+EngineTarget = Literal["threejs", "bevy", "ktx2"]
 #: Pixel types of written image files.
 PixelType = Literal["half", "float", "rgbe", "uint8"]
 #: Seam handling of filtered cube maps (see :mod:`probegrid.core.seams`).

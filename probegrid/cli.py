@@ -21,7 +21,7 @@ from typing import Any, Literal, NoReturn, get_args, get_origin
 
 from pydantic import BaseModel
 
-from probegrid._types import CubeLayout, ImageFormat, choices
+from probegrid._types import CubeConvention, CubeLayout, EngineTarget, ImageFormat, choices
 from probegrid.bake import BakeSettings
 from probegrid.jobs.bake import BakeJob
 from probegrid.jobs.filter import FilterSettings
@@ -122,7 +122,11 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     _option(p, F, "sh_window",
             help="SH windowing against ringing (auto: the least that makes irradiance >= 0)")
     _option(p, F, "sh_window_width", help="window width (bands)")
-    _option(p, F, "format", help="map file format")
+    _option(p, F, "format", help="map file format (ktx2: specular.ktx2 with the chain as mips and "
+            "diffuse.ktx2, RGBA16F, or RGBA32F with --float)")
+    _option(p, F, "cube_convention",
+            help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table (glTF "
+                 "Sample Viewer), mirrored in x (three.js) or z (Bevy)")
     _option(p, F, "half", "--float", help="write float32 EXR instead of half")
     _option(p, F, "output_layout", help="layout of the written maps")
     _option(p, F, "seam", help="seam export mode for consumers without seamless cube filtering")
@@ -240,9 +244,19 @@ def _run_info(args: argparse.Namespace) -> int:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="write one probe's maps as image files")
+    p = sub.add_parser("export", help="write one probe's maps as image files, or the grid for "
+                       "an engine (--target)")
     p.add_argument("store", type=Path)
-    p.add_argument("--probe", required=True, help="I,J,K")
+    p.add_argument("--probe", help="I,J,K")
+    p.add_argument("--target", choices=choices(EngineTarget),
+                   help="the whole grid as an engine loads it (three.js LightProbeGrid atlas, "
+                        "Bevy IrradianceVolume, KTX2 cube-map arrays); see manifest.json")
+    p.add_argument("--vk-format", help="KTX2 format: R16G16B16A16_SFLOAT, R32G32B32A32_SFLOAT "
+                   "or E5B9G9R9_UFLOAT_PACK32 (default: the target's)")
+    p.add_argument("--zstd", action="store_true", help="Zstandard-supercompressed KTX2")
+    p.add_argument("--cube-convention", choices=choices(CubeConvention), default="gltf",
+                   help="--target ktx2 cube faces for that consumer's lookup (default: the "
+                        "OpenGL/KTX2 table, as glTF-IBL-Sampler writes)")
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--layout", choices=choices(CubeLayout), default="faces")
     p.add_argument("--format", choices=choices(ImageFormat), default="exr")
@@ -253,6 +267,24 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
 def _run_export(args: argparse.Namespace) -> int:
     from probegrid.jobs.export import export_probe
 
+    if args.target is not None:
+        from probegrid.jobs.engine_export import export_grid
+
+        if args.layout != "faces" or args.format != "exr" or args.half:
+            raise ValueError("--layout, --format and --half apply to image exports (--probe "
+                             "without --target); --target writes KTX2 (see --vk-format)")
+
+        written = export_grid(args.store, args.out, target=args.target,
+                              vk_format=args.vk_format, zstd=args.zstd, probe=args.probe,
+                              cube_convention=args.cube_convention)
+        print(f"wrote {len(written)} files for {args.target} to {args.out}/ (manifest.json "
+              "states the consumer and conventions)")
+        return 0
+    if args.probe is None:
+        raise ValueError("export needs --probe I,J,K (one probe's maps) or --target "
+                         "threejs|bevy|ktx2 (the grid)")
+    if args.vk_format is not None or args.zstd or args.cube_convention != "gltf":
+        raise ValueError("--vk-format, --zstd and --cube-convention apply to --target exports")
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
                            fmt=args.format, half=args.half)
     print(f"wrote {len(written)} files to {args.out}/ (manifest.json lists them with the "

@@ -13,6 +13,8 @@ json      ``{"shape", "data"}``, data nested lists   the same for the cross imag
 exr       float32 RGB OpenEXR of the six faces       float32 RGB OpenEXR of the cross
           stacked top to bottom (``6n x n``)
 hdr       Radiance RGBE, same images                 Radiance RGBE of the cross
+ktx2      KTX 2.0 cube map, one level,               (refused: a cross is not a cube)
+          R32G32B32A32_SFLOAT (alpha 1)
 png       8-bit sRGB (linear values clamped to       8-bit sRGB of the cross
           [0, 1], sRGB transfer curve), same images
 ========  =========================================  ===========================================
@@ -50,6 +52,7 @@ from numpy.typing import NDArray
 from pydantic_core import to_json
 
 from probegrid.core.layouts import faces_to_cross
+from probegrid.export.ktx2 import VK_FORMAT_R32G32B32A32_SFLOAT, encode_ktx2
 from probegrid.imageio import write_image
 
 __all__ = [
@@ -67,6 +70,7 @@ MEDIA_TYPES: Final[dict[str, str]] = {
     "png": "image/png",
     "npy": "application/x-npy",
     "json": "application/json",
+    "ktx2": "image/ktx2",
 }
 CACHE_CONTROL: Final = "no-cache"
 
@@ -152,6 +156,11 @@ def encode_cube(
     arr = np.ascontiguousarray(cube_image(faces, layout), dtype=np.float32)
     if fmt == "npy":  # exactly np.save's bytes (tested), without its per-call header building
         return _npy_header(arr.shape) + arr.tobytes()
+    if fmt == "ktx2":  # a KTX2 cube (OpenGL/KTX2 face table), float32 like the EXR
+        if layout != "faces":
+            raise ValueError("format=ktx2 is a cube map; use layout=faces.")
+        return encode_ktx2([arr], kind="cube", vk_format=VK_FORMAT_R32G32B32A32_SFLOAT,
+                           key_values={"probegrid:meta": to_json(meta or {}).decode()})
     if fmt == "json":
         doc = dict(meta or {})
         doc.update(layout=layout, shape=list(arr.shape), data=arr.tolist())

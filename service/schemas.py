@@ -40,7 +40,7 @@ __all__ = [
     "SurfacePoint",
 ]
 
-CubeFormat = Literal["exr", "hdr", "png", "npy", "json"]
+CubeFormat = Literal["exr", "hdr", "png", "npy", "json", "ktx2"]
 CubeLayout = Literal["faces", "cross"]
 
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]

@@ -6,14 +6,14 @@ import each other)::
     0  probegrid.errors, probegrid._types, probegrid._version
     1  probegrid._fs, probegrid.kernels
     2  probegrid.core
-    3  probegrid.imageio | probegrid.scene | probegrid.store | probegrid.raytrace
+    3  probegrid.imageio | probegrid.scene | probegrid.store | probegrid.raytrace | probegrid.export
     4  probegrid.bake | probegrid.query
     5  probegrid.jobs | service
     6  probegrid.cli | probegrid.client
     7  probegrid (the package's face: nothing imports it)
 
 and, on top of the ranks: ``probegrid.client`` imports only errors, option types, the version,
-core and the store's manifest models; ``service`` only the foundation, core, imageio, store and
+core and the store's manifest models; ``service`` only the foundation, core, imageio, export (file formats), raytrace, store and
 query; nothing in ``probegrid`` imports ``service`` but the ``serve`` command's one lazy import;
 ``probegrid.core`` imports numpy (and threadpoolctl, to bound BLAS threads) and no module that
 reads or writes files, sockets, settings or the web.
@@ -38,17 +38,18 @@ RANKS: dict[str, int] = {
     "probegrid._fs": 1, "probegrid.kernels": 1,
     "probegrid.core": 2,
     "probegrid.imageio": 3, "probegrid.scene": 3, "probegrid.store": 3, "probegrid.raytrace": 3,
+    "probegrid.export": 3,
     "probegrid.bake": 4, "probegrid.query": 4,
     "probegrid.jobs": 5, "service": 5,
     "probegrid.cli": 6, "probegrid.client": 6,
     "probegrid": 7,
 }
-SUBPACKAGES = ("core", "scene", "store", "bake", "jobs")
+SUBPACKAGES = ("core", "scene", "store", "bake", "jobs", "export")
 CLIENT_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
                      "probegrid.core", "probegrid.store.manifest")
 SERVICE_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
                       "probegrid._fs", "probegrid.core", "probegrid.imageio", "probegrid.store",
-                      "probegrid.raytrace", "probegrid.query", "service")
+                      "probegrid.raytrace", "probegrid.export", "probegrid.query", "service")
 #: The one import of the HTTP layer from the library: ``probegrid serve`` starts it.
 SERVICE_FROM_LIBRARY = {("probegrid.cli", "service.main")}
 CORE_THIRD_PARTY = {"numpy", "threadpoolctl"}

@@ -39,11 +39,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from probegrid._fs import atomic_write_json
 from probegrid._types import (
+    CubeConvention,
     CubeLayout,
     DiffuseMethod,
     GGXMethod,
-    ImageFormat,
     InputLayout,
+    MapFormat,
     SeamMode,
     SHWindow,
 )
@@ -83,7 +84,8 @@ class FilterSettings(BaseModel):
     samples: int | None = Field(default=None, ge=1, le=65536)
     sh_window: SHWindow = "none"
     sh_window_width: float | None = Field(default=None, gt=0)
-    format: ImageFormat = "exr"
+    format: MapFormat = "exr"
+    cube_convention: CubeConvention = "gltf"
     half: bool = True
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
@@ -267,11 +269,18 @@ def run_filter(
     """
     from probegrid import imageio
     from probegrid.core import dfg, diffuse, seams, sh, specular
+    from probegrid.export.shforms import sh_forms
 
     settings = settings or FilterSettings()
     say: Progress = progress or (lambda _m: None)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
     out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    if settings.format == "ktx2" and (settings.output_layout != "faces"
+                                      or settings.seam == "border"):
+        raise ValueError("--format ktx2 writes cube maps: it needs --output-layout faces and a "
+                         "seam mode other than 'border'")
+    if settings.cube_convention != "gltf" and settings.format != "ktx2":
+        raise ValueError("--cube-convention applies to --format ktx2")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -362,10 +371,18 @@ def run_filter(
         })
 
     say("writing maps")
-    write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
-               content="irradiance / pi", method=settings.diffuse_method,
-               sh_window=sh_window["window"])
-    for k, lv in enumerate(spec_out):
+    if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
+        from probegrid.export.environment import write_environment_ktx2
+
+        files += write_environment_ktx2(out, diff_out, spec_out,
+                                        vk_format=97 if settings.half else 109,
+                                        cube_convention=settings.cube_convention,
+                                        key_values={"probegrid:conventions": json.dumps(conv)})
+    else:
+        write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
+                   content="irradiance / pi", method=settings.diffuse_method,
+                   sh_window=sh_window["window"])
+    for k, lv in enumerate(spec_out if ext != "ktx2" else []):
         r = k / (levels - 1) if levels > 1 else 0.0
         write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
@@ -378,6 +395,7 @@ def run_filter(
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
         "diffuse_map": {"method": settings.diffuse_method, **sh_window},
+        "consumers": sh_forms(coeffs),
     }
     atomic_write_json(out / "sh.json", sh_doc)
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,

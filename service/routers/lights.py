@@ -79,6 +79,8 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         raise ApiError(422, f"level {body.level} is out of range 0..{levels - 1} for "
                             f"{body.kind} maps.")
     size = size0 >> body.level
+    if body.format == "ktx2" and body.layout != "faces":
+        raise ApiError(422, "format=ktx2 is a cube map; use layout=faces.")
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
     try:
