@@ -212,7 +212,8 @@ def run_bake(opts: BakeOptions) -> BakeReport:
           f"{executor.description}", file=sys.stderr)
     try:
         return bake(scene, grid, opts.out, settings=settings, environment=env,
-                    executor=executor, progress=bar, overwrite=opts.overwrite)
+                    executor=executor, progress=bar, overwrite=opts.overwrite,
+                    scene_file=opts.scene)
     finally:
         bar.close()
         executor.close()

@@ -9,6 +9,8 @@ A finished store is one directory, by convention ``NAME.probes/``::
         sh.npy              one .npy file per array, named after the array
         diffuse.npy
         ...
+        scene.glb           optional: a copy of the baked glTF scene (``scene.gltf`` for a
+                            self-contained .gltf), recorded in the manifest's ``scene_file``
 
 Every array is *per probe*: its first axis is the probe's linear index (``(i * ny + j) * nz + k``,
 see :mod:`probegrid.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6, n, n, 3) float16``,
@@ -64,6 +66,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import hashlib
 import json
 import math
 import os
@@ -91,11 +94,13 @@ __all__ = [
     "ArrayInfo",
     "ArraySpec",
     "ProbeStore",
+    "SceneFile",
     "StoreError",
     "StoreManifest",
     "StoreWriter",
     "create_npy",
     "directory_lock",
+    "keepable_scene",
     "open_store",
     "partial_path",
     "partial_progress",
@@ -237,6 +242,22 @@ class _Plan(BaseModel):
         return self
 
 
+class SceneFile(BaseModel):
+    """Manifest entry of the scene copy a store keeps (for viewers; see :func:`keepable_scene`).
+
+    ``file`` is a fixed name inside the store; ``source`` is the baked file's name only (no
+    directory), for people to read.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    file: Literal["scene.glb", "scene.gltf"]
+    media_type: Literal["model/gltf-binary", "model/gltf+json"]
+    bytes: int
+    sha256: str
+    source: str
+
+
 class StoreManifest(_Plan):
     """The ``manifest.json`` of a finished store.
 
@@ -257,10 +278,13 @@ class StoreManifest(_Plan):
     quality : dict
         Per-bake quality figures (furnace error, SH minimum, seam score, invalid probes, ...).
     arrays : dict of str -> ArrayInfo
+    scene_file : SceneFile or None
+        The copy of the baked glTF scene kept in the store, if any.
     """
 
     created: datetime
     quality: dict[str, Any]
+    scene_file: SceneFile | None = None
 
 
 # ---------------------------------------------------------------------------- JSON helpers
@@ -398,6 +422,11 @@ def _validate_store_dir(directory: Path, *, allow_partial: bool = False) -> Stor
     manifest = _load_manifest_json(manifest_file, StoreManifest)
     for name, info in manifest.arrays.items():
         _check_array_file(directory, name, info)
+    kept = manifest.scene_file
+    if kept is not None:
+        f = directory / kept.file
+        if not f.is_file() or f.stat().st_size != kept.bytes:
+            raise StoreError(f"{f} is missing or is not the {kept.bytes} bytes the manifest says")
     return manifest
 
 
@@ -538,6 +567,58 @@ def open_store(path: str | os.PathLike[str]) -> ProbeStore:
     """
     p = Path(path)
     return ProbeStore(p, _validate_store_dir(p))
+
+
+# ---------------------------------------------------------------------------- the scene copy
+_GLB_MAGIC: Final = b"glTF"
+
+
+def keepable_scene(path: str | os.PathLike[str]) -> Literal["scene.glb", "scene.gltf"] | None:
+    """The name a store would keep a copy of this glTF file under, or None when it cannot.
+
+    A GLB is kept as ``scene.glb``; a ``.gltf`` whose buffers and images are all embedded
+    (``data:`` URIs, or a buffer without a URI) as ``scene.gltf``. A ``.gltf`` that refers to
+    other files is not kept (None): the copy would be incomplete. Raises :class:`StoreError`
+    when the file cannot be read or is neither.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4)
+            if head == _GLB_MAGIC:
+                return "scene.glb"
+            doc = json.loads(head + f.read())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StoreError(f"cannot keep the scene {p}: not a readable glTF file ({exc})") from None
+    if not isinstance(doc, dict):
+        raise StoreError(f"cannot keep the scene {p}: not a glTF document")
+    for key in ("buffers", "images"):
+        for item in doc.get(key) or []:
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                return None
+    return "scene.gltf"
+
+
+def _keep_scene(source: Path, directory: Path) -> SceneFile | None:
+    """Copy ``source`` into ``directory`` under its fixed name (atomically); its manifest entry."""
+    name = keepable_scene(source)
+    if name is None:
+        return None
+    try:
+        data = source.read_bytes()
+    except OSError as exc:
+        raise StoreError(f"cannot keep the scene {source}: {exc}") from None
+    target = directory / name
+    tmp = target.with_name(f".{name}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, target)
+    media = "model/gltf-binary" if name == "scene.glb" else "model/gltf+json"
+    return SceneFile(file=name, media_type=media, bytes=len(data),
+                     sha256=hashlib.sha256(data).hexdigest(), source=source.name)
 
 
 # ---------------------------------------------------------------------------- writing
@@ -1012,7 +1093,12 @@ class StoreWriter:
         if self._durable:
             self._done_map.flush()
 
-    def finish(self, *, quality: Mapping[str, Any] | BaseModel | None = None) -> ProbeStore:
+    def finish(
+        self,
+        *,
+        quality: Mapping[str, Any] | BaseModel | None = None,
+        scene_file: str | os.PathLike[str] | None = None,
+    ) -> ProbeStore:
         """Publish the finished store atomically and return it opened for reading.
 
         Parameters
@@ -1020,6 +1106,9 @@ class StoreWriter:
         quality : mapping, optional
             Per-bake quality figures for the manifest (JSON-serialisable). When resuming a bake
             that was killed during a previous ``finish``, ``None`` keeps the recorded figures.
+        scene_file : path, optional
+            The glTF file that was baked: a copy is kept in the store and recorded in the
+            manifest (``scene_file``) when :func:`keepable_scene` allows it.
         """
         self._require_open()
         left = self.n_probes - self.n_done
@@ -1035,8 +1124,14 @@ class StoreWriter:
             mm.flush()
             _fsync_file(self._partial / self._plan.arrays[name].file)
         self._maps = {}
+        kept = None
+        if scene_file is not None:
+            kept = _keep_scene(Path(scene_file), self._partial)
+        elif self._finished_manifest is not None:
+            kept = self._finished_manifest.scene_file
         plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
-        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q)
+        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q,
+                                 scene_file=kept)
         _atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
         self._done = np.ones(self.n_probes, dtype=bool)
         self._done_map = None
