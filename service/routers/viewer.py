@@ -22,6 +22,7 @@ from typing import Annotated, Literal
 import numpy as np
 from fastapi import APIRouter, Query, Request, Response
 from pydantic_core import to_json
+from starlette.concurrency import run_in_threadpool
 
 from service.deps import GridDep, StateDep
 from service.encoding import conditional_response
@@ -134,7 +135,7 @@ async def get_dfg(
 ) -> Response:
     """The split-sum DFG table: rows perceptual roughness, columns N.V (texel centres), channels
     (A, B), so that specular = prefiltered (F0 A + B) (``/shade`` uses the same table)."""
-    lut = np.ascontiguousarray(state.dfg(), dtype="<f4")
+    lut = np.ascontiguousarray(await run_in_threadpool(state.dfg), dtype="<f4")
     if fmt == "json":
         body = to_json({"shape": list(lut.shape), "data": lut.tolist()})
         return conditional_response(request, body, "application/json")

@@ -37,7 +37,10 @@ const PG = {
   lastQuery: null,      // {position, normal, sh: SHOut, level}
   stats: { sh: 0, maps: 0, coalesced: 0 },
   errors: [],
+  timings: {},          // ms from navigation start at each loading stage
 };
+const mark = (name) => { PG.timings[name] = Math.round(performance.now()); };
+mark('module');
 window.probegrid = PG;
 
 // ---------------------------------------------------------------------------- helpers
@@ -126,6 +129,9 @@ vec3 pgGridIrradiance(vec3 p, vec3 n) {
   for (int c = 0; c < 9; c++) L[c] /= wsum;
   return pgIrradiance(L, normalize(n));
 }`;
+
+// the grid list is asked for first, while WebGL starts up
+const gridsLoading = getJSON(api.grids());
 
 // ---------------------------------------------------------------------------- renderer, scene
 const canvas = $('canvas');
@@ -307,12 +313,10 @@ function litByGrid(material) {
   material.needsUpdate = true;
 }
 
-async function loadScene(name) {
+async function loadScene(grid) {
   sceneRoot.clear();
-  const r = await fetch(api.grid(name) + '/scene');
-  if (r.status === 404) return false;
-  if (!r.ok) throw new Error(`scene: HTTP ${r.status}`);
-  const buffer = await r.arrayBuffer();
+  if (!grid.manifest.scene_file) return false;  // the store keeps no copy of its scene
+  const buffer = await (await fetchOk(api.grid(grid.name) + '/scene')).arrayBuffer();
   const gltf = await new GLTFLoader().parseAsync(buffer, '');
   const lights = [];
   gltf.scene.traverse((o) => {
@@ -341,7 +345,7 @@ const objUniforms = {
   uSpecOn: { value: 0 },
   uSpec: { value: null },
   uDFG: { value: null },
-  uOutput: { value: 0 },  // 0 shaded, 1 world normal (for the tests' read-back)
+  uOutput: { value: 0 },  // 0 shaded, 1 world normal, 2 world position (the tests' read-back)
 };
 const objMaterial = new THREE.ShaderMaterial({
   uniforms: objUniforms,
@@ -369,6 +373,7 @@ const objMaterial = new THREE.ShaderMaterial({
     void main() {
       vec3 n = normalize(vNormalW);
       if (uOutput == 1) { gl_FragColor = vec4(n, 1.0); return; }
+      if (uOutput == 2) { gl_FragColor = vec4(vPosW, 1.0); return; }
       vec3 v = normalize(cameraPosition - vPosW);
       vec3 diffuse = pgIrradiance(uSH, n) / 3.141592653589793;
       vec3 color = uAlbedo * diffuse;
@@ -454,7 +459,11 @@ async function pump() {
   try {
     do {
       pending = false;
-      await runQuery(queryParams());
+      const q = queryParams();
+      const last = PG.lastQuery;
+      const same = last && last.grid === PG.grid.name && last.level === specularLevel()
+        && String(last.position) === String(q.position) && String(last.normal) === String(q.normal);
+      if (!same) await runQuery(q);  // an unchanged query is not asked again
     } while (pending);
   } catch (e) {
     report(e);
@@ -490,7 +499,7 @@ async function runQuery(q) {
   } else {
     objUniforms.uSpecOn.value = 0;
   }
-  PG.lastQuery = { position: q.position, normal: q.normal, sh, level };
+  PG.lastQuery = { grid, position: q.position, normal: q.normal, sh, level };
   showWeights(sh);
   if ($('inspector').open) updateInspector(where);
   requestRender();
@@ -648,6 +657,7 @@ async function showGrid(name) {
     relocated: base64Array(raw.relocated, Uint8Array),
   };
   PG.probeCount = raw.probes;
+  mark('data');
   const [nx, ny, nz] = grid.counts;
   if (gridUniforms.pgGridSH.value) gridUniforms.pgGridSH.value.dispose();
   gridUniforms.pgGridSH.value = gridTexture(grid, PG.probes);
@@ -656,7 +666,10 @@ async function showGrid(name) {
   gridUniforms.pgGridCounts.value.set(nx, ny, nz);
   buildProbes(grid, PG.probes);
   showFacts(grid);
-  const hasScene = await loadScene(name);
+  const hasScene = await loadScene(grid);
+  mark('scene');
+  await renderer.compileAsync(world, camera);  // in parallel where the driver can
+  mark('compiled');
   PG.hasScene = hasScene;
   // camera: outside the grid box, looking at its centre
   const lo = new THREE.Vector3().fromArray(grid.bounds_min);
@@ -667,6 +680,7 @@ async function showGrid(name) {
   if (hasScene) box.expandByObject(sceneRoot);
   const radius = Math.max(0.05, 0.25 * Math.min(...grid.spacing.filter((s) => s > 0), size));
   object.scale.setScalar(radius);
+  object.position.copy(centre);
   camera.near = size / 1000; camera.far = size * 100; camera.updateProjectionMatrix();
   camera.position.copy(centre).add(new THREE.Vector3(0.35, 0.3, 0.9).multiplyScalar(size * 0.9));
   if (hasScene) {  // inside a closed room, look from inside the grid box
@@ -676,7 +690,9 @@ async function showGrid(name) {
   controls.update();
   moveObject(centre.x, centre.y, centre.z);
   await waitForQuery();
+  mark('query');
   await new Promise((r) => requestAnimationFrame(() => { renderer.render(world, camera); r(); }));
+  mark('frame');
   setStatus(`${grid.name}: ${grid.probes} probes${hasScene ? '' : ' (the store keeps no scene)'}`);
   PG.ready = true;
   document.body.dataset.ready = '1';
@@ -698,8 +714,13 @@ PG.readObject = function readObject(count = 64) {
   const solo = new THREE.Scene();
   const parent = object.parent;
   solo.add(object);
+  // a square view of the object from the camera's side, filling most of the target
   const cam = camera.clone();
-  cam.aspect = 1; cam.updateProjectionMatrix();
+  const dir = new THREE.Vector3().subVectors(camera.position, object.position).normalize();
+  cam.position.copy(object.position).addScaledVector(dir, 2.6 * object.scale.x);
+  cam.aspect = 1; cam.near = 0.1 * object.scale.x; cam.far = 10 * object.scale.x;
+  cam.updateProjectionMatrix();
+  cam.lookAt(object.position);
   const read = (mode) => {
     objUniforms.uOutput.value = mode;
     renderer.setRenderTarget(target);
@@ -712,6 +733,7 @@ PG.readObject = function readObject(count = 64) {
   };
   const shaded = read(0);
   const normals = read(1);
+  const positions = read(2);
   objUniforms.uOutput.value = 0;
   renderer.setRenderTarget(null);
   renderer.setClearColor(0x000000, 1);
@@ -724,11 +746,14 @@ PG.readObject = function readObject(count = 64) {
   for (let i = 0; i < inside.length && pixels.length < count; i += step) {
     const t = inside[i];
     pixels.push({ rgb: [shaded[4 * t], shaded[4 * t + 1], shaded[4 * t + 2]],
-                  normal: [normals[4 * t], normals[4 * t + 1], normals[4 * t + 2]] });
+                  normal: [normals[4 * t], normals[4 * t + 1], normals[4 * t + 2]],
+                  position: [positions[4 * t], positions[4 * t + 1], positions[4 * t + 2]] });
   }
   requestRender();
-  return { covered: inside.length, pixels, albedo: objUniforms.uAlbedo.value.toArray(),
-           specular: objUniforms.uSpecOn.value, coefficients: PG.lastQuery.sh.coefficients };
+  return { covered: inside.length, pixels, camera: cam.position.toArray(),
+           albedo: objUniforms.uAlbedo.value.toArray(), f0: objUniforms.uF0.value.toArray(),
+           roughness: objUniforms.uRoughness.value, specular: objUniforms.uSpecOn.value,
+           query: PG.lastQuery };
 };
 PG.moveObject = async (x, y, z) => { moveObject(x, y, z); return waitForQuery(); };
 PG.setMaterial = (key) => { $('material').value = key; setMaterial(key); return waitForQuery(); };
@@ -756,7 +781,7 @@ async function main() {
   resize();
   PG.material = $('material').value;
   setMaterial(PG.material);
-  const { grids } = await getJSON(api.grids());
+  const { grids } = await gridsLoading;
   if (!grids.length) throw new Error('this service serves no grid');
   $('grid').innerHTML = grids.map((g) => `<option>${g.name}</option>`).join('');
   $('grid').disabled = grids.length < 2;
