@@ -36,6 +36,7 @@ from live_server import serve
 from probe_stores import GRID, linear_arrays, write_store
 
 from probegrid import sh as shlib
+from probegrid.grid import GridSpec
 from probegrid.shading import shade_split_sum
 
 pytestmark = pytest.mark.browser
@@ -72,13 +73,18 @@ def stores(tmp_path_factory) -> dict[str, Path]:
     arrays = linear_arrays(GRID)
     arrays["valid"][3] = False
     write_store(root / "synthetic.probes", GRID, arrays)
-    return {"room": root / "room.probes", "synthetic": root / "synthetic.probes"}
+    # 16,384 probes (32 x 16 x 32), small maps: the viewer's largest target
+    big = GridSpec.from_counts((-4.0, 0.0, -4.0), (4.0, 2.0, 4.0), (32, 16, 32))
+    write_store(root / "big.probes", big, linear_arrays(
+        big, diffuse_size=1, specular_size=2, moments_size=1, incoming_size=None))
+    return {"room": root / "room.probes", "synthetic": root / "synthetic.probes",
+            "big": root / "big.probes"}
 
 
 @pytest.fixture(scope="module")
 def server(stores, tmp_path_factory):
     log = tmp_path_factory.mktemp("log") / "server.log"
-    with serve([stores["room"], stores["synthetic"]], log) as live:
+    with serve([stores["room"], stores["synthetic"], stores["big"]], log) as live:
         yield live
     assert "request_failed" not in live.log_text()
 
@@ -143,8 +149,9 @@ def test_probe_spheres_match_the_manifest(viewer, server, stores):
     store = open_store(stores["room"])
     counts = page.evaluate("""() => {
         const pg = window.probegrid;
-        let mesh = null;
-        return { count: pg.probeCount, valid: pg.probes.valid.reduce((a, b) => a + b, 0),
+        let drawn = 0;
+        pg.scene.traverse((o) => { if (o.isInstancedMesh && o.visible) drawn += o.count; });
+        return { count: drawn, valid: pg.probes.valid.reduce((a, b) => a + b, 0),
                  relocated: pg.probes.relocated.reduce((a, b) => a + b, 0) };
     }""")
     instanced = page.evaluate("document.querySelector('#facts-list').textContent")
@@ -270,6 +277,23 @@ def test_grid_selector_shows_a_grid_without_scene(viewer):
     assert page.evaluate("window.probegrid.probeCount") == GRID.n_probes
     assert page.evaluate("window.probegrid.hasScene") is False
     assert "keeps no scene" in page.locator("#status").text_content()
+    assert watch.problems == []
+
+
+def test_sixteen_thousand_probes(viewer):
+    page, watch, _ = viewer
+    t0 = time.perf_counter()
+    page.select_option("#grid", "big")
+    page.wait_for_function("window.probegrid.ready && window.probegrid.grid.name === 'big'",
+                           timeout=20_000)
+    seconds = time.perf_counter() - t0
+    drawn = page.evaluate("""() => {
+        let n = 0;
+        window.probegrid.scene.traverse((o) => { if (o.isInstancedMesh) n += o.count; });
+        return n;
+    }""")
+    print(f"\n16,384 probes: grid switch to interactive in {seconds:.2f} s")
+    assert drawn == 16_384 == page.evaluate("window.probegrid.probeCount")
     assert watch.problems == []
 
 
