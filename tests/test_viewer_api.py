@@ -12,9 +12,9 @@ import re
 import struct
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
-import httpx
 from live_server import serve
 from probe_stores import GRID, linear_arrays, write_store
 
@@ -81,7 +81,7 @@ def test_viewer_page_uses_only_packaged_files(client):
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
     assert r.headers["cache-control"] == "no-cache" and r.headers["etag"]
     html = r.text
-    imports = json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.S)[1])
+    imports = json.loads(re.search(r'<script type="importmap">(.*?)</script>', html, re.DOTALL)[1])
     urls = list(imports["imports"].values()) + re.findall(r'(?:src|href)="([^"]+)"', html)
     assert all(u.startswith(("/static/", "/docs", "/redoc")) for u in urls), urls
     for u in urls:
