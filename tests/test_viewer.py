@@ -249,6 +249,53 @@ def test_moves_are_coalesced(viewer):
     assert watch.problems == []
 
 
+def test_dragging_the_object_moves_it_and_asks_the_service(viewer):
+    page, watch, _ = viewer
+    page.evaluate("window.probegrid.moveObject(0, 1.0, 0)")
+    at = page.evaluate("""() => {
+        const pg = window.probegrid;
+        const o = pg.scene.getObjectByName('object');
+        const v = o.position.clone().project(pg.camera);
+        const r = document.getElementById('canvas').getBoundingClientRect();
+        return [r.left + (v.x + 1) / 2 * r.width, r.top + (1 - v.y) / 2 * r.height];
+    }""")
+    before = page.evaluate("window.probegrid.lastQuery.position")
+    with page.expect_response(lambda r: "/v1/grids/room/sh?" in r.url and r.ok):
+        page.mouse.move(at[0], at[1])
+        page.mouse.down()
+        page.mouse.move(at[0] + 60, at[1] + 25, steps=6)
+        page.mouse.up()
+    page.evaluate("new Promise((r) => setTimeout(r, 100))")
+    after = page.evaluate("window.probegrid.lastQuery.position")
+    assert after[1] == before[1] == 1.0  # dragged on the horizontal plane through it
+    assert abs(after[0] - before[0]) + abs(after[2] - before[2]) > 0.05
+    assert page.evaluate("[...window.probegrid.scene.getObjectByName('object').position]") == \
+        pytest.approx(after, abs=1e-5)
+    assert watch.problems == []
+
+
+def test_map_inspector_shows_the_maps_at_the_object(viewer):
+    page, watch, _ = viewer
+    page.click("#inspector summary")
+    page.wait_for_function("""() => [...document.querySelectorAll('#inspector img')]
+        .every((i) => i.complete && i.naturalWidth > 0) &&
+        document.querySelectorAll('#inspector img').length > 1""", timeout=10_000)
+    levels = page.evaluate("window.probegrid.grid.specular_levels")
+    srcs = page.eval_on_selector_all("#inspector img", "els => els.map(e => e.src)")
+    assert len(srcs) == 1 + levels
+    assert "/maps/diffuse?" in srcs[0] and all("/maps/specular?" in u for u in srcs[1:])
+    widths = page.eval_on_selector_all("#inspector img", "els => els.map(e => e.naturalWidth)")
+    sizes = page.evaluate("window.probegrid.grid.map_sizes")
+    assert widths == [4 * sizes["diffuse"][0]] + [4 * n for n in sizes["specular"]]  # crosses
+    dfg = page.evaluate("""() => { const c = document.getElementById('insp-dfg');
+        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        return [c.width, d[0], d[1], d[4 * (c.width - 1)], d[4 * (c.width - 1) + 1]]; }""")
+    # row 0 = roughness 0: A + B = 1 at every N.V (smooth), A rises with N.V
+    assert dfg[0] == 64 and dfg[3] > dfg[1]
+    page.click("#inspector summary")
+    assert watch.problems == []
+
+
 def test_screenshot_is_not_blank(viewer, tmp_path):
     page, watch, _ = viewer
     from PIL import Image

@@ -756,6 +756,7 @@ PG.setMaterial = (key) => { $('material').value = key; setMaterial(key); return 
 PG.setToneMapping = (key) => { $('tonemap').value = key; renderer.toneMapping = TONEMAPS[key]; requestRender(); };
 PG.render = () => renderer.render(world, camera);
 PG.scene = world;
+PG.camera = camera;
 
 // ---------------------------------------------------------------------------- controls
 $('tonemap').addEventListener('change', (e) => PG.setToneMapping(e.target.value));
