@@ -99,11 +99,11 @@ vec3 pgIrradiance(vec3 L[9], vec3 n) {
                + K3 * (3.0 * z * z - 1.0) * L[6] + K4 * (x * x - y * y) * L[8]);
 }`;
 
-// The grid's SH in a 3D texture (nx, ny, 10 nz), linearly filtered: texel (i, j, c nz + k) holds
-// coefficient c of probe (i, j, k) times its validity v for c < 9, and v for c = 9. Hardware
-// trilinear filtering inside each block of nz slices then gives sum_i w_i v_i L_i and sum_i w_i v_i,
-// whose ratio is the trilinear blend of the valid probes (the service's blend without a normal),
-// in 10 fetches instead of 80.
+// The grid's SH in a 3D texture (nx, ny, 7 nz), linearly filtered: the 28 numbers
+// (v L_0 .. v L_8 as RGB, then v) of probe (i, j, k), v its validity (0 or 1), fill the RGBA
+// texels (i, j, t nz + k), t = 0..6. Hardware trilinear filtering inside each block of nz slices
+// gives sum_i w_i v_i L_i and sum_i w_i v_i, whose ratio is the trilinear blend of the valid
+// probes (the service's blend without a normal), in 7 fetches.
 const GRID_GLSL = /* glsl */`
 uniform highp sampler3D pgGridSH;
 uniform vec3 pgGridMin;
@@ -112,14 +112,21 @@ uniform vec3 pgGridCounts;
 ${SH_GLSL}
 vec3 pgGridIrradiance(vec3 p, vec3 n) {
   vec3 g = clamp((p - pgGridMin) / max(pgGridSpacing, vec3(1e-12)), vec3(0.0), pgGridCounts - 1.0);
-  vec3 size = vec3(pgGridCounts.xy, 10.0 * pgGridCounts.z);
-  vec3 uvw = (g + 0.5) / size;
-  float v = texture(pgGridSH, vec3(uvw.xy, uvw.z + 9.0 * pgGridCounts.z / size.z)).r;
-  if (v <= 1e-6) return vec3(0.0);
+  vec3 uvw = (g + 0.5) / vec3(pgGridCounts.xy, 7.0 * pgGridCounts.z);
+  float dz = 1.0 / 7.0;
+  vec4 t0 = texture(pgGridSH, uvw);
+  vec4 t1 = texture(pgGridSH, uvw + vec3(0.0, 0.0, dz));
+  vec4 t2 = texture(pgGridSH, uvw + vec3(0.0, 0.0, 2.0 * dz));
+  vec4 t3 = texture(pgGridSH, uvw + vec3(0.0, 0.0, 3.0 * dz));
+  vec4 t4 = texture(pgGridSH, uvw + vec3(0.0, 0.0, 4.0 * dz));
+  vec4 t5 = texture(pgGridSH, uvw + vec3(0.0, 0.0, 5.0 * dz));
+  vec4 t6 = texture(pgGridSH, uvw + vec3(0.0, 0.0, 6.0 * dz));
+  if (t6.w <= 1e-6) return vec3(0.0);
   vec3 L[9];
-  for (int c = 0; c < 9; c++) {
-    L[c] = texture(pgGridSH, vec3(uvw.xy, uvw.z + float(c) * pgGridCounts.z / size.z)).rgb / v;
-  }
+  L[0] = t0.xyz; L[1] = vec3(t0.w, t1.xy); L[2] = vec3(t1.zw, t2.x); L[3] = t2.yzw;
+  L[4] = t3.xyz; L[5] = vec3(t3.w, t4.xy); L[6] = vec3(t4.zw, t5.x); L[7] = t5.yzw;
+  L[8] = t6.xyz;
+  for (int c = 0; c < 9; c++) L[c] /= t6.w;
   return pgIrradiance(L, normalize(n));
 }`;
 
@@ -128,7 +135,8 @@ const gridsLoading = getJSON(api.grids());
 
 // ---------------------------------------------------------------------------- renderer, scene
 const canvas = $('canvas');
-const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+// no MSAA: it doubles the cost of a frame on software WebGL (SwiftShader) for little gain
+const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
 renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
 renderer.outputColorSpace = THREE.SRGBColorSpace;
 const TONEMAPS = {
@@ -175,23 +183,21 @@ window.addEventListener('resize', resize);
 // ---------------------------------------------------------------------------- grid SH texture
 function gridTexture(grid, probes) {
   const [nx, ny, nz] = grid.counts;
-  const half = THREE.DataUtils.toHalfFloat;
-  const data = new Uint16Array(nx * ny * nz * 10 * 4);
+  const data = new Float32Array(nx * ny * nz * 7 * 4);
   for (let i = 0; i < nx; i++) for (let j = 0; j < ny; j++) for (let k = 0; k < nz; k++) {
     const p = (i * ny + j) * nz + k;
     const v = probes.valid[p] ? 1 : 0;
-    for (let c = 0; c < 10; c++) {
-      const t = 4 * (((c * nz + k) * ny + j) * nx + i);
-      if (c < 9) {
-        for (let e = 0; e < 3; e++) data[t + e] = half(v * probes.sh[27 * p + 3 * c + e]);
-      } else {
-        data[t] = half(v);
-      }
+    for (let e = 0; e < 28; e++) {
+      const t = e >> 2;  // texel layer
+      data[4 * (((t * nz + k) * ny + j) * nx + i) + (e & 3)] = e < 27 ? v * probes.sh[27 * p + e] : v;
     }
   }
-  const tex = new THREE.Data3DTexture(data, nx, ny, nz * 10);
+  // float where it can be filtered (OES_texture_float_linear), else half float (always can)
+  const floatLinear = renderer.extensions.has('OES_texture_float_linear');
+  const texels = floatLinear ? data : Uint16Array.from(data, THREE.DataUtils.toHalfFloat);
+  const tex = new THREE.Data3DTexture(texels, nx, ny, nz * 7);
   tex.format = THREE.RGBAFormat;
-  tex.type = THREE.HalfFloatType;  // filterable everywhere in WebGL2; the scene's light only
+  tex.type = floatLinear ? THREE.FloatType : THREE.HalfFloatType;
   tex.minFilter = tex.magFilter = THREE.LinearFilter;
   tex.wrapS = tex.wrapT = tex.wrapR = THREE.ClampToEdgeWrapping;
   tex.unpackAlignment = 1;
