@@ -64,7 +64,8 @@ def main() -> None:
                 page = browser.new_page(viewport={"width": 1280, "height": 720})
                 t0 = time.perf_counter()
                 page.goto(srv.url + "/")
-                page.wait_for_function("window.probegrid && window.probegrid.ready", timeout=60_000)
+                page.wait_for_function("window.probegrid && window.probegrid.ready", polling=20,
+                                       timeout=60_000)
                 wall = time.perf_counter() - t0
                 t = page.evaluate("window.probegrid.tti") / 1000
                 stages = page.evaluate("window.probegrid.timings")

@@ -123,7 +123,7 @@ def viewer(browser, server):
     watch = PageWatch(page)
     t0 = time.perf_counter()
     page.goto(server.url + "/")
-    page.wait_for_function(READY, timeout=20_000)
+    page.wait_for_function(READY, polling=20, timeout=20_000)
     wall = time.perf_counter() - t0
     tti = page.evaluate("window.probegrid.tti") / 1000.0
     stages = page.evaluate("window.probegrid.timings")
