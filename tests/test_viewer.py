@@ -322,6 +322,8 @@ def test_grid_selector_shows_a_grid_without_scene(viewer):
     page.wait_for_function("window.probegrid.ready && window.probegrid.grid.name === 'synthetic'",
                            timeout=10_000)
     assert page.evaluate("window.probegrid.probeCount") == GRID.n_probes
+    flags = page.evaluate("[...window.probegrid.probes.valid]")
+    assert [i for i, v in enumerate(flags) if not v] == [3]  # the one invalid probe, marked
     assert page.evaluate("window.probegrid.hasScene") is False
     assert "keeps no scene" in page.locator("#status").text_content()
     assert watch.problems == []
