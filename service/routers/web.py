@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from starlette.concurrency import run_in_threadpool
 
 from service.errors import ApiError
 from service.webassets import IMMUTABLE, REVALIDATE, Asset, StaticAssets, asset_response
@@ -83,4 +84,6 @@ async def static_file(request: Request, tag: str, path: str) -> Response:
     asset = assets.get(path) if tag == assets.tag else None
     if asset is None:
         raise ApiError(404, f"There is no static file {path[:128]!r} in this build; reload /.")
+    if asset.compressible and not asset.has_gzip:  # compressed once, off the event loop
+        await run_in_threadpool(asset.gzipped)
     return asset_response(request, asset, IMMUTABLE)

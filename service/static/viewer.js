@@ -130,8 +130,10 @@ vec3 pgGridIrradiance(vec3 p, vec3 n) {
   return pgIrradiance(L, normalize(n));
 }`;
 
-// the grid list is asked for first, while WebGL starts up
-const gridsLoading = getJSON(api.grids());
+// the grid list and the first grid's data were asked for by the page (index.html) already
+const prefetch = window.probegridPrefetch || {};
+const gridsLoading = (prefetch.grids || Promise.reject(new Error('no prefetch')))
+  .catch(() => getJSON(api.grids()));
 
 // ---------------------------------------------------------------------------- renderer, scene
 const canvas = $('canvas');
@@ -315,10 +317,10 @@ function litByGrid(material) {
   material.needsUpdate = true;
 }
 
-async function loadScene(grid) {
+async function loadScene(grid, prefetched) {
   sceneRoot.clear();
   if (!grid.manifest.scene_file) return false;  // the store keeps no copy of its scene
-  const buffer = await (await fetchOk(api.grid(grid.name) + '/scene')).arrayBuffer();
+  const buffer = prefetched || await (await fetchOk(api.grid(grid.name) + '/scene')).arrayBuffer();
   const gltf = await new GLTFLoader().parseAsync(buffer, '');
   const lights = [];
   gltf.scene.traverse((o) => {
@@ -649,7 +651,13 @@ async function showGrid(name) {
   document.body.dataset.ready = '0';
   setStatus(`loading ${name}…`);
   if (!PG.dfgLoading) PG.dfgLoading = loadDFG();  // in the background: only reflections need it
-  const [grid, raw] = await Promise.all([getJSON(api.grid(name)), getJSON(api.grid(name) + '/probes')]);
+  let first = null;
+  if (prefetch.first) {  // used once, for the grid shown first
+    first = await prefetch.first.catch(() => null);
+    prefetch.first = null;
+  }
+  const [grid, raw, sceneBuffer] = first && first[0].name === name ? first
+    : await Promise.all([getJSON(api.grid(name)), getJSON(api.grid(name) + '/probes'), null]);
   PG.grid = grid;
   PG.probes = {
     count: raw.probes,
@@ -668,7 +676,7 @@ async function showGrid(name) {
   gridUniforms.pgGridCounts.value.set(nx, ny, nz);
   buildProbes(grid, PG.probes);
   showFacts(grid);
-  const hasScene = await loadScene(grid);
+  const hasScene = await loadScene(grid, sceneBuffer);
   mark('scene');
   renderer.compile(world, camera);  // before the first frame (SwiftShader: no parallel compile)
   mark('compiled');
