@@ -650,7 +650,7 @@ async function showGrid(name) {
   PG.ready = false;
   document.body.dataset.ready = '0';
   setStatus(`loading ${name}…`);
-  if (!PG.dfgLoading) PG.dfgLoading = loadDFG();  // in the background: only reflections need it
+  if (!PG.dfgLoading) PG.dfgLoading = loadDFG().catch(report);  // in the background: only reflections need it
   let first = null;
   if (prefetch.first) {  // used once, for the grid shown first
     first = await prefetch.first.catch(() => null);
