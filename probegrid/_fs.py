@@ -20,6 +20,7 @@ from typing import Any
 from probegrid.errors import StoreError
 
 __all__ = [
+    "atomic_write_bytes",
     "atomic_write_json",
     "atomic_write_text",
     "directory_lock",
@@ -54,23 +55,28 @@ def replace_durably(tmp: str | os.PathLike[str], path: str | os.PathLike[str]) -
     fsync_dir(Path(path).parent)
 
 
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` so that readers see the old file or the whole new one.
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to ``path`` so that readers see the old file or the whole new one.
 
-    The text goes to a temporary sibling ``.NAME.tmp-PID``, flushed, renamed over ``path``, and
+    The bytes go to a temporary sibling ``.NAME.tmp-PID``, flushed, renamed over ``path``, and
     the directory flushed; on any failure the temporary file is removed.
     """
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp-{os.getpid()}")
     try:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
+        with open(tmp, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         replace_durably(tmp, p)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
+    """:func:`atomic_write_bytes` of ``text`` encoded as UTF-8."""
+    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def atomic_write_json(path: str | os.PathLike[str], data: Any) -> None:

@@ -324,6 +324,7 @@ def _serve(stores: Sequence[Path], host: str, port: int, workers: int) -> None:
     base = f"http://{host}:{port}"
 
     def ready() -> None:  # once the stores have opened
+        print(f"viewer: {base}/")
         print(f"serving {', '.join(str(s) for s in stores)} at {base} (docs: {base}/docs)")
         print(example_usage(stores[0], base), flush=True)
 

@@ -9,6 +9,7 @@
 
 Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
 
+    GET  /                          the viewer (browser page; /docs and /redoc served offline)
     GET  /healthz
     GET  /v1/grids
     GET  /v1/grids/{grid}
@@ -16,6 +17,9 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
     GET  /v1/grids/{grid}/maps/{kind}?x=&y=&z=[&nx=&ny=&nz=][&level=][&format=][&layout=]
     POST /v1/grids/{grid}/shade
     POST /v1/lights/maps
+    GET  /v1/grids/{grid}/probes    every probe (positions, SH, validity), for drawing the grid
+    GET  /v1/grids/{grid}/scene     the baked glTF scene, when the store keeps it
+    GET  /v1/dfg                    the split-sum DFG table
 """
 
 from __future__ import annotations
@@ -36,8 +40,9 @@ from service.deps import ServiceState
 from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
 from service.registry import GridRegistry, grid_name
-from service.routers import grids, health, lights, maps, sh, shade
+from service.routers import grids, health, lights, maps, sh, shade, viewer, web
 from service.settings import Settings, load_settings, settings_environment
+from service.webassets import StaticAssets
 
 __all__ = ["OPENAPI_TAGS", "app_from_environment", "create_app", "example_usage", "run"]
 
@@ -90,6 +95,8 @@ def create_app(
         ),
         openapi_tags=[dict(t) for t in OPENAPI_TAGS],
         lifespan=lifespan,
+        docs_url=None,  # served by service.routers.web from the vendored files (offline)
+        redoc_url=None,
     )
     # the scratch directory goes at shutdown, or with the app if it never ran a lifespan
     remove_scratch.append(weakref.finalize(app, shutil.rmtree, scratch, ignore_errors=True))
@@ -99,6 +106,13 @@ def create_app(
     # costs a few microseconds per router passed); the docs list the tags in OPENAPI_TAGS' order.
     for module in (health, sh, maps, grids, shade, lights):
         app.include_router(module.router)
+    # the viewer's data and pages (service.routers.viewer, service.routers.web)
+    app.state.probegrid_assets = StaticAssets()
+    app.state.probegrid_pages = {}
+    app.state.probegrid_probes = {}
+    app.state.probegrid_scenes = viewer.open_scenes(registry)
+    app.include_router(viewer.router)
+    app.include_router(web.router)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
     return app

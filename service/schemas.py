@@ -32,6 +32,7 @@ __all__ = [
     "Material",
     "PointLightIn",
     "ProbeUse",
+    "ProbesOut",
     "QueryFlags",
     "SHOut",
     "ShadeOut",
@@ -250,3 +251,19 @@ class LightMapsRequest(_Model):
         if self.normal is not None and not any(self.normal):
             raise ValueError("normal is the zero vector")
         return self
+
+
+# ------------------------------------------------------------------------------ viewer data
+class ProbesOut(_Model):
+    """Every probe of a grid at once (for drawing the grid): arrays as base64 of little-endian
+    binary, decoded in a browser with ``atob`` and a typed array."""
+
+    grid: str
+    probes: int = Field(description="Number of probes P, in linear index order (i ny + j) nz + k.")
+    counts: tuple[int, int, int]
+    positions: str = Field(description="float32 (P, 3): probe positions (after relocation).")
+    sh: str = Field(description="float32 (P, 9, 3): radiance SH coefficients L_lm, index "
+                                "l(l+1)+m, RGB (the store's, as the probes hold them).")
+    valid: str = Field(description="uint8 (P,): 1 for a valid probe, 0 for one inside geometry.")
+    relocated: str = Field(description="uint8 (P,): 1 where the probe was moved off its lattice "
+                                       "point.")

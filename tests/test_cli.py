@@ -148,8 +148,12 @@ def test_bake_info_export_on_the_sample_room(tmp_path):
                 "--environment", SKY, "--store-incoming", "--workers", "1")
     assert r.returncode == 0, r.stderr
     assert "baked 18 probes" in r.stdout
+    kept = json.loads((store / "manifest.json").read_text())["scene_file"]  # for the viewer
+    assert kept["file"] == "scene.glb" and kept["source"] == "sample_room.glb"
+    assert (store / "scene.glb").read_bytes() == (REPO / "data" / "sample_room.glb").read_bytes()
     info = run_cli("info", store)
     assert info.returncode == 0 and "3x2x3 = 18 probes" in info.stdout
+    assert "scene copy: scene.glb" in info.stdout and "from sample_room.glb" in info.stdout
     assert "irradiance / pi" in info.stdout and "specular_3" in info.stdout
     assert "specular filter: exact sum over every incoming texel" in info.stdout
     again = run_cli("bake", REPO / "data" / "sample_room.glb", "--out", store)

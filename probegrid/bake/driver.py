@@ -65,6 +65,7 @@ from probegrid.store import (
     StoreWriter,
     create_npy,
     directory_lock,
+    keepable_scene,
     open_store,
     partial_path,
 )
@@ -488,12 +489,14 @@ def bake(
     executor: Executor | None = None,
     progress: ProgressFn | None = None,
     overwrite: bool = False,
+    scene_file: str | Path | None = None,
 ) -> BakeReport:
     """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
 
     Resumes an interrupted bake of the same scene and settings. ``executor`` defaults to the
     calling process (:class:`~probegrid.bake.executors.InlineExecutor`); the CLI passes local
-    processes or a Dask cluster.
+    processes or a Dask cluster. ``scene_file``, the glTF file ``scene`` was loaded from, is
+    kept in the store for viewers (see :func:`probegrid.store.manifest.keepable_scene`).
     """
     st = settings or BakeSettings()
     env = environment or Environment()
@@ -503,6 +506,8 @@ def bake(
     if out.exists() and not overwrite:
         raise ValueError(f"{out} exists; pass --overwrite to replace it")
     st.levels()  # validate
+    if scene_file is not None:
+        keepable_scene(scene_file)  # readable glTF, checked before any work
     render = st.render_settings(scene, grid)
     scene_hash = hashlib.sha256(
         (scene.content_hash() + environment_hash(env)).encode()
@@ -615,7 +620,7 @@ def bake(
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
-        store = w.finish(quality=quality)
+        store = w.finish(quality=quality, scene_file=scene_file)
         shutil.rmtree(work, ignore_errors=True)
         seconds = time.perf_counter() - t0
         return BakeReport(store, seconds, stages.rays, grid.n_probes, resumed, quality)

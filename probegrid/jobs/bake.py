@@ -210,7 +210,8 @@ def run_bake(job: BakeJob) -> BakeReport:
           f"{executor.description}", file=sys.stderr)
     try:
         return bake(scene, grid, job.out, settings=job.settings, environment=env,
-                    executor=executor, progress=bar, overwrite=job.overwrite)
+                    executor=executor, progress=bar, overwrite=job.overwrite,
+                    scene_file=job.scene)
     finally:
         bar.close()
         executor.close()

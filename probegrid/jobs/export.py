@@ -163,6 +163,9 @@ def describe_store(path: str | os.PathLike[str]) -> str:
     if env:
         lines.append(f"  environment: {json.dumps(env)}")
     lines.append(f"  scene hash: {m.scene_hash}")
+    if m.scene_file is not None:
+        lines.append(f"  scene copy: {m.scene_file.file} ({m.scene_file.bytes} bytes, from "
+                     f"{m.scene_file.source}; served at /v1/grids/NAME/scene)")
     if spec_levels:
         n = len(spec_levels)
         rough = ", ".join(f"{k}: r={k / (n - 1) if n > 1 else 0:.3g}" for k in spec_levels)

@@ -12,11 +12,12 @@ from probegrid.store.manifest import (
     SUPPORTED_FORMAT_VERSIONS,
     ArrayInfo,
     ArraySpec,
+    SceneFile,
     StoreManifest,
     partial_path,
 )
 from probegrid.store.reader import ProbeStore, open_store, partial_progress, read_manifest
-from probegrid.store.writer import StoreWriter, create_npy
+from probegrid.store.writer import StoreWriter, create_npy, keepable_scene
 
 __all__ = [
     "FORMAT_NAME",
@@ -25,11 +26,13 @@ __all__ = [
     "ArrayInfo",
     "ArraySpec",
     "ProbeStore",
+    "SceneFile",
     "StoreError",
     "StoreManifest",
     "StoreWriter",
     "create_npy",
     "directory_lock",
+    "keepable_scene",
     "open_store",
     "partial_path",
     "partial_progress",

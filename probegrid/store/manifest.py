@@ -63,7 +63,7 @@ from probegrid.errors import StoreError
 GridField = Annotated[GridSpec, PlainValidator(GridSpec.from_dict),
                       PlainSerializer(GridSpec.as_dict)]
 
-__all__ = ['FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS', 'ArrayInfo', 'ArraySpec', 'StoreError', 'StoreManifest', 'partial_path']
+__all__ = ['FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS', 'ArrayInfo', 'ArraySpec', 'SceneFile', 'StoreError', 'StoreManifest', 'partial_path']
 
 
 FORMAT_NAME: Final = "probegrid.store"
@@ -216,6 +216,23 @@ class _Plan(BaseModel):
         return self
 
 
+class SceneFile(BaseModel):
+    """Manifest entry of the scene copy a store keeps (for viewers; see
+    :func:`probegrid.store.writer.keepable_scene`).
+
+    ``file`` is a fixed name inside the store; ``source`` is the baked file's name only (no
+    directory), for people to read.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    file: Literal["scene.glb", "scene.gltf"]
+    media_type: Literal["model/gltf-binary", "model/gltf+json"]
+    bytes: int
+    sha256: str
+    source: str
+
+
 class StoreManifest(_Plan):
     """The ``manifest.json`` of a finished store.
 
@@ -235,11 +252,14 @@ class StoreManifest(_Plan):
         Content hash of the scene (and environment) the store was baked from.
     quality : dict
         Per-bake quality figures (furnace error, SH minimum, seam score, invalid probes, ...).
+    scene_file : SceneFile or None
+        The copy of the baked glTF scene kept in the store, if any.
     arrays : dict of str -> ArrayInfo
     """
 
     created: datetime
     quality: dict[str, Any]
+    scene_file: SceneFile | None = None
 
 
 # ---------------------------------------------------------------------------- JSON helpers

@@ -105,6 +105,11 @@ def _validate_store_dir(directory: Path, *, allow_partial: bool = False) -> Stor
     manifest = _load_manifest_json(manifest_file, StoreManifest)
     for name, info in manifest.arrays.items():
         _check_array_file(directory, name, info)
+    kept = manifest.scene_file
+    if kept is not None:
+        f = directory / kept.file
+        if not f.is_file() or f.stat().st_size != kept.bytes:
+            raise StoreError(f"{f} is missing or is not the {kept.bytes} bytes the manifest says")
     return manifest
 
 

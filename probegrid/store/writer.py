@@ -42,19 +42,21 @@ All failures raise :class:`~probegrid.errors.StoreError` with a one-line message
 from __future__ import annotations
 
 import errno
+import hashlib
+import json
 import os
 import shutil
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Final, Self
+from typing import Any, Final, Literal, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 from pydantic import BaseModel
 
-from probegrid._fs import atomic_write_text, fsync_dir, fsync_file, lock_dir
+from probegrid._fs import atomic_write_bytes, atomic_write_text, fsync_dir, fsync_file, lock_dir
 from probegrid.core.grid import GridSpec
 from probegrid.store.manifest import (
     DONE_FILE,
@@ -62,6 +64,7 @@ from probegrid.store.manifest import (
     PLAN_FILE,
     ArrayInfo,
     ArraySpec,
+    SceneFile,
     StoreError,
     StoreManifest,
     _check_name,
@@ -79,6 +82,52 @@ from probegrid.store.reader import (
 )
 
 __all__ = ['StoreWriter', 'create_npy']
+
+
+# ---------------------------------------------------------------------------- the scene copy
+_GLB_MAGIC: Final = b"glTF"
+
+
+def keepable_scene(path: str | os.PathLike[str]) -> Literal["scene.glb", "scene.gltf"] | None:
+    """The name a store would keep a copy of this glTF file under, or None when it cannot.
+
+    A GLB is kept as ``scene.glb``; a ``.gltf`` whose buffers and images are all embedded
+    (``data:`` URIs, or a buffer without a URI) as ``scene.gltf``. A ``.gltf`` that refers to
+    other files is not kept (None): the copy would be incomplete. Raises :class:`StoreError`
+    when the file cannot be read or is neither.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as f:
+            head = f.read(4)
+            if head == _GLB_MAGIC:
+                return "scene.glb"
+            doc = json.loads(head + f.read())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StoreError(f"cannot keep the scene {p}: not a readable glTF file ({exc})") from None
+    if not isinstance(doc, dict):
+        raise StoreError(f"cannot keep the scene {p}: not a glTF document")
+    for key in ("buffers", "images"):
+        for item in doc.get(key) or []:
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                return None
+    return "scene.gltf"
+
+
+def _keep_scene(source: Path, directory: Path) -> SceneFile | None:
+    """Copy ``source`` into ``directory`` under its fixed name (atomically); its manifest entry."""
+    name = keepable_scene(source)
+    if name is None:
+        return None
+    try:
+        data = source.read_bytes()
+    except OSError as exc:
+        raise StoreError(f"cannot keep the scene {source}: {exc}") from None
+    atomic_write_bytes(directory / name, data)
+    media = "model/gltf-binary" if name == "scene.glb" else "model/gltf+json"
+    return SceneFile(file=name, media_type=media, bytes=len(data),
+                     sha256=hashlib.sha256(data).hexdigest(), source=source.name)
 
 
 # ---------------------------------------------------------------------------- writing
@@ -529,7 +578,12 @@ class StoreWriter:
         if self._durable:
             self._done_map.flush()
 
-    def finish(self, *, quality: Mapping[str, Any] | BaseModel | None = None) -> ProbeStore:
+    def finish(
+        self,
+        *,
+        quality: Mapping[str, Any] | BaseModel | None = None,
+        scene_file: str | os.PathLike[str] | None = None,
+    ) -> ProbeStore:
         """Publish the finished store atomically and return it opened for reading.
 
         Parameters
@@ -537,6 +591,9 @@ class StoreWriter:
         quality : mapping, optional
             Per-bake quality figures for the manifest (JSON-serialisable). When resuming a bake
             that was killed during a previous ``finish``, ``None`` keeps the recorded figures.
+        scene_file : path, optional
+            The glTF file that was baked: a copy is kept in the store and recorded in the
+            manifest (``scene_file``) when :func:`keepable_scene` allows it.
         """
         self._require_open()
         left = self.n_probes - self.n_done
@@ -552,8 +609,14 @@ class StoreWriter:
             mm.flush()
             fsync_file(self._partial / self._plan.arrays[name].file)
         self._maps = {}
+        kept = None
+        if scene_file is not None:
+            kept = _keep_scene(Path(scene_file), self._partial)
+        elif self._finished_manifest is not None:
+            kept = self._finished_manifest.scene_file
         plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
-        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q)
+        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q,
+                                 scene_file=kept)
         atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
         self._done = np.ones(self.n_probes, dtype=bool)
         self._done_map = None
