@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.bake.inside import inside_solid
 from probegrid.bake.render import (
     IndirectField,
     ProbeRenderer,
@@ -232,7 +233,8 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
     def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
-        return (frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach), frac
+        return ((frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach)
+                & ~inside_solid(state.renderer.tracer, ctx.scene, points)), frac
 
     valid, frac = usable(lattice)
     pos = lattice.copy()
