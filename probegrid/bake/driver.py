@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.inside import inside_solid
+from probegrid.bake.nolight import light_quality, printable
 from probegrid.bake.render import (
     IndirectField,
     ProbeRenderer,
@@ -396,7 +397,7 @@ class BakeReport:
     quality: dict[str, Any]
 
     def summary(self) -> str:
-        q = {k: (math.nan if v is None else v) for k, v in self.quality.items()}
+        q = {k: printable(v) for k, v in self.quality.items()}
         return "\n".join([
             f"baked {self.probes} probes ({self.store.grid.label}) into {self.store.path}/ in "
             f"{self.seconds:.1f} s, {self.rays / max(self.seconds, 1e-9) / 1e6:.2f} Mrays/s"
@@ -490,12 +491,15 @@ def bake(
     executor: Executor | None = None,
     progress: ProgressFn | None = None,
     overwrite: bool = False,
+    allow_black: bool = True,
 ) -> BakeReport:
     """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
 
     Resumes an interrupted bake of the same scene and settings. ``executor`` defaults to the
     calling process (:class:`~probegrid.bake.executors.InlineExecutor`); the CLI passes local
     processes or a Dask cluster.
+    ``allow_black=False`` stops before finishing a store none of whose valid probes received
+    light (:func:`probegrid.bake.nolight.light_quality`; the CLI's default).
     """
     st = settings or BakeSettings()
     env = environment or Environment()
@@ -617,6 +621,7 @@ def bake(
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
+        quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
         store = w.finish(quality=quality)
         shutil.rmtree(work, ignore_errors=True)
         seconds = time.perf_counter() - t0
