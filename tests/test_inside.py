@@ -27,7 +27,7 @@ def _room_with_cube(cube_lo=(-1, -1, -1), cube_hi=(1, 1, 1), *, cube=TWO_SIDED):
     solid = b.add_material(cube)
     b.add_box((-3, -3, -3), (3, 3, 3), material=room, inward=True)
     b.add_box(cube_lo, cube_hi, material=solid)
-    b.add_light(PointLight((0.0, 2.5, 0.0), (1.0, 1.0, 1.0), 20.0))
+    b.add_light(PointLight((2.0, 2.5, 0.0), (1.0, 1.0, 1.0), 20.0))
     return b.build()
 
 
@@ -159,3 +159,27 @@ def test_votes_are_fractions_of_the_directions(n):
     tracer = RayTracer.from_scene(scene)
     v = inside_votes(tracer, scene, np.array([[0.0, 0, 0], [2.0, 2, 2]]), directions=n)
     assert v[0] == 1.0 and v[1] == 0.0
+
+
+def test_a_double_sided_room_wound_inside_out_around_its_light_stays_a_room():
+    """A room modelled from a cube without flipping its normals, double-sided (it renders
+    either way): by its winding a solid, but it holds the scene's light, and light does not
+    shine from inside matter: a room. A double-sided solid cube beside the light stays solid,
+    and so does a glowing (emissive, double-sided) cube: its own light does not count."""
+    b = SceneBuilder()
+    two = b.add_material(TWO_SIDED)
+    glow = b.add_material(dataclasses.replace(Material.diffuse(0.5, emission=3.0),
+                                              double_sided=True))
+    b.add_box((-3, -3, -3), (3, 3, 3), material=two)  # outward normals
+    b.add_box((-2, -2, -2), (-1, -1, -1), material=two)
+    b.add_box((1, 1, 1), (2, 2, 2), material=glow)
+    b.add_light(PointLight((0.0, 2.0, 0.0), (1.0, 1.0, 1.0), 10.0))
+    scene = b.build()
+    idx = SolidIndex.build(scene)
+    assert idx.kind.tolist() == [SHELL] * 12 + [SOLID] * 24
+    pts = np.array([[0.0, 0, 0], [2.5, -2.5, 2.5], [-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])
+    assert inside_solid(RayTracer.from_scene(scene), scene, pts).tolist() == [
+        False, False, True, True]
+    # without the light the big cube is what its winding says: a solid
+    plain = _scene_of(*box_mesh((-3, -3, -3), (3, 3, 3))[:2])
+    assert (SolidIndex.build(plain).kind == SOLID).all()

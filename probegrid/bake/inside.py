@@ -22,6 +22,11 @@ Method
      (matter inside: a cube, a slab), else a **shell** (air inside: a room modelled with inward
      faces). A consistently wound mesh is thus read exactly as authored; an inconsistently wound
      one (a few flipped faces) as its majority says -- the fallback for inconsistent winding.
+   * a closed **double-sided** component read as a solid that holds a source of light (a
+     punctual light, or a point just in front of an emissive triangle of another component,
+     tested as in 2.) is read as a shell instead: light does not shine from inside matter, and
+     a room modelled from a cube without flipping its normals, double-sided so that it renders
+     either way (a common export), is a room -- the fallback for rooms wound inside out.
    * **open, non-manifold or non-orientable**: its winding says nothing about an inside. Its
      single-sided triangles keep their authored back (the RTXGI-style back-face test of the
      classifier); its double-sided ones have no back -- the fallback for open meshes, where the
@@ -165,7 +170,9 @@ class SolidIndex:
         return int(np.unique(self.component[self.kind == SOLID]).size)
 
     @classmethod
-    def build(cls, scene: Scene) -> SolidIndex:
+    def build(cls, scene: Scene, tracer: RayTracer | None = None) -> SolidIndex:
+        """The index of ``scene`` (``tracer``: its ray tracer, for the light-source
+        fallback; built when needed)."""
         tris = np.asarray(scene.triangles, dtype=np.int64)
         verts = np.asarray(scene.vertices, dtype=np.float64)
         t = len(tris)
@@ -224,19 +231,82 @@ class SolidIndex:
             flip, -1.0, 1.0)[:, None]
         sided = closed | ~np.asarray(scene.double_sided, dtype=bool)
         sided &= ok
+        index = cls(roots, kind, sided, normals)
+        two_sided = np.asarray(scene.double_sided, dtype=bool)
+        solid_faces = kind == SOLID
+        if solid_faces.any() and two_sided[solid_faces].any():
+            points, source = _light_points(scene, roots)
+            if len(points):
+                lit = index._solids_around(tracer or RayTracer.shared(scene), points, source)
+                # a double-sided solid (every face double-sided) holding a light: a room
+                all_two = np.bincount(np.maximum(roots, 0), weights=(~two_sided & closed),
+                                      minlength=t) == 0
+                turn = closed & np.isin(roots, lit) & all_two[np.maximum(roots, 0)]
+                kind[turn] = SHELL
+                normals[turn] *= -1.0
         for arr in (roots, kind, sided, normals):
             arr.setflags(write=False)
-        return cls(roots, kind, sided, normals)
+        return index
+
+    def _solids_around(self, tracer: RayTracer, points: NDArray[np.float64],
+                       source: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Components (labels) of the solids that hold any of ``points (L, 3)`` (more than
+        half of a point's rays meet the back of that component's faces first), other than the
+        point's ``source`` component (an emitter's own solid)."""
+        d = vote_directions(DIRECTIONS)
+        dirs = np.tile(d, (len(points), 1))
+        prim = tracer.intersect(np.repeat(points, len(d), axis=0), dirs).prim_id
+        tri = np.maximum(prim, 0)
+        back = ((prim >= 0) & (self.kind[tri] == SOLID)
+                & (np.einsum("ni,ni->n", self.normals[tri], dirs) > 0))
+        comp = np.where(back, self.component[tri], -1).reshape(len(points), len(d))
+        lab = np.sort(comp, axis=1)  # per point: the majority label, if any, is the median
+        major = lab[:, len(d) // 2]
+        votes = (comp == major[:, None]).sum(axis=1)
+        return np.unique(major[(major >= 0) & (major != source)
+                               & (votes > MAJORITY * len(d))])
+
+
+#: Most emissive triangles whose fronts are tested as light sources (the most powerful ones).
+MAX_EMITTER_POINTS: Final[int] = 256
+
+
+def _light_points(scene: Scene, component: NDArray[np.int64]
+                  ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Points where light starts: punctual lights (not directional) and, just in front of
+    each of the :data:`MAX_EMITTER_POINTS` most powerful emissive triangles, its centroid (on
+    both sides of a double-sided one); ``(L, 3)``, and the component each comes from (-2 for
+    a punctual light)."""
+    pts = [np.asarray(li.position, dtype=np.float64) for li in scene.lights
+           if hasattr(li, "position")]
+    src = [-2] * len(pts)
+    emis = np.stack([m.emissive for m in scene.materials])[np.asarray(scene.material)]
+    power = emis.max(axis=1) * np.asarray(scene.triangle_areas)
+    power[component < 0] = 0
+    hot = np.flatnonzero(power > 0)
+    hot = hot[np.argsort(-power[hot], kind="stable")][:MAX_EMITTER_POINTS]
+    if hot.size:
+        v = np.asarray(scene.vertices, dtype=np.float64)
+        extent = float(np.linalg.norm(np.ptp(v, axis=0))) or 1.0
+        c = v[np.asarray(scene.triangles)[hot]].mean(axis=1)
+        n = np.asarray(scene.triangle_normals)[hot]
+        eps = 1e-4 * extent
+        pts.extend(c + eps * n)
+        two = np.asarray(scene.double_sided)[hot]
+        pts.extend(c[two] - eps * n[two])
+        src.extend(component[hot])
+        src.extend(component[hot[two]])
+    return np.array(pts, dtype=np.float64).reshape(-1, 3), np.array(src, dtype=np.int64)
 
 
 _INDEX: weakref.WeakKeyDictionary[Scene, SolidIndex] = weakref.WeakKeyDictionary()
 
 
-def solid_index(scene: Scene) -> SolidIndex:
+def solid_index(scene: Scene, tracer: RayTracer | None = None) -> SolidIndex:
     """The scene's :class:`SolidIndex`, built once per scene object (per process)."""
     idx = _INDEX.get(scene)
     if idx is None:
-        idx = _INDEX[scene] = SolidIndex.build(scene)
+        idx = _INDEX[scene] = SolidIndex.build(scene, tracer)
     return idx
 
 
@@ -247,7 +317,7 @@ def inside_votes(tracer: RayTracer, scene: Scene, points: NDArray[np.float64], *
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) == 0:
         return np.zeros(0)
-    idx = solid_index(scene)
+    idx = solid_index(scene, tracer)
     d = vote_directions(directions)
     dirs = np.tile(d, (len(pts), 1))
     hits = tracer.intersect(np.repeat(pts, len(d), axis=0), dirs)

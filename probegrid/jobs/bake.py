@@ -210,9 +210,11 @@ def _fit_free_space(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float6
 
 # ------------------------------------------------------------------------------ estimate
 #: Resident memory of a bake worker before its batch: the interpreter, numpy, the compiled
-#: kernels and Embree (measured: peak RSS of a one-probe-per-batch bake of the sample room at
-#: face 8, 216 MB on this project's test machine, Python 3.11, numba 0.6x).
-WORKER_BASE_BYTES = 216 * 2**20
+#: kernels and Embree (measured: the peak RSS of the worker process of a face-8,
+#: one-probe-per-batch bake of the sample room, 183 MiB, Linux x86-64, Python 3.11, numba 0.68;
+#: with this base the model gave 269 MiB for a measured 268 MiB at face 32, batch 8, and 313
+#: MiB for 319 MiB at face 64, batch 16).
+WORKER_BASE_BYTES = 183 * 2**20
 #: Bytes held per traced ray of a batch (directions, weights, origins, radiance, distance,
 #: flags and the per-probe patterns) and per ray of a shading chunk (hit records, surfaces,
 #: shadow rays: the chunk's temporaries).
