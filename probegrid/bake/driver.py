@@ -7,7 +7,8 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    by default). So is a probe all of whose rays hit within ``enclosure`` times the smallest cell
    size (default half a cell): inside a double-sided solid, whose inside shows no backface, or a
    cavity smaller than the grid resolves (a closed room larger than that is not affected; 0
-   turns the test off). With ``relocate``, an invalid probe is moved to the nearest point of a
+   turns the test off). So is a probe inside a closed solid by the geometry's authored winding,
+   double-sided or not (:mod:`probegrid.bake.inside`). With ``relocate``, an invalid probe is moved to the nearest point of a
    small lattice within ``relocate_fraction`` of a cell that passes the tests; otherwise it
    stays invalid and every reader gives it zero weight.
 2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.bake.render`)
@@ -45,6 +46,7 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
 from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import light_quality, printable
 from probegrid.bake.render import (
@@ -239,7 +241,7 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
     valid, frac = usable(lattice)
     pos = lattice.copy()
-    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2
+    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2 + INSIDE_DIRECTIONS
     rays = len(batch) * rays_per_point
     if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
         cell = np.where(np.array(ctx.grid.counts) > 1, ctx.grid.cell_size, 0.0)

@@ -460,13 +460,16 @@ def run_bake(job: BakeJob) -> BakeReport:
                            color=job.environment_color, intensity=job.environment_intensity,
                            rotation_deg=job.environment_rotation)
     require_light(scene, env, allow_black=job.allow_black)
+    notes: list[str] = []  # printed once every check passed: an error stays one line
     grid = grid_for(scene, grid=job.grid, spacing=job.spacing, bounds=job.bounds,
-                    margin=job.margin, say=lambda text: print(text, file=sys.stderr))
+                    margin=job.margin, say=notes.append)
     est = estimate(job.settings, grid, scene, env, shares_files=job.scheduler is None)
-    print(est.summary(), file=sys.stderr)
+    notes.append(est.summary())
     check_disk(job.out, est)
     executor = make_executor(workers=job.workers, scheduler=job.scheduler)
     bar = _Bar(enabled=job.progress and sys.stderr.isatty())
+    for line in notes:
+        print(line, file=sys.stderr)
     print(f"baking {grid.label} = {grid.n_probes} probes of {job.scene} on "
           f"{executor.description}", file=sys.stderr)
     try:
