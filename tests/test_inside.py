@@ -86,6 +86,9 @@ def test_topology_reads_solids_shells_and_open_meshes():
     assert (open_box.kind == OPEN).all() and not open_box.sided.any()
     single = SolidIndex.build(_scene_of(v, t[:10], double_sided=False))
     assert single.sided.all()
+    # a quad doubled back to back is closed and orientable but encloses nothing: open
+    q = t[:2]
+    assert (SolidIndex.build(_scene_of(v, np.vstack([q, q[:, ::-1]]))).kind == OPEN).all()
     # effective normals of a solid point out of it: the +X face's normal is +X
     centres = v[t].mean(axis=1)
     px = np.flatnonzero(np.isclose(centres[:, 0], 1.0))

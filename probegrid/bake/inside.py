@@ -74,6 +74,10 @@ DIRECTIONS: Final[int] = 64
 #: Fraction of a point's rays that must vote "inside" (a strict majority).
 MAJORITY: Final[float] = 0.5
 
+#: A closed component enclosing less than ``THIN * extent * area`` (the scene's diagonal, the
+#: component's area) is a doubled surface, not a solid: open.
+THIN: Final[float] = 1e-6
+
 #: Component kinds of :attr:`SolidIndex.kind`.
 OPEN, SOLID, SHELL = 0, 1, 2
 
@@ -155,8 +159,8 @@ class SolidIndex:
         The triangle has a back for the inside test (closed orientable component, or a
         single-sided material).
     normals : (T, 3) float64
-        Effective unit normals: pointing out of the matter (out of a solid, into a shell's air
-        ... i.e. a shell's inward faces), authored for open triangles.
+        Effective unit normals, pointing out of the matter: out of a solid, into the air a shell
+        encloses; the authored normals of open triangles.
     """
 
     component: NDArray[np.int64]
@@ -214,10 +218,17 @@ class SolidIndex:
         s = np.where(flips == 1, -1.0, 1.0)
         comp_vol = np.bincount(np.maximum(roots, 0), weights=np.where(closed, s * vol, 0.0),
                                minlength=t)
+        area = np.asarray(scene.triangle_areas, dtype=np.float64)
+        # a closed surface enclosing (almost) no volume -- a plane doubled back to back -- has
+        # no inside: open
+        comp_area = np.bincount(np.maximum(roots, 0), weights=np.where(closed, area, 0.0),
+                                minlength=t)
+        extent = float(np.linalg.norm(np.ptp(verts, axis=0)))
+        thin = np.abs(comp_vol) <= THIN * extent * comp_area
+        closed &= ~thin[np.maximum(roots, 0)]
         # per face: does the authored winding agree with the outward one?
         outward_flip = comp_vol[np.maximum(roots, 0)] < 0  # the root's orientation points in
         agrees = (flips == 1) == outward_flip
-        area = np.asarray(scene.triangle_areas, dtype=np.float64)
         agree_area = np.bincount(np.maximum(roots, 0), weights=np.where(closed & agrees, area, 0),
                                  minlength=t)
         total_area = np.bincount(np.maximum(roots, 0), weights=np.where(closed, area, 0),
