@@ -196,7 +196,7 @@ def _fit_free_space(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float6
         f *= 1.25
     axes = [lo[i] + (np.arange(m[i]) + 0.5) * extent[i] / m[i] for i in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    free = ~inside_solid(RayTracer.from_scene(scene), scene, pts)
+    free = ~inside_solid(RayTracer.shared(scene), scene, pts)
     if not free.any():
         return lo, hi, "; no free space found inside the scene's bounds: probes inside solids"
     half = 0.5 * extent / m
