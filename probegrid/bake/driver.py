@@ -9,8 +9,8 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    cavity smaller than the grid resolves (a closed room larger than that is not affected; 0
    turns the test off). So is a probe inside a closed solid by the geometry's authored winding,
    double-sided or not (:mod:`probegrid.bake.inside`). With ``relocate``, an invalid probe is
-   moved to the nearest point of a small lattice within ``relocate_fraction`` of a cell that passes the tests; otherwise it
-   stays invalid and every reader gives it zero weight.
+   moved to the nearest point of a small lattice within ``relocate_fraction`` of a cell that
+   passes the tests; otherwise it stays invalid and every reader gives it zero weight.
 2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.bake.render`)
    with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
    projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
