@@ -187,7 +187,8 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, type=Path, help="store directory NAME.probes")
     J, S = BakeJob, BakeSettings
     g = p.add_mutually_exclusive_group()
-    _option(g, J, "grid", help="probe counts NXxNYxNZ (default: 8 along the longest axis)")
+    _option(g, J, "grid", help="probe counts NXxNYxNZ (default: a spacing of the longest "
+            "side / 8, fitted to the scene's free space)")
     _option(g, J, "spacing",
             help="probes exactly S (or SX,SY,SZ) apart, centred in the box (scene units)")
     _option(p, J, "bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
@@ -214,6 +215,7 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(x, J, "workers", help="local worker processes (default: all cores)")
     _option(x, J, "scheduler", help="Dask scheduler address, e.g. tcp://HOST:8786")
     _option(p, J, "overwrite", help="replace an existing store")
+    _option(p, J, "allow_black", help="bake a scene without light, or keep a black result")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 

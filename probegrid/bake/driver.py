@@ -7,9 +7,10 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    by default). So is a probe all of whose rays hit within ``enclosure`` times the smallest cell
    size (default half a cell): inside a double-sided solid, whose inside shows no backface, or a
    cavity smaller than the grid resolves (a closed room larger than that is not affected; 0
-   turns the test off). With ``relocate``, an invalid probe is moved to the nearest point of a
-   small lattice within ``relocate_fraction`` of a cell that passes the tests; otherwise it
-   stays invalid and every reader gives it zero weight.
+   turns the test off). So is a probe inside a closed solid by the geometry's authored winding,
+   double-sided or not (:mod:`probegrid.bake.inside`). With ``relocate``, an invalid probe is
+   moved to the nearest point of a small lattice within ``relocate_fraction`` of a cell that
+   passes the tests; otherwise it stays invalid and every reader gives it zero weight.
 2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.bake.render`)
    with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
    projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
@@ -45,6 +46,9 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
+from probegrid.bake.inside import inside_solid
+from probegrid.bake.nolight import light_quality, printable
 from probegrid.bake.render import (
     IndirectField,
     ProbeRenderer,
@@ -233,11 +237,12 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
 
     def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
-        return (frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach), frac
+        return ((frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach)
+                & ~inside_solid(state.renderer.tracer, ctx.scene, points)), frac
 
     valid, frac = usable(lattice)
     pos = lattice.copy()
-    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2
+    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2 + INSIDE_DIRECTIONS
     rays = len(batch) * rays_per_point
     if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
         cell = np.where(np.array(ctx.grid.counts) > 1, ctx.grid.cell_size, 0.0)
@@ -395,7 +400,7 @@ class BakeReport:
     quality: dict[str, Any]
 
     def summary(self) -> str:
-        q = {k: (math.nan if v is None else v) for k, v in self.quality.items()}
+        q = {k: printable(v) for k, v in self.quality.items()}
         return "\n".join([
             f"baked {self.probes} probes ({self.store.grid.label}) into {self.store.path}/ in "
             f"{self.seconds:.1f} s, {self.rays / max(self.seconds, 1e-9) / 1e6:.2f} Mrays/s"
@@ -490,13 +495,16 @@ def bake(
     progress: ProgressFn | None = None,
     overwrite: bool = False,
     scene_file: str | Path | None = None,
+    allow_black: bool = True,
 ) -> BakeReport:
     """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
 
     Resumes an interrupted bake of the same scene and settings. ``executor`` defaults to the
     calling process (:class:`~probegrid.bake.executors.InlineExecutor`); the CLI passes local
     processes or a Dask cluster. ``scene_file``, the glTF file ``scene`` was loaded from, is
-    kept in the store for viewers (see :func:`probegrid.store.manifest.keepable_scene`).
+    kept in the store for viewers (see :func:`probegrid.store.writer.keepable_scene`).
+    ``allow_black=False`` stops before finishing a store none of whose valid probes received
+    light (:func:`probegrid.bake.nolight.light_quality`; the CLI's default).
     """
     st = settings or BakeSettings()
     env = environment or Environment()
@@ -620,6 +628,7 @@ def bake(
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
+        quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
         store = w.finish(quality=quality, scene_file=scene_file)
         shutil.rmtree(work, ignore_errors=True)
         seconds = time.perf_counter() - t0

@@ -1,0 +1,193 @@
+"""The ``probegrid bake`` job (issue 10, items 7-9): no silent black, a default grid that fits
+the scene, and the estimate before work (probegrid.jobs.bake, probegrid.bake.nolight)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from probegrid.bake.environment import Environment
+from probegrid.bake.executors import InlineExecutor
+from probegrid.bake.inside import inside_solid
+from probegrid.bake.nolight import NO_LIGHT, light_sources
+from probegrid.bake.settings import BakeSettings
+from probegrid.cli import EXIT_BAD_INPUT, main
+from probegrid.core.lights import PointLight
+from probegrid.jobs.bake import BakeJob, estimate, grid_for, run_bake
+from probegrid.raytrace import RayTracer
+from probegrid.scene import Material, SceneBuilder
+from probegrid.store import StoreError, open_store, partial_path
+
+FAST = ["--face-size", "8", "--diffuse-size", "4", "--bounces", "0", "--no-progress"]
+
+
+@pytest.fixture
+def scene_file(monkeypatch):
+    """Bake Python-built scenes through the CLI: ``use(scene)`` makes the job's glTF loader
+    return ``scene``; batches run in the test's process."""
+    import probegrid.scene as scenes
+    from probegrid.bake import executors
+
+    monkeypatch.setattr(executors, "make_executor",
+                        lambda **kw: InlineExecutor(check_pickle=False))
+
+    def use(scene):
+        monkeypatch.setattr(scenes, "load_gltf", lambda path: scene)
+        return "scene.glb"
+
+    return use
+
+
+def _one_line(capsys, *, only: bool = True) -> str:
+    """The error line on stderr: its only line for a refusal before work, else its last."""
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and err[-1].startswith("probegrid: error:"), err
+    assert len(err) == 1 or not only, err
+    return err[-1]
+
+
+def _dark_room(*, light=False, boxed_light=False):
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    b.add_box((-2, 0, -2), (2, 3, 2), material=m, inward=True)
+    if boxed_light:  # a light shut in a closed (single-sided, outward) box: reaches nothing
+        b.add_box((-0.3, 1.2, -0.3), (0.3, 1.8, 0.3), material=m)
+    if light or boxed_light:
+        b.add_light(PointLight((0.0, 1.5, 0.0), (1.0, 1.0, 1.0), 10.0))
+    return b.build()
+
+
+def test_a_scene_without_light_is_refused_before_any_work(tmp_path, scene_file, capsys):
+    out = tmp_path / "dark.probes"
+    code = main(["bake", scene_file(_dark_room()), "--out", str(out), "--grid", "2x2x2", *FAST])
+    assert code == EXIT_BAD_INPUT
+    line = _one_line(capsys)
+    assert "no light" in line and "--allow-black" in line
+    assert not list(tmp_path.iterdir())  # nothing written, not even a work directory
+    assert light_sources(_dark_room(), Environment()) == []
+    assert light_sources(_dark_room(light=True), Environment()) == ["1 punctual light"]
+    assert light_sources(_dark_room(), Environment(color=(0.1, 0.1, 0.1))) == ["the environment"]
+    # asked for, a black bake is made, and its quality figures read "no light", never NaN
+    assert main(["bake", scene_file(_dark_room()), "--out", str(out), "--grid", "2x2x2",
+                 "--allow-black", *FAST]) == 0
+    store = open_store(out)
+    q = store.manifest.quality
+    assert q["light"] == NO_LIGHT and q["lit_probes"] == 0
+    assert q["energy_max_error"] == NO_LIGHT
+    assert not any(isinstance(v, float) and math.isnan(v) for v in q.values())
+    text = (out / "manifest.json").read_text()
+    assert "NaN" not in text and json.loads(text)
+    assert "nan" not in capsys.readouterr().out
+
+
+def test_an_all_black_bake_exits_non_zero_and_resumes_with_allow_black(tmp_path, scene_file,
+                                                                        capsys):
+    """The scene has a light, but it is shut in a box: every valid probe stays black. The
+    bake stops before finishing the store, with the reason; --allow-black resumes it."""
+    scene = scene_file(_dark_room(boxed_light=True))
+    out = tmp_path / "black.probes"
+    args = ["bake", scene, "--out", str(out), "--grid", "2x2x2", *FAST]
+    assert main(args) == EXIT_BAD_INPUT
+    line = _one_line(capsys, only=False)  # after the estimate and the bake's own lines
+    assert "came out black" in line and "none of the 8 valid probes" in line
+    with pytest.raises(StoreError):
+        open_store(out)
+    assert partial_path(out).exists()
+    assert main([*args, "--allow-black"]) == 0
+    assert "8 probes resumed" in capsys.readouterr().out
+    q = open_store(out).manifest.quality
+    assert q["light"] == NO_LIGHT and q["energy_max_error"] == NO_LIGHT
+    # the same room with the light in the open: lit, finished, figures are numbers
+    lit = tmp_path / "lit.probes"
+    assert main(["bake", scene_file(_dark_room(light=True)), "--out", str(lit), "--grid",
+                 "2x2x2", *FAST]) == 0
+    q = open_store(lit).manifest.quality
+    assert q["light"] == "lit" and q["lit_probes"] == 8 and q["energy_max_error"] < 1e-2
+
+
+def _room_on_a_slab():
+    """An 8 x 3 x 8 room standing on a floor slab 1 unit thick that overhangs it."""
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    b.add_box((-4, 0, -4), (4, 3, 4), material=m, inward=True)
+    b.add_box((-4.5, -1.0, -4.5), (4.5, 0, 4.5), material=m)  # the slab, a closed solid
+    b.add_light(PointLight((0.0, 2.5, 0.0), (1.0, 1.0, 1.0), 10.0))
+    return b.build()
+
+
+def test_the_default_grid_puts_no_probe_in_a_floor_slab():
+    """With no --grid/--spacing the box is fitted to the free space: no probe inside the slab
+    (the old default, 8 along the longest side at cell centres of the scene's bounds, put its
+    lowest layer half a cell = 0.56 deep in it)."""
+    scene = _room_on_a_slab()
+    said = []
+    g = grid_for(scene, say=said.append)
+    p = g.positions()
+    assert p[:, 1].min() > 0.0  # above the slab's top
+    assert not inside_solid(RayTracer.from_scene(scene), scene, p).any()
+    assert len(said) == 1 and f"default grid {g.label}" in said[0] and "free space" in said[0]
+    # spacing: the longest side (9) / 8; two layers at least along every longer side
+    step = 9 / 8
+    extent = np.array([9.0, 3.0, 9.0])
+    assert all(c >= 2 for c, e in zip(g.counts, extent, strict=True) if e > step)
+
+
+def test_the_default_grid_has_two_layers_along_every_side_longer_than_the_spacing():
+    """A flat room 8 x 1.2 x 0.5: spacing 1; the 1.2 side gets 2 layers (the old default,
+    rint(8 e / longest) = 1, gave one), the 0.5 side one."""
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    b.add_box((0, 0, 0), (8, 1.2, 0.5), material=m, inward=True)
+    g = grid_for(b.build())
+    assert g.counts == (8, 2, 1)
+    np.testing.assert_allclose(np.unique(g.positions()[:, 1]), [0.3, 0.9])
+    np.testing.assert_allclose(np.unique(g.positions()[:, 2]), [0.25])
+
+
+def _du(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def test_the_estimate_matches_the_store_and_is_printed(tmp_path, scene_file, capsys):
+    scene = _dark_room(light=True)
+    out = tmp_path / "e.probes"
+    assert main(["bake", scene_file(scene), "--out", str(out), "--grid", "3x3x3",
+                 "--face-size", "16", "--diffuse-size", "4", "--bounces", "1",
+                 "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    st = BakeSettings(face_size=16, diffuse_size=4, bounces=1)
+    store = open_store(out)
+    est = estimate(st, store.grid, scene)
+    real = _du(out)
+    assert abs(est.store_bytes - real) <= 0.05 * real, (est.store_bytes, real)
+    assert "estimate: 27 probes" in err and "store " in err and "peak worker memory" in err
+    assert est.primary_rays == 2 * 27 * 6 * 16 * 16
+    assert est.shadow_rays == est.primary_rays + 27  # one light: a shadow ray per hit at most
+
+
+def test_a_store_that_does_not_fit_on_the_disk_is_refused_with_the_figures(
+        tmp_path, scene_file, capsys, monkeypatch):
+    import shutil
+
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage",
+                        lambda p: real(p)._replace(free=100_000))  # 100 kB free
+    out = tmp_path / "big.probes"
+    code = main(["bake", scene_file(_dark_room(light=True)), "--out", str(out), "--grid",
+                 "4x4x4", *FAST])
+    assert code == EXIT_BAD_INPUT
+    line = _one_line(capsys)  # (and only that line: the estimate is printed once checked)
+    assert "not enough disk space" in line and "97.7 KiB free" in line and "store" in line
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_job_refuses_a_dark_scene_from_python_too(tmp_path, monkeypatch):
+    import probegrid.scene as scenes
+
+    monkeypatch.setattr(scenes, "load_gltf", lambda path: _dark_room())
+    with pytest.raises(ValueError, match="the scene has no light"):
+        run_bake(BakeJob(scene=Path("x.glb"), out=tmp_path / "d.probes", grid="2x2x2"))
