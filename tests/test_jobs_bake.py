@@ -26,18 +26,22 @@ FAST = ["--face-size", "8", "--diffuse-size", "4", "--bounces", "0", "--no-progr
 
 
 @pytest.fixture
-def scene_file(monkeypatch):
+def scene_file(monkeypatch, tmp_path_factory):
     """Bake Python-built scenes through the CLI: ``use(scene)`` makes the job's glTF loader
-    return ``scene``; batches run in the test's process."""
+    return ``scene`` (the file it names is a minimal glTF document, which the store keeps a copy
+    of); batches run in the test's process."""
     import probegrid.scene as scenes
     from probegrid.bake import executors
 
     monkeypatch.setattr(executors, "make_executor",
                         lambda **kw: InlineExecutor(check_pickle=False))
 
+    file = tmp_path_factory.mktemp("scene") / "scene.gltf"
+    file.write_text('{"asset": {"version": "2.0"}}')
+
     def use(scene):
         monkeypatch.setattr(scenes, "load_gltf", lambda path: scene)
-        return "scene.glb"
+        return str(file)
 
     return use
 
