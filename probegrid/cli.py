@@ -70,7 +70,7 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--diffuse-size", type=_positive_int, default=32, help="diffuse face size")
     p.add_argument(
         "--diffuse-method", choices=["sh", "exact"], default="exact",
-        help="exact clamped-cosine integral (default) or via 9 SH coefficients",
+        help="exact clamped-cosine integral (default) or via SH coefficients (--sh-bands)",
     )
     p.add_argument("--specular-levels", type=_positive_int, help="mip levels (default: full chain)")
     p.add_argument(
@@ -80,6 +80,10 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--samples", type=_positive_int,
                    help="samples per texel for --specular-method fis")
+    p.add_argument(
+        "--sh-bands", type=_positive_int, default=3,
+        help="SH bands for sh.json and --diffuse-method sh (default 3 = 9 coefficients; up to 16)",
+    )
     p.add_argument(
         "--sh-window", choices=["none", "hanning", "lanczos", "gauss", "auto"], default="none",
         help="SH windowing against ringing (auto: the least that makes irradiance >= 0)",
@@ -115,6 +119,7 @@ def _run_filter(args: argparse.Namespace) -> int:
         specular_levels=args.specular_levels,
         specular_method=args.specular_method,
         samples=args.samples,
+        sh_bands=args.sh_bands,
         sh_window=args.sh_window,
         sh_window_width=args.sh_window_width,
         format=args.format,

@@ -47,7 +47,7 @@ from typing import Literal, get_args
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid import sh
+from probegrid.core import shbands
 from probegrid.cubemap import check_cube, downsample
 from probegrid.specular import zonal_convolution
 
@@ -123,9 +123,9 @@ class DiffuseSHInfo:
 
     Attributes
     ----------
-    coefficients : (9, C) float64
+    coefficients : (bands^2, C) float64
         Radiance SH coefficients actually used (after the window).
-    projected : (9, C) float64
+    projected : (bands^2, C) float64
         Radiance SH coefficients of the input, before windowing.
     window : str
         The window kind applied.
@@ -154,8 +154,9 @@ def diffuse_sh(
     *,
     window: SHWindow = "none",
     width: float | None = None,
+    bands: int = 3,
 ) -> tuple[NDArray[np.float32], DiffuseSHInfo]:
-    """Diffuse map from band-0-2 spherical harmonics.
+    """Diffuse map from spherical harmonics (bands 0-2 by default, any count with ``bands``).
 
     Parameters
     ----------
@@ -168,6 +169,9 @@ def diffuse_sh(
         window that makes the irradiance non-negative (:func:`probegrid.sh.auto_window`).
     width : float, optional
         Window width, required for "hanning", "lanczos" and "gauss"; must be None otherwise.
+    bands : int
+        Number of SH bands (:mod:`probegrid.core.shbands`; ``bands^2`` coefficients). The
+        default 3 is the 9-coefficient basis of :mod:`probegrid.sh`.
 
     Returns
     -------
@@ -185,17 +189,17 @@ def diffuse_sh(
     src = _finite_faces(faces)
     if not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 1:
         raise ValueError(f"size must be a positive integer, got {size!r}.")
-    projected = sh.project_cube(src)
+    projected = shbands.project_cube(src, bands)
     if window == "auto":
-        coeffs, used = sh.auto_window(projected, kind="hanning", quantity="irradiance")
+        coeffs, used = shbands.auto_window(projected, kind="hanning", quantity="irradiance")
         kind = "hanning"
     elif window == "none":
         coeffs, used, kind = projected, float("inf"), "none"
     else:
-        coeffs = sh.window(projected, kind=window, width=float(width))
+        coeffs = shbands.window(projected, kind=window, width=float(width))
         used, kind = float(width), window
-    cube = sh.diffuse_cube(coeffs, int(size), window="none")
-    vmin, dmin = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
+    cube = shbands.diffuse_cube(coeffs, int(size), window="none")
+    vmin, dmin = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     vmin = np.atleast_1d(vmin) / np.pi
     info = DiffuseSHInfo(
         coefficients=coeffs,

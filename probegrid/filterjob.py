@@ -8,7 +8,8 @@ resample it to a cube without aliasing, and compute
   coefficients (:mod:`probegrid.diffuse`),
 * the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
   (:mod:`probegrid.specular`),
-* the 9 radiance SH coefficients (:mod:`probegrid.sh`) and the minimum irradiance they imply,
+* the radiance SH coefficients (9 by default, ``bands^2`` with ``sh_bands``;
+  :mod:`probegrid.sh`, :mod:`probegrid.core.shbands`) and the minimum irradiance they imply,
 * the split-sum DFG lookup table (:mod:`probegrid.dfg`),
 
 then applies the seam export mode to every map and level and writes the maps, ``sh.json``, the
@@ -73,6 +74,7 @@ class FilterSettings(BaseModel):
     specular_levels: int | None = Field(default=None, ge=1, le=16)
     specular_method: Literal["tiered", "fis", "exact"] = "tiered"
     samples: int | None = Field(default=None, ge=1, le=65536)
+    sh_bands: int = Field(default=3, ge=1, le=16)
     sh_window: Literal["none", "hanning", "lanczos", "gauss", "auto"] = "none"
     sh_window_width: float | None = Field(default=None, gt=0)
     format: Literal["exr", "hdr"] = "exr"
@@ -267,7 +269,8 @@ def run_filter(
     Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
     for bad input, before anything is written to ``out_dir``.
     """
-    from probegrid import dfg, diffuse, imageio, seams, sh, specular
+    from probegrid import dfg, diffuse, imageio, seams, specular
+    from probegrid.core import shbands
 
     settings = settings or FilterSettings()
     say: Progress = progress or (lambda _m: None)
@@ -285,8 +288,9 @@ def run_filter(
 
     # --- compute everything before touching the output directory -----------------------
     t = time.perf_counter()
-    coeffs = sh.project_cube(cube)
-    irr_min, irr_min_dir = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
+    bands = settings.sh_bands
+    coeffs = shbands.project_cube(cube, bands)
+    irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -299,7 +303,7 @@ def run_filter(
         if settings.sh_window not in ("none", "auto") and width is None:
             raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
         diff, info = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
-                                        width=width)
+                                        width=width, bands=bands)
         sh_window = {
             "window": info.window,
             "width": info.width if np.isfinite(info.width) else None,
@@ -370,12 +374,17 @@ def run_filter(
         r = k / (levels - 1) if levels > 1 else 0.0
         write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
+    band_factors = shbands.clamped_cosine_factors(bands)
     sh_doc = {
         "coefficients": [[float(x) for x in row] for row in coeffs],
-        "basis": conv["sh_basis"],
-        "constants": conv["sh_constants"],
+        "bands": bands,
+        "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
+        "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
         "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm Y_lm(n), "
-                   "A = (pi, 2pi/3, pi/4)",
+                   + ("A = (pi, 2pi/3, pi/4)" if bands == 3 else
+                      "A_l = band_factors (A_0 = pi, A_1 = 2pi/3, 0 for odd l > 1, "
+                      "Ramamoorthi & Hanrahan 2001 eq. 8 for even l)"),
+        "band_factors": [float(a) for a in band_factors],
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
         "diffuse_map": {"method": settings.diffuse_method, **sh_window},

@@ -1,0 +1,1 @@
+"""Pure numpy math of probegrid (no I/O): the layer every other layer builds on."""
