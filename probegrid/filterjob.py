@@ -30,6 +30,7 @@ import json
 import os
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -46,6 +47,7 @@ __all__ = [
     "FILTER_FORMAT",
     "FilterResult",
     "FilterSettings",
+    "default_cube_size",
     "energy_ratio",
     "prepare_output_dir",
     "run_filter",
@@ -207,6 +209,29 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
     return float(solid_angle_integral(out).sum()) / r if r != 0 else float("nan")
 
 
+#: Largest cube face size chosen by default (a 256^2 chain takes ~2 s and ~300 MB here).
+DEFAULT_MAX_SIZE = 256
+
+
+def default_cube_size(height: int, width: int, layout: str) -> int:
+    """Face size used when ``--size`` is not given: the input's own resolution
+    (:func:`probegrid.layouts.default_face_size` before its rounding: ``W / 4`` for equirect,
+    ``S / pi`` for angular maps, the face size for crosses and faces) rounded *down* to a power
+    of two (the tiered GGX chain needs one, and no texel is finer than the input), at most
+    :data:`DEFAULT_MAX_SIZE` and at least 1. 1024 x 512 equirect -> 256, 1500 x 750 -> 256,
+    512 x 256 -> 128; six 100^2 faces -> 64."""
+    from probegrid import layouts
+
+    if layout == "faces":
+        exact = float(min(height, width))
+    else:
+        exact = {"equirect": width / 4, "angular": width / np.pi, "hcross": width / 4,
+                 "vcross": width / 3}[layout]
+        layouts.default_face_size(height, width, layout)  # checks the arguments
+    n = 1 << max(0, int(np.floor(np.log2(max(exact, 1.0)))))
+    return min(n, DEFAULT_MAX_SIZE)
+
+
 def _load_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
 ) -> tuple[NDArray[np.float32], str, int]:
@@ -248,11 +273,14 @@ def _load_environment(
     elif (source < 0).any():
         progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
 
-    if layout == "faces":
-        n = settings.size or int(source.shape[1])
+    if settings.size:
+        n = settings.size
+        why = "--size"
     else:
-        n = settings.size or layouts.default_face_size(source.shape[0], source.shape[1], layout)
-    progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube")
+        n = default_cube_size(source.shape[-3], source.shape[-2], layout)
+        why = (f"default: the input's resolution rounded down to a power of two, at most "
+               f"{DEFAULT_MAX_SIZE}; --size to choose")
+    progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube ({why})")
     cube = layouts.to_cube(source, layout, n)
     return cube, layout, bad
 
@@ -269,13 +297,19 @@ def run_filter(
     Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
     for bad input, before anything is written to ``out_dir``.
     """
-    from probegrid import dfg, diffuse, imageio, seams, specular
+    from probegrid import diffuse, imageio, seams, specular, usercache
     from probegrid.core import shbands
 
     settings = settings or FilterSettings()
     say: Progress = progress or (lambda _m: None)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
     out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    # options that conflict with each other are refused before any work
+    if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
+            and settings.sh_window_width is None):
+        raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
+    if settings.samples is not None and settings.specular_method != "fis":
+        raise ValueError("--samples applies to --specular-method fis (importance sampling)")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -293,43 +327,49 @@ def run_filter(
     irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method})")
+    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}) and GGX specular "
+        f"chain: {levels} levels from {n}^2")
     sh_window: dict[str, Any] = {"window": "none"}
-    if settings.diffuse_method == "exact":
-        diff = diffuse.diffuse_exact(cube, settings.diffuse_size)
-    else:
-        width = settings.sh_window_width
-        if settings.sh_window not in ("none", "auto") and width is None:
-            raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
-        diff, info = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
-                                        width=width, bands=bands)
+
+    def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
+        t = time.perf_counter()
+        if settings.diffuse_method == "exact":
+            return diffuse.diffuse_exact(cube, settings.diffuse_size), None, \
+                time.perf_counter() - t
+        d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
+                                    width=settings.sh_window_width, bands=bands)
+        return d, inf, time.perf_counter() - t
+
+    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
+    if settings.samples is not None:
+        spec_kwargs["samples"] = settings.samples
+    # the diffuse sum runs in a second thread beside the GGX chain (both spend their time in
+    # numpy calls that release the GIL; the chain limits BLAS to one thread)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        diffuse_future = pool.submit(diffuse_stage)
+        t = time.perf_counter()
+        spec = specular.ggx_prefilter(cube, **spec_kwargs)
+        timings["specular"] = time.perf_counter() - t
+        diff, info, timings["diffuse"] = diffuse_future.result()
+    if info is not None:
         sh_window = {
             "window": info.window,
             "width": info.width if np.isfinite(info.width) else None,
             "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
             "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
         }
-    timings["diffuse"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    say(f"GGX specular chain: {levels} levels from {n}^2")
-    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
-    if settings.samples is not None:
-        if settings.specular_method != "fis":
-            raise ValueError("--samples applies to --specular-method fis (importance sampling)")
-        spec_kwargs["samples"] = settings.samples
-    spec = specular.ggx_prefilter(cube, **spec_kwargs)
-    timings["specular"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    lut = dfg.dfg_lut(settings.lut_size)
+    lut = usercache.dfg_lut(settings.lut_size)  # computed once per machine (same bits)
     timings["dfg"] = time.perf_counter() - t
 
-    energy = {
-        "diffuse": energy_ratio(diff, cube),
-        "specular": [energy_ratio(lv, cube) for lv in spec],
-    }
+    cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
+
+    def ratio(x: NDArray[np.float32]) -> float:
+        v = float(solid_angle_integral(x).sum())
+        return v / cube_integral if cube_integral != 0 else float("nan")
+
+    energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
     diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
     spec_out = seams.apply_seam_mode(list(spec), settings.seam)
     seam_scores = {

@@ -133,41 +133,50 @@ def clamped_cosine_sum(faces: NDArray[np.floating], normals: NDArray[np.float64]
     lw_blk = lw.reshape(-1, c)[members]                  # block-major: one block = one row
     dir_blk = fine_dirs.reshape(-1, 3)[members]
     nrm = np.asarray(normals, dtype=np.float64)
-    out = np.zeros((nrm.shape[0], c))
+    out = np.empty((nrm.shape[0], c))
     centre0, sin0 = levels[0]
-    rows = max(1, _CHUNK_VALUES // len(centre0))
+    # normals in chunks through the whole hierarchy: the pair lists of a chunk stay ~30 MB
+    # (a normal's horizon crosses about 5 finest blocks per unit of ``finest``; 8 with margin)
+    rows = max(1, min(_CHUNK_VALUES // len(centre0),
+                      _CHUNK_VALUES // (8 * finest * bf * bf * (3 + c))))
     for r0 in range(0, nrm.shape[0], rows):
-        nn = nrm[r0:r0 + rows]
-        cosc = nn @ centre0.T
-        front = (cosc > sin0).astype(np.float64)
-        acc = np.einsum("rd,rdc->rc", nn, (front @ moments[0]).reshape(-1, 3, c))
-        out[r0:r0 + rows] = acc
+        out[r0:r0 + rows] = _chunk(nrm[r0:r0 + rows], levels, moments, dir_blk, lw_blk, top, c)
+    return out
+
+
+def _chunk(nn: NDArray[np.float64], levels: tuple[tuple[NDArray[np.float64], ...], ...],
+           moments: list[NDArray[np.float64]], dir_blk: NDArray[np.float64],
+           lw_blk: NDArray[np.float64], top: int, c: int) -> NDArray[np.float64]:
+    """:func:`clamped_cosine_sum` for a chunk of normals ``nn (R, 3)``."""
+    centre0, sin0 = levels[0]
+    cosc = nn @ centre0.T
+    front = (cosc > sin0).astype(np.float64)
+    acc = np.einsum("rd,rdc->rc", nn, (front @ moments[0]).reshape(-1, 3, c))
     # uncertain (output, block) pairs, refined level by level
-    pr, pq = np.nonzero(np.abs(nrm @ centre0.T) <= sin0)
+    pr, pq = np.nonzero(np.abs(cosc) <= sin0)
+    rows = len(nn)
     m = top
     for lev in range(1, len(levels)):
         centre, sin_r = levels[lev]
         kids = _children(pq, m)                                             # (P, 4)
         pr = np.repeat(pr, 4)
         pq = kids.reshape(-1)
-        npr = np.take(nrm, pr, axis=0)
-        cosc = np.sum(npr * np.take(centre, pq, axis=0), axis=1)
-        front = cosc > sin_r[pq]
-        if front.any():
-            val = np.matmul(npr[front][:, None, :], np.take(moments[lev], pq[front], axis=0)
-                            .reshape(-1, 3, c))[:, 0]
+        npr = np.take(nn, pr, axis=0)
+        cosc_p = np.sum(npr * np.take(centre, pq, axis=0), axis=1)
+        front_p = cosc_p > sin_r[pq]
+        if front_p.any():
+            val = np.matmul(npr[front_p][:, None, :],
+                            np.take(moments[lev], pq[front_p], axis=0).reshape(-1, 3, c))[:, 0]
             for ch in range(c):
-                out[:, ch] += np.bincount(pr[front], weights=val[:, ch], minlength=len(out))
-        keep = np.abs(cosc) <= sin_r[pq]
+                acc[:, ch] += np.bincount(pr[front_p], weights=val[:, ch], minlength=rows)
+        keep = np.abs(cosc_p) <= sin_r[pq]
         pr, pq = pr[keep], pq[keep]
         m *= 2
-    # texel by texel in the uncertain finest blocks, in bounded pieces
-    step = max(1, _CHUNK_VALUES // (bf * bf * (3 + c)))
-    for s0 in range(0, pr.size, step):
-        r_, q_ = pr[s0:s0 + step], pq[s0:s0 + step]
-        cos_t = np.matmul(np.take(dir_blk, q_, axis=0), np.take(nrm, r_, axis=0)[:, :, None])
-        np.maximum(cos_t, 0.0, out=cos_t)                                   # (P, bf^2, 1)
-        val = np.matmul(np.take(lw_blk, q_, axis=0).transpose(0, 2, 1), cos_t)[..., 0]
-        for ch in range(c):
-            out[:, ch] += np.bincount(r_, weights=val[:, ch], minlength=len(out))
-    return out
+    # texel by texel in the uncertain finest blocks
+    cos_t = np.matmul(np.take(dir_blk, pq, axis=0), np.take(nn, pr, axis=0)[:, :, None])
+    np.maximum(cos_t, 0.0, out=cos_t)                                       # (P, b^2, 1)
+    val = np.matmul(np.take(lw_blk, pq, axis=0).transpose(0, 2, 1), cos_t)[..., 0]
+    for ch in range(c):
+        acc[:, ch] += np.bincount(pr, weights=val[:, ch], minlength=rows)
+    return acc
+
