@@ -72,6 +72,11 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
         "--diffuse-method", choices=["sh", "exact"], default="exact",
         help="exact clamped-cosine integral (default) or via SH coefficients (--sh-bands)",
     )
+    p.add_argument(
+        "--diffuse-source-size", type=_positive_int,
+        help="face size the exact diffuse sum reads (the cube's box mip; default: the cube up to "
+             "128, the 128 mip of larger cubes)",
+    )
     p.add_argument("--specular-levels", type=_positive_int, help="mip levels (default: full chain)")
     p.add_argument(
         "--specular-method", choices=["tiered", "fis", "exact"], default="tiered",
@@ -116,6 +121,7 @@ def _run_filter(args: argparse.Namespace) -> int:
         size=args.size,
         diffuse_size=args.diffuse_size,
         diffuse_method=args.diffuse_method,
+        diffuse_source_size=args.diffuse_source_size,
         specular_levels=args.specular_levels,
         specular_method=args.specular_method,
         samples=args.samples,
@@ -194,6 +200,11 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", type=_positive_int, default=1, help="rays per texel")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--diffuse-size", type=_positive_int, default=8)
+    p.add_argument(
+        "--diffuse-source-size", type=_positive_int,
+        help="face size the exact diffuse sum reads (the cube's box mip; default: the cube up to "
+             "128, the 128 mip of larger cubes)",
+    )
     p.add_argument("--specular-levels", type=_positive_int)
     p.add_argument("--no-direct", action="store_true",
                    help="leave the punctual lights' direct light out of the probes")

@@ -40,8 +40,8 @@ from probegrid.cubemap import texel_directions, texel_solid_angles
 
 __all__ = ["clamped_cosine_sum"]
 
-#: Float64 values per chunk temporary (about 32 MB).
-_CHUNK_VALUES = 4 * 2**20
+#: Float64 values per chunk temporary (about 8 MB; the sum runs beside the GGX chain).
+_CHUNK_VALUES = 2**20
 
 
 @lru_cache(maxsize=4)
