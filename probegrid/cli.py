@@ -200,11 +200,6 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", type=_positive_int, default=1, help="rays per texel")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--diffuse-size", type=_positive_int, default=8)
-    p.add_argument(
-        "--diffuse-source-size", type=_positive_int,
-        help="face size the exact diffuse sum reads (the cube's box mip; default: the cube up to "
-             "128, the 128 mip of larger cubes)",
-    )
     p.add_argument("--specular-levels", type=_positive_int)
     p.add_argument("--no-direct", action="store_true",
                    help="leave the punctual lights' direct light out of the probes")
