@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -65,12 +66,13 @@ def read_rgb(path: Path) -> np.ndarray:
     return np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)[..., :3]
 
 
-def timed(cmd: list[str]) -> tuple[float, float, str]:
-    """Wall seconds, peak RSS (MB) and stderr of a command, from /usr/bin/time."""
-    res = subprocess.run(["/usr/bin/time", "-f", "%e %M", *cmd], capture_output=True, text=True,
-                         check=True)
-    wall, rss = res.stderr.strip().splitlines()[-1].split()
-    return float(wall), float(rss) / 1024, res.stderr + res.stdout
+def timed(cmd: list[str]) -> tuple[float, float, float]:
+    """Wall seconds, peak RSS (MB) and CPU seconds (user + system) of a command, from
+    /usr/bin/time (CPU time is the figure to trust on a loaded machine)."""
+    res = subprocess.run(["/usr/bin/time", "-f", "%e %M %U %S", *cmd], capture_output=True,
+                         text=True, check=True)
+    wall, rss, user, system = res.stderr.strip().splitlines()[-1].split()
+    return float(wall), float(rss) / 1024, float(user) + float(system)
 
 
 def cached(cache: Path, key: str, compute):
@@ -121,26 +123,29 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
     for _ in range(args.repeat):
         shutil.rmtree(out, ignore_errors=True)
         runs["pg"].append(timed([PROBEGRID, "filter", str(hdr), "--out", str(out), "--size",
-                                 "128"])[:2])
+                                 "128"]))
         stages.append(json.loads((out / "manifest.json").read_text())["timings_s"])
         for tag, extra in (("ld", ["-s", "128", f"--ibl-ld={work / 'ld'}"]),
                            ("irr", ["-s", "32", f"--ibl-irradiance={work / 'irr'}"]),
                            ("sh", ["--sh=3", f"--sh-output={work / 'sh.txt'}"])):
             runs[tag].append(timed([CMGEN, "--no-mirror", "-q", "-f", "psd", "-c", "32", *extra,
-                                    str(hdr)])[:2])
+                                    str(hdr)]))
     best = {k: min(v) for k, v in runs.items()}
     st = min(stages, key=lambda s: s["total"])
     cm_total = best["ld"][0] + best["irr"][0] + best["sh"][0]
-    print(f"probegrid filter --size 128: {best['pg'][0]:.2f} s wall, {best['pg'][1]:.0f} MB "
-          f"peak (best of {args.repeat}); stages of that run: "
+    cpu = {k: min(r[2] for r in v) for k, v in runs.items()}
+    print(f"probegrid filter --size 128: {best['pg'][0]:.2f} s wall, {cpu['pg']:.2f} s CPU, "
+          f"{best['pg'][1]:.0f} MB peak (best of {args.repeat}); stages of that run: "
           + ", ".join(f"{k} {v:.3f}" for k, v in st.items() if k != "total")
           + f"; start-up and imports {best['pg'][0] - st['total']:.2f} s")
+    cm_cpu = cpu["ld"] + cpu["irr"] + cpu["sh"]
     print(f"cmgen: ld {best['ld'][0]:.2f} s + irradiance {best['irr'][0]:.2f} s + sh "
-          f"{best['sh'][0]:.2f} s = {cm_total:.2f} s ({max(best['ld'][1], best['irr'][1]):.0f} "
-          "MB peak)")
+          f"{best['sh'][0]:.2f} s = {cm_total:.2f} s wall, {cm_cpu:.2f} s CPU "
+          f"({max(best['ld'][1], best['irr'][1]):.0f} MB peak)")
     ratio = best["pg"][0] / cm_total
-    print(f"ratio probegrid / cmgen = {ratio:.2f} (target <= 0.5: "
-          f"{'MET' if ratio <= 0.5 else 'NOT MET'})")
+    print(f"ratio probegrid / cmgen = {ratio:.2f} wall, {cpu['pg'] / cm_cpu:.2f} CPU (target "
+          f"<= 0.5 wall: {'MET' if ratio <= 0.5 else 'NOT MET'}); load average now "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
     # ---------------- errors ----------------
     cube = to_cube(img, "equirect", 128)          # what the command filters

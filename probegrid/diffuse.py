@@ -28,6 +28,14 @@ softboxes) relative error, at a quarter of the cost; ``source_size=32``: mean 5e
 
 SH (:func:`diffuse_sh`)
 -----------------------
+Any band count with ``bands`` (:mod:`probegrid.core.shbands`). Each count's error is that of
+the exact projection (projecting the cube equals projecting every pixel of the lat-long input to
+1.001 x): against the exact sum on venice, 3 bands 1.85 % mean / 20 % max, 5 bands 0.56 % /
+8.6 %, 9 bands 0.14 % / 3.3 %; on studio (small bright softboxes in a dark room) 27 % / 700 %,
+15 % / 360 % and 5.9 % / 156 %. SH is the wrong tool for small bright sources: its error
+falls only slowly with the band count (the clamped cosine's ``A_l`` decay as ``l^(-5/2)``), and
+truncation rings below zero; use :func:`diffuse_exact`, which is exact and cheap.
+
 Band-0-2 spherical harmonics (:mod:`probegrid.sh`, Ramamoorthi & Hanrahan 2001): project the
 input exactly, optionally window the coefficients against ringing (Sloan 2008), and evaluate
 ``E / pi``. Band 2 captures the clamped cosine only approximately (its ``l > 2`` tail is dropped:

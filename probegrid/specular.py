@@ -39,8 +39,15 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   ``pi beta^2`` texels (``beta = 6``) also near cube corners. ``s_0`` is the coarsest mip whose
   texel is at most ``HWHM / gamma`` (HWHM ~= 1.29 alpha; ``gamma = 3``, clamped to the input).
   The chain ends with a *dense* piece ``K (1 - W_last)`` over a whole mip once
-  ``(6 g^2)(6 m^2) <= dense_pairs`` (2e7; mips up to 64^2), and a level whose lobe is wide
-  enough is one dense piece.
+  ``(6 g^2)(6 m^2) <= dense_pairs`` (2e7; mips up to 64^2). A level is instead *one* dense
+  stage over the finest mip ``m <= 128`` (no coarser than ``s_0``) whose ``36 g^2 m^2`` pairs fit
+  ``level_pairs`` (7e8, scaled by ``(128 / n)^2`` above 128^2): exact over the input texels, or
+  first-order over a mip's moments. For a 128^2 chain that makes levels 2-7 exact dense sums
+  (levels 3-7 of a 256^2 chain dense over mips), so their error is the source's own: measured
+  against the dense sum over a 256^2 cube of the input, levels 2-6 are at 1.00 x the error of
+  the dense sum over the 128^2 cube itself (venice and studio, ``benchmarks/bench_filter_cli.py``);
+  level 1 (r = 1/7, still tiered) is at 3.4 x (venice) and 9.7 x (studio). The dense stages are
+  built in float32 row chunks (:func:`_dense_level_stage`; a 128^2 chain peaks at ~240 MB).
 * First-order moments. A coarse texel stands for the input texels it covers, whose exact
   positions matter when one is much brighter (a sun). Each mip texel carries ``P = sum L dOmega``
   and the first moment ``M = sum L dOmega (w_i - w_q)`` (built exactly from the input), and a
@@ -68,13 +75,14 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   levels concurrently.
 
 Accuracy against :func:`reference_convolution` (every input texel, float64) on the real HDRs at
-128^2 (``benchmarks/bench_filter.py``): RMS relative error ~2e-3 (venice) and ~1.5e-2 (studio's
-small bright softboxes) on levels 1-2, max 7-12 % next to the brightest sources; levels 3+ are
-dense and within 2e-3 RMS. Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 %
-(studio) RMS, in 1.06 s with two threads (probegrid: 0.33 s cold, 0.15 s warm with
-``workers=2``). Memory: the cached plans (a few MB at 128^2) and symmetry table
-(:func:`_chain_permutations`, 25 MB at 128^2) plus chunked temporaries: peak +150 MB for a 128^2
-chain, +250 MB for 256^2 (cold 1.8 s, warm 0.8 s), growing about 4 x per doubling of ``n``.
+128^2 (``benchmarks/bench_filter.py``): level 1 (the only tiered level of a 128^2 chain) RMS
+relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 % next to
+the brightest sources; levels 2+ are whole-level dense sums (exact over the input texels, float32
+weights). Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one
+thread, cold, CPU): ~0.85 s for a 128^2 chain, ~1.8 s for 256^2. Memory: the cached plans and
+symmetry table (:func:`_chain_permutations`, 25 MB at 128^2, 100 MB at 256^2) plus chunked
+temporaries: peak ~240 MB for a 128^2 chain, ~380 MB for 256^2 (whole process);
+:func:`clear_caches` drops the cached geometry.
 Tests: constant, linear (analytic lobe mean), near-delta and real-HDR inputs against the
 reference, symmetry.
 
