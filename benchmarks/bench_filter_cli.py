@@ -190,7 +190,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
         dirs = dirs_all[pick]
         r = k / (levels - 1)
         ref = cached(cache, f"ggx256 {key} {r} {s} {args.texels}",
-                     lambda: dense_ggx_at(cube256, dirs, r * r))
+                     lambda dirs=dirs, r=r: dense_ggx_at(cube256, dirs, r * r))
         floor = errors(dense_ggx_at(cube, dirs, r * r), ref)
         ours = errors(chain[k].reshape(-1, 3)[pick], ref)
         x = max(ours[0] / floor[0], ours[1] / floor[1])
@@ -202,7 +202,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
                                        for f in FACES]), sym)
             rc = cm_r[k]
             ref_c = cached(cache, f"ggx256 {key} {rc} {s} {args.texels}",
-                           lambda: dense_ggx_at(cube256, dirs, rc * rc))
+                           lambda dirs=dirs, rc=rc: dense_ggx_at(cube256, dirs, rc * rc))
             ec = errors(theirs.reshape(-1, 3)[pick], ref_c)
             fc = errors(dense_ggx_at(cube, dirs, rc * rc), ref_c)
             line += f" {rc:7.3f} {ec[0]:8.2e} {ec[1]:8.2e} {fc[0]:8.2e} {fc[1]:8.2e}"

@@ -31,6 +31,7 @@ Conventions are those of :mod:`probegrid.cubemap`; no I/O.
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -123,7 +124,7 @@ def clamped_cosine_sum(faces: NDArray[np.floating], normals: NDArray[np.float64]
     d_fine = lw[..., None, :] * fine_dirs[..., :, None]                     # (6, n, n, 3, C)
     moments = []
     for centre, _ in levels:
-        m = int(round(np.sqrt(len(centre) / 6)))
+        m = math.isqrt(len(centre) // 6)
         b = n // m
         moments.append(d_fine.reshape(6, m, b, m, b, 3, c).sum(axis=(2, 4)).reshape(-1, 3 * c))
     bf = n // finest
@@ -134,8 +135,8 @@ def clamped_cosine_sum(faces: NDArray[np.floating], normals: NDArray[np.float64]
     dir_blk = fine_dirs.reshape(-1, 3)[members]
     nrm = np.asarray(normals, dtype=np.float64)
     out = np.empty((nrm.shape[0], c))
-    centre0, sin0 = levels[0]
-    # normals in chunks through the whole hierarchy: the pair lists of a chunk stay ~30 MB
+    centre0 = levels[0][0]
+    # normals in chunks through the whole hierarchy: the pair lists of a chunk stay ~8 MB
     # (a normal's horizon crosses about 5 finest blocks per unit of ``finest``; 8 with margin)
     rows = max(1, min(_CHUNK_VALUES // len(centre0),
                       _CHUNK_VALUES // (8 * finest * bf * bf * (3 + c))))
