@@ -113,12 +113,17 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     _option(p, F, "size", help="cube face size of the specular level 0 (default: from the input)")
     _option(p, F, "diffuse_size", help="diffuse face size")
     _option(p, F, "diffuse_method",
-            help="exact clamped-cosine integral, or via 9 SH coefficients")
+            help="exact clamped-cosine integral, or via SH coefficients (--sh-bands)")
+    _option(p, F, "diffuse_source_size",
+            help="face size the exact diffuse sum reads (the cube's box mip; default: the cube up "
+                 "to 128, the 128 mip of larger cubes)")
     _option(p, F, "specular_levels", help="mip levels (default: the full chain)")
     _option(p, F, "specular_method",
             help="GGX prefilter: tiered exact-kernel convolution, filtered importance sampling, "
                  "or the brute-force exact convolution (slow)")
     _option(p, F, "samples", help="samples per texel for --specular-method fis")
+    _option(p, F, "sh_bands",
+            help="SH bands for sh.json and --diffuse-method sh (3 = 9 coefficients; up to 16)")
     _option(p, F, "sh_window",
             help="SH windowing against ringing (auto: the least that makes irradiance >= 0)")
     _option(p, F, "sh_window_width", help="window width (bands)")

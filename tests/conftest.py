@@ -38,3 +38,11 @@ def venice_latlong(shared_data: Path) -> np.ndarray:
 def studio_latlong(shared_data: Path) -> np.ndarray:
     """Studio small 03, (512, 1024, 3) float32 lat-long, linear radiance."""
     return _read_hdr(shared_data / "hdr" / "studio_small_03_1k.hdr")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _private_user_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The tests (and the CLI runs they start) use their own user cache, not ``~/.cache``."""
+    import os
+
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-cache"))

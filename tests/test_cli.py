@@ -214,3 +214,24 @@ def test_sh_diffuse_with_auto_window_reports_and_removes_negative_irradiance(tmp
     faces = np.stack([imageio.read_image(tmp_path / f"diffuse{s}.exr")
                       for s in imageio.FACE_SUFFIXES])
     assert faces.min() >= -1e-3  # half-float rounding of values near 0
+
+
+def test_default_cube_size_follows_the_input_with_a_cap():
+    from probegrid.jobs.filter import DEFAULT_MAX_SIZE, default_cube_size
+
+    assert default_cube_size(512, 1024, "equirect") == 256
+    assert default_cube_size(750, 1500, "equirect") == 256 == DEFAULT_MAX_SIZE
+    assert default_cube_size(4096, 8192, "equirect") == 256
+    assert default_cube_size(256, 512, "equirect") == 128
+    assert default_cube_size(300, 400, "hcross") == 64
+    assert default_cube_size(100, 100, "faces") == 64
+    assert default_cube_size(1000, 1000, "angular") == 256
+    assert default_cube_size(2, 4, "equirect") == 1
+
+
+def test_filter_says_which_cube_size_it_chose(tmp_path):
+    r = run_cli("filter", SKY, "--out", tmp_path, "--diffuse-size", "4", "--no-previews")
+    assert r.returncode == 0, r.stderr
+    m = json.loads((tmp_path / "manifest.json").read_text())
+    n = m["input"]["cube_size"]
+    assert f"to a {n}^2 cube (default:" in r.stderr

@@ -7,6 +7,7 @@ import each other)::
     1  probegrid._fs, probegrid.kernels
     2  probegrid.core
     3  probegrid.imageio | probegrid.scene | probegrid.store | probegrid.raytrace | probegrid.export
+       | probegrid.usercache
     4  probegrid.bake | probegrid.query
     5  probegrid.jobs | service
     6  probegrid.cli | probegrid.client
@@ -38,7 +39,7 @@ RANKS: dict[str, int] = {
     "probegrid._fs": 1, "probegrid.kernels": 1,
     "probegrid.core": 2,
     "probegrid.imageio": 3, "probegrid.scene": 3, "probegrid.store": 3, "probegrid.raytrace": 3,
-    "probegrid.export": 3,
+    "probegrid.export": 3, "probegrid.usercache": 3,
     "probegrid.bake": 4, "probegrid.query": 4,
     "probegrid.jobs": 5, "service": 5,
     "probegrid.cli": 6, "probegrid.client": 6,

@@ -352,6 +352,45 @@ def _equirect_bilinear(
     return top * (1.0 - ty) + bottom * ty
 
 
+class _EquirectLookup:
+    """:func:`_equirect_bilinear` at directions, for the many lookups of :func:`to_cube`.
+
+    The same bilinear interpolation with the same wrap (longitude) and pole rule (across the
+    top or bottom edge, the same row at the opposite meridian), but on a copy of the image
+    padded by one pixel on every side that already holds those neighbours, so a footprint is
+    four plain gathers; angles are computed in float32 (pixel coordinates to ~1e-4 pixel).
+    """
+
+    def __init__(self, img: NDArray[np.float32]) -> None:
+        h, w, c = img.shape
+        if w % 2:
+            raise ValueError(f"an equirect image needs an even width for pole lookups, got {w}.")
+        rows = np.concatenate([np.roll(img[:1], -(w // 2), axis=1), img,
+                               np.roll(img[-1:], -(w // 2), axis=1)], axis=0)   # (h + 2, w, c)
+        pad = np.concatenate([rows[:, -1:], rows, rows[:, :1]], axis=1)        # (h + 2, w + 2, c)
+        self._flat = np.ascontiguousarray(pad.reshape(-1, c), dtype=np.float32)
+        self._h, self._w = h, w
+
+    def __call__(self, d: NDArray[np.float64]) -> NDArray[np.float32]:
+        h, w = self._h, self._w
+        d32 = d.astype(np.float32)
+        dx, dy, dz = d32[..., 0], d32[..., 1], d32[..., 2]
+        x = np.arctan2(dz, dx) * np.float32(w / (2.0 * np.pi)) + np.float32(0.5 * w - 0.5)
+        y = (np.float32(0.5 * h - 0.5)
+             - np.arctan2(dy, np.hypot(dx, dz)) * np.float32(h / np.pi))
+        x0 = np.floor(x)
+        y0 = np.floor(y)
+        tx = (x - x0)[..., None]
+        ty = (y - y0)[..., None]
+        # padded coordinates: column x0 + 1 in [0, w], row y0 + 1 in [0, h]
+        i00 = ((y0.astype(np.intp) + 1) * (w + 2) + x0.astype(np.intp) + 1)
+        f = self._flat
+        top = np.take(f, i00, axis=0) * (1 - tx) + np.take(f, i00 + 1, axis=0) * tx
+        i10 = i00 + (w + 2)
+        bottom = np.take(f, i10, axis=0) * (1 - tx) + np.take(f, i10 + 1, axis=0) * tx
+        return top * (1 - ty) + bottom * ty
+
+
 # --------------------------------------------------------------------------------------------
 # Angular-map geometry
 
@@ -620,12 +659,7 @@ def to_cube(image: ArrayLike, layout: Layout, size: int) -> NDArray[np.float32]:
         if w != 2 * h:
             raise ValueError(f"an equirect image must be 2:1 (W = 2 H), got {w}x{h}.")
         k = _supersampling(2.0 / n, min(np.pi / h, 2.0 * np.pi / w))
-
-        def sample(d: NDArray[np.float64]) -> NDArray[np.float64]:
-            x, y = direction_to_equirect(d, h, w)
-            return _equirect_bilinear(img, x, y)
-
-        return _integrate_cube(sample, n, k, c)
+        return _integrate_cube(_EquirectLookup(img), n, k, c)
     if h != w:
         raise ValueError(f"an angular map must be square, got {w}x{h}.")
     k = _supersampling(2.0 / n, 2.0 * np.pi / h)

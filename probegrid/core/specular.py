@@ -39,8 +39,15 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   ``pi beta^2`` texels (``beta = 6``) also near cube corners. ``s_0`` is the coarsest mip whose
   texel is at most ``HWHM / gamma`` (HWHM ~= 1.29 alpha; ``gamma = 3``, clamped to the input).
   The chain ends with a *dense* piece ``K (1 - W_last)`` over a whole mip once
-  ``(6 g^2)(6 m^2) <= dense_pairs`` (2e7; mips up to 64^2), and a level whose lobe is wide
-  enough is one dense piece.
+  ``(6 g^2)(6 m^2) <= dense_pairs`` (2e7; mips up to 64^2). A level is instead *one* dense
+  stage over the finest mip ``m <= 128`` (no coarser than ``s_0``) whose ``36 g^2 m^2`` pairs fit
+  ``level_pairs`` (7e8, scaled by ``(128 / n)^2`` above 128^2): exact over the input texels, or
+  first-order over a mip's moments. For a 128^2 chain that makes levels 2-7 exact dense sums
+  (levels 3-7 of a 256^2 chain dense over mips), so their error is the source's own: measured
+  against the dense sum over a 256^2 cube of the input, levels 2-6 are at 1.00 x the error of
+  the dense sum over the 128^2 cube itself (venice and studio, ``benchmarks/bench_filter_cli.py``);
+  level 1 (r = 1/7, still tiered) is at 3.4 x (venice) and 9.7 x (studio). The dense stages are
+  built in float32 row chunks (:func:`_dense_level_stage`; a 128^2 chain peaks at ~240 MB).
 * First-order moments. A coarse texel stands for the input texels it covers, whose exact
   positions matter when one is much brighter (a sun). Each mip texel carries ``P = sum L dOmega``
   and the first moment ``M = sum L dOmega (w_i - w_q)`` (built exactly from the input), and a
@@ -68,13 +75,14 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   levels concurrently.
 
 Accuracy against :func:`reference_convolution` (every input texel, float64) on the real HDRs at
-128^2 (``benchmarks/bench_filter.py``): RMS relative error ~2e-3 (venice) and ~1.5e-2 (studio's
-small bright softboxes) on levels 1-2, max 7-12 % next to the brightest sources; levels 3+ are
-dense and within 2e-3 RMS. Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 %
-(studio) RMS, in 1.06 s with two threads (probegrid: 0.33 s cold, 0.15 s warm with
-``workers=2``). Memory: the cached plans (a few MB at 128^2) and symmetry table
-(:func:`_chain_permutations`, 25 MB at 128^2) plus chunked temporaries: peak +150 MB for a 128^2
-chain, +250 MB for 256^2 (cold 1.8 s, warm 0.8 s), growing about 4 x per doubling of ``n``.
+128^2 (``benchmarks/bench_filter.py``): level 1 (the only tiered level of a 128^2 chain) RMS
+relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 % next to
+the brightest sources; levels 2+ are whole-level dense sums (exact over the input texels, float32
+weights). Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one
+thread, cold, CPU): ~0.85 s for a 128^2 chain, ~1.8 s for 256^2. Memory: the cached plans and
+symmetry table (:func:`_chain_permutations`, 25 MB at 128^2, 100 MB at 256^2) plus chunked
+temporaries: peak ~240 MB for a 128^2 chain, ~380 MB for 256^2 (whole process);
+:func:`clear_caches` drops the cached geometry.
 Tests: constant, linear (analytic lobe mean), near-delta and real-HDR inputs against the
 reference, symmetry.
 
@@ -115,6 +123,7 @@ from probegrid.core.sampling import CubeSampler, mip_chain, resample
 __all__ = [
     "GGXMethod",
     "PlanStage",
+    "clear_caches",
     "ggx_filter",
     "ggx_prefilter",
     "ggx_tier_plan",
@@ -132,8 +141,11 @@ _CHUNK_BYTES = 32 * 2**20
 _HWHM_PER_ALPHA = 1.29
 #: A piece summed over mip m is evaluated on a grid of this many times m, then interpolated.
 _GRID_PER_MIP = 2
-#: Largest mip face size summed whole by a dense stage (its 48 permuted copies are gathered).
-_DENSE_MAX_MIP = 64
+#: Largest mip face size summed whole by a dense stage (its 48 permuted copies are gathered,
+#: in chunks of _CHUNK_BYTES).
+_DENSE_MAX_MIP = 128
+#: A level is one dense stage over the finest mip with at most this many (output, source) pairs.
+_DENSE_PAIRS = 700_000_000
 
 
 # --------------------------------------------------------------------------------------------
@@ -505,7 +517,7 @@ def _window_dc(chord: NDArray[np.float64], rho: NDArray[np.float64]) -> NDArray[
 
 
 def _tier_schedule(n: int, size: int, alpha: float, beta: float, gamma: float,
-                   dense_pairs: int) -> list[tuple[int, float | None, int]]:
+                   dense_pairs: int, level_pairs: int) -> list[tuple[int, float | None, int]]:
     """Pieces of the kernel: (source mip level, window radius or None for the dense rest,
     output grid size). A piece whose mip is coarser than half the output is evaluated on a grid
     twice the mip's size and interpolated (its sum is smooth on the scale of its window)."""
@@ -516,7 +528,7 @@ def _tier_schedule(n: int, size: int, alpha: float, beta: float, gamma: float,
         s0 += 1
     # A finer dense sum is used when it fits the budget (cheap outputs, e.g. the 1 x 1 level).
     for s, m in enumerate(src_levels[:s0 + 1]):
-        if 36 * size * size * m * m <= dense_pairs and m <= _DENSE_MAX_MIP:
+        if 36 * size * size * m * m <= level_pairs and m <= _DENSE_MAX_MIP:
             return [(s, None, size)]
     tiers: list[tuple[int, float | None, int]] = []
     for s in range(s0, len(src_levels)):
@@ -576,7 +588,8 @@ def _ggx_kernel_and_slope(c: NDArray[np.float64], alpha: float
 
 @lru_cache(maxsize=32)
 def ggx_tier_plan(n: int, size: int, alpha: float, *, beta: float = 6.0, gamma: float = 3.0,
-                  dense_pairs: int = 20_000_000) -> tuple[PlanStage, ...]:
+                  dense_pairs: int = 20_000_000, level_pairs: int = _DENSE_PAIRS
+                  ) -> tuple[PlanStage, ...]:
     """Weights of the tiered GGX filter (geometry only; cached, read-only arrays).
 
     Parameters
@@ -593,6 +606,10 @@ def ggx_tier_plan(n: int, size: int, alpha: float, *, beta: float = 6.0, gamma: 
         Finest piece's texels per kernel half width (HWHM).
     dense_pairs : int
         A mip is summed whole (a dense stage) once ``(6 g^2) (6 m^2)`` is at most this.
+    level_pairs : int
+        The whole level is one dense stage over the finest mip (up to 128^2) with at most
+        ``level_pairs (128 / n)^2`` pairs (for ``n > 128``): exact over the input texels, or
+        first-order over a mip's moments.
 
     Returns
     -------
@@ -613,7 +630,14 @@ def ggx_tier_plan(n: int, size: int, alpha: float, *, beta: float = 6.0, gamma: 
     sparse: dict[int, list[tuple[NDArray, ...]]] = {}
     stages: list[PlanStage] = []
     prev_rho: float | None = None
-    for s, rho, g in _tier_schedule(n, size, a, beta, gamma, dense_pairs):
+    # the whole-level budget shrinks with the cube (its stages are held in the plan cache)
+    budget = int(level_pairs * min(1.0, (128 / n) ** 2))
+    schedule = _tier_schedule(n, size, a, beta, gamma, dense_pairs, budget)
+    if len(schedule) == 1 and schedule[0][1] is None:  # the whole level is one dense stage
+        s, _, g = schedule[0]
+        m = src_levels[s]
+        return (_dense_level_stage(g, m, s, a, geo[offsets[s]:offsets[s] + 6 * m * m]),)
+    for s, rho, g in schedule:
         m = src_levels[s]
         fund = _fundamental_domain(g)[0]
         # The window radius follows the local texel size (1 + u^2 + v^2)^(-3/4) of the output's
@@ -659,6 +683,30 @@ def ggx_tier_plan(n: int, size: int, alpha: float, *, beta: float = 6.0, gamma: 
             stages.append(_make_stage(g, packed[0], packed[1], packed[2].astype(np.int32),
                                       level, geo, rdir))
     return tuple(sorted(stages, key=lambda st: -st.grid))
+
+
+def _dense_level_stage(g: int, m: int, s: int, alpha: float, geo: NDArray[np.float64]
+                       ) -> PlanStage:
+    """A whole level as one dense stage over mip ``s`` (face ``m``): the same weights as the
+    general path (``f = K``, no window), built in row chunks straight into float32 so that
+    stages of millions of pairs need no full-size float64 temporaries."""
+    fund = _fundamental_domain(g)[0]
+    od = texel_directions(g)[0].reshape(-1, 3)[fund]
+    sd = texel_directions(m).reshape(-1, 3)
+    ww = np.empty((len(fund), 1 if s == 0 else 2, len(sd)), dtype=np.float32)  # no moments on 0
+    norm = np.empty(len(fund))
+    rows = max(1, _CHUNK_BYTES // (8 * 4 * len(sd)))
+    for i in range(0, len(fund), rows):
+        k, dk = _ggx_kernel_and_slope(od[i:i + rows] @ sd.T, alpha)
+        if s == 0:
+            dk[:] = 0.0  # input texels are points of the midpoint rule: no sub-texel moments
+        norm[i:i + rows] = k @ geo[:, 0] + np.einsum("rk,rk->r", dk, od[i:i + rows] @ geo[:, 1:].T)
+        ww[i:i + rows, 0] = k
+        if s > 0:
+            ww[i:i + rows, 1] = dk
+    ww.setflags(write=False)
+    norm.setflags(write=False)
+    return PlanStage(grid=g, weights=ww, columns=None, level=s, norm=norm)
 
 
 def _make_stage(g: int, w0: NDArray[np.float64], w1: NDArray[np.float64],
@@ -761,7 +809,7 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
             src_perm = _group_permutations(m)
             out_perm = _group_permutations(g)
             w0 = np.ascontiguousarray(st.weights[:, 0])
-            w1 = np.ascontiguousarray(st.weights[:, 1])
+            w1 = np.ascontiguousarray(st.weights[:, 1]) if st.level > 0 else w0
             bp = np.ascontiguousarray(block[:, :c])
             bm = np.ascontiguousarray(block[:, c:])
             ks = max(1, _CHUNK_BYTES // (16 * c * 6 * m * m))       # symmetries per product
@@ -971,6 +1019,14 @@ def ggx_prefilter(
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 out += list(pool.map(level, range(1, len(sizes))))
     return out
+
+
+def clear_caches() -> None:
+    """Drop the cached geometry of the tiered filter (plans, symmetry tables: ~150 MB after a
+    256^2 chain); the next call rebuilds what it needs."""
+    for f in (ggx_tier_plan, _chain_permutations, _geometric_pyramid, _group_permutations,
+              _fundamental_domain):
+        f.cache_clear()
 
 
 def ggx_filter(faces: ArrayLike, alpha: float, size: int, *, beta: float = 6.0,

@@ -8,8 +8,10 @@ resample it to a cube without aliasing, and compute
   coefficients (:mod:`probegrid.core.diffuse`),
 * the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
   (:mod:`probegrid.core.specular`),
-* the 9 radiance SH coefficients (:mod:`probegrid.core.sh`) and the minimum irradiance they imply,
-* the split-sum DFG lookup table (:mod:`probegrid.core.dfg`),
+* the radiance SH coefficients (9 by default, ``bands^2`` with ``sh_bands``;
+  :mod:`probegrid.core.sh`, :mod:`probegrid.core.shbands`) and the minimum irradiance they imply,
+* the split-sum DFG lookup table (:mod:`probegrid.core.dfg`, cached per machine by
+  :mod:`probegrid.usercache`),
 
 then applies the seam export mode to every map and level and writes the maps, ``sh.json``, the
 LUT, PNG previews and, last, ``manifest.json``. Every image file is written atomically and the
@@ -29,6 +31,7 @@ import json
 import os
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,6 +60,7 @@ __all__ = [
     "FILTER_FORMAT",
     "FilterResult",
     "FilterSettings",
+    "default_cube_size",
     "energy_ratio",
     "prepare_output_dir",
     "run_filter",
@@ -79,9 +83,11 @@ class FilterSettings(BaseModel):
     size: int | None = Field(default=None, ge=1, le=4096)
     diffuse_size: int = Field(default=32, ge=1, le=1024)
     diffuse_method: DiffuseMethod = "exact"
+    diffuse_source_size: int | None = Field(default=None, ge=1, le=4096)
     specular_levels: int | None = Field(default=None, ge=1, le=16)
     specular_method: GGXMethod = "tiered"
     samples: int | None = Field(default=None, ge=1, le=65536)
+    sh_bands: int = Field(default=3, ge=1, le=16)
     sh_window: SHWindow = "none"
     sh_window_width: float | None = Field(default=None, gt=0)
     format: MapFormat = "exr"
@@ -204,6 +210,52 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
     return float(solid_angle_integral(out).sum()) / r if r != 0 else float("nan")
 
 
+#: Largest cube face size chosen by default (a 256^2 chain takes ~2 s and ~300 MB here).
+DEFAULT_MAX_SIZE = 256
+
+
+def default_cube_size(height: int, width: int, layout: str) -> int:
+    """Face size used when ``--size`` is not given: the input's own resolution
+    (:func:`probegrid.layouts.default_face_size` before its rounding: ``W / 4`` for equirect,
+    ``S / pi`` for angular maps, the face size for crosses and faces) rounded *down* to a power
+    of two (the tiered GGX chain needs one, and no texel is finer than the input), at most
+    :data:`DEFAULT_MAX_SIZE` and at least 1. 1024 x 512 equirect -> 256, 1500 x 750 -> 256,
+    512 x 256 -> 128; six 100^2 faces -> 64."""
+    from probegrid.core import layouts
+
+    if layout == "faces":
+        exact = float(min(height, width))
+    else:
+        exact = {"equirect": width / 4, "angular": width / np.pi, "hcross": width / 4,
+                 "vcross": width / 3}[layout]
+        layouts.default_face_size(height, width, layout)  # checks the arguments
+    n = 1 << max(0, int(np.floor(np.log2(max(exact, 1.0)))))
+    return min(n, DEFAULT_MAX_SIZE)
+
+
+#: The exact diffuse sum reads at most this face size by default (the box mip of larger cubes).
+DEFAULT_DIFFUSE_SOURCE = 128
+
+
+def _diffuse_source_size(n: int, requested: int | None) -> int:
+    """Face size the exact diffuse sum reads: ``requested`` (``n`` divided by a power of two),
+    else ``n`` up to :data:`DEFAULT_DIFFUSE_SOURCE` and that size's box mip of larger cubes.
+
+    Irradiance is band-limited, so the mip changes little: a 32^2 diffuse map from the 128^2 mip
+    of a 256^2 cube differs from the sum over all 256^2 texels by 3e-5 / 4e-5 mean and
+    0.1 % / 0.55 % max relative (venice / studio, measured), at a third of the time and memory.
+    """
+    if requested is None:
+        if n <= DEFAULT_DIFFUSE_SOURCE or n & (n - 1):
+            return n
+        return DEFAULT_DIFFUSE_SOURCE
+    ratio = n // requested
+    if requested > n or n % requested or ratio & (ratio - 1):
+        raise ValueError(f"--diffuse-source-size must be the cube size {n} divided by a power "
+                         f"of two, got {requested}")
+    return requested
+
+
 def _load_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
 ) -> tuple[NDArray[np.float32], str, int]:
@@ -246,11 +298,15 @@ def _load_environment(
     elif (source < 0).any():
         progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
 
-    if layout == "faces":
-        n = settings.size or int(source.shape[1])
+    if settings.size:
+        n = settings.size
+        why = "--size"
     else:
-        n = settings.size or layouts.default_face_size(source.shape[0], source.shape[1], layout)
-    progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube")
+        n = default_cube_size(source.shape[-3], source.shape[-2], layout)
+        why = (f"default: the input's resolution rounded down to a power of two, at most "
+               f"{DEFAULT_MAX_SIZE}; --size to choose")
+    _diffuse_source_size(n, settings.diffuse_source_size)  # a bad value is refused before work
+    progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube ({why})")
     cube = layouts.to_cube(source, layout, n)
     return cube, layout, bad
 
@@ -267,8 +323,8 @@ def run_filter(
     Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
     for bad input, before anything is written to ``out_dir``.
     """
-    from probegrid import imageio
-    from probegrid.core import dfg, diffuse, seams, sh, specular
+    from probegrid import imageio, usercache
+    from probegrid.core import diffuse, seams, shbands, specular
     from probegrid.export.shforms import sh_forms
 
     settings = settings or FilterSettings()
@@ -281,6 +337,12 @@ def run_filter(
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
+    # options that conflict with each other are refused before any work
+    if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
+            and settings.sh_window_width is None):
+        raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
+    if settings.samples is not None and settings.specular_method != "fis":
+        raise ValueError("--samples applies to --specular-method fis (importance sampling)")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -293,47 +355,62 @@ def run_filter(
 
     # --- compute everything before touching the output directory -----------------------
     t = time.perf_counter()
-    coeffs = sh.project_cube(cube)
-    irr_min, irr_min_dir = sh.min_over_sphere(sh.irradiance_coefficients(coeffs))
+    bands = settings.sh_bands
+    coeffs = shbands.project_cube(cube, bands)
+    irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method})")
+    diffuse_source = _diffuse_source_size(n, settings.diffuse_source_size)
+    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
+        + (f" from the {diffuse_source}^2 box mip" if settings.diffuse_method == "exact"
+           and diffuse_source != n else "") + ") and GGX specular "
+        f"chain: {levels} levels from {n}^2")
     sh_window: dict[str, Any] = {"window": "none"}
-    if settings.diffuse_method == "exact":
-        diff = diffuse.diffuse_exact(cube, settings.diffuse_size)
-    else:
-        width = settings.sh_window_width
-        if settings.sh_window not in ("none", "auto") and width is None:
-            raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
-        diff, info = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
-                                        width=width)
+
+    def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
+        t = time.perf_counter()
+        if settings.diffuse_method == "exact":
+            return diffuse.diffuse_exact(cube, settings.diffuse_size,
+                                         source_size=diffuse_source), None, \
+                time.perf_counter() - t
+        d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
+                                    width=settings.sh_window_width, bands=bands)
+        return d, inf, time.perf_counter() - t
+
+    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
+    if settings.samples is not None:
+        spec_kwargs["samples"] = settings.samples
+    # the diffuse sum runs in a second thread beside the GGX chain (both spend their time in
+    # numpy calls that release the GIL; the chain limits BLAS to one thread), for cubes up to
+    # 128^2: the chain of a larger cube needs the memory (peak RSS 530 vs 480 MB at 256^2)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
+        t = time.perf_counter()
+        spec = specular.ggx_prefilter(cube, **spec_kwargs)
+        timings["specular"] = time.perf_counter() - t
+        if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
+            specular.clear_caches()
+        diff, info, timings["diffuse"] = (diffuse_future.result() if diffuse_future is not None
+                                          else diffuse_stage())
+    if info is not None:
         sh_window = {
             "window": info.window,
             "width": info.width if np.isfinite(info.width) else None,
             "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
             "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
         }
-    timings["diffuse"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    say(f"GGX specular chain: {levels} levels from {n}^2")
-    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
-    if settings.samples is not None:
-        if settings.specular_method != "fis":
-            raise ValueError("--samples applies to --specular-method fis (importance sampling)")
-        spec_kwargs["samples"] = settings.samples
-    spec = specular.ggx_prefilter(cube, **spec_kwargs)
-    timings["specular"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    lut = dfg.dfg_lut(settings.lut_size)
+    lut = usercache.dfg_lut(settings.lut_size)  # computed once per machine (same bits)
     timings["dfg"] = time.perf_counter() - t
 
-    energy = {
-        "diffuse": energy_ratio(diff, cube),
-        "specular": [energy_ratio(lv, cube) for lv in spec],
-    }
+    cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
+
+    def ratio(x: NDArray[np.float32]) -> float:
+        v = float(solid_angle_integral(x).sum())
+        return v / cube_integral if cube_integral != 0 else float("nan")
+
+    energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
     diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
     spec_out = seams.apply_seam_mode(list(spec), settings.seam)
     seam_scores = {
@@ -386,12 +463,17 @@ def run_filter(
         r = k / (levels - 1) if levels > 1 else 0.0
         write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
+    band_factors = shbands.clamped_cosine_factors(bands)
     sh_doc = {
         "coefficients": [[float(x) for x in row] for row in coeffs],
-        "basis": conv["sh_basis"],
-        "constants": conv["sh_constants"],
+        "bands": bands,
+        "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
+        "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
         "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm Y_lm(n), "
-                   "A = (pi, 2pi/3, pi/4)",
+                   + ("A = (pi, 2pi/3, pi/4)" if bands == 3 else
+                      "A_l = band_factors (A_0 = pi, A_1 = 2pi/3, 0 for odd l > 1, "
+                      "Ramamoorthi & Hanrahan 2001 eq. 8 for even l)"),
+        "band_factors": [float(a) for a in band_factors],
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
         "diffuse_map": {"method": settings.diffuse_method, **sh_window},
@@ -431,7 +513,8 @@ def run_filter(
         "probegrid_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "input": {"paths": [str(p) for p in paths], "layout": in_layout,
-                  "nonfinite_values_replaced": nonfinite, "cube_size": n},
+                  "nonfinite_values_replaced": nonfinite, "cube_size": n,
+                  "diffuse_source_size": diffuse_source},
         "settings": settings.model_dump(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],

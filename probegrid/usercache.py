@@ -1,0 +1,97 @@
+"""A versioned per-user cache of computed arrays (the DFG table), under the XDG cache directory.
+
+Some outputs of the filter are identical on every run -- the split-sum DFG table depends only
+on its size and quadrature -- so they are computed once and read back afterwards. Files live in
+``$XDG_CACHE_HOME/probegrid/v1/`` (``~/.cache/probegrid/v1/`` when the variable is unset), named
+by what computed them and a hash of every argument, the cache format version and numpy's
+version (:func:`cached_array`). A cached array holds exactly the bits the computation returned
+(``.npy``, no conversion), is written through a temporary file and ``os.replace`` (never
+half-written), and is checked on reading (dtype, shape, finite); a file that fails the check,
+cannot be read or cannot be written is recomputed silently, so the cache never changes a result
+and never makes a run fail. Delete the directory to clear it.
+
+To fill the cache ahead of time (e.g. in a container image)::
+
+    python -m probegrid.usercache            # the filter's default 128^2 DFG table
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut"]
+
+#: Bumped when the layout of the cache or any cached computation changes.
+CACHE_VERSION = 1
+
+
+def cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/probegrid/v<CACHE_VERSION>`` (``~/.cache`` when unset or relative)."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
+    return root / "probegrid" / f"v{CACHE_VERSION}"
+
+
+def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArray],
+                 *, dtype: np.dtype | type, shape: tuple[int, ...]) -> NDArray:
+    """The array ``compute()`` returns, read from the cache when an equal key was stored.
+
+    Parameters
+    ----------
+    name : str
+        What computes it (part of the file name).
+    key : dict
+        Every argument the result depends on (JSON-serialisable).
+    compute : callable
+        Returns the array (of ``dtype`` and ``shape``).
+    dtype, shape
+        What a valid cached file must hold.
+
+    Returns
+    -------
+    ndarray
+        Read-only when it came from the cache or was just stored.
+    """
+    full = {"name": name, "cache": CACHE_VERSION, "numpy": np.__version__, **key}
+    digest = hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()[:20]
+    path = cache_dir() / f"{name}-{digest}.npy"
+    try:
+        arr = np.load(path, allow_pickle=False)
+        if arr.dtype == np.dtype(dtype) and arr.shape == shape and np.all(np.isfinite(arr)):
+            arr.setflags(write=False)
+            return arr
+    except (OSError, ValueError, EOFError):
+        pass
+    arr = compute()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        with open(tmp, "wb") as fh:
+            np.save(fh, arr, allow_pickle=False)
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only or full cache directory: the result is still returned
+    return arr
+
+
+def dfg_lut(size: int = 128, *, samples: int = 64) -> NDArray[np.float32]:
+    """:func:`probegrid.dfg.dfg_lut` through the cache (the same bits; ~1 s saved per run)."""
+    from probegrid.core import dfg
+
+    return cached_array("dfg_lut", {"size": int(size), "samples": int(samples),
+                                    "algorithm": "probegrid.dfg.dfg_lut v1"},
+                        lambda: dfg.dfg_lut(size, samples=samples),
+                        dtype=np.float32, shape=(int(size), int(size), 2))
+
+
+if __name__ == "__main__":  # pragma: no cover - a convenience command
+    for s in (128,):
+        dfg_lut(s)
+    print(f"filled {cache_dir()}")

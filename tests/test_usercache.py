@@ -1,0 +1,51 @@
+"""The user cache (probegrid.usercache): same bits as the computation, never a failure."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from probegrid import usercache
+from probegrid.core import dfg
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    return tmp_path / "probegrid" / f"v{usercache.CACHE_VERSION}"
+
+
+def test_dfg_table_is_stored_once_and_read_back_bit_for_bit(cache):
+    first = usercache.dfg_lut(16, samples=8)
+    files = list(cache.glob("dfg_lut-*.npy"))
+    assert len(files) == 1
+    np.testing.assert_array_equal(first, dfg.dfg_lut(16, samples=8))
+    stamp = files[0].stat().st_mtime_ns
+    again = usercache.dfg_lut(16, samples=8)
+    assert again.tobytes() == first.tobytes() and not again.flags.writeable
+    assert files[0].stat().st_mtime_ns == stamp  # read, not rewritten
+    usercache.dfg_lut(16, samples=12)  # another key, another file
+    assert len(list(cache.glob("dfg_lut-*.npy"))) == 2
+
+
+def test_damaged_or_wrong_files_are_recomputed(cache):
+    ref = usercache.dfg_lut(8, samples=8)
+    (path,) = cache.glob("dfg_lut-*.npy")
+    path.write_bytes(b"not an array")
+    np.testing.assert_array_equal(usercache.dfg_lut(8, samples=8), ref)
+    np.save(path, np.full((8, 8, 2), np.nan, np.float32))
+    np.testing.assert_array_equal(usercache.dfg_lut(8, samples=8), ref)
+    np.save(path, np.zeros((4, 4, 2), np.float32))
+    np.testing.assert_array_equal(usercache.dfg_lut(8, samples=8), ref)
+
+
+def test_unwritable_cache_still_returns_the_table(tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")  # the cache directory cannot be created under a file
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))
+    np.testing.assert_array_equal(usercache.dfg_lut(8, samples=8), dfg.dfg_lut(8, samples=8))
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/dir")  # ignored, as the XDG spec says
+    assert usercache.cache_dir().is_absolute()
+    assert not os.path.exists("relative")
