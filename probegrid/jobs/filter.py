@@ -477,7 +477,9 @@ def run_filter(
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
         "diffuse_map": {"method": settings.diffuse_method, **sh_window},
-        "consumers": sh_forms(coeffs),
+        # these consumers take bands 0-2 (9 coefficients): their forms are of the leading 9 of
+        # the same basis (zeros for bands --sh-bands left out)
+        "consumers": sh_forms(np.pad(coeffs[:9], ((0, max(0, 9 - len(coeffs))), (0, 0)))),
     }
     atomic_write_json(out / "sh.json", sh_doc)
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
