@@ -5,7 +5,7 @@ Layout
 A finished store is one directory, by convention ``NAME.probes/``::
 
     NAME.probes/
-        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 1
+        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 2
         sh.npy              one .npy file per array, named after the array
         diffuse.npy
         ...
@@ -79,12 +79,14 @@ from probegrid._fs import atomic_write_text, fsync_dir, fsync_file, lock_dir
 from probegrid.core.grid import GridSpec
 from probegrid.store.manifest import (
     DONE_FILE,
+    FORMAT_VERSION,
     MANIFEST_FILE,
     PLAN_FILE,
     ArrayInfo,
     ArraySpec,
     StoreError,
     StoreManifest,
+    _check_dtype,
     _check_name,
     _final_path,
     _jsonable,
@@ -235,6 +237,8 @@ class StoreWriter:
         self._done = (
             np.ones(plan.grid.n_probes, dtype=bool) if done_map is None else done_map
         )
+        #: Extras added so far (kept from a manifest written by an interrupted ``finish``).
+        self._extras: dict[str, ArrayInfo] = dict(manifest.extras) if manifest else {}
 
     # ------------------------------------------------------------------ construction
     @staticmethod
@@ -550,6 +554,42 @@ class StoreWriter:
         if self._durable:
             self._done_map.flush()
 
+    def add_extra(self, name: str, values: ArrayLike, *, description: str = "") -> None:
+        """Add an extra array to the store (see :mod:`probegrid.store.manifest`): written now,
+        atomically, into the partial directory, and listed in the manifest by :meth:`finish`.
+
+        Call it when every probe is written (extras are derived from the probes or describe
+        the scene); calling it again with the same name replaces the array (a resumed bake
+        redoes its extras).
+
+        Parameters
+        ----------
+        name : str
+            Not the name of one of the store's arrays.
+        values : array
+            Any shape with at least one element on every axis; bool, int, uint or float.
+        description : str
+        """
+        self._require_open()
+        _check_name(name)
+        if name in self._plan.arrays:
+            raise ValueError(f"extra {name!r} has the name of one of the store's arrays")
+        left = self.n_probes - self.n_done
+        if left:
+            raise StoreError(f"cannot add {name!r} to {self._final}: {left} of "
+                             f"{self.n_probes} probes are not written")
+        a = np.ascontiguousarray(values)
+        info = ArrayInfo(file=f"{name}.npy", dtype=_check_dtype(a.dtype), shape=a.shape,
+                         description=description)
+        file = self._partial / info.file
+        tmp = self._partial / f".{info.file}.tmp"
+        with open(tmp, "wb") as f:
+            np.save(f, a, allow_pickle=False)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, file)
+        self._extras[name] = info
+
     def finish(self, *, quality: Mapping[str, Any] | BaseModel | None = None) -> ProbeStore:
         """Publish the finished store atomically and return it opened for reading.
 
@@ -574,7 +614,10 @@ class StoreWriter:
             fsync_file(self._partial / self._plan.arrays[name].file)
         self._maps = {}
         plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
-        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q)
+        if self._extras:  # a version-1 plan (a bake resumed across versions) gains extras
+            plan_fields["format_version"] = FORMAT_VERSION
+        manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q,
+                                 extras=self._extras)
         atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
         self._done = np.ones(self.n_probes, dtype=bool)
         self._done_map = None
