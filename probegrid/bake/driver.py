@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.bake.extras import write_store_extras
 from probegrid.bake.render import (
     IndirectField,
     ProbeRenderer,
@@ -615,6 +616,7 @@ def bake(
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
+        write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
         store = w.finish(quality=quality)
         shutil.rmtree(work, ignore_errors=True)
         seconds = time.perf_counter() - t0
