@@ -199,3 +199,39 @@ def test_the_response_says_which_test_and_the_old_store_keeps_its_weights(field,
     # far from walls nothing is hidden: the same weights as the old store's, to rounding
     np.testing.assert_allclose(field.weights(p).weights, old_field.weights(p).weights,
                                rtol=0, atol=1e-15)
+
+
+def test_baked_store_keeps_raw_and_deringed_sh(field, old_field):
+    """Every probe's stored deringed SH has irradiance >= 0 over a dense sphere sampling (as
+    float32, as stored), equals the raw SH where that already held, and records its window;
+    a store without them (format 1) is deringed the same way when queried."""
+    from probegrid.core import sh as shm
+
+    s = field.store
+    raw = np.asarray(s["sh"], np.float64)
+    der = np.asarray(s["sh_deringed"], np.float64)
+    window = np.asarray(s["sh_window"], np.float64)
+    k = np.arange(20000) + 0.5
+    y = 1 - 2 * k / k.size
+    phi = k * np.pi * (3 - np.sqrt(5))
+    dirs = np.column_stack([np.sqrt(1 - y * y) * np.cos(phi), y, np.sqrt(1 - y * y) * np.sin(phi)])
+    basis = shm.sh_basis(dirs) * shm.A_HAT
+
+    def dense_min(c):
+        return (basis @ np.moveaxis(c, 1, 0).reshape(9, -1)).min(axis=0).reshape(len(c), 3)
+
+    raw_min, der_min = dense_min(raw), dense_min(der)
+    ok = np.all(raw_min >= 0, axis=1)
+    assert np.count_nonzero(~ok) > 0  # the point light rings in some probes
+    assert np.all(der_min >= 0)
+    np.testing.assert_array_equal(der[ok], raw[ok])
+    np.testing.assert_array_equal(window[ok], 1.0)
+    np.testing.assert_allclose(der, raw * window[:, shm.BAND_OF][:, :, None], rtol=1e-6,
+                               atol=1e-7 * np.abs(raw).max())
+    # queries: deringed by default, raw on request; the old store derings on first use
+    w = field.weights(np.array([[1.0, 1.0, 1.0]]))
+    assert field.sh_source() == "store" and old_field.sh_source() == "computed"
+    np.testing.assert_allclose(old_field.sh(w), field.sh(w), rtol=1e-6, atol=1e-9)
+    np.testing.assert_array_equal(field.sh(w, kind="raw"), old_field.sh(w, kind="raw"))
+    with pytest.raises(ValueError, match="sh kind"):
+        field.sh(w, kind="ringing")
