@@ -83,6 +83,9 @@ class ProbeField:
         Map kinds the store holds, among ``"diffuse"``, ``"specular"``, ``"incoming"``.
     specular_levels : int
         Levels of the specular chain (0 if none).
+    tracer : RayTracer or None
+        Embree BVH of the store's scene triangles (built at construction), None for a store
+        without them; with it every query's weights take the exact segment test.
     """
 
     def __init__(self, store: ProbeStore, *, normal_bias: float = DEFAULT_NORMAL_BIAS) -> None:

@@ -46,7 +46,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.kernels import embree_hits, embree_rays
+from probegrid.kernels import embree_hits, embree_rays, segment_rays
 
 __all__ = ["Hits", "RayTracer"]
 
@@ -285,14 +285,16 @@ class RayTracer:
         """Whether any triangle lies on each segment ``starts[k] -> ends[k]`` (visibility).
 
         The lean any-hit query of a probe field's exact visibility test (a few segments per
-        point, microseconds each): the segments are re-centred and rounded to float32 in plain
-        numpy (float64 first, as :meth:`occluded` does) and handed to Embree's ``OCCLUDED``
-        query directly, ``chunk_size`` at a time.
+        point, microseconds each): the segments are re-centred and rounded to float32 in one
+        compiled loop (:func:`probegrid.kernels.segment_rays`; float64 first, as
+        :meth:`occluded` does) and handed to Embree's ``OCCLUDED`` query directly,
+        ``chunk_size`` at a time.
 
         Parameters
         ----------
         starts, ends : (k, 3) float
-            Segment end points, finite.
+            Segment end points, finite; ``starts`` may be one point, ``(3,)`` or ``(1, 3)``,
+            shared by every segment (a query point and its probes).
         margin : float
             Length (world units, >= 0) left out at *both* ends, so that a point lying on a
             surface, or a probe, does not occlude itself; a segment no longer than ``2 margin``
@@ -304,22 +306,20 @@ class RayTracer:
         """
         a = np.asarray(starts, dtype=np.float64)
         b = np.asarray(ends, dtype=np.float64)
-        if a.ndim != 2 or a.shape[1:] != (3,) or a.shape != b.shape:
-            raise ValueError(f"starts and ends must both have shape (k, 3), got {a.shape} and "
-                             f"{b.shape}.")
+        if a.ndim == 1:
+            a = a.reshape(1, -1)
+        if b.ndim != 2 or b.shape[1:] != (3,) or a.shape not in (b.shape, (1, 3)):
+            raise ValueError(f"starts and ends must have shape (k, 3) (starts also (3,) or "
+                             f"(1, 3)), got {a.shape} and {b.shape}.")
         if not (math.isfinite(margin) and 0 <= margin < 1e30):
             raise ValueError(f"margin must be finite and >= 0, got {margin!r}.")
-        d = b - a
-        # (numpy's per-call overhead is most of the cost for a few segments: no einsum, no
-        # errstate; a zero-length segment gets lo = huge, i.e. is never occluded)
-        lo = margin / np.maximum(np.sqrt((d * d).sum(axis=1)), 1e-30)  # (margin < 1e30)
-        org = ((a - self._centre) + lo[:, None] * d).astype(np.float32)
-        dirs = d.astype(np.float32)
-        far = (1.0 - 2.0 * lo).astype(np.float32)
-        if not (np.isfinite(org).all() and np.isfinite(dirs).all()):
+        org, dirs, far, ok = segment_rays(a, b, float(margin), self._centre)
+        if not ok:
             raise ValueError("segment end points must be finite (and within float32).")
         live = far > 0
         if live.all():
+            if len(far) <= self.chunk_size:  # the common case: one call
+                return self._scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
             idx = None
         else:
             org, dirs, far, idx = org[live], dirs[live], far[live], np.flatnonzero(live)
@@ -330,7 +330,7 @@ class RayTracer:
                                        query="OCCLUDED") >= 0
         if idx is None:
             return hit
-        out = np.zeros(len(a), dtype=bool)
+        out = np.zeros(len(b), dtype=bool)
         out[idx] = hit
         return out
 

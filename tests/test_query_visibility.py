@@ -235,3 +235,25 @@ def test_baked_store_keeps_raw_and_deringed_sh(field, old_field):
     np.testing.assert_array_equal(field.sh(w, kind="raw"), old_field.sh(w, kind="raw"))
     with pytest.raises(ValueError, match="sh kind"):
         field.sh(w, kind="ringing")
+
+
+def test_segment_rays_kernel_restates_its_array_expression():
+    from probegrid.kernels import segment_rays
+
+    rng = np.random.default_rng(11)
+    a = rng.uniform(-5, 5, (200, 3))
+    b = rng.uniform(-5, 5, (200, 3))
+    b[:3] = a[:3]  # zero-length segments
+    centre = np.array([0.3, -1.0, 2.0])
+    margin = 1e-3
+    for starts in (a, a[:1]):
+        org, dirs, far, ok = segment_rays(starts, b, margin, centre)
+        d = b - starts
+        lo = margin / np.maximum(np.linalg.norm(d, axis=1), 1e-30)
+        assert ok
+        np.testing.assert_allclose(org, ((starts - centre) + lo[:, None] * d).astype(np.float32),
+                                   rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(dirs, d.astype(np.float32))
+        np.testing.assert_allclose(far, (1 - 2 * lo).astype(np.float32), rtol=1e-6)
+    assert np.all(segment_rays(a, b, margin, centre)[2][:3] < 0)  # never occluded
+    assert not segment_rays(np.array([[np.inf, 0, 0]]), b[:1], margin, centre)[3]

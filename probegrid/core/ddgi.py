@@ -105,8 +105,8 @@ MAP_KINDS: Final[tuple[str, ...]] = get_args(MapKind)
 VISIBILITY_TESTS: Final[tuple[str, ...]] = ("segments", "moments", "none")
 
 
-#: ``occluded(starts (k, 3), ends (k, 3)) -> (k,) bool``: whether scene geometry lies on each
-#: segment strictly between its ends (e.g. :meth:`probegrid.raytrace.RayTracer.segments_occluded`).
+#: ``occluded(starts (k or 1, 3), ends (k, 3)) -> (k,) bool``: whether scene geometry lies on
+#: each segment strictly between its ends (one start row is shared by every segment) (e.g. :meth:`probegrid.raytrace.RayTracer.segments_occluded`).
 Occlusion = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.bool_]]
 
 
@@ -295,6 +295,8 @@ def _hide_occluded(
     Only the corners that carry weight are tested: one segment each, from the point (moved
     ``normal_bias`` cells along the normal when there is one) to the probe's position.
     """
+    if len(w) == 1:
+        return _hide_occluded_one(grid, w, p, normals, probe_positions, normal_bias, occluded)
     rows, cols = np.nonzero(w.weights > 0)
     weights = w.weights
     if rows.size:
@@ -336,6 +338,36 @@ def _weights(
         total[unlit] = 1.0  # and their weights are all 0
     w = w / total[:, None]
     return ProbeWeights(indices=indices, weights=w, points=clamped, outside=outside, unlit=unlit)
+
+
+def _hide_occluded_one(
+    grid: GridSpec,
+    w: ProbeWeights,
+    p: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    probe_positions: ArrayLike | None,
+    normal_bias: float,
+    occluded: Occlusion,
+) -> ProbeWeights:
+    """:func:`_hide_occluded` of a single point, in Python floats around one segment query
+    (numpy's per-call overhead is most of a single point's cost); the same weights."""
+    wl = w.weights[0].tolist()
+    used = [c for c in range(8) if wl[c] > 0]
+    if not used:
+        return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")
+    il = w.indices[0].tolist()
+    ends = _probe_xyz(grid, np.array([il[c] for c in used]), probe_positions)
+    start = p if normals is None else p + _test_point_offset(grid, normal_bias) * normals
+    hidden = occluded(start, ends).tolist()  # one start row: shared by every segment
+    if not any(hidden):
+        return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")
+    for c, h in zip(used, hidden, strict=True):
+        if h:
+            wl[c] = 0.0
+    total = sum(wl)
+    unlit = not total > 0
+    weights = np.array([[0.0 if unlit else x / total for x in wl]], dtype=np.float64)
+    return ProbeWeights(w.indices, weights, w.points, w.outside, w.unlit | unlit, "segments")
 
 
 def _weights_one(
