@@ -51,7 +51,7 @@ from probegrid.core.shading import reflect, shade_split_sum
 from probegrid.raytrace import RayTracer
 from probegrid.store import ProbeStore
 
-__all__ = ['SH_KINDS', 'SHKind', 'ProbeField']
+__all__ = ['SH_KINDS', 'ProbeField', 'SHKind']
 
 #: Which SH :meth:`ProbeField.sh` blends: the deringed coefficients (default) or the raw ones.
 SHKind = Literal["deringed", "raw"]

@@ -67,7 +67,7 @@ def test_deringed_irradiance_is_non_negative_and_non_ringing_probes_are_kept():
 
 def test_the_window_is_the_gentlest_on_the_path():
     raw = _probes(60, 2)
-    out, window, _ = dering(raw)
+    _out, window, _ = dering(raw)
     fixed = np.flatnonzero(window[:, 1] < 1)
     assert fixed.size > 10
     c = np.pi * sh.K0 * raw[:, 0]  # (P, C) irradiance of band 0
@@ -86,7 +86,7 @@ def test_one_directional_light_matches_a_brute_force_search():
     window found equals a fine scan of the path with the analytic minimum over the sphere."""
     raw = sh.sh_basis(np.array([[0.0, 0.0, 1.0]]))[0][None, :, None]  # (1, 9, 1)
     assert _dense_min(raw)[0, 0] < 0
-    out, window, _ = dering(raw)
+    _out, window, _ = dering(raw)
     # L_00 = K0, L_10 = K1, L_20 = Y_20(+Z) = 2 K3: E = A_l L_l0 Y_l0
     c0, b1, g2 = np.pi * sh.K0**2, 2 * np.pi / 3 * sh.K1**2, np.pi / 4 * 2 * sh.K3**2
     assert (c0, b1, g2) == pytest.approx((1 / 4, 1 / 2, 5 / 32), rel=1e-15)

@@ -256,9 +256,12 @@ def probe_weights(
                      probe_positions, moments, normal_bias)
             for i in range(0, max(len(p), 1), _POINT_CHUNK)
         ]
+        def joined(name: str) -> NDArray[Any]:
+            return np.concatenate([getattr(part, name) for part in parts])
+
         w = parts[0] if len(parts) == 1 else ProbeWeights(
-            *(np.concatenate([getattr(w, f) for w in parts]) for f in (
-                "indices", "weights", "points", "outside", "unlit")))
+            joined("indices"), joined("weights"), joined("points"), joined("outside"),
+            joined("unlit"))
     if occluded is not None:
         return _hide_occluded(grid, w, p, n, probe_positions, normal_bias, occluded)
     if n is not None and moments is not None:

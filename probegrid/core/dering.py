@@ -59,7 +59,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.core.sh import A_HAT, BAND_OF, K0, _quadratic_form
+from probegrid.core.sh import A_HAT, BAND_OF, _quadratic_form
 
 __all__ = ["DEFAULT_MARGIN", "dering", "irradiance_minimum", "window_path"]
 
