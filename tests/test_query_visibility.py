@@ -257,3 +257,31 @@ def test_segment_rays_kernel_restates_its_array_expression():
         np.testing.assert_allclose(far, (1 - 2 * lo).astype(np.float32), rtol=1e-6)
     assert np.all(segment_rays(a, b, margin, centre)[2][:3] < 0)  # never occluded
     assert not segment_rays(np.array([[np.inf, 0, 0]]), b[:1], margin, centre)[3]
+
+
+def test_store_extras_are_written_atomically_and_checked(tmp_path):
+    from probe_stores import GRID as LGRID
+    from probe_stores import linear_arrays
+
+    from probegrid.core.conventions import conventions
+    from probegrid.store import ArraySpec, StoreError, StoreWriter
+
+    arrays = linear_arrays(LGRID)
+    specs = {k: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str) for k, a in arrays.items()}
+    w = StoreWriter.create(tmp_path / "x.probes", arrays=specs, grid=LGRID,
+                           conventions=conventions(), scene_hash="x")
+    with pytest.raises(StoreError, match="not written"):
+        w.add_extra("scene_vertices", np.zeros((3, 3), np.float32))
+    w.write(np.arange(LGRID.n_probes), arrays)
+    with pytest.raises(ValueError, match="name of one of the store's arrays"):
+        w.add_extra("sh", np.zeros((3, 3)))
+    w.add_extra("scene_vertices", np.ones((3, 3), np.float32), description="first")
+    w.add_extra("scene_vertices", np.full((4, 3), 2.0, np.float32))  # replaced
+    assert not list(w.partial_path.glob(".*.tmp"))
+    store = w.finish(quality={})
+    assert store.manifest.format_version == 2 and store.extras == ["scene_vertices"]
+    np.testing.assert_array_equal(store["scene_vertices"], np.full((4, 3), 2.0))
+    assert "scene_vertices" not in store.names  # the per-probe arrays stay apart
+    (store.path / "scene_vertices.npy").write_bytes(b"broken")
+    with pytest.raises(StoreError, match="scene_vertices.npy is not a valid .npy"):
+        open_store(store.path)
