@@ -130,6 +130,32 @@ def scene_extras(path: Path, source: Path) -> Path:
     return path
 
 
+def in_process_visibility_cost(plain: Path, seg: Path, lo: np.ndarray, hi: np.ndarray) -> str:
+    """One line: the warm in-process cost of one point's weights without and with the exact
+    segment test, and of the Embree segment query alone (best of 5 repeats of 2000 calls)."""
+    import timeit
+
+    from probegrid.query import ProbeField
+
+    a, b = ProbeField(open_store(plain)), ProbeField(open_store(seg))
+    pts = lo + np.random.default_rng(2).random((64, 3)) * (hi - lo)
+
+    def best(fn) -> float:
+        it = iter(range(1 << 62))
+        return min(timeit.repeat(lambda: fn(pts[next(it) % 64]), number=2000, repeat=5)) / 2000
+
+    t_plain = best(lambda p: a.weights(p))
+    t_seg = best(lambda p: b.weights(p))
+    ends = np.asarray(b.store["positions"], np.float64)[b.grid.corners(pts[:1])[0][0]]
+    assert b.tracer is not None
+    tracer = b.tracer
+    t_cast = best(lambda p: tracer.segments_occluded(p, ends, margin=1e-4))
+    return (f"in process, one point, warm: weights {t_plain * 1e6:.1f} us, with the exact "
+            f"segment test {t_seg * 1e6:.1f} us ({t_seg / t_plain:.2f}x); the 8-segment "
+            f"Embree query alone {t_cast * 1e6:.1f} us ({len(np.asarray(b.store['scene_triangles']))}"
+            " triangles)")
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -318,6 +344,9 @@ def main() -> None:
                           f"{seg['p50_ms'] / plain['p50_ms']:.2f}x, req/s "
                           f"{seg['rps'] / plain['rps']:.2f}x, p50 "
                           f"{(seg['p50_ms'] - plain['p50_ms']) * 1e3:+.0f} us")
+
+            if len(stores) > 1:
+                print(in_process_visibility_cost(stores[0], stores[1], grid.lo, grid.hi))
 
             server = psutil.Process(proc.pid)
             mixed = paths["sh"] + paths["sh+normal"] + paths["maps"]

@@ -48,7 +48,8 @@ segment test (``occluded``, cast through Embree by :mod:`probegrid.raytrace`): e
 carries weight is tested with the segment from the point to the probe's (possibly moved)
 position, starting at ``p`` without a normal and at the biased ``q = p + normal_bias n`` with
 one; a probe with geometry on that segment (on the far side of a wall) gets weight **0**, and
-the rest are renormalised. With a normal the normal-facing term still applies and the moments'
+the rest are renormalised (a point that sees none of its valid probes, e.g. inside a wall or in
+a closet smaller than a cell, gets all-zero weights and ``unlit = True``). With a normal the normal-facing term still applies and the moments'
 Chebyshev estimate is not used (the exact test replaces it). The weights are then continuous
 except where a segment crosses a silhouette edge of the scene: a probe that becomes visible
 takes its weight at once, which is the price of "no leak through walls" (DDGI's soft test trades
