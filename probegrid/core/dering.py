@@ -22,8 +22,9 @@ non-negative window can keep. The window runs along the straight segment
 
 from no window (``t = 0``) to ``(1, a, 0)`` (``t = 1``, feasible by construction). For each
 direction and channel ``E`` is affine in ``t``, so ``m(t) = min_{d, channel} E - margin c`` is
-*concave*: its feasible set ``{m >= 0}`` is an interval ``[t*, 1]`` and bisection finds ``t*``
-exactly (no grid scan, none of the non-monotone windows of ``sh.auto_window``). ``h_2 <= h_1``
+*concave*: its feasible set ``{m >= 0}`` is an interval ``[t*, 1]``, and a bracketing root
+finder (Illinois regula falsi) finds ``t*`` to ``1e-10`` (no grid scan, none of the
+non-monotone windows of ``sh.auto_window``); the window returned is the feasible end. ``h_2 <= h_1``
 along the whole path: the window is a low-pass, band 2 damped first.
 
 Exact minimum over the sphere
@@ -66,8 +67,10 @@ __all__ = ["DEFAULT_MARGIN", "dering", "irradiance_minimum", "window_path"]
 #: Relative margin ``min E >= margin * c`` a deringed probe keeps (float32 storage headroom).
 DEFAULT_MARGIN: Final = 1e-4
 
-#: Bisection steps: of the window parameter t (2^-40 of the path) and of the dual variable.
-_T_STEPS: Final = 40
+#: Root-finder iterations (at most) and tolerance on the window parameter t, and bisection
+#: steps of the dual variable.
+_T_STEPS: Final = 60
+_T_TOL: Final = 1e-10
 _MU_STEPS: Final = 64
 
 
@@ -174,19 +177,36 @@ def dering(
             a_ch = np.where(bnorm > 0, (1.0 - 2.0 * margin) * c_t / bnorm, 1.0)
         a = np.clip(a_ch.reshape(-1, ch).min(axis=1), 0.0, 1.0)  # (T,) per probe
 
-        def feasible(t: NDArray[np.float64]) -> NDArray[np.bool_]:
-            h1 = np.repeat(1.0 - t * (1.0 - a), ch)
+        def slack(t: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.float64]:
+            """m(t): certified minimum minus the margin, over the channels of probes ``rows``
+            (indices into ``todo``) at path parameters ``t``."""
+            r = (rows[:, None] * ch + np.arange(ch)).reshape(-1)
+            h1 = np.repeat(1.0 - t * (1.0 - a[rows]), ch)
             h2 = np.repeat(1.0 - t, ch)
-            m = _dual_minimum(c_t, beta_t * h1[:, None], s_t * h2[:, None]) - need_t
-            return np.all(m.reshape(-1, ch) >= 0.0, axis=1)
+            m = _dual_minimum(c_t[r], beta_t[r] * h1[:, None], s_t[r] * h2[:, None]) - need_t[r]
+            return m.reshape(-1, ch).min(axis=1)
 
-        lo = np.zeros(todo.size)  # infeasible (the raw SH rings)
-        hi = np.ones(todo.size)  # feasible by construction of a (or the strongest window)
-        for _ in range(_T_STEPS):  # bisection of a concave function's superlevel set
-            mid = 0.5 * (lo + hi)
-            ok = feasible(mid)
-            hi = np.where(ok, mid, hi)
-            lo = np.where(ok, lo, mid)
+        # The root t* of the concave m on [0, 1] (m(0) < 0 <= m(1)) by the Illinois variant of
+        # regula falsi, which keeps the bracket [lo (infeasible), hi (feasible)] and converges
+        # superlinearly; a probe stops once its bracket is below T_TOL.
+        every = np.arange(todo.size)
+        lo, hi = np.zeros(todo.size), np.ones(todo.size)
+        f_lo, f_hi = slack(lo, every), slack(hi, every)
+        side = np.zeros(todo.size, dtype=np.int8)
+        for _ in range(_T_STEPS):  # iterations of the root finder, all probes at once
+            act = np.flatnonzero((hi - lo > _T_TOL) & (f_hi > 0))
+            if act.size == 0:
+                break
+            l, u, fl, fu = lo[act], hi[act], f_lo[act], f_hi[act]
+            t = (l * fu - u * fl) / (fu - fl)
+            t = np.where((t > l) & (t < u), t, 0.5 * (l + u))
+            f = slack(t, act)
+            ok = f >= 0.0
+            fl = np.where(ok & (side[act] == 1), 0.5 * fl, fl)  # Illinois: the same end twice
+            fu = np.where(~ok & (side[act] == -1), 0.5 * fu, fu)
+            hi[act], f_hi[act] = np.where(ok, t, u), np.where(ok, f, fu)
+            lo[act], f_lo[act] = np.where(ok, l, t), np.where(ok, fl, f)
+            side[act] = np.where(ok, 1, -1)
         h = window_path(hi, a)  # (T, 3)
         window[todo] = h
         out[todo] = x[todo] * h[:, BAND_OF][:, :, None]
