@@ -13,7 +13,12 @@ sent in ``--rounds`` rounds that visit every endpoint in turn, so a change in th
 * ``bare``: ``GET /healthz``, a fixed small JSON document from the same app (the reference);
 * ``sh``: ``GET /v1/grids/G/sh?x=&y=&z=`` at positions spread over the grid box;
 * ``sh+normal``: the same with ``nx, ny, nz`` (DDGI visibility weights);
-* ``maps``: ``GET /v1/grids/G/maps/diffuse?...&format=npy`` (the 16^2 diffuse cube).
+* ``maps``: ``GET /v1/grids/G/maps/diffuse?...&format=npy`` (the 16^2 diffuse cube);
+* ``sh[seg]``, ``sh+normal[seg]``, ``maps[seg]`` (synthetic store only): the same queries of a
+  second grid, the synthetic store plus the extras a bake writes (format 2): a scene of about
+  20000 triangles (a closed room, two inner walls with doorways, a tessellated floor) whose
+  point-to-probe segments every query casts through Embree (exact visibility, issue 10), and
+  the deringed SH. The ratio ``[seg]`` / plain is the cost of the exact visibility test.
 
 It prints p50 / p99 latency and requests per second per endpoint and their ratios to the bare
 endpoint (the figures; targets: ``sh`` p50 <= 1.5x and throughput >= 0.7x, ``maps`` p50 <= 2x),
@@ -81,19 +86,89 @@ def synthetic_store(path: Path) -> Path:
     return path
 
 
+def scene_extras(path: Path, source: Path) -> Path:
+    """A copy of the synthetic store ``source`` with the extras of a bake (format 2): the
+    deringed SH and a scene of ~20000 triangles inside and around its grid box (module
+    docstring), so that its queries take the exact segment visibility test."""
+    from probegrid.core.dering import dering
+    from probegrid.scene import box_mesh, quad_mesh
+
+    store = open_store(source)
+    grid = store.grid
+    arrays = {k: np.asarray(store[k]) for k in store.names}
+    specs = {k: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str) for k, a in arrays.items()}
+    writer = StoreWriter.create(path, arrays=specs, grid=grid, conventions=conventions(),
+                                scene_hash="bench-synthetic-scene", bake={"synthetic": True})
+    writer.write(np.arange(grid.n_probes), arrays)
+    deringed, window, _ = dering(arrays["sh"].astype(np.float64))
+    writer.add_extra("sh_deringed", deringed.astype(np.float32))
+    writer.add_extra("sh_window", window.astype(np.float32))
+    parts = [box_mesh(grid.lo - 0.5, grid.hi + 0.5, inward=True)[:2]]
+    h = float(grid.hi[1] - grid.lo[1]) + 1.0
+    for x in (2.3, 4.7):  # inner walls across z, a doorway 1 wide at z in [3, 4]
+        z0, z1 = float(grid.lo[2]) - 0.5, float(grid.hi[2]) + 0.5
+        parts.append(quad_mesh((x, -0.5, z0), (0.0, 0.0, 3.5 - z0), (0.0, h, 0.0))[:2])
+        parts.append(quad_mesh((x, -0.5, 4.5), (0.0, 0.0, z1 - 4.5), (0.0, h, 0.0))[:2])
+    n = 100  # a tessellated floor just above the room's: 2 n^2 triangles
+    u = np.linspace(grid.lo[0] - 0.4, grid.hi[0] + 0.4, n + 1)
+    w = np.linspace(grid.lo[2] - 0.4, grid.hi[2] + 0.4, n + 1)
+    uu, ww = np.meshgrid(u, w, indexing="ij")
+    verts = np.stack([uu, np.full_like(uu, -0.45) + 0.02 * np.sin(3 * uu) * np.cos(2 * ww),
+                      ww], -1).reshape(-1, 3)
+    i, k = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + k).ravel()
+    tris = np.concatenate([np.stack([a, a + 1, a + n + 2], 1), np.stack([a, a + n + 2, a + n + 1], 1)])
+    parts.append((verts, tris))
+    vs, ts, base = [], [], 0
+    for v, t in parts:
+        vs.append(v)
+        ts.append(np.asarray(t) + base)
+        base += len(v)
+    writer.add_extra("scene_vertices", np.concatenate(vs).astype(np.float32))
+    writer.add_extra("scene_triangles", np.concatenate(ts).astype(np.int32))
+    writer.finish(quality={})
+    return path
+
+
+def in_process_visibility_cost(plain: Path, seg: Path, lo: np.ndarray, hi: np.ndarray) -> str:
+    """One line: the warm in-process cost of one point's weights without and with the exact
+    segment test, and of the Embree segment query alone (best of 5 repeats of 2000 calls)."""
+    import timeit
+
+    from probegrid.query import ProbeField
+
+    a, b = ProbeField(open_store(plain)), ProbeField(open_store(seg))
+    pts = lo + np.random.default_rng(2).random((64, 3)) * (hi - lo)
+
+    def best(fn) -> float:
+        it = iter(range(1 << 62))
+        return min(timeit.repeat(lambda: fn(pts[next(it) % 64]), number=2000, repeat=5)) / 2000
+
+    t_plain = best(lambda p: a.weights(p))
+    t_seg = best(lambda p: b.weights(p))
+    ends = np.asarray(b.store["positions"], np.float64)[b.grid.corners(pts[:1])[0][0]]
+    assert b.tracer is not None
+    tracer = b.tracer
+    t_cast = best(lambda p: tracer.segments_occluded(p, ends, margin=1e-4))
+    return (f"in process, one point, warm: weights {t_plain * 1e6:.1f} us, with the exact "
+            f"segment test {t_seg * 1e6:.1f} us ({t_seg / t_plain:.2f}x); the 8-segment "
+            f"Embree query alone {t_cast * 1e6:.1f} us ({len(np.asarray(b.store['scene_triangles']))}"
+            " triangles)")
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def start_server(store: Path, port: int, log: Path) -> subprocess.Popen[bytes]:
+def start_server(stores: list[Path], port: int, log: Path) -> subprocess.Popen[bytes]:
     code = ("import sys; from service.main import run; "
-            "run([sys.argv[1]], host='127.0.0.1', port=int(sys.argv[2]), workers=1, "
+            "run(sys.argv[2:], host='127.0.0.1', port=int(sys.argv[1]), workers=1, "
             "log_level='warning')")
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     with open(log, "wb") as out:
-        return subprocess.Popen([sys.executable, "-c", code, str(store), str(port)],
+        return subprocess.Popen([sys.executable, "-c", code, str(port), *map(str, stores)],
                                 stdout=out, stderr=subprocess.STDOUT, env=env, cwd=REPO)
 
 
@@ -189,7 +264,8 @@ def server_stack() -> str:
     return f"uvicorn {uvicorn.__version__} {http}/{loop}"
 
 
-def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray) -> dict[str, list[bytes]]:
+def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray, *, seg_grid: str | None = None
+                   ) -> dict[str, list[bytes]]:
     rng = np.random.default_rng(1)
     pts = lo + rng.random((512, 3)) * (hi - lo)
     nrm = rng.normal(size=(512, 3))
@@ -197,13 +273,18 @@ def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray) -> dict[str, list[
     def q(p: np.ndarray) -> str:
         return f"x={p[0]:.6f}&y={p[1]:.6f}&z={p[2]:.6f}"
 
-    return {
-        "bare": [b"/healthz"],
-        "sh": [f"/v1/grids/{grid}/sh?{q(p)}".encode() for p in pts],
-        "sh+normal": [f"/v1/grids/{grid}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}&nz={n[2]:.4f}"
-                      .encode() for p, n in zip(pts, nrm, strict=True)],
-        "maps": [f"/v1/grids/{grid}/maps/diffuse?{q(p)}&format=npy".encode() for p in pts],
-    }
+    def queries(g: str) -> dict[str, list[bytes]]:
+        return {
+            "sh": [f"/v1/grids/{g}/sh?{q(p)}".encode() for p in pts],
+            "sh+normal": [f"/v1/grids/{g}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}&nz={n[2]:.4f}"
+                          .encode() for p, n in zip(pts, nrm, strict=True)],
+            "maps": [f"/v1/grids/{g}/maps/diffuse?{q(p)}&format=npy".encode() for p in pts],
+        }
+
+    paths = {"bare": [b"/healthz"], **queries(grid)}
+    if seg_grid is not None:
+        paths.update({f"{k}[seg]": v for k, v in queries(seg_grid).items()})
+    return paths
 
 
 def main() -> None:
@@ -222,10 +303,13 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
         store = args.store or synthetic_store(Path(tmp) / "bench.probes")
+        stores = [store]
+        if args.store is None:
+            stores.append(scene_extras(Path(tmp) / "benchseg.probes", store))
         grid = open_store(store).grid
         name = store.name.removesuffix(".probes")
         port = free_port()
-        proc = start_server(store, port, Path(tmp) / "server.log")
+        proc = start_server(stores, port, Path(tmp) / "server.log")
         try:
             deadline = time.monotonic() + 60
             while True:
@@ -236,21 +320,33 @@ def main() -> None:
                     if proc.poll() is not None or time.monotonic() > deadline:
                         raise RuntimeError((Path(tmp) / "server.log").read_text()) from None
                     time.sleep(0.1)
-            paths = endpoint_paths(name, grid.lo, grid.hi)
+            paths = endpoint_paths(name, grid.lo, grid.hi,
+                                   seg_grid="benchseg" if len(stores) > 1 else None)
             results = measure(port, paths, args.requests, args.connections, args.rounds,
                               args.max_seconds)
             print(f"{args.requests} requests per endpoint and measurement in {args.rounds} "
                   f"interleaved rounds, one uvicorn worker ({server_stack()}), store "
                   f"{store.name} ({grid.label}); latency on 1 connection, throughput on "
                   f"{args.connections}")
-            print(f"{'endpoint':<11}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
+            print(f"{'endpoint':<15}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
                   f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}")
             bare = results["bare"]
             for key, r in results.items():
                 r.update(p50_ratio=r["p50_ms"] / bare["p50_ms"],
                          p99_ratio=r["p99_ms"] / bare["p99_ms"], rps_ratio=r["rps"] / bare["rps"])
-                print(f"{key:<11}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
+                print(f"{key:<15}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
                       f"{r['p50_ratio']:8.2f}{r['p99_ratio']:8.2f}{r['rps_ratio']:8.2f}")
+
+            for key in ("sh", "sh+normal", "maps"):
+                if f"{key}[seg]" in results:
+                    seg, plain = results[f"{key}[seg]"], results[key]
+                    print(f"exact visibility ({key}[seg] / {key}): p50 "
+                          f"{seg['p50_ms'] / plain['p50_ms']:.2f}x, req/s "
+                          f"{seg['rps'] / plain['rps']:.2f}x, p50 "
+                          f"{(seg['p50_ms'] - plain['p50_ms']) * 1e3:+.0f} us")
+
+            if len(stores) > 1:
+                print(in_process_visibility_cost(stores[0], stores[1], grid.lo, grid.hi))
 
             server = psutil.Process(proc.pid)
             mixed = paths["sh"] + paths["sh+normal"] + paths["maps"]

@@ -71,6 +71,7 @@ __all__ = [
     "BadRequestError",
     "GridInfo",
     "InvalidArgumentError",
+    "MapSample",
     "NotFoundError",
     "ProbeGridClient",
     "ProbeGridConnectionError",
@@ -228,7 +229,16 @@ class SHSample:
     sampled_position : (3,) float64
         The position clamped onto the grid box.
     outside, unlit, visibility : bool
-        Flags of the query (see the service).
+        Flags of the query (see the service; ``visibility``: a normal was given).
+    visibility_test : str
+        The visibility test the weights went through: ``"segments"`` (exact, against the
+        scene's triangles: a probe behind a wall has no weight), ``"moments"`` (DDGI's
+        Chebyshev test, a store without triangles and a normal) or ``"none"``.
+    sh : str
+        Which coefficients: ``"deringed"`` (each probe's irradiance non-negative everywhere,
+        the default) or ``"raw"``.
+    sh_source : str
+        ``"store"``, or ``"computed"`` when the server deringed an older store's SH itself.
     """
 
     coefficients: NDArray[np.float64]
@@ -238,6 +248,36 @@ class SHSample:
     outside: bool
     unlit: bool
     visibility: bool
+    visibility_test: str = "none"
+    sh: str = "raw"
+    sh_source: str = "store"
+
+
+@dataclass(frozen=True, eq=False)
+class MapSample:
+    """One level of a blended cube map and how it was blended (:meth:`ProbeGridClient.map_at`).
+
+    Attributes
+    ----------
+    faces : (6, n, n, 3) float32
+    kind : str
+    level : int
+    probes : (k,) int64
+    weights : (k,) float64
+        The probes blended and their weights (the ``X-Probegrid-Probes`` header).
+    outside, unlit : bool
+    visibility_test : str
+        ``"segments"``, ``"moments"`` or ``"none"`` (see :class:`SHSample`).
+    """
+
+    faces: NDArray[np.float32]
+    kind: str
+    level: int
+    probes: NDArray[np.int64]
+    weights: NDArray[np.float64]
+    outside: bool
+    unlit: bool
+    visibility_test: str
 
 
 # ------------------------------------------------------------------------------ request building
@@ -422,8 +462,14 @@ class _BaseClient:
         return info
 
     @staticmethod
-    def _sh_call(grid: str, position: ArrayLike, normal: ArrayLike | None) -> _Call:
-        return _Call("GET", f"/v1/grids/{_segment(grid)}/sh", _position_params(position, normal))
+    def _sh_call(grid: str, position: ArrayLike, normal: ArrayLike | None,
+                 sh: str = "deringed") -> _Call:
+        if sh not in _SH_KINDS:
+            raise InvalidArgumentError(f"sh must be one of {', '.join(_SH_KINDS)}, got {sh!r}.")
+        params = _position_params(position, normal)
+        if sh != "deringed":
+            params["sh"] = sh
+        return _Call("GET", f"/v1/grids/{_segment(grid)}/sh", params)
 
     @staticmethod
     def _sh_result(r: httpx.Response) -> SHSample:
@@ -441,7 +487,26 @@ class _BaseClient:
             outside=bool(doc["flags"]["outside"]),
             unlit=bool(doc["flags"]["unlit"]),
             visibility=bool(doc["flags"]["visibility"]),
+            # (older servers answer without these: no visibility test, raw SH)
+            visibility_test=str(doc["flags"].get("visibility_test", "none")),
+            sh=str(doc.get("sh", "raw")),
+            sh_source=str(doc.get("sh_source", "store")),
         )
+
+    @staticmethod
+    def _map_sample(r: httpx.Response, kind: str, level: int) -> MapSample:
+        faces = _load_npy(r)
+        with _decoding(r):
+            pairs = [p.split(":") for p in r.headers.get("x-probegrid-probes", "").split(",")
+                     if p]
+            return MapSample(
+                faces=faces, kind=kind, level=level,
+                probes=np.asarray([int(i) for i, _ in pairs], dtype=np.int64),
+                weights=np.asarray([float(w) for _, w in pairs], dtype=np.float64),
+                outside=r.headers.get("x-probegrid-outside") == "true",
+                unlit=r.headers.get("x-probegrid-unlit") == "true",
+                visibility_test=r.headers.get("x-probegrid-visibility", "none"),
+            )
 
     @staticmethod
     def _map_call(grid: str, position: ArrayLike, normal: ArrayLike | None, kind: str,
@@ -525,6 +590,10 @@ class _BaseClient:
         return kw
 
 
+#: The ``sh`` choices of :meth:`ProbeGridClient.sh_at` (the service's ``/sh?sh=``).
+_SH_KINDS = ("deringed", "raw")
+
+
 def _segment(name: str) -> str:
     """A path segment for a grid or kind name (percent-encoded; never a path of its own)."""
     if not isinstance(name, str) or not name:
@@ -599,10 +668,19 @@ class ProbeGridClient(_BaseClient):
         """One grid, with its manifest."""
         return self._grid_result(self._send(self._grid_call(name)))
 
-    def sh_at(self, grid: str, position: ArrayLike, *, normal: ArrayLike | None = None
-              ) -> SHSample:
-        """Blended SH radiance coefficients at a position (visibility-aware with a normal)."""
-        return self._sh_result(self._send(self._sh_call(grid, position, normal)))
+    def sh_at(self, grid: str, position: ArrayLike, *, normal: ArrayLike | None = None,
+              sh: Literal["deringed", "raw"] = "deringed") -> SHSample:
+        """Blended SH radiance coefficients at a position (visibility-aware with a normal):
+        deringed (each probe's irradiance non-negative everywhere) or ``sh="raw"``; the
+        result's ``sh`` and ``visibility_test`` say which SH and which visibility test."""
+        return self._sh_result(self._send(self._sh_call(grid, position, normal, sh)))
+
+    def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
+               level: int = 0, normal: ArrayLike | None = None) -> MapSample:
+        """One level of the blended map at a position, with the probes, weights, flags and
+        visibility test of the blend (:meth:`maps_at` gives the maps alone)."""
+        r = self._send(self._map_call(grid, position, normal, kind, level))
+        return self._map_sample(r, kind, int(level))
 
     def maps_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                 level: int | None = None, normal: ArrayLike | None = None) -> CubeMap:
@@ -702,9 +780,14 @@ class AsyncProbeGridClient(_BaseClient):
     async def grid(self, name: str) -> GridInfo:
         return self._grid_result(await self._send(self._grid_call(name)))
 
-    async def sh_at(self, grid: str, position: ArrayLike, *, normal: ArrayLike | None = None
-                    ) -> SHSample:
-        return self._sh_result(await self._send(self._sh_call(grid, position, normal)))
+    async def sh_at(self, grid: str, position: ArrayLike, *, normal: ArrayLike | None = None,
+                    sh: Literal["deringed", "raw"] = "deringed") -> SHSample:
+        return self._sh_result(await self._send(self._sh_call(grid, position, normal, sh)))
+
+    async def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
+                     level: int = 0, normal: ArrayLike | None = None) -> MapSample:
+        r = await self._send(self._map_call(grid, position, normal, kind, level))
+        return self._map_sample(r, kind, int(level))
 
     async def maps_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                       level: int | None = None, normal: ArrayLike | None = None) -> CubeMap:

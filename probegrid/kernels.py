@@ -55,6 +55,7 @@ __all__ = [
     "multiply_texture",
     "orient_hits",
     "outgoing_radiance",
+    "segment_rays",
     "texel_means",
 ]
 
@@ -678,3 +679,45 @@ def embree_hits(
             t_out[i] = np.float64(tfar[j]) + (tmin[0] if one_lo else tmin[i])
             u_out[i] = u[j]
             v_out[i] = v[j]
+
+
+@numba.njit(**_JIT)
+def segment_rays(
+    starts: NDArray[np.float64],
+    ends: NDArray[np.float64],
+    margin: float,
+    centre: NDArray[np.float64],
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], bool]:
+    """Segments ``starts[k] -> ends[k]`` (``starts`` one row: shared) as Embree occlusion rays,
+    ``margin`` left out at both ends (:meth:`probegrid.raytrace.RayTracer.segments_occluded`; the query side, not the bake).
+
+    The array expression it restates (``tests/test_query_visibility.py`` compares them)::
+
+        d = ends - starts
+        lo = margin / max(|d|, 1e-30)
+        org = float32((starts - centre) + lo d);  dirs = float32(d);  far = float32(1 - 2 lo)
+
+    ``far <= 0`` marks a segment no longer than ``2 margin`` (never occluded). The last value is
+    False if an origin or direction is not finite in float32.
+    """
+    m = ends.shape[0]
+    one = starts.shape[0] == 1  # one start shared by every segment
+    org = np.empty((m, 3), np.float32)
+    d32 = np.empty((m, 3), np.float32)
+    far = np.empty(m, np.float32)
+    ok = True
+    for i in range(m):
+        j = 0 if one else i
+        d0 = ends[i, 0] - starts[j, 0]
+        d1 = ends[i, 1] - starts[j, 1]
+        d2 = ends[i, 2] - starts[j, 2]
+        lo = margin / max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-30)
+        for k, dk in ((0, d0), (1, d1), (2, d2)):
+            a = np.float32((starts[j, k] - centre[k]) + lo * dk)
+            b = np.float32(dk)
+            org[i, k] = a
+            d32[i, k] = b
+            if not (math.isfinite(a) and math.isfinite(b)):
+                ok = False
+        far[i] = np.float32(1.0 - 2.0 * lo)
+    return org, d32, far, ok

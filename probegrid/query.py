@@ -3,13 +3,31 @@
 :class:`ProbeField` wraps an open grid store (:mod:`probegrid.store`) and answers every question
 about a point with the DDGI weights and blends of :mod:`probegrid.core.ddgi`; only the probes a
 query needs are read from the memory maps. The service and the Python API query through it.
+
+Visibility
+----------
+A store baked with the scene's triangles (extras ``scene_vertices``/``scene_triangles``, format
+2) is queried leak-free: an Embree BVH over them is built once when the field is opened, and the
+segment from the query point (moved off the surface along the normal when one is given) to each
+surrounding probe is cast through it (:meth:`probegrid.raytrace.RayTracer.segments_occluded`); a
+probe on the far side of a wall gets weight 0 (:attr:`ProbeWeights.visibility` ``"segments"``).
+Older stores fall back to what they support: DDGI's Chebyshev test on the distance moments with
+a normal (``"moments"``), nothing without (``"none"``).
+
+SH without ringing
+------------------
+:meth:`ProbeField.sh` blends the *deringed* radiance SH by default (each probe windowed so that
+its irradiance is non-negative over the sphere, :mod:`probegrid.core.dering`; a blend with
+non-negative weights of such probes stays non-negative) and the raw projection on request. A
+store without the ``sh_deringed`` extra (format 1) is deringed here, once, on first use.
 """
 
 from __future__ import annotations
 
 import re
-from functools import cached_property
-from typing import Any, cast
+import threading
+from functools import cached_property, partial
+from typing import Any, Final, Literal, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -19,18 +37,29 @@ from probegrid.core.cubemap import CubeMap
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
     MAP_KINDS,
+    Occlusion,
     ProbeWeights,
     _points,
     blend,
     blend_lookup,
     probe_weights,
 )
+from probegrid.core.dering import dering
 from probegrid.core.grid import GridSpec
 from probegrid.core.lobes import roughness_to_lod
 from probegrid.core.shading import reflect, shade_split_sum
+from probegrid.raytrace import RayTracer
 from probegrid.store import ProbeStore
 
-__all__ = ['ProbeField']
+__all__ = ['SH_KINDS', 'ProbeField', 'SHKind']
+
+#: Which SH :meth:`ProbeField.sh` blends: the deringed coefficients (default) or the raw ones.
+SHKind = Literal["deringed", "raw"]
+SH_KINDS: Final[tuple[str, ...]] = ("deringed", "raw")
+
+#: Length left out at both ends of a visibility segment, in units of the smallest cell size
+#: (a point on a surface or a probe does not hide itself; far below any wall thickness).
+SEGMENT_MARGIN: Final = 1e-4
 
 
 _SPECULAR_RE = re.compile(r"^specular_(\d+)$")
@@ -54,6 +83,9 @@ class ProbeField:
         Map kinds the store holds, among ``"diffuse"``, ``"specular"``, ``"incoming"``.
     specular_levels : int
         Levels of the specular chain (0 if none).
+    tracer : RayTracer or None
+        Embree BVH of the store's scene triangles (built at construction), None for a store
+        without them; with it every query's weights take the exact segment test.
     """
 
     def __init__(self, store: ProbeStore, *, normal_bias: float = DEFAULT_NORMAL_BIAS) -> None:
@@ -74,6 +106,20 @@ class ProbeField:
             cast(MapKind, k) for k in MAP_KINDS
             if (k == "specular" and spec) or (k != "specular" and k in names)
         )
+        extras = set(store.manifest.extras)
+        #: The BVH of the scene's triangles (None for a store without them).
+        self.tracer: RayTracer | None = None
+        self._occluded: Occlusion | None = None
+        if {"scene_vertices", "scene_triangles"} <= extras:
+            self.tracer = RayTracer(store.arrays["scene_vertices"],
+                                    store.arrays["scene_triangles"])
+            cells = self.grid.cell_size[np.array(self.grid.counts) > 1]
+            margin = SEGMENT_MARGIN * (float(cells.min()) if cells.size else 1.0)
+            self._occluded = partial(self.tracer.segments_occluded, margin=margin)
+        self._stored_deringed = "sh_deringed" in extras and "sh" in names
+        if self._stored_deringed:
+            store.arrays["sh_deringed"]  # mapped now, with the other arrays
+        self._dering_lock = threading.Lock()
 
     def __repr__(self) -> str:
         return f"ProbeField({self.store!r}, kinds={self.kinds})"
@@ -115,8 +161,18 @@ class ProbeField:
         name = self._specular[level] if kind == "specular" else kind
         return self.store.arrays[name]
 
+    def visibility_test(self, *, normal: bool) -> str:
+        """The visibility test :meth:`weights` applies with or without normals: ``"segments"``
+        (exact, the store keeps the scene's triangles), ``"moments"`` (a normal and stored
+        distance moments) or ``"none"``."""
+        if self._occluded is not None:
+            return "segments"
+        return "moments" if normal and self._visibility[2] is not None else "none"
+
     def weights(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> ProbeWeights:
-        """:func:`probe_weights` with the store's validity, probe positions and moments."""
+        """:func:`probe_weights` with the store's validity, probe positions and moments, and
+        the exact segment test when the store keeps the scene's triangles (module docstring);
+        the result's ``visibility`` says which test was used."""
         valid, positions, moments = self._visibility
         return probe_weights(
             self.grid,
@@ -126,11 +182,47 @@ class ProbeField:
             probe_positions=positions,
             moments=moments,
             normal_bias=self.normal_bias,
+            occluded=self._occluded,
         )
 
-    def sh(self, weights: ProbeWeights) -> NDArray[np.float64]:
-        """``(n, 9, 3)`` float64 blended SH radiance coefficients."""
-        return blend(self.store.arrays["sh"], weights)
+    @cached_property
+    def _computed_deringed(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(sh (P, 9, 3), window (P, 3))`` deringed here (stores without the extras)."""
+        deringed, window, _ = dering(np.asarray(self.store.arrays["sh"], dtype=np.float64))
+        return deringed, window
+
+    def sh_source(self, kind: SHKind = "deringed") -> str:
+        """Where :meth:`sh` takes the ``kind`` coefficients from: ``"store"`` or, for deringed
+        SH of a store without them, ``"computed"`` (deringed on first use)."""
+        self._check_sh_kind(kind)
+        return "store" if kind == "raw" or self._stored_deringed else "computed"
+
+    @staticmethod
+    def _check_sh_kind(kind: str) -> None:
+        if kind not in SH_KINDS:
+            raise ValueError(f"sh kind must be one of {', '.join(SH_KINDS)}, got {kind!r}.")
+
+    def sh_array(self, kind: SHKind = "deringed") -> NDArray[Any]:
+        """The per-probe ``(P, 9, 3)`` coefficients of ``kind`` (a memory map when stored)."""
+        self._check_sh_kind(kind)
+        if kind == "raw":
+            return self.store.arrays["sh"]
+        if self._stored_deringed:
+            return self.store.arrays["sh_deringed"]
+        with self._dering_lock:
+            return self._computed_deringed[0]
+
+    def sh_window(self) -> NDArray[Any]:
+        """``(P, 3)`` band factors ``(1, h_1, h_2)`` of each probe's deringing window."""
+        if self._stored_deringed and "sh_window" in self.store.manifest.extras:
+            return self.store.arrays["sh_window"]
+        with self._dering_lock:
+            return self._computed_deringed[1]
+
+    def sh(self, weights: ProbeWeights, *, kind: SHKind = "deringed") -> NDArray[np.float64]:
+        """``(n, 9, 3)`` float64 blended SH radiance coefficients: deringed (each probe's
+        irradiance non-negative everywhere, the default) or ``kind="raw"``."""
+        return blend(self.sh_array(kind), weights)
 
     def cube(self, weights: ProbeWeights, kind: MapKind, *, level: int = 0) -> NDArray[np.float32]:
         """``(n, 6, s, s, 3)`` float32 blended cube of one map kind and level."""

@@ -34,6 +34,7 @@ __all__ = [
     "ProbeUse",
     "ProbesOut",
     "QueryFlags",
+    "SHKind",
     "SHOut",
     "ShadeOut",
     "ShadeRequest",
@@ -42,6 +43,8 @@ __all__ = [
 ]
 
 CubeFormat = Literal["exr", "hdr", "png", "npy", "json", "ktx2"]
+#: ``/sh``'s ``sh`` parameter (:data:`probegrid.query.SHKind`).
+SHKind = Literal["deringed", "raw"]
 CubeLayout = Literal["faces", "cross"]
 
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
@@ -115,6 +118,12 @@ class QueryFlags(_Model):
     outside: bool = Field(description="The position was outside the grid box and was clamped.")
     unlit: bool = Field(description="No valid probe carries weight; the result is zero.")
     visibility: bool = Field(description="A normal was given: DDGI normal and visibility weights.")
+    visibility_test: Literal["segments", "moments", "none"] = Field(
+        description="The visibility test the weights went through: 'segments' (exact: the "
+        "segment from the point, moved off the surface along the normal when one is given, to "
+        "each probe cast against the scene's triangles; a probe behind a wall gets weight 0), "
+        "'moments' (a normal and a store without triangles: DDGI's Chebyshev test on the "
+        "probes' distance moments) or 'none' (a store without triangles, no normal).")
 
 
 class SHOut(_Model):
@@ -126,6 +135,13 @@ class SHOut(_Model):
     coefficients: list[tuple[float, float, float]] = Field(
         description="9 RGB radiance coefficients L_lm, index l(l+1)+m."
     )
+    sh: SHKind = Field(
+        description="Which coefficients: 'deringed' (each probe's SH windowed so that its "
+        "irradiance is non-negative over the sphere; the default) or 'raw' (the projection)."
+    )
+    sh_source: Literal["store", "computed"] = Field(
+        description="'store': read from the store; 'computed': deringed by the server (a store "
+        "baked before deringed SH was stored).")
     probes: list[ProbeUse]
     flags: QueryFlags
 

@@ -94,3 +94,30 @@ def linear_arrays(grid: GridSpec = GRID, **sizes: int) -> dict[str, np.ndarray]:
 def linear_store(path: Path, grid: GridSpec = GRID, **sizes: int) -> ProbeStore:
     """A real store of :func:`linear_arrays` at ``path``."""
     return write_store(path, grid, linear_arrays(grid, **sizes))
+
+
+#: The wall of :func:`walled_store`: the plane x = 0.5 between the probe layers x = 0 and 1.
+WALL_X = 0.5
+
+
+def walled_store(path: Path, grid: GridSpec = GRID) -> ProbeStore:
+    """:func:`linear_arrays` with the extras a bake writes (format 2): the deringed SH and its
+    windows (:func:`probegrid.core.dering.dering` of the linear SH, which rings) and a scene of
+    one large quad in the plane x = :data:`WALL_X`, so that the probes at x = 0 are hidden
+    from points at x > 0.5 and the others from points at x < 0.5."""
+    from probegrid.core.dering import dering
+    from probegrid.scene import quad_mesh
+
+    arrays = linear_arrays(grid)
+    specs = {name: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str, description=f"test {name}")
+             for name, a in arrays.items()}
+    writer = StoreWriter.create(path, arrays=specs, grid=grid, conventions=conventions(),
+                                scene_hash="synthetic-walled", bake={"synthetic": True})
+    writer.write(np.arange(grid.n_probes), arrays)
+    deringed, window, _ = dering(arrays["sh"].astype(np.float64))
+    writer.add_extra("sh_deringed", deringed.astype(np.float32))
+    writer.add_extra("sh_window", window.astype(np.float32))
+    v, t, _ = quad_mesh((WALL_X, -5.0, -5.0), (0.0, 0.0, 10.0), (0.0, 10.0, 0.0))
+    writer.add_extra("scene_vertices", v.astype(np.float32))
+    writer.add_extra("scene_triangles", t.astype(np.int32))
+    return writer.finish(quality={"invalid_probes": 0})

@@ -73,7 +73,7 @@ def test_public_api_is_declared():
         "AsyncProbeGridClient", "BadRequestError", "GridInfo", "NotFoundError", "ProbeGridClient",
         "ProbeGridConnectionError", "ProbeGridError", "ProbeGridHTTPError",
         "ProbeGridTimeoutError", "SHSample", "ServerError", "InvalidArgumentError",
-        "ProbeGridResponseError",
+        "ProbeGridResponseError", "MapSample",
     }
     for name in ("ProbeGridConnectionError", "ProbeGridTimeoutError", "ProbeGridHTTPError"):
         assert issubclass(getattr(client_module, name), ProbeGridError)
@@ -102,6 +102,12 @@ def test_sh_at_equals_the_library(pg, field):
     np.testing.assert_array_equal(s.probes, w.indices[0][used])
     np.testing.assert_array_equal(s.weights, w.weights[0][used])
     assert s.visibility and not s.outside and not s.unlit
+    assert s.visibility_test == "moments" and s.sh == "deringed" and s.sh_source == "computed"
+    raw = pg.sh_at("lin", POS, normal=(0.0, 1.0, 0.2), sh="raw")
+    assert raw.sh == "raw" and raw.sh_source == "store"
+    np.testing.assert_array_equal(raw.coefficients, field.sh(w, kind="raw")[0])
+    with pytest.raises(InvalidArgumentError, match="sh must be one of"):
+        pg.sh_at("lin", POS, sh="ringing")
     out = pg.sh_at("lin", (5.0, 0.5, 0.5))
     assert out.outside and out.sampled_position.tolist() == [2.0, 0.5, 0.5]
 
@@ -356,3 +362,39 @@ def test_everything_the_client_raises_is_a_probegrid_error():
     for url in ("http://[::1", "ftp://example.org", "not a url"):
         with pytest.raises(InvalidArgumentError, match="base_url"):
             ProbeGridClient(url)
+
+
+# ------------------------------------------------------------------------------ issue 10
+def test_results_say_which_visibility_test_and_which_sh(tmp_path):
+    """Against a store with the scene's triangles (a wall at x = 0.5) and deringed SH, served
+    in-process: SHSample and MapSample report 'segments', the probes behind the wall are
+    absent, and sh_at gives the deringed SH by default and the raw one on request."""
+    import httpx
+    from probe_stores import WALL_X, walled_store
+
+    from probegrid.client import MapSample
+    from service.main import create_app
+
+    store = walled_store(tmp_path / "walled.probes")
+    field = ProbeField(open_store(store.path))
+    behind = field.store.grid.positions()[:, 0] < WALL_X
+
+    async def run() -> tuple:
+        transport = httpx.ASGITransport(app=create_app([store.path]))
+        async with AsyncProbeGridClient("http://t", transport=transport) as c:
+            return (await c.sh_at("walled", POS), await c.sh_at("walled", POS, sh="raw"),
+                    await c.sh_at("walled", POS, normal=(1, 0, 0)),
+                    await c.map_at("walled", POS, kind="specular", level=1))
+
+    der, raw, with_normal, m = asyncio.run(run())
+    w = field.weights(POS)
+    for s in (der, raw, with_normal):
+        assert s.visibility_test == "segments" and not behind[s.probes].any()
+    assert der.sh == "deringed" and der.sh_source == "store" and raw.sh == "raw"
+    np.testing.assert_array_equal(der.coefficients, field.sh(w)[0])
+    np.testing.assert_array_equal(raw.coefficients, field.sh(w, kind="raw")[0])
+    assert isinstance(m, MapSample) and m.visibility_test == "segments"
+    assert m.kind == "specular" and m.level == 1 and not m.outside and not m.unlit
+    np.testing.assert_array_equal(m.probes, der.probes)
+    np.testing.assert_array_equal(m.weights, der.weights)
+    np.testing.assert_array_equal(m.faces, field.cube(w, "specular", level=1)[0])

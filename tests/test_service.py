@@ -128,7 +128,12 @@ def test_sh_equals_the_library(http, field, normal):
     used = w.weights[0] > 0
     assert [p["index"] for p in doc["probes"]] == w.indices[0][used].tolist()
     assert [p["weight"] for p in doc["probes"]] == w.weights[0][used].tolist()
-    assert doc["flags"] == {"outside": False, "unlit": False, "visibility": normal is not None}
+    assert doc["flags"] == {"outside": False, "unlit": False, "visibility": normal is not None,
+                            "visibility_test": "none" if normal is None else "moments"}
+    assert doc["sh"] == "deringed" and doc["sh_source"] == "computed"  # a format-1 store
+    raw = http.get("/v1/grids/lin/sh", params={**params, "sh": "raw"}).json()
+    assert raw["sh"] == "raw" and raw["sh_source"] == "store"
+    np.testing.assert_array_equal(np.array(raw["coefficients"]), field.sh(w, kind="raw")[0])
 
 
 def test_sh_outside_is_clamped_and_flagged(http):
@@ -485,6 +490,10 @@ FAST_PATH_QUERIES = [
     "/v1/grids/lin/sh?x=abc&y=1&z=1",
     "/v1/grids/lin/sh?x=1&y=1&z=1&nx=1",
     "/v1/grids/lin/sh?x=1&y=1&z=1&nx=0&ny=0&nz=0",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&sh=raw",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&sh=deringed&nx=0&ny=1&nz=0",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&sh=ringing",
+    "/v1/grids/lin/sh?x=1&y=1&z=1&sh=",
     "/v1/grids/nope/sh?x=nan",
     "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5&format=npy",
     "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5&format=npy&nx=0&ny=1&nz=0&layout=cross",
@@ -685,3 +694,66 @@ def test_example_usage_names_a_working_query(http, stores, server):
     assert url == f"{server.url}/v1/grids/lin/sh?x=1&y=0.5&z=1"
     assert http.get(url.removeprefix(server.url)).status_code == 200
     assert "ProbeGridClient(" in text and ".sh_at('lin', (1, 0.5, 1))" in text
+
+
+# ------------------------------------------------------------------------------ issue 10
+def test_sh_and_maps_say_which_visibility_test_and_which_sh(tmp_path):
+    """A store with the scene's triangles (a wall at x = 0.5) and deringed SH: the probes
+    behind the wall get no weight, with or without a normal, and the responses say
+    'segments'; /sh gives the stored deringed SH by default and the raw SH on request."""
+    from probe_stores import WALL_X, walled_store
+
+    from service.settings import Settings
+
+    store = walled_store(tmp_path / "walled.probes")
+    field = ProbeField(open_store(store.path))
+    app = create_app([store.path], Settings(**LIMITS))
+    behind = field.store.grid.positions()[:, 0] < WALL_X
+    client = _InProcess(app)
+    for extra in ({}, {"nx": "1", "ny": "0", "nz": "0"}):
+        params = {**POINT, **extra}
+        doc = client.get("/v1/grids/walled/sh", params=params).json()
+        assert doc["flags"]["visibility_test"] == "segments"
+        assert doc["sh"] == "deringed" and doc["sh_source"] == "store"
+        assert doc["probes"] and not any(behind[p["index"]] for p in doc["probes"])
+        assert sum(p["weight"] for p in doc["probes"]) == pytest.approx(1.0, abs=1e-15)
+        nrm = None if not extra else np.array([1.0, 0.0, 0.0])
+        w = field.weights(POS, normals=nrm)
+        np.testing.assert_array_equal(np.array(doc["coefficients"]), field.sh(w)[0])
+        np.testing.assert_array_equal(
+            np.array(doc["coefficients"]),
+            np.einsum("k,kic->ic", w.weights[0],
+                      np.asarray(field.store["sh_deringed"], np.float64)[w.indices[0]]))
+        raw = client.get("/v1/grids/walled/sh", params={**params, "sh": "raw"}).json()
+        assert raw["sh"] == "raw"
+        np.testing.assert_array_equal(np.array(raw["coefficients"]),
+                                      field.sh(w, kind="raw")[0])
+        assert not np.array_equal(raw["coefficients"], doc["coefficients"])  # it rings
+        r = client.get("/v1/grids/walled/maps/diffuse",
+                       params={**params, "format": "npy"})
+        assert r.headers["x-probegrid-visibility"] == "segments"
+        np.testing.assert_array_equal(_npy(r.content), field.cube(w, "diffuse")[0])
+        probes = [int(p.split(":")[0]) for p in r.headers["x-probegrid-probes"].split(",")]
+        assert not behind[probes].any()
+        meta = client.get("/v1/grids/walled/maps/diffuse",
+                          params={**params, "format": "json"}).json()
+        assert meta["flags"]["visibility_test"] == "segments"
+    bad = client.get("/v1/grids/walled/sh", params={**POINT, "sh": "ringing"})
+    assert bad.status_code == 422 and "sh" in bad.text
+
+
+class _InProcess:
+    """Blocking GETs to an app in this process (httpx.ASGITransport, one event loop each)."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    def get(self, url: str, params: dict[str, str] | None = None) -> httpx.Response:
+        import asyncio
+
+        async def fetch() -> httpx.Response:
+            transport = httpx.ASGITransport(app=self.app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+                return await c.get(url, params=params)
+
+        return asyncio.run(fetch())

@@ -356,7 +356,7 @@ def _append(file: Path, data: bytes) -> None:
          "not valid JSON"),
         (lambda p: (p / "manifest.json").unlink(), "no manifest.json"),
         (lambda p: _edit_manifest(p, lambda m: m.update(format_version=FORMAT_VERSION + 1)),
-         "format version 2; probegrid .* reads version 1"),
+         f"format version {FORMAT_VERSION + 1}; probegrid .* reads version 1, 2"),
         (lambda p: _edit_manifest(p, lambda m: m.update(format="other")), "not a probegrid"),
         (lambda p: _edit_manifest(p, lambda m: m.pop("scene_hash")), "scene_hash: Field required"),
         (lambda p: _edit_manifest(p, lambda m: m["grid"].update(counts=[3, 2, 5])),

@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
+from probegrid.bake.extras import write_store_extras
 from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
 from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import light_quality, printable
@@ -629,6 +630,7 @@ def bake(
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
         quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
+        write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
         store = w.finish(quality=quality, scene_file=scene_file)
         shutil.rmtree(work, ignore_errors=True)
         seconds = time.perf_counter() - t0

@@ -41,6 +41,21 @@ trilinear weights ``t_c`` of its cell's corners ``c = 0..7`` (:meth:`GridSpec.co
   of the smallest cell size, default 0.1) moves the tested point off the surface so a probe does
   not shadow the very surface it sees.
 
+Exact visibility
+----------------
+When the store keeps the scene's triangles, :class:`probegrid.query.ProbeField` passes an exact
+segment test (``occluded``, cast through Embree by :mod:`probegrid.raytrace`): each corner that
+carries weight is tested with the segment from the point to the probe's (possibly moved)
+position, starting at ``p`` without a normal and at the biased ``q = p + normal_bias n`` with
+one; a probe with geometry on that segment (on the far side of a wall) gets weight **0**, and
+the rest are renormalised (a point that sees none of its valid probes, e.g. inside a wall or in
+a closet smaller than a cell, gets all-zero weights and ``unlit = True``). With a normal the normal-facing term still applies and the moments'
+Chebyshev estimate is not used (the exact test replaces it). The weights are then continuous
+except where a segment crosses a silhouette edge of the scene: a probe that becomes visible
+takes its weight at once, which is the price of "no leak through walls" (DDGI's soft test trades
+the other way). :attr:`ProbeWeights.visibility` says which test was used: ``"segments"``,
+``"moments"`` (normal given, moments stored) or ``"none"``.
+
 Every factor is a continuous function of the point (the moment lookup is seamless bilinear), and
 across a cell face only the 4 shared corners have non-zero trilinear weight, so the weights, and
 everything blended with them, are continuous everywhere the denominator is non-zero: no popping.
@@ -62,8 +77,9 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Final, get_args
@@ -77,13 +93,22 @@ from probegrid.core.grid import GridSpec
 from probegrid.core.seams import add_border, border_sources
 from probegrid.core.shading import unit_vectors
 
-__all__ = ['MAP_KINDS', 'BorderedCubes', 'MapKind', 'ProbeWeights', 'blend', 'blend_lookup', 'bordered_cubes', 'probe_weights']
+__all__ = ['MAP_KINDS', 'VISIBILITY_TESTS', 'BorderedCubes', 'MapKind', 'Occlusion', 'ProbeWeights', 'blend', 'blend_lookup', 'bordered_cubes', 'probe_weights']
 
 
 
 
 #: The cube-map kinds a store may hold, in the order of :data:`MapKind`.
 MAP_KINDS: Final[tuple[str, ...]] = get_args(MapKind)
+
+
+#: The visibility tests :class:`ProbeWeights` reports (see :func:`probe_weights`).
+VISIBILITY_TESTS: Final[tuple[str, ...]] = ("segments", "moments", "none")
+
+
+#: ``occluded(starts (k or 1, 3), ends (k, 3)) -> (k,) bool``: whether scene geometry lies on
+#: each segment strictly between its ends (one start row is shared by every segment) (e.g. :meth:`probegrid.raytrace.RayTracer.segments_occluded`).
+Occlusion = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.bool_]]
 
 
 #: Constants of the DDGI weights (see the module docstring).
@@ -122,7 +147,13 @@ class ProbeWeights:
     outside : (n,) bool
         The point lay outside the grid box and was clamped.
     unlit : (n,) bool
-        No valid probe carries weight: every corner with non-zero trilinear weight is invalid.
+        No valid probe carries weight: every corner with non-zero trilinear weight is invalid
+        (or, with a visibility test, invalid or hidden from the point).
+    visibility : str
+        The visibility test the weights went through (:data:`VISIBILITY_TESTS`):
+        ``"segments"`` (exact: the point-to-probe segments cast against the scene),
+        ``"moments"`` (DDGI's Chebyshev test on the stored distance moments, with a normal) or
+        ``"none"``.
     """
 
     indices: NDArray[np.int64]
@@ -130,6 +161,7 @@ class ProbeWeights:
     points: NDArray[np.float64]
     outside: NDArray[np.bool_]
     unlit: NDArray[np.bool_]
+    visibility: str = "none"
 
     def __len__(self) -> int:
         return int(self.indices.shape[0])
@@ -168,6 +200,7 @@ def probe_weights(
     probe_positions: ArrayLike | None = None,
     moments: ArrayLike | None = None,
     normal_bias: float = DEFAULT_NORMAL_BIAS,
+    occluded: Occlusion | None = None,
 ) -> ProbeWeights:
     """Blending weights of the 8 probes around each point (see the module docstring).
 
@@ -189,6 +222,10 @@ def probe_weights(
     normal_bias : float
         Offset of the visibility test point along the normal, in units of the smallest cell
         size, finite and >= 0.
+    occluded : callable, optional
+        An exact segment test (:data:`Occlusion`). With it, every probe the point does not see
+        gets weight 0 (section "Exact visibility" of the module docstring) and the moments are
+        not used.
 
     Returns
     -------
@@ -210,17 +247,75 @@ def probe_weights(
         if len(shape) != 5 or shape[1] != 6 or shape[2] != shape[3] or shape[4] != 2:
             raise ValueError(f"moments must have shape (P, 6, m, m, 2), got {shape}.")
     v = None if valid is None else np.asarray(valid, dtype=bool)
+    if occluded is not None:
+        moments = None  # the exact test replaces the Chebyshev estimate
     if n is None and p.shape[0] == 1:
-        return _weights_one(grid, p, v)
-    parts = [
-        _weights(grid, p[i:i + _POINT_CHUNK], v, None if n is None else n[i:i + _POINT_CHUNK],
-                 probe_positions, moments, normal_bias)
-        for i in range(0, max(len(p), 1), _POINT_CHUNK)
-    ]
-    if len(parts) == 1:
-        return parts[0]
-    return ProbeWeights(*(np.concatenate([getattr(w, f) for w in parts]) for f in (
-        "indices", "weights", "points", "outside", "unlit")))
+        w = _weights_one(grid, p, v)
+    else:
+        parts = [
+            _weights(grid, p[i:i + _POINT_CHUNK], v, None if n is None else n[i:i + _POINT_CHUNK],
+                     probe_positions, moments, normal_bias)
+            for i in range(0, max(len(p), 1), _POINT_CHUNK)
+        ]
+        def joined(name: str) -> NDArray[Any]:
+            return np.concatenate([getattr(part, name) for part in parts])
+
+        w = parts[0] if len(parts) == 1 else ProbeWeights(
+            joined("indices"), joined("weights"), joined("points"), joined("outside"),
+            joined("unlit"))
+    if occluded is not None:
+        return _hide_occluded(grid, w, p, n, probe_positions, normal_bias, occluded)
+    if n is not None and moments is not None:
+        return dataclasses.replace(w, visibility="moments")
+    return w
+
+
+def _test_point_offset(grid: GridSpec, normal_bias: float) -> float:
+    """``normal_bias`` in world units: times the smallest cell size (0 for a single probe)."""
+    cells = grid.cell_size[np.array(grid.counts) > 1]
+    return normal_bias * (float(cells.min()) if cells.size else 0.0)
+
+
+def _probe_xyz(grid: GridSpec, indices: NDArray[np.int64],
+               probe_positions: ArrayLike | None) -> NDArray[np.float64]:
+    """World positions of probes ``indices`` (any shape): stored (moved) ones or the lattice."""
+    if probe_positions is None:
+        ijk = grid.probe_ijk(indices)
+        return np.stack([grid.axis_coordinates(a)[ijk[..., a]] for a in range(3)], axis=-1)
+    return np.asarray(np.asarray(probe_positions)[indices], dtype=np.float64)
+
+
+def _hide_occluded(
+    grid: GridSpec,
+    w: ProbeWeights,
+    p: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    probe_positions: ArrayLike | None,
+    normal_bias: float,
+    occluded: Occlusion,
+) -> ProbeWeights:
+    """``w`` with the weight of every probe hidden from the point set to 0, renormalised.
+
+    Only the corners that carry weight are tested: one segment each, from the point (moved
+    ``normal_bias`` cells along the normal when there is one) to the probe's position.
+    """
+    if len(w) == 1:
+        return _hide_occluded_one(grid, w, p, normals, probe_positions, normal_bias, occluded)
+    rows, cols = np.nonzero(w.weights > 0)
+    weights = w.weights
+    if rows.size:
+        starts = p if normals is None else p + _test_point_offset(grid, normal_bias) * normals
+        ends = _probe_xyz(grid, w.indices[rows, cols], probe_positions)
+        hidden = np.asarray(occluded(starts[rows], ends), dtype=bool)
+        if hidden.any():
+            weights = weights.copy()
+            weights[rows[hidden], cols[hidden]] = 0.0
+            total = weights.sum(axis=1)
+            unlit = total <= 0
+            weights /= np.where(unlit, 1.0, total)[:, None]
+            return ProbeWeights(w.indices, weights, w.points, w.outside, w.unlit | unlit,
+                                visibility="segments")
+    return dataclasses.replace(w, visibility="segments")
 
 
 def _weights(
@@ -247,6 +342,36 @@ def _weights(
         total[unlit] = 1.0  # and their weights are all 0
     w = w / total[:, None]
     return ProbeWeights(indices=indices, weights=w, points=clamped, outside=outside, unlit=unlit)
+
+
+def _hide_occluded_one(
+    grid: GridSpec,
+    w: ProbeWeights,
+    p: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    probe_positions: ArrayLike | None,
+    normal_bias: float,
+    occluded: Occlusion,
+) -> ProbeWeights:
+    """:func:`_hide_occluded` of a single point, in Python floats around one segment query
+    (numpy's per-call overhead is most of a single point's cost); the same weights."""
+    wl = w.weights[0].tolist()
+    used = [c for c in range(8) if wl[c] > 0]
+    if not used:
+        return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")
+    il = w.indices[0].tolist()
+    ends = _probe_xyz(grid, np.array([il[c] for c in used]), probe_positions)
+    start = p if normals is None else p + _test_point_offset(grid, normal_bias) * normals
+    hidden = occluded(start, ends).tolist()  # one start row: shared by every segment
+    if not any(hidden):
+        return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")
+    for c, h in zip(used, hidden, strict=True):
+        if h:
+            wl[c] = 0.0
+    total = sum(wl)
+    unlit = not total > 0
+    weights = np.array([[0.0 if unlit else x / total for x in wl]], dtype=np.float64)
+    return ProbeWeights(w.indices, weights, w.points, w.outside, w.unlit | unlit, "segments")
 
 
 def _weights_one(

@@ -5,10 +5,11 @@ Layout
 A finished store is one directory, by convention ``NAME.probes/``::
 
     NAME.probes/
-        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 1
+        manifest.json       StoreManifest (pydantic), format "probegrid.store", format_version 2
         sh.npy              one .npy file per array, named after the array
         diffuse.npy
         ...
+        scene_triangles.npy extras (format 2): arrays added when the probes are done
 
 Every array is *per probe*: its first axis is the probe's linear index (``(i * ny + j) * nz + k``,
 see :mod:`probegrid.core.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6, n, n, 3) float16``,
@@ -18,6 +19,13 @@ maps them read-only (``np.load(mmap_mode="r")``, i.e. ``MAP_SHARED`` + ``PROT_RE
 reader processes share the same page-cache pages and touch only the probes they index. The
 manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape and a
 description; the reader refuses a store whose files disagree with it in size, shape or dtype.
+
+*Extras* (format version 2; version 1 stores have none) are arrays added to a finished bake by
+:meth:`StoreWriter.add_extra` just before it is published, listed under the manifest's ``extras``
+with the same file/dtype/shape record: derived per-probe arrays (``sh_deringed (P, 9, 3)``,
+``sh_window (P, 3)``) and arrays that are not per probe at all (``scene_vertices (V, 3)``,
+``scene_triangles (T, 3)``: the scene's geometry for exact visibility queries). They are not
+part of the bake plan (a resumed bake does not compare them) and are mapped like the arrays.
 
 The manifest also carries the conventions record (built by :mod:`probegrid.core.conventions`; the store
 treats it as opaque JSON), the grid (:class:`probegrid.core.grid.GridSpec`), the bake settings, the
@@ -69,12 +77,12 @@ __all__ = ['FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS', 'ArrayI
 FORMAT_NAME: Final = "probegrid.store"
 
 
-#: Version of the store layout and manifest schema written by this module.
-FORMAT_VERSION: Final = 1
+#: Version of the store layout and manifest schema written by this module (2: ``extras``).
+FORMAT_VERSION: Final = 2
 
 
-#: Versions :func:`open_store` reads.
-SUPPORTED_FORMAT_VERSIONS: Final = frozenset({1})
+#: Versions :func:`open_store` reads (1: no extras).
+SUPPORTED_FORMAT_VERSIONS: Final = frozenset({1, 2})
 
 
 MANIFEST_FILE: Final = "manifest.json"
@@ -255,11 +263,25 @@ class StoreManifest(_Plan):
     scene_file : SceneFile or None
         The copy of the baked glTF scene kept in the store, if any.
     arrays : dict of str -> ArrayInfo
+    extras : dict of str -> ArrayInfo
+        Arrays added after the probes (format 2; see the module docstring), possibly not per
+        probe.
     """
 
     created: datetime
     quality: dict[str, Any]
     scene_file: SceneFile | None = None
+    extras: dict[str, ArrayInfo] = {}
+
+    @model_validator(mode="after")
+    def _extras_apart(self) -> StoreManifest:
+        for name, info in self.extras.items():
+            _check_name(name)
+            if name in self.arrays:
+                raise ValueError(f"extra {name!r} has the name of an array")
+            if info.file != f"{name}.npy":
+                raise ValueError(f"extra {name!r} must live in {name}.npy, not {info.file!r}")
+        return self
 
 
 # ---------------------------------------------------------------------------- JSON helpers

@@ -103,7 +103,7 @@ def _validate_store_dir(directory: Path, *, allow_partial: bool = False) -> Stor
     if not manifest_file.is_file():
         raise StoreError(f"{directory} is not a finished probe store (no {MANIFEST_FILE})")
     manifest = _load_manifest_json(manifest_file, StoreManifest)
-    for name, info in manifest.arrays.items():
+    for name, info in {**manifest.arrays, **manifest.extras}.items():
         _check_array_file(directory, name, info)
     kept = manifest.scene_file
     if kept is not None:
@@ -190,14 +190,15 @@ class ProbeStore:
     grid : GridSpec
     arrays : Mapping[str, np.memmap]
         Read-only memory maps ``(P, ...)``, mapped on first access; index them with probe
-        indices (``store.arrays["sh"][indices]``) to read only those probes' pages.
+        indices (``store.arrays["sh"][indices]``) to read only those probes' pages. The
+        manifest's extras are mapped here too (see :attr:`extras`).
     """
 
     def __init__(self, path: Path, manifest: StoreManifest) -> None:
         self.path = path
         self.manifest = manifest
         self.grid: GridSpec = manifest.grid
-        self.arrays: _LazyArrays = _LazyArrays(path, manifest.arrays)
+        self.arrays: _LazyArrays = _LazyArrays(path, {**manifest.arrays, **manifest.extras})
 
     def __repr__(self) -> str:
         names = ", ".join(self.manifest.arrays)
@@ -212,6 +213,11 @@ class ProbeStore:
     def names(self) -> list[str]:
         """Array names in manifest order."""
         return list(self.manifest.arrays)
+
+    @property
+    def extras(self) -> list[str]:
+        """Names of the extras (format 2; empty for older stores), also in :attr:`arrays`."""
+        return list(self.manifest.extras)
 
     def __getitem__(self, name: str) -> np.memmap:
         """``store[name]`` is ``store.arrays[name]``; KeyError names the arrays there are."""

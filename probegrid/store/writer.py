@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -60,6 +61,7 @@ from probegrid._fs import atomic_write_bytes, atomic_write_text, fsync_dir, fsyn
 from probegrid.core.grid import GridSpec
 from probegrid.store.manifest import (
     DONE_FILE,
+    FORMAT_VERSION,
     MANIFEST_FILE,
     PLAN_FILE,
     ArrayInfo,
@@ -67,6 +69,7 @@ from probegrid.store.manifest import (
     SceneFile,
     StoreError,
     StoreManifest,
+    _check_dtype,
     _check_name,
     _final_path,
     _jsonable,
@@ -263,6 +266,8 @@ class StoreWriter:
         self._done = (
             np.ones(plan.grid.n_probes, dtype=bool) if done_map is None else done_map
         )
+        #: Extras added so far (kept from a manifest written by an interrupted ``finish``).
+        self._extras: dict[str, ArrayInfo] = dict(manifest.extras) if manifest else {}
 
     # ------------------------------------------------------------------ construction
     @staticmethod
@@ -578,6 +583,38 @@ class StoreWriter:
         if self._durable:
             self._done_map.flush()
 
+    def add_extra(self, name: str, values: ArrayLike, *, description: str = "") -> None:
+        """Add an extra array to the store (see :mod:`probegrid.store.manifest`): written now,
+        atomically, into the partial directory, and listed in the manifest by :meth:`finish`.
+
+        Call it when every probe is written (extras are derived from the probes or describe
+        the scene); calling it again with the same name replaces the array (a resumed bake
+        redoes its extras).
+
+        Parameters
+        ----------
+        name : str
+            Not the name of one of the store's arrays.
+        values : array
+            Any shape with at least one element on every axis; bool, int, uint or float.
+        description : str
+        """
+        self._require_open()
+        _check_name(name)
+        if name in self._plan.arrays:
+            raise ValueError(f"extra {name!r} has the name of one of the store's arrays")
+        left = self.n_probes - self.n_done
+        if left:
+            raise StoreError(f"cannot add {name!r} to {self._final}: {left} of "
+                             f"{self.n_probes} probes are not written")
+        a = np.ascontiguousarray(values)
+        info = ArrayInfo(file=f"{name}.npy", dtype=_check_dtype(a.dtype), shape=a.shape,
+                         description=description)
+        buffer = io.BytesIO()
+        np.save(buffer, a, allow_pickle=False)
+        atomic_write_bytes(self._partial / info.file, buffer.getvalue())
+        self._extras[name] = info
+
     def finish(
         self,
         *,
@@ -615,8 +652,10 @@ class StoreWriter:
         elif self._finished_manifest is not None:
             kept = self._finished_manifest.scene_file
         plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
+        if self._extras:  # a version-1 plan (a bake resumed across versions) gains extras
+            plan_fields["format_version"] = FORMAT_VERSION
         manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q,
-                                 scene_file=kept)
+                                 scene_file=kept, extras=self._extras)
         atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
         self._done = np.ones(self.n_probes, dtype=bool)
         self._done_map = None

@@ -22,10 +22,10 @@ def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dic
             for i, w in _used(weights, row)]
 
 
-def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, bool]:
-    """A :class:`service.schemas.QueryFlags` dict."""
+def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, Any]:
+    """A :class:`service.schemas.QueryFlags` dict (``visibility_test`` from the weights)."""
     return {"outside": bool(weights.outside[row]), "unlit": bool(weights.unlit[row]),
-            "visibility": visibility}
+            "visibility": visibility, "visibility_test": weights.visibility}
 
 
 def probe_header(weights: ProbeWeights, row: int = 0) -> str:

@@ -86,7 +86,9 @@ async def get_map(
 
     ``faces`` is ``(6, n, n, 3)`` for npy/json and the six faces stacked top to bottom for
     images; ``cross`` is the horizontal cross. Headers ``X-Probegrid-Probes`` (``index:weight``
-    pairs), ``X-Probegrid-Outside`` and ``X-Probegrid-Unlit`` describe the blend.
+    pairs), ``X-Probegrid-Outside``, ``X-Probegrid-Unlit`` and ``X-Probegrid-Visibility`` (the
+    visibility test: ``segments``, exact against the scene's triangles; ``moments``; ``none``)
+    describe the blend.
     """
     grid, point = query.grid, query.point
     field = grid.field
@@ -112,6 +114,7 @@ async def get_map(
             "X-Probegrid-Probes": probe_header(w),
             "X-Probegrid-Outside": str(f["outside"]).lower(),
             "X-Probegrid-Unlit": str(f["unlit"]).lower(),
+            "X-Probegrid-Visibility": w.visibility,
         }
         if kind == "specular":
             r = float(level_roughness(level, levels))

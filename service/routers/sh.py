@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, get_args
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 from pydantic_core import to_json
 
 from service.deps import POINT_PARAMETERS, ProbeQueryDep, plain_query, probe_query
 from service.encoding import conditional_response
 from service.fastroute import FastPathRoute, fast_path
 from service.routers._common import flags_json, probes_json
-from service.schemas import ErrorOut, SHOut
+from service.schemas import ErrorOut, SHKind, SHOut
 
 router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"], route_class=FastPathRoute)
 
@@ -22,7 +22,14 @@ def resolve_sh(request: Request) -> dict[str, Any] | None:
     params = plain_query(request)
     if params is None:
         return None
-    return {"request": request, "query": probe_query(request, params)}
+    query = probe_query(request, params)
+    kind = params.get("sh", "deringed")
+    if kind not in _SH_KINDS:
+        return None
+    return {"request": request, "query": query, "sh": kind}
+
+
+_SH_KINDS = frozenset(get_args(SHKind))
 
 
 @router.get(
@@ -33,19 +40,32 @@ def resolve_sh(request: Request) -> dict[str, Any] | None:
     openapi_extra={"parameters": POINT_PARAMETERS},
 )
 @fast_path(resolve_sh)
-async def get_sh(request: Request, query: ProbeQueryDep) -> Response:
+async def get_sh(
+    request: Request,
+    query: ProbeQueryDep,
+    sh: Annotated[SHKind, Query(description="'deringed' (default): each probe's SH windowed "
+                                            "so that its irradiance is >= 0 everywhere; "
+                                            "'raw': the projection, which may ring.")
+                  ] = "deringed",
+) -> Response:
     """The 9 RGB radiance coefficients at ``(x, y, z)``, blended from the surrounding probes.
 
-    With a normal ``(nx, ny, nz)`` the weights are visibility-aware (DDGI); the response lists the
-    probes used and their weights, and flags a clamped (outside) or unlit position.
+    Deringed by default (``sh=raw`` for the raw projection; ``sh`` in the response says which).
+    Probes hidden from the point by the scene get no weight where the store keeps the scene's
+    triangles (``flags.visibility_test`` is then ``segments``); with a normal ``(nx, ny, nz)``
+    the weights also follow DDGI's normal term. The response lists the probes used and their
+    weights, and flags a clamped (outside) or unlit position.
     """
     grid, point = query.grid, query.point
-    w = grid.field.weights(point.position, normals=point.normal)
+    field = grid.field
+    w = field.weights(point.position, normals=point.normal)
     doc = {  # an SHOut, serialised directly (this is the service's hottest path)
         "grid": grid.name,
         "position": point.position.tolist(),
         "sampled_position": w.points[0].tolist(),
-        "coefficients": grid.field.sh(w)[0].tolist(),
+        "coefficients": field.sh(w, kind=sh)[0].tolist(),
+        "sh": sh,
+        "sh_source": field.sh_source(sh),
         "probes": probes_json(grid.store.grid, w),
         "flags": flags_json(w, visibility=point.normal is not None),
     }
