@@ -278,6 +278,38 @@ class MitsubaReference:
             out[start:start + len(part)] = cubes[:, :, :, ::-1]  # mirrored faces, flipped back
         return CubeRender(out, time.perf_counter() - t0, int(spp), int(max_depth))
 
+    def punctual_diffuse(self, positions: NDArray[np.float64], size: int) -> NDArray[np.float32]:
+        """``(P, 6, size, size, 3)`` irradiance / pi at the probes from the punctual lights they
+        see directly: ``E_perp max(0, n . l) / pi`` at each texel's centre normal.
+
+        A camera ray never hits a delta light, so a rendered cube lacks the light a probe
+        receives straight from point and directional lights; this is that part (probegrid splats
+        it into the cube, which its diffuse filter turns into the same closed form). Visibility is
+        Mitsuba's own shadow ray (``Scene.ray_test``), one per probe and light.
+        """
+        mi = _mi()
+        sc = self._scene(1)
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        nrm = texel_directions(size)  # (6, s, s, 3)
+        out = np.zeros((len(pos), 6, size, size, 3), dtype=np.float64)
+        extent = float(np.linalg.norm(np.ptp(self.scene.bounds, axis=0)))
+        for light in self.scene.lights:  # loops over lights and probes (a few), not texels
+            power = np.asarray(light.color, dtype=np.float64) * light.intensity
+            for p, o in enumerate(pos):
+                if isinstance(light, PointLight):
+                    to = np.asarray(light.position, dtype=np.float64) - o
+                    dist = float(np.linalg.norm(to))
+                    l, e_perp, tmax = to / dist, power / dist**2, dist * (1.0 - 1e-5)
+                else:
+                    l = -np.asarray(light.direction, dtype=np.float64)
+                    l, e_perp, tmax = l / np.linalg.norm(l), power, 4.0 * extent + 1.0
+                ray = mi.Ray3f(mi.ScalarPoint3f(*o), mi.ScalarVector3f(*l))
+                ray.maxt = tmax
+                if sc.ray_test(ray):
+                    continue
+                out[p] += np.maximum(nrm @ l, 0.0)[..., None] * e_perp / np.pi
+        return out.astype(np.float32)
+
 
 def cache_key(scene: Scene, environment: Environment | None, positions: NDArray[np.float64],
               **settings: Any) -> str:
