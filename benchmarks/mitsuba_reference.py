@@ -47,7 +47,7 @@ import hashlib
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,9 +55,10 @@ from numpy.typing import NDArray
 from probegrid.bake.environment import Environment
 from probegrid.core.cubemap import FACE_NORMALS, FACE_V, texel_directions, texel_solid_angles
 from probegrid.core.lights import DirectionalLight, PointLight
-from probegrid.scene import Scene
+from probegrid.scene import Material, Scene
 
-__all__ = ["CubeRender", "MitsubaReference", "check_orientation", "without_light_ranges"]
+__all__ = ["CubeRender", "MitsubaReference", "check_environment_energy", "check_orientation",
+           "without_light_ranges"]
 
 #: Bumped when the conversion changes (part of every cache key).
 CONVERTER_VERSION = "1"
@@ -191,7 +192,7 @@ def scene_dict(scene: Scene, environment: Environment | None, directory: Path, *
                                "direction": [float(x) for x in light.direction],
                                "irradiance": _rgb(power)}
         else:
-            raise ValueError(f"{type(light).__name__} is not supported by the Mitsuba reference")
+            raise TypeError(f"{type(light).__name__} is not supported by the Mitsuba reference")
     if environment is not None and not environment.is_black:
         if environment.faces is None:
             d["environment"] = {"type": "constant",
@@ -246,7 +247,7 @@ class MitsubaReference:
     def close(self) -> None:
         self._tmp.cleanup()
 
-    def __enter__(self) -> MitsubaReference:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -335,8 +336,8 @@ def check_orientation(*, face_size: int = 8) -> dict[str, float]:
        of all twelve faces must read its own direction (``probegrid.core.cubemap
        .texel_directions``), so faces, rows, columns, the batch order and the lat-long
        convention are all right.
-    2. A small emissive square off-axis (towards ``(1, 0.5, -0.3)``) of probe A and of probe B, which
-       sees it from elsewhere: the solid-angle-weighted centroid of each rendered cube must point at
+    2. A small emissive square off-axis (towards ``(1, 0.5, -0.3)``) of probe A and of probe B,
+       which sees it from elsewhere: the solid-angle-weighted centroid of each rendered cube must point at
        the square's centre (geometry, winding and the front side of the area light).
     Returns the worst errors found.
     """
@@ -367,8 +368,6 @@ def check_orientation(*, face_size: int = 8) -> dict[str, float]:
     nrm = np.cross(quad[1] - quad[0], quad[2] - quad[0])
     if nrm @ target > 0:  # front toward the probes
         tris = tris[:, ::-1]
-    from probegrid.scene import Material
-
     lamp = Scene.from_arrays(quad, tris, materials=[Material.diffuse(0.0, emission=1.0)])
     probes = np.array([[0.0, 0.0, 0.0], 1.0 * a + 0.5 * b])  # both in front of the square
     with MitsubaReference(lamp, None) as ref:
@@ -383,3 +382,30 @@ def check_orientation(*, face_size: int = 8) -> dict[str, float]:
         worst = max(worst, float(np.degrees(np.arccos(min(1.0, cosang)))))
     assert worst < 2.0, f"an emitter lands {worst:.1f} degrees off its direction in the cube"
     return {"environment_max_abs_error": env_err, "emitter_direction_error_deg": worst}
+
+
+def check_environment_energy(environment: Environment, *, albedo: float = 0.5) -> float:
+    """The converted environment's energy, against probegrid's own integral: a probe 1 unit
+    above a wide Lambertian floor (albedo ``albedo``) under ``environment`` sees, looking
+    straight down, the radiance ``albedo * E_up / pi``, with ``E_up / pi`` the exact diffuse
+    integral of the environment cube at +Y (:func:`probegrid.core.diffuse.diffuse_exact`).
+    Mitsuba renders it at max depth 2; returns the worst relative error of the RGB channels
+    (the floor's finite size and the probe's own tiny shadow cost well under 1 %)."""
+    from probegrid.core.diffuse import diffuse_exact
+
+    if environment.faces is None:
+        want = albedo * environment.color * environment.intensity
+    else:
+        plus_y = diffuse_exact(environment.faces, 1)[2, 0, 0].astype(np.float64)
+        # (rotation about +Y leaves the +Y irradiance unchanged)
+        want = albedo * plus_y * environment.intensity
+    size = 1e4
+    floor = Scene.from_arrays([[-size, 0, -size], [size, 0, -size], [size, 0, size],
+                               [-size, 0, size]], [[0, 2, 1], [0, 3, 2]],
+                              materials=[Material.diffuse(albedo)])
+    with MitsubaReference(floor, environment) as ref:
+        cube = ref.render(np.array([[0.0, 1.0, 0.0]]), 4, spp=2048, max_depth=2).cubes
+    got = cube[0, 3, 1:3, 1:3].mean(axis=(0, 1)).astype(np.float64)  # -Y face, central texels
+    err = float(np.max(np.abs(got - want) / np.maximum(want, 1e-12)))
+    assert err < 0.02, f"the Mitsuba environment's energy is {err:.1%} off probegrid's"
+    return err
