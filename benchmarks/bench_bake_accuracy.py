@@ -8,7 +8,10 @@ by probegrid, and Mitsuba 3 (:mod:`mitsuba_reference`, variant ``scalar_rgb``) r
 incoming cube at each probe's (possibly relocated) position with six 90-degree sensors whose
 pixels are probegrid's texels. Before anything else, :func:`mitsuba_reference.check_orientation`
 proves that a lopsided environment and an off-axis emitter land on the right texels of the right
-faces (README "Conventions": the OpenGL/KTX2 face table).
+faces (README "Conventions": the OpenGL/KTX2 face table), :func:`mitsuba_reference.check_furnace`
+that a closed emitting box reads ``Le / (1 - rho)``, and, for a scene with an environment,
+:func:`mitsuba_reference.check_environment_energy` that a floor under it reads ``rho E / pi`` with
+``E`` probegrid's exact integral of the environment.
 
 Figures (per valid probe, then the mean and the worst probe):
 
@@ -378,6 +381,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     print("orientation check (lopsided environment, off-axis emitter):",
           {k: round(v, 4) for k, v in mr.check_orientation().items()})
+    print(f"furnace check (closed box, Le / (1 - rho)): {100 * mr.check_furnace():.2f} %")
     results = []
     with tempfile.TemporaryDirectory(prefix="pg-bench-acc-") as tmp:
         if args.scene in ("cornell", "both"):

@@ -57,8 +57,8 @@ from probegrid.core.cubemap import FACE_NORMALS, FACE_V, texel_directions, texel
 from probegrid.core.lights import DirectionalLight, PointLight
 from probegrid.scene import Material, Scene
 
-__all__ = ["CubeRender", "MitsubaReference", "check_environment_energy", "check_orientation",
-           "without_light_ranges"]
+__all__ = ["CubeRender", "MitsubaReference", "check_environment_energy", "check_furnace",
+           "check_orientation", "without_light_ranges"]
 
 #: Bumped when the conversion changes (part of every cache key).
 CONVERTER_VERSION = "1"
@@ -408,4 +408,19 @@ def check_environment_energy(environment: Environment, *, albedo: float = 0.5) -
     got = cube[0, 3, 1:3, 1:3].mean(axis=(0, 1)).astype(np.float64)  # -Y face, central texels
     err = float(np.max(np.abs(got - want) / np.maximum(want, 1e-12)))
     assert err < 0.02, f"the Mitsuba environment's energy is {err:.1%} off probegrid's"
+    return err
+
+
+def check_furnace(*, albedo: float = 0.6, emission: float = 1.0) -> float:
+    """Convergence and units of the converted materials: inside a closed box whose walls emit
+    ``Le`` and reflect ``rho`` (:func:`probegrid.scene.box_scene`), every direction reads the
+    infinite series ``Le / (1 - rho)``. Rendered at max depth 64 (``rho^64`` is nothing);
+    returns the relative error of the mean over the cube."""
+    from probegrid.scene import box_scene
+
+    box = box_scene((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), albedo=albedo, emission=emission)
+    with MitsubaReference(box, None) as ref:
+        cube = ref.render(np.array([[0.1, -0.2, 0.3]]), 4, spp=256, max_depth=64).cubes
+    err = float(abs(cube.mean() / (emission / (1.0 - albedo)) - 1.0))
+    assert err < 0.01, f"the Mitsuba furnace reads {err:.1%} off Le / (1 - rho)"
     return err
