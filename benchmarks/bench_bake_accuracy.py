@@ -113,14 +113,10 @@ def _bake_main(spec_file: str) -> None:
     np.savez(Path(spec["result"]).with_suffix(".npz"),
              positions=np.asarray(store["positions"]), valid=np.asarray(store["valid"]),
              diffuse=np.asarray(store["diffuse"]), incoming=np.asarray(store["incoming"]))
-    manifest = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() \
-        else {}
     Path(spec["result"]).write_text(json.dumps({
         "seconds": seconds, "rays": int(report.rays), "bounces": bounces, "note": note,
         "probegrid": str(Path(probegrid.__file__).parent),
         "quality": {k: v for k, v in report.quality.items() if isinstance(v, (int, float, str))},
-        "manifest_bounces": manifest.get("bounces_reached", manifest.get("quality", {}).get(
-            "bounces_reached")),
     }, default=str))
 
 
@@ -229,8 +225,11 @@ def bench_scene(label: str, path: Path, sky: Path | None, args: argparse.Namespa
     print(f"\n== {label}: {path.name}" + (f" + {sky.name}" if sky else "") +
           f", grid {args.grid}, faces {n}^2, {args.samples} ray(s) per texel")
     info, baked = run_bake(args.repo, work, f"{label}-conv", bounces=args.bounces, **spec)
+    q = info["quality"]
+    reached = (f" (reached {q['bounces']}, residual {100 * q['bounce_residual']:.2g} %)"
+               if isinstance(q.get("bounce_residual"), float) and "bounces" in q else "")
     print(f"probegrid ({info['probegrid']}): bake {info['seconds']:.2f} s, bounces "
-          f"{info['bounces']}" + (f" ({info['note']})" if info["note"] else ""))
+          f"{info['bounces']}{reached}" + (f" ({info['note']})" if info["note"] else ""))
     valid = baked["valid"].astype(bool)
     pos = baked["positions"][valid]
     d = baked["diffuse"].shape[2]
