@@ -91,6 +91,11 @@ class GridSummary(_Model):
     visibility: bool = Field(description="Whether distance moments are stored (DDGI weights).")
     scene_hash: str
     created: str
+    content_hash: str = Field(description="SHA-256 of the served store's manifest.json: which "
+                                          "bake is served (a re-bake changes it).")
+    replaced_on_disk: str | None = Field(
+        default=None, description="Set when the store on disk was replaced by one that cannot "
+        "be served (why); the bake opened before is still served.")
 
 
 class GridList(_Model):

@@ -25,6 +25,7 @@ anything is computed or written. ``probegrid export`` (:mod:`probegrid.jobs.expo
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -56,6 +57,9 @@ __all__ = [
     "FILTER_FORMAT",
     "FilterResult",
     "FilterSettings",
+    "CACHE_ENV",
+    "cached_dfg_lut",
+    "check_settings",
     "energy_ratio",
     "prepare_output_dir",
     "run_filter",
@@ -88,6 +92,7 @@ class FilterSettings(BaseModel):
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
     clamp: float | None = Field(default=None, gt=0)
+    keep_negative: bool = False
     lut_size: int = Field(default=128, ge=2, le=1024)
     previews: bool = True
 
@@ -196,22 +201,30 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
 
     A diffuse map (irradiance / pi) and every level of a normalised specular filter integrate to
     the same value as the radiance they came from (the kernels are symmetric and normalised), so
-    this ratio is 1 for a correct filter.
+    this ratio is 1 for a correct filter, and 1 for a black input with a black output (0 of 0
+    lost; the manifest's quality figures stay finite).
     """
     r = float(solid_angle_integral(ref).sum())
-    return float(solid_angle_integral(out).sum()) / r if r != 0 else float("nan")
+    o = float(solid_angle_integral(out).sum())
+    if r == 0.0:  # a black input: a black output kept all of its (zero) energy
+        if o != 0.0:
+            raise ValueError("a filter made light out of a black environment")
+        return 1.0
+    return o / r
 
 
 def _load_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
-) -> tuple[NDArray[np.float32], str, int]:
-    """Read, check and resample the environment; returns (cube, layout, nonfinite count)."""
+) -> tuple[NDArray[np.float32], str, int, int]:
+    """Read, check and resample the environment; returns (cube, layout, nonfinite count,
+    negative count)."""
     from probegrid import imageio
     from probegrid.core import layouts
 
     paths = [Path(p) for p in paths]
     layout = settings.layout
     if len(paths) == 6 and layout in ("auto", "faces"):
+        paths = imageio.order_face_files(paths)  # by their names, not the shell's sort
         images = [imageio.read_image(p) for p in paths]
         shapes = {im.shape for im in images}
         if len(shapes) != 1 or images[0].shape[0] != images[0].shape[1]:
@@ -239,10 +252,17 @@ def _load_environment(
                 "pass --clamp to replace them"
             )
         progress(f"replacing {bad} non-finite values (NaN -> 0, inf -> clamp)")
+    negative = int(np.count_nonzero(source < 0))
     if settings.clamp is not None:
         source = imageio.clamp_radiance(source, settings.clamp)
-    elif (source < 0).any():
-        progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
+        if negative:
+            progress(f"note: {negative} negative values set to 0 (radiance is never negative)")
+    elif negative and settings.keep_negative:
+        progress(f"note: {negative} negative values kept (--keep-negative)")
+    elif negative:
+        source = np.maximum(source, np.float32(0.0))
+        progress(f"note: {negative} negative values set to 0 (radiance is never negative; "
+                 "--keep-negative keeps them)")
 
     if layout == "faces":
         n = settings.size or int(source.shape[1])
@@ -250,7 +270,7 @@ def _load_environment(
         n = settings.size or layouts.default_face_size(source.shape[0], source.shape[1], layout)
     progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube")
     cube = layouts.to_cube(source, layout, n)
-    return cube, layout, bad
+    return cube, layout, bad, negative
 
 
 def run_filter(
@@ -263,19 +283,49 @@ def run_filter(
     """Run the whole filter job; see the module docstring. Returns what was written.
 
     Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
-    for bad input, before anything is written to ``out_dir``.
+    for bad input, before anything is written to ``out_dir``. Every option combination and the
+    output location are checked before any work; the files are written into a staging folder
+    moved into place only when complete (:mod:`probegrid.jobs.staging`), so a failure leaves
+    ``out_dir`` as it was and no temporary file behind.
     """
-    from probegrid import imageio
-    from probegrid.core import dfg, diffuse, seams, sh, specular
+    from probegrid.jobs.staging import staged_output
 
     settings = settings or FilterSettings()
-    say: Progress = progress or (lambda _m: None)
+    check_settings(settings)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
     out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    with staged_output(out, lambda final: prepare_output_dir(final, FILTER_FORMAT,
+                                                             create=False)) as stage:
+        manifest, files = _filter_into(stage, paths, settings, progress)
+    return FilterResult(out, manifest, files)
+
+
+def check_settings(settings: FilterSettings) -> None:
+    """Refuse option combinations that cannot work (one-line ``ValueError``), before any work."""
+    if settings.seam == "border" and settings.output_layout != "faces":
+        raise ValueError("--seam border writes (n+2)^2 faces, which only --output-layout faces "
+                         f"can hold (got --output-layout {settings.output_layout})")
+    if settings.samples is not None and settings.specular_method != "fis":
+        raise ValueError("--samples applies to --specular-method fis (importance sampling)")
+    if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
+            and settings.sh_window_width is None):
+        raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
+
+
+def _filter_into(
+    out: Path, paths: Sequence[str | os.PathLike[str]], settings: FilterSettings,
+    progress: Progress | None,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Compute everything, then write it into the (staging) directory ``out``; returns the
+    manifest and its file list."""
+    from probegrid import imageio
+    from probegrid.core import diffuse, seams, sh, specular
+
+    say: Progress = progress or (lambda _m: None)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    cube, in_layout, nonfinite = _load_environment([Path(p) for p in paths], settings, say)
+    cube, in_layout, nonfinite, negative = _load_environment([Path(p) for p in paths], settings, say)
     n = cube.shape[1]
     # the full chain by default; a cube that is not a power of two gets its level 0 only
     default_levels = None if n & (n - 1) == 0 else 1
@@ -318,7 +368,7 @@ def run_filter(
     timings["specular"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    lut = dfg.dfg_lut(settings.lut_size)
+    lut = cached_dfg_lut(settings.lut_size)
     timings["dfg"] = time.perf_counter() - t
 
     energy = {
@@ -333,8 +383,7 @@ def run_filter(
                      (spec_out if settings.seam != "border" else spec)],
     }
 
-    # --- write ----------------------------------------------------------------------------
-    prepare_output_dir(out, FILTER_FORMAT)  # checked again: it may have changed meanwhile
+    # --- write (into the staging folder) ----------------------------------------------------
     manifest_path = out / "manifest.json"
     t = time.perf_counter()
     conv = conventions()
@@ -342,8 +391,6 @@ def run_filter(
     files: list[dict[str, Any]] = []
     ext = settings.format
     write_layout = settings.output_layout
-    if settings.seam == "border" and write_layout != "faces":
-        raise ValueError("seam mode 'border' writes (n+2)^2 faces; use --output-layout faces")
 
     def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
         written = imageio.write_cube(
@@ -413,7 +460,11 @@ def run_filter(
         "probegrid_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "input": {"paths": [str(p) for p in paths], "layout": in_layout,
-                  "nonfinite_values_replaced": nonfinite, "cube_size": n},
+                  "nonfinite_values_replaced": nonfinite,
+                  "negative_values": {"count": negative, "action": (
+                      "kept" if settings.keep_negative and settings.clamp is None
+                      else "set to 0")},
+                  "cube_size": n},
         "settings": settings.model_dump(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
@@ -429,7 +480,56 @@ def run_filter(
         "files": files,
     }
     atomic_write_json(manifest_path, manifest)
-    return FilterResult(out, manifest, files)
+    return manifest, files
+
+
+#: Environment variable naming the cache directory of :func:`cached_dfg_lut` (default
+#: ``$XDG_CACHE_HOME/probegrid``, else ``~/.cache/probegrid``).
+CACHE_ENV = "PROBEGRID_CACHE_DIR"
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get(CACHE_ENV)
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "probegrid"
+
+
+@functools.lru_cache(maxsize=4)
+def cached_dfg_lut(size: int) -> NDArray[np.float32]:
+    """:func:`probegrid.core.dfg.dfg_lut` of ``size``, computed once per machine.
+
+    The table depends on nothing but its size and the code that computes it (about 3 s at the
+    default 128, most of a small filter run), so it is kept in the cache directory
+    (:data:`CACHE_ENV`) under a name holding the size and a hash of :mod:`probegrid.core.dfg`'s
+    source: a changed quadrature computes a new table. A cache that cannot be read or written
+    (read-only home, a damaged file) is ignored: the table is then computed.
+    """
+    import hashlib
+
+    from probegrid.core import dfg
+
+    digest = hashlib.sha256(Path(dfg.__file__).read_bytes()).hexdigest()[:16]
+    file = _cache_dir() / f"dfg_lut-{size}-{digest}.npy"
+    try:
+        lut = np.load(file, allow_pickle=False)
+        if lut.shape == (size, size, 2) and lut.dtype == np.float32 and np.isfinite(lut).all():
+            lut.setflags(write=False)
+            return lut
+    except (OSError, ValueError):
+        pass
+    lut = np.ascontiguousarray(dfg.dfg_lut(size), dtype=np.float32)
+    tmp = file.with_name(f".{file.name}.tmp-{os.getpid()}")
+    try:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as f:
+            np.save(f, lut, allow_pickle=False)
+        os.replace(tmp, file)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+    lut.setflags(write=False)
+    return lut
 
 
 def _specular_sheet(levels: Sequence[NDArray[np.float32]]) -> NDArray[np.float32]:
