@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, model_validator
 
 __all__ = [
     "CubeFormat",
@@ -43,16 +43,25 @@ __all__ = [
 CubeFormat = Literal["exr", "hdr", "png", "npy", "json"]
 CubeLayout = Literal["faces", "cross"]
 
+def _not_bool(value: Any) -> Any:
+    """JSON true/false is not a number (pydantic's lax mode would read it as 1/0)."""
+    if isinstance(value, bool):
+        raise ValueError("expected a number, not a boolean")
+    return value
+
+
+#: An integer of a request: JSON integers (and integral numbers such as 2.0), never booleans.
+Int = Annotated[int, BeforeValidator(_not_bool)]
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+Unit = Annotated[float, Field(ge=0.0, le=1.0, strict=True)]
 Color = tuple[
-    Annotated[float, Field(ge=0.0, le=1e6)],
-    Annotated[float, Field(ge=0.0, le=1e6)],
-    Annotated[float, Field(ge=0.0, le=1e6)],
+    Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
+    Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
+    Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
 ]
 Reflectance = tuple[Unit, Unit, Unit]
 #: A bounded coordinate: finite and small enough that squares and sums stay finite.
-Coord = Annotated[float, Field(ge=-1e12, le=1e12, allow_inf_nan=False)]
+Coord = Annotated[float, Field(ge=-1e12, le=1e12, allow_inf_nan=False, strict=True)]
 Point = tuple[Coord, Coord, Coord]
 
 
@@ -176,8 +185,8 @@ class ShadeOut(_Model):
 
 
 # ------------------------------------------------------------------------------ lights
-Intensity = Annotated[float, Field(ge=0.0, le=1e12)]
-Range = Annotated[float, Field(gt=0.0, le=1e12)]
+Intensity = Annotated[float, Field(ge=0.0, le=1e12, strict=True)]
+Range = Annotated[float, Field(gt=0.0, le=1e12, strict=True)]
 
 
 class PointLightIn(_Model):
@@ -195,8 +204,8 @@ class SpotLightIn(_Model):
     color: Color = (1.0, 1.0, 1.0)
     intensity: Intensity = Field(description="Candela inside the inner cone.")
     range: Range | None = None
-    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2)] = 0.0
-    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2)] = math.pi / 4
+    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2, strict=True)] = 0.0
+    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2, strict=True)] = math.pi / 4
 
     @model_validator(mode="after")
     def _cone(self) -> SpotLightIn:
@@ -224,7 +233,7 @@ LightIn = Annotated[
     PointLightIn | SpotLightIn | DirectionalLightIn, Field(discriminator="type")
 ]
 
-FaceSize = Annotated[int, Field(ge=1, le=4096)]
+FaceSize = Annotated[Int, Field(ge=1, le=4096)]
 
 
 class LightMapsRequest(_Model):
@@ -242,10 +251,10 @@ class LightMapsRequest(_Model):
         "leak-free blending of the grid's maps.")
     lights: list[LightIn] = Field(min_length=1)
     kind: Literal["diffuse", "specular"] = "diffuse"
-    level: Annotated[int, Field(ge=0, le=16)] = 0
+    level: Annotated[Int, Field(ge=0, le=16)] = 0
     diffuse_size: FaceSize = 16
     specular_size: FaceSize = Field(default=32, description="Power of two for a full chain.")
-    specular_levels: Annotated[int, Field(ge=1, le=13)] | None = None
+    specular_levels: Annotated[Int, Field(ge=1, le=13)] | None = None
     grid: Annotated[str, Field(max_length=128)] | None = None
     format: CubeFormat = "npy"
     layout: CubeLayout = "faces"

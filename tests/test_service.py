@@ -557,8 +557,9 @@ def test_plain_query_reads_what_starlette_reads():
                 b"x=\xe9", b"x=%31", b"x=+1", b"a+b=1"):
         request = Request({"type": "http", "query_string": raw})
         got = plain_query(request)
-        if b"%" in raw or b"+" in raw:
-            assert got is None
+        names = [k for k, _ in request.query_params.multi_items()]
+        if b"%" in raw or b"+" in raw or len(names) != len(set(names)):
+            assert got is None  # FastAPI's handler decides (a repeated name is a 422)
         else:
             assert got == {k: request.query_params[k] for k in request.query_params}, raw
 

@@ -86,8 +86,8 @@ def staged_output(out: str | os.PathLike[str],
     except OSError as exc:
         for d in reversed(created):
             d.rmdir()
-        raise ValueError(f"cannot write into {final.parent} (for the output directory "
-                         f"{out}): {_words(exc)}") from None
+        raise ValueError(f"cannot create the output directory {out}: {_words(exc)} (in "
+                         f"{final.parent})") from None
     try:
         yield staging
         if prepare is not None:
