@@ -35,6 +35,7 @@ from service.settings import Settings
 __all__ = [
     "DFG_SIZE",
     "POINT_PARAMETERS",
+    "QUERY_NAMES",
     "GridDep",
     "PointQuery",
     "ProbeQuery",
@@ -119,6 +120,12 @@ POINT_PARAMETERS: list[dict[str, object]] = [
 ]
 
 
+#: The query parameters of the probe queries (``/sh``, ``/maps``); each may be given once
+#: (others are ignored, as HTTP APIs do).
+QUERY_NAMES: frozenset[str] = frozenset({"x", "y", "z", "nx", "ny", "nz", "level", "format",
+                                         "layout"})
+
+
 @dataclass(frozen=True, eq=False)
 class PointQuery:
     """A query's point: ``position (3,)`` float64 and ``normal (3,)`` float64 or None."""
@@ -157,11 +164,11 @@ def parse_point(params: Mapping[str, str]) -> PointQuery:
     """
     multi = getattr(params, "multi_items", None)
     if multi is not None:  # a repeated parameter (x=1&x=2) is refused, not the last one taken
-        names = [k for k, _ in multi()]
+        names = [k for k, _ in multi() if k in QUERY_NAMES]
         if len(names) != len(set(names)):
             twice = next(k for k in names if names.count(k) > 1)
-            raise ApiError(422, f"query {twice[:40]}: given more than once; give each "
-                                "parameter once.")
+            raise ApiError(422, f"query {twice}: given more than once; give each parameter "
+                                "once.")
     xyz = [_number(params, c) for c in "xyz"]
     for c, v in zip("xyz", xyz, strict=True):
         if v is None:

@@ -144,7 +144,12 @@ def openapi_document(doc: dict[str, Any], settings: Settings) -> dict[str, Any]:
     * the vectors of :data:`NONZERO_VECTORS` must hold a non-zero component
       (``contains: {not: {const: 0}}``);
     * the limits of ``settings``: at most ``max_lights`` lights and face sizes up to
-      ``max_light_map_size`` in ``/v1/lights/maps``, at most ``max_batch`` points in ``/shade``.
+      ``max_light_map_size`` in ``/v1/lights/maps``, at most ``max_batch`` points in ``/shade``;
+    * level 0 only for diffuse light maps (``if``/``then``).
+
+    Not stated (they depend on the served data or on arithmetic of several fields): a
+    specular ``level`` beyond the chain of the chosen sizes or grid, and a diffuse or incoming
+    ``level`` other than 0 in ``/maps/{kind}`` (a path parameter); these stay 422s.
 
     The normal of ``/sh`` and ``/maps`` (all three components or none, not all zero) is stated
     by :data:`service.deps.POINT_PARAMETERS`.
@@ -163,6 +168,10 @@ def openapi_document(doc: dict[str, Any], settings: Settings) -> dict[str, Any]:
             maps[name].get("description", "Face size.")
             + f" At most {settings.max_light_map_size} (PROBEGRID_MAX_LIGHT_MAP_SIZE).")
     maps["lights"]["maxItems"] = settings.max_lights
+    # a diffuse map has one level (a specular chain's length depends on the sizes or the grid)
+    schemas["LightMapsRequest"]["if"] = {"not": {"properties": {"kind": {"const": "specular"}},
+                                                 "required": ["kind"]}}
+    schemas["LightMapsRequest"]["then"] = {"properties": {"level": {"maximum": 0}}}
     schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
     _tuples_as_arrays(doc)
     return doc
