@@ -105,7 +105,9 @@ def create_app(
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings)
+            levels = [g.field.map_levels(k) - 1 for g in registry.values()
+                      for k in g.field.kinds]
+            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings, levels)
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -137,7 +139,8 @@ def _tuples_as_arrays(node: Any) -> None:
             _tuples_as_arrays(value)
 
 
-def openapi_document(doc: dict[str, Any], settings: Settings) -> dict[str, Any]:
+def openapi_document(doc: dict[str, Any], settings: Settings,
+                     served_levels: Sequence[int] = ()) -> dict[str, Any]:
     """FastAPI's OpenAPI 3.1 document, made to state what the server enforces.
 
     * homogeneous tuples as fixed-length arrays (:func:`_tuples_as_arrays`);
@@ -145,11 +148,14 @@ def openapi_document(doc: dict[str, Any], settings: Settings) -> dict[str, Any]:
       (``contains: {not: {const: 0}}``);
     * the limits of ``settings``: at most ``max_lights`` lights and face sizes up to
       ``max_light_map_size`` in ``/v1/lights/maps``, at most ``max_batch`` points in ``/shade``;
-    * level 0 only for diffuse light maps (``if``/``then``).
+    * ``level`` at most the last level of the served grids' longest chain
+      (``served_levels``: the last level of each served map kind) in ``/maps/{kind}``, and of
+      that or of a light map of the largest face size in ``/v1/lights/maps``.
 
-    Not stated (they depend on the served data or on arithmetic of several fields): a
-    specular ``level`` beyond the chain of the chosen sizes or grid, and a diffuse or incoming
-    ``level`` other than 0 in ``/maps/{kind}`` (a path parameter); these stay 422s.
+    Not stated (they depend on the served data or on arithmetic of several fields, which
+    OpenAPI cannot express): a level beyond the chain of the kind asked for (a diffuse map has
+    one level; a specular chain's length depends on the face size or the grid); these stay
+    422s naming the valid range.
 
     The normal of ``/sh`` and ``/maps`` (all three components or none, not all zero) is stated
     by :data:`service.deps.POINT_PARAMETERS`.
@@ -168,10 +174,13 @@ def openapi_document(doc: dict[str, Any], settings: Settings) -> dict[str, Any]:
             maps[name].get("description", "Face size.")
             + f" At most {settings.max_light_map_size} (PROBEGRID_MAX_LIGHT_MAP_SIZE).")
     maps["lights"]["maxItems"] = settings.max_lights
-    # a diffuse map has one level (a specular chain's length depends on the sizes or the grid)
-    schemas["LightMapsRequest"]["if"] = {"not": {"properties": {"kind": {"const": "specular"}},
-                                                 "required": ["kind"]}}
-    schemas["LightMapsRequest"]["then"] = {"properties": {"level": {"maximum": 0}}}
+    # levels: no served grid and no light map of the largest face size has more
+    top = max([(settings.max_light_map_size).bit_length() - 1, *served_levels])
+    maps["level"]["maximum"] = top
+    maps_get = doc["paths"].get("/v1/grids/{grid}/maps/{kind}", {}).get("get", {})
+    for param in maps_get.get("parameters", []):
+        if param["name"] == "level":
+            param["schema"]["maximum"] = max(served_levels, default=0)
     schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
     _tuples_as_arrays(doc)
     return doc

@@ -50,8 +50,8 @@ def _not_bool(value: Any) -> Any:
     return value
 
 
-#: An integer of a request: JSON integers (and integral numbers such as 2.0), never booleans.
-Int = Annotated[int, BeforeValidator(_not_bool)]
+#: Refuses JSON booleans where an integer is expected (integral numbers such as 2.0 pass).
+NotBool = BeforeValidator(_not_bool)
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
 Unit = Annotated[float, Field(ge=0.0, le=1.0, strict=True)]
 Color = tuple[
@@ -233,7 +233,7 @@ LightIn = Annotated[
     PointLightIn | SpotLightIn | DirectionalLightIn, Field(discriminator="type")
 ]
 
-FaceSize = Annotated[Int, Field(ge=1, le=4096)]
+FaceSize = Annotated[int, Field(ge=1, le=4096), NotBool]
 
 
 class LightMapsRequest(_Model):
@@ -251,10 +251,10 @@ class LightMapsRequest(_Model):
         "leak-free blending of the grid's maps.")
     lights: list[LightIn] = Field(min_length=1)
     kind: Literal["diffuse", "specular"] = "diffuse"
-    level: Annotated[Int, Field(ge=0, le=16)] = 0
+    level: Annotated[int, Field(ge=0, le=16), NotBool] = 0
     diffuse_size: FaceSize = 16
     specular_size: FaceSize = Field(default=32, description="Power of two for a full chain.")
-    specular_levels: Annotated[Int, Field(ge=1, le=13)] | None = None
+    specular_levels: Annotated[int, Field(ge=1, le=13), NotBool] | None = None
     grid: Annotated[str, Field(max_length=128)] | None = None
     format: CubeFormat = "npy"
     layout: CubeLayout = "faces"

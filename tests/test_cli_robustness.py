@@ -296,3 +296,57 @@ def test_sigint_tests_do_not_depend_on_the_inherited_handler(tmp_path, shared_da
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+# ------------------------------------------------------------------------------ 9: progress
+class _Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _p(done: int, total: int = 1000):
+    from probegrid.bake.executors import Progress
+
+    return Progress(batches_done=done // 10, batches_total=total // 10, probes_done=done,
+                    probes_total=total, elapsed=0.0)
+
+
+def test_progress_prints_plain_lines_without_a_terminal_and_no_absurd_first_rate():
+    import io
+
+    from probegrid.jobs.progress import PLAIN_INTERVAL, BakeProgress
+
+    clock, out = _Clock(), io.StringIO()
+    bar = BakeProgress(stream=out, clock=clock)
+    assert not bar.terminal  # a StringIO, like a log file
+    bar("bounce 1/1 (final)", _p(10), 10**6)  # the first batch: no rate yet
+    assert bar.rates(_p(10), 10**6) is None
+    clock.t += 2.0
+    bar("bounce 1/1 (final)", _p(210), 10**6 + 4 * 10**6)
+    assert bar.rates(_p(210), 5 * 10**6) == pytest.approx((100.0, 2.0))  # 200 probes, 4 Mrays
+    assert out.getvalue() == ""  # quiet between lines
+    clock.t += PLAIN_INTERVAL
+    bar("bounce 1/1 (final)", _p(500), 10**6 + 24 * 10**6)
+    line = out.getvalue().strip()
+    assert line.startswith("bake: bounce 1/1 (final): 500/1000 probes (50 %)")
+    assert "Mrays/s" in line and "left" in line and "578524" not in line
+    bar("bounce 1/1 (final)", _p(1000), 10**6 + 48 * 10**6)
+    assert "done in" in out.getvalue().strip().splitlines()[-1]
+
+
+def test_a_resumed_bake_says_from_where(tmp_path):
+    from probegrid.jobs.progress import resume_note
+    from probegrid.store import StoreWriter
+    from probegrid.store.manifest import ArraySpec
+
+    out = tmp_path / "r.probes"
+    assert resume_note(out) is None
+    w = StoreWriter.create(out, arrays={"sh": ArraySpec(shape=(9, 3), dtype="<f4")}, grid=GRID,
+                           conventions={"frame": "test"}, scene_hash="x", bake={"test": 1})
+    w.write(np.arange(5), {"sh": np.zeros((5, 9, 3), np.float32)})
+    w.close()
+    note = resume_note(out)
+    assert note is not None and f"5 of {GRID.n_probes} probes already done" in note
