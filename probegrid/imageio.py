@@ -75,7 +75,7 @@ from __future__ import annotations
 import os
 import re
 import secrets
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Final, Literal, get_args
 
@@ -359,6 +359,8 @@ def read_environment(
     size: int | None = None,
     max_size: int | None = None,
     clamp: float | None = None,
+    keep_negative: bool = False,
+    report: Callable[[str], None] | None = None,
 ) -> NDArray[np.float32]:
     """Read an environment as a cube map of linear radiance.
 
@@ -380,6 +382,11 @@ def read_environment(
         If given, source pixels are clamped to ``[0, clamp]`` (NaN -> 0, +inf -> clamp) before
         resampling. If not, a source with non-finite pixels raises :class:`ImageError` giving
         their number.
+    keep_negative : bool
+        Keep negative source values; by default they are set to 0 (radiance is never
+        negative) and ``report`` is told how many there were.
+    report : callable, optional
+        Receives one line for what was changed in the source (negative values set to 0).
 
     Returns
     -------
@@ -427,6 +434,13 @@ def read_environment(
             lay = layout
     else:
         raise ValueError(f"give one environment image or six face files, got {len(plist)} paths.")
+    negative = int(np.count_nonzero(source < 0))
+    if negative and not keep_negative:
+        source = np.maximum(source, np.float32(0.0))
+        if report is not None:
+            what = plist[0].name if len(plist) == 1 else "the six faces"
+            report(f"note: {negative} negative values of {what} "
+                   "set to 0 (radiance is never negative)")
     n = default_face_size(h, w, lay) if size is None else size
     if size is None and max_size is not None:
         n = min(n, max_size)

@@ -41,7 +41,8 @@ __all__ = [
 ]
 
 CubeFormat = Literal["exr", "hdr", "png", "npy", "json"]
-CubeLayout = Literal["faces", "cross"]
+#: ``hcross`` is the name ``probegrid filter`` / ``export`` use for the same horizontal cross.
+CubeLayout = Literal["faces", "cross", "hcross"]
 
 def _not_bool(value: Any) -> Any:
     """JSON true/false is not a number (pydantic's lax mode would read it as 1/0)."""

@@ -350,3 +350,15 @@ def test_a_resumed_bake_says_from_where(tmp_path):
     w.close()
     note = resume_note(out)
     assert note is not None and f"5 of {GRID.n_probes} probes already done" in note
+
+
+def test_a_bake_environment_with_negative_pixels_is_clamped_and_reported(tmp_path):
+    img = np.ones((16, 32, 3), np.float32)
+    img[0, :4, 1] = -2.0
+    path = imageio.write_image(tmp_path / "neg.exr", img, half=False)
+    lines: list[str] = []
+    cube = imageio.read_environment(path, size=4, report=lines.append)
+    assert lines == ["note: 4 negative values of neg.exr set to 0 (radiance is never negative)"]
+    assert cube.min() >= 0
+    kept = imageio.read_environment(path, size=4, keep_negative=True, report=lines.append)
+    assert kept.sum() < cube.sum() and len(lines) == 1  # the negatives pulled the mean down

@@ -207,3 +207,15 @@ def test_enforced_limits_match_the_advertised_ones(lin):
             return await c.post("/v1/grids/lin/shade", json=shade)
 
     assert asyncio.run(post_shade()).status_code == 422  # a boolean is not a roughness
+
+
+def test_maps_take_the_cli_layout_name_and_a_cube_map_repr_is_one_line(lin):
+    from probegrid.core.cubemap import CubeMap
+
+    app = create_app([lin], LIMITS)
+    cross, hcross = _get(app, *(f"/v1/grids/lin/maps/diffuse?x=1&y=0.5&z=1&format=npy&layout={v}"
+                                for v in ("cross", "hcross")))
+    assert hcross.status_code == 200 and hcross.content == cross.content
+    cube = CubeMap.from_faces(np.zeros((6, 8, 8, 3), np.float32), kind="specular", mips=True)
+    assert repr(cube) == ("CubeMap(kind='specular', size=8, levels=4, channels=3, "
+                          "dtype=float32)")

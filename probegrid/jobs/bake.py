@@ -146,7 +146,8 @@ def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
         return Environment(color=np.array(rgb), intensity=intensity, rotation=rotation)
     from probegrid.imageio import read_environment
 
-    faces = read_environment(path, layout=layout, max_size=MAX_ENVIRONMENT_SIZE)
+    faces = read_environment(path, layout=layout, max_size=MAX_ENVIRONMENT_SIZE,
+                             report=lambda line: print(line, file=sys.stderr))
     return Environment(faces=faces, intensity=intensity, rotation=rotation)
 
 
