@@ -144,11 +144,19 @@ def test_interrupted_filter_leaves_no_manifest(tmp_path, monkeypatch):
     assert not list(out.glob(".*tmp*")) and not list(tmp_path.glob(".*staging*"))
 
 
-def test_bake_info_export_on_the_sample_room(tmp_path):
-    store = tmp_path / "room.probes"
+@pytest.fixture(scope="module")
+def cli_bake(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """The sample room baked once by the CLI (3x2x3 probes, faces 8, one bounce): the store and
+    the run."""
+    store = tmp_path_factory.mktemp("cli_bake") / "room.probes"
     r = run_cli("bake", REPO / "data" / "sample_room.glb", "--out", store, "--grid", "3x2x3",
                 "--face-size", "8", "--diffuse-size", "4", "--bounces", "1",
                 "--environment", SKY, "--store-incoming", "--workers", "1")
+    return store, r
+
+
+def test_bake_info_export_on_the_sample_room(tmp_path, cli_bake):
+    store, r = cli_bake
     assert r.returncode == 0, r.stderr
     assert "baked 18 probes" in r.stdout
     info = run_cli("info", store)
@@ -169,7 +177,7 @@ def test_bake_info_export_on_the_sample_room(tmp_path):
                                                          "--out", exp))
 
 
-def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path):
+def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path, cli_bake):
     r = run_cli("serve", tmp_path / "nope.probes")
     assert "not a probe store" in _one_error_line(r) and "serving" not in r.stdout
     env = {**os.environ, "PROBEGRID_MAX_BATCH": "abc"}
@@ -178,9 +186,8 @@ def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path):
     assert "PROBEGRID_MAX_BATCH" in _one_error_line(r) and "serving" not in r.stdout
     import socket
 
-    store = tmp_path / "s.probes"
-    assert run_cli("bake", REPO / "data" / "sample_room.glb", "--out", store, "--grid", "2x1x2",
-                   "--face-size", "8", "--bounces", "0", "--workers", "1").returncode == 0
+    store, r = cli_bake  # a valid store
+    assert r.returncode == 0, r.stderr
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen(1)
