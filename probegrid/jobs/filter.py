@@ -12,9 +12,16 @@ resample it to a cube without aliasing, and compute
 * the split-sum DFG lookup table (:mod:`probegrid.core.dfg`),
 
 then applies the seam export mode to every map and level and writes the maps, ``sh.json``, the
-LUT, PNG previews and, last, ``manifest.json``. Every image file is written atomically and the
-manifest of an earlier run in the same directory is removed first, so an interrupted run never
-leaves a manifest: a directory with a manifest holds a finished job.
+LUT, PNG previews and, last, ``manifest.json``. Option combinations that cannot work and an
+output location that cannot be written are refused before any work (:func:`check_settings`,
+:func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
+beside the output directory and moved into place only when complete, so a failed or
+interrupted run leaves the output directory as it was (an earlier output whole) and no
+temporary file: a directory with a manifest holds a finished job. An all-black input is
+legitimate: its maps are black and its quality figures finite (energy ratios 1).
+
+Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
+depends only on its size and is cached per machine (:func:`cached_dfg_lut`).
 
 The output directory must be new, or hold an earlier output of the same kind (its
 ``manifest.json`` has the same ``format``): :func:`prepare_output_dir` refuses a probe grid store
