@@ -351,9 +351,7 @@ def _filter_into(
     if settings.diffuse_method == "exact":
         diff = diffuse.diffuse_exact(cube, settings.diffuse_size)
     else:
-        width = settings.sh_window_width
-        if settings.sh_window not in ("none", "auto") and width is None:
-            raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
+        width = settings.sh_window_width  # (given where the window needs it: check_settings)
         diff, info = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
                                         width=width)
         sh_window = {
@@ -367,9 +365,7 @@ def _filter_into(
     t = time.perf_counter()
     say(f"GGX specular chain: {levels} levels from {n}^2")
     spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
-    if settings.samples is not None:
-        if settings.specular_method != "fis":
-            raise ValueError("--samples applies to --specular-method fis (importance sampling)")
+    if settings.samples is not None:  # (with --specular-method fis: check_settings)
         spec_kwargs["samples"] = settings.samples
     spec = specular.ggx_prefilter(cube, **spec_kwargs)
     timings["specular"] = time.perf_counter() - t
