@@ -25,6 +25,24 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
                           check=False, capture_output=True, text=True, timeout=600)
 
 
+@pytest.fixture()
+def cli(capfd):
+    """``probegrid`` in this process, its output captured at the file descriptors (so a C
+    library's message would show as it does in a terminal): ``cli(*args)`` returns what
+    :func:`run_cli` returns, without a new interpreter's start-up."""
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        capfd.readouterr()
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse's errors
+            code = exc.code
+        out, err = capfd.readouterr()
+        return subprocess.CompletedProcess(args, code, out, err)
+
+    return run
+
+
 @pytest.fixture(scope="module")
 def filtered(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("filter")
@@ -98,29 +116,29 @@ def _one_error_line(r: subprocess.CompletedProcess) -> str:
     return lines[0]
 
 
-def test_bad_input_gives_one_line_errors(tmp_path):
-    assert "no such file" in _one_error_line(run_cli("filter", tmp_path / "x.hdr", "--out",
+def test_bad_input_gives_one_line_errors(tmp_path, cli):
+    assert "no such file" in _one_error_line(cli("filter", tmp_path / "x.hdr", "--out",
                                                      tmp_path / "o"))
     trunc = tmp_path / "t.hdr"
     trunc.write_bytes(SKY.read_bytes()[:2000])
-    assert "truncated" in _one_error_line(run_cli("filter", trunc, "--out", tmp_path / "o"))
-    _one_error_line(run_cli("filter", SKY, "--out", tmp_path / "o", "--layout", "nope"))
-    _one_error_line(run_cli("filter", SKY, "--out", tmp_path / "o", "--size", "-3"))
+    assert "truncated" in _one_error_line(cli("filter", trunc, "--out", tmp_path / "o"))
+    _one_error_line(cli("filter", SKY, "--out", tmp_path / "o", "--layout", "nope"))
+    _one_error_line(cli("filter", SKY, "--out", tmp_path / "o", "--size", "-3"))
     odd = tmp_path / "odd.exr"
     imageio.write_image(odd, np.ones((10, 17, 3), np.float32))
-    assert "layout" in _one_error_line(run_cli("filter", odd, "--out", tmp_path / "o"))
+    assert "layout" in _one_error_line(cli("filter", odd, "--out", tmp_path / "o"))
     assert not (tmp_path / "o" / "manifest.json").exists()
 
 
-def test_nonfinite_pixels_are_counted_or_clamped(tmp_path):
+def test_nonfinite_pixels_are_counted_or_clamped(tmp_path, cli):
     img = np.ones((16, 32, 3), np.float32)
     img[3, 4, 0] = np.nan
     img[5, 6] = np.inf
     bad = tmp_path / "bad.exr"
     imageio.write_image(bad, img, half=False)
-    line = _one_error_line(run_cli("filter", bad, "--out", tmp_path / "o"))
+    line = _one_error_line(cli("filter", bad, "--out", tmp_path / "o"))
     assert "2 pixels" in line and "--clamp" in line
-    r = run_cli("filter", bad, "--out", tmp_path / "o", "--clamp", "10", "--size", "8",
+    r = cli("filter", bad, "--out", tmp_path / "o", "--clamp", "10", "--size", "8",
                 "--no-previews")
     assert r.returncode == 0, r.stderr
     m = json.loads((tmp_path / "o" / "manifest.json").read_text())
@@ -195,12 +213,12 @@ def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path, cli_b
     assert "cannot listen on 127.0.0.1" in _one_error_line(r) and "serving" not in r.stdout
 
 
-def test_bad_scenes_give_one_line_errors(tmp_path):
+def test_bad_scenes_give_one_line_errors(tmp_path, cli):
     glb = tmp_path / "t.glb"
     glb.write_bytes((REPO / "data" / "sample_room.glb").read_bytes()[:500])
-    _one_error_line(run_cli("bake", glb, "--out", tmp_path / "t.probes"))
-    _one_error_line(run_cli("bake", tmp_path / "none.glb", "--out", tmp_path / "t.probes"))
-    _one_error_line(run_cli("bake", REPO / "data" / "sample_room.glb", "--out",
+    _one_error_line(cli("bake", glb, "--out", tmp_path / "t.probes"))
+    _one_error_line(cli("bake", tmp_path / "none.glb", "--out", tmp_path / "t.probes"))
+    _one_error_line(cli("bake", REPO / "data" / "sample_room.glb", "--out",
                             tmp_path / "t.probes", "--grid", "0x1x1"))
 
 
