@@ -219,3 +219,24 @@ def test_maps_take_the_cli_layout_name_and_a_cube_map_repr_is_one_line(lin):
     cube = CubeMap.from_faces(np.zeros((6, 8, 8, 3), np.float32), kind="specular", mips=True)
     assert repr(cube) == ("CubeMap(kind='specular', size=8, levels=4, channels=3, "
                           "dtype=float32)")
+
+
+def test_maps_and_light_maps_have_the_same_default_format(lin):
+    app = create_app([lin], LIMITS)
+    (maps,) = _get(app, "/v1/grids/lin/maps/diffuse?x=1&y=0.5&z=1")
+
+    async def post():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post("/v1/lights/maps", json={
+                "position": [1, 0.5, 1], "lights": [
+                    {"type": "point", "position": [0, 3, 0], "intensity": 1.0}]})
+
+    lights = asyncio.run(post())
+    assert maps.status_code == lights.status_code == 200
+    assert maps.headers["content-type"] == lights.headers["content-type"]
+    (doc,) = _get(app, "/openapi.json")
+    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/maps/{kind}"]["get"]
+              ["parameters"]}
+    assert params["format"]["schema"]["default"] == doc.json()["components"]["schemas"][
+        "LightMapsRequest"]["properties"]["format"]["default"] == "npy"
