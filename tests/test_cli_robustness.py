@@ -228,6 +228,7 @@ def test_negative_pixels_are_counted_and_set_to_zero_by_default(tmp_path, capsys
     assert "3 negative values set to 0" in capsys.readouterr().err
     m = json.loads((tmp_path / "a" / "manifest.json").read_text())
     assert m["input"]["negative_values"] == {"count": 3, "action": "set to 0"}
+    assert m["input"]["source_size"] == [32, 16] and m["input"]["layout"] == "equirect"
     assert imageio.read_image(tmp_path / "a" / "specular_m0_px.exr").min() >= 0
     assert main(["filter", str(neg), "--out", str(tmp_path / "b"), *common,
                  "--keep-negative"]) == 0

@@ -222,9 +222,9 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
 
 def _load_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
-) -> tuple[NDArray[np.float32], str, int, int]:
+) -> tuple[NDArray[np.float32], str, int, int, tuple[int, int]]:
     """Read, check and resample the environment; returns (cube, layout, nonfinite count,
-    negative count)."""
+    negative count, source width and height (of one face for six files))."""
     from probegrid import imageio
     from probegrid.core import layouts
 
@@ -277,7 +277,7 @@ def _load_environment(
         n = settings.size or layouts.default_face_size(source.shape[0], source.shape[1], layout)
     progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube")
     cube = layouts.to_cube(source, layout, n)
-    return cube, layout, bad, negative
+    return cube, layout, bad, negative, (int(source.shape[-2]), int(source.shape[-3]))
 
 
 def run_filter(
@@ -332,7 +332,7 @@ def _filter_into(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    cube, in_layout, nonfinite, negative = _load_environment([Path(p) for p in paths], settings, say)
+    cube, in_layout, nonfinite, negative, source_wh = _load_environment([Path(p) for p in paths], settings, say)
     n = cube.shape[1]
     # the full chain by default; a cube that is not a power of two gets its level 0 only
     default_levels = None if n & (n - 1) == 0 else 1
@@ -463,6 +463,7 @@ def _filter_into(
         "probegrid_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "input": {"paths": [str(p) for p in paths], "layout": in_layout,
+                  "source_size": list(source_wh),
                   "nonfinite_values_replaced": nonfinite,
                   "negative_values": {"count": negative, "action": (
                       "kept" if settings.keep_negative and settings.clamp is None
