@@ -21,8 +21,8 @@ and a *truncated* file (OpenImageIO's error state after reading, plus a check th
 of values returned is ``H W C``; a short read is never returned as partial data).
 
 :func:`read_environment` reads one image in any :mod:`probegrid.core.layouts` layout (detected from
-the aspect ratio by default) or six face files (put in the order ``+X, -X, +Y, -Y, +Z, -Z`` by their names,
-:func:`order_face_files`) and resamples it, anti-aliased, to a cube map.
+the aspect ratio by default) or six face files (put in the order ``+X, -X, +Y, -Y, +Z, -Z`` by
+their names, :func:`order_face_files`) and resamples it, anti-aliased, to a cube map.
 
 Writing
 -------

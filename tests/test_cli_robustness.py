@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from probe_stores import GRID, linear_arrays, write_store
 
 from probegrid import imageio
 from probegrid.cli import build_parser, main
 from probegrid.core import specular
 from probegrid.jobs import export as export_job
 from probegrid.jobs.filter import FilterSettings, run_filter
-from probe_stores import GRID, linear_arrays, write_store
 
 FACE_COLOURS = np.eye(6, 3, dtype=np.float32) + np.arange(6, dtype=np.float32)[:, None] / 8
 

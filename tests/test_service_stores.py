@@ -16,8 +16,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-
 from probe_stores import GRID, linear_arrays, write_store
+
 from probegrid.query import ProbeField
 from probegrid.store import StoreError, open_store
 from service.main import NONZERO_VECTORS, create_app

@@ -212,7 +212,6 @@ def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[st
     from probegrid.core.conventions import conventions
 
     n_levels = sum(kind == "specular" for _, kind, _ in maps)
-    names = store.names
     manifest_path = out / "manifest.json"
     conv = conventions()
     meta = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__,

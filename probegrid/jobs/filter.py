@@ -332,7 +332,8 @@ def _filter_into(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    cube, in_layout, nonfinite, negative, source_wh = _load_environment([Path(p) for p in paths], settings, say)
+    cube, in_layout, nonfinite, negative, source_wh = _load_environment(
+        [Path(p) for p in paths], settings, say)
     n = cube.shape[1]
     # the full chain by default; a cube that is not a power of two gets its level 0 only
     default_levels = None if n & (n - 1) == 0 else 1
