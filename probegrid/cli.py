@@ -238,8 +238,11 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
 def _run_bake(args: argparse.Namespace) -> int:
     from probegrid.jobs.bake import run_bake
 
+    from probegrid.jobs.staging import check_writable_location
+
     settings = BakeSettings(**_given(args, BakeSettings))
     given = _given(args, BakeJob)
+    check_writable_location(args.out, "store")  # before the scene loads and workers start
     if len(given.get("environment") or ()) == 6:  # face names checked before any work
         from probegrid.imageio import order_face_files
 
@@ -427,6 +430,9 @@ def _error_line(exc: BaseException) -> str:
         option = f"--{field.replace('_', '-')}" if field else exc.title
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         return f"{option}: {err['msg']}{more}"
+    if isinstance(exc, OSError) and exc.strerror and type(exc).__str__ is OSError.__str__:
+        where = f"{exc.filename}: " if exc.filename else ""  # words, not "[Errno 2] ..."
+        return f"{where}{exc.strerror}"
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 

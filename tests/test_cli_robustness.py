@@ -363,3 +363,21 @@ def test_a_bake_environment_with_negative_pixels_is_clamped_and_reported(tmp_pat
     assert cube.min() >= 0
     kept = imageio.read_environment(path, size=4, keep_negative=True, report=lines.append)
     assert kept.sum() < cube.sum() and len(lines) == 1  # the negatives pulled the mean down
+
+
+def test_bake_refuses_an_unwritable_store_location_before_loading_the_scene(tmp_path, capsys,
+                                                                           monkeypatch):
+    import probegrid.scene
+
+    monkeypatch.setattr(probegrid.scene, "load_gltf", lambda *a, **k: pytest.fail("loaded"))
+    assert main(["bake", str(tmp_path / "none.glb"), "--out", "/proc/forbidden.probes"]) == 2
+    line = _error(capsys)
+    assert "cannot create the store /proc/forbidden.probes" in line and "[Errno" not in line
+    assert not list(tmp_path.iterdir())
+
+
+def test_os_errors_are_one_line_in_words():
+    from probegrid.cli import _error_line
+
+    assert _error_line(FileNotFoundError(2, "No such file or directory", "/a/b")) == (
+        "/a/b: No such file or directory")

@@ -24,13 +24,14 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from probegrid._fs import fsync_dir
 
-__all__ = ["MANIFEST", "staged_output", "staging_path"]
+__all__ = ["MANIFEST", "check_writable_location", "staged_output", "staging_path"]
 
 #: The file written last into an output directory: its presence marks a finished output.
 MANIFEST = "manifest.json"
@@ -44,6 +45,23 @@ def staging_path(out: str | os.PathLike[str]) -> Path:
 
 def _words(exc: OSError) -> str:
     return exc.strerror or type(exc).__name__
+
+
+def check_writable_location(out: str | os.PathLike[str], what: str = "output") -> None:
+    """Refuse (one-line ``ValueError`` in words) an output path whose directory cannot be made:
+    its nearest existing ancestor must be a directory in which a new directory can be created
+    (tried for real, then removed; ``/proc``, read-only mounts and files fail here)."""
+    final = Path(os.path.abspath(out))
+    parent = final.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ValueError(f"cannot create the {what} {out}: {parent} is not a directory")
+    try:
+        probe = Path(tempfile.mkdtemp(prefix=f".{final.name}.check-", dir=parent))
+    except OSError as exc:
+        raise ValueError(f"cannot create the {what} {out}: {_words(exc)} (in {parent})") from None
+    probe.rmdir()
 
 
 def _make_dirs(directory: Path) -> list[Path]:
