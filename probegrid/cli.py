@@ -227,6 +227,9 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, S, "store_incoming", help="also store the raw cubes")
     _option(p, S, "relocate", "--no-relocate", help="do not move probes that are inside geometry")
     _option(p, S, "batch_size", help="probes per task")
+    _option(p, S, "dtype", help="map arrays (diffuse, specular, incoming) as float32, or as "
+            "half floats: half the size, 11 significant bits, values above 65504 (a direct "
+            "sun) clamped; the bake prints both sizes")
     x = p.add_mutually_exclusive_group()
     _option(x, J, "workers", help="local worker processes (default: all cores)")
     _option(x, J, "scheduler", help="Dask scheduler address, e.g. tcp://HOST:8786")

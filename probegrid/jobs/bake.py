@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from probegrid._types import InputLayout
 from probegrid.bake.settings import BakeSettings
 from probegrid.core.grid import GridSpec, parse_bounds, parse_grid, parse_spacing
-from probegrid.jobs.progress import BakeProgress, resume_note
+from probegrid.jobs.progress import BakeProgress, resume_note, size_note
 from probegrid.store.manifest import check_store_name
 
 if TYPE_CHECKING:  # the heavy modules (Embree, numba, trimesh) load when a bake runs
@@ -172,6 +172,7 @@ def run_bake(job: BakeJob) -> BakeReport:
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     print(f"baking {grid.label} = {grid.n_probes} probes of {job.scene} on "
           f"{executor.description}", file=sys.stderr)
+    print(size_note(job.settings, grid.n_probes), file=sys.stderr)
     if (note := resume_note(job.out)) is not None:
         print(note, file=sys.stderr)
     try:

@@ -12,7 +12,8 @@ Rates are shown only once they mean something: after :data:`RATE_AFTER` seconds 
 *and* at least two updates, measured from the stage's first update (not from before its first
 batch, whose work was done before the clock started: that gave figures such as
 "578524 probe/s, 0.00 Mrays/s"). :func:`resume_note` says, before a bake starts, whether it
-resumes an interrupted one and from where.
+resumes an interrupted one and from where; :func:`size_note` what the store will take with
+float32 and with half-float maps.
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ from typing import IO, TYPE_CHECKING
 
 if TYPE_CHECKING:
     from probegrid.bake.executors import Progress
+    from probegrid.bake.settings import BakeSettings
 
-__all__ = ["PLAIN_INTERVAL", "RATE_AFTER", "BakeProgress", "resume_note"]
+__all__ = ["PLAIN_INTERVAL", "RATE_AFTER", "BakeProgress", "resume_note", "size_note"]
 
 #: Seconds between two plain progress lines (stderr not a terminal).
 PLAIN_INTERVAL = 10.0
@@ -126,6 +128,17 @@ class BakeProgress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+
+def size_note(settings: BakeSettings, n_probes: int) -> str:
+    """What the store will take on disk, and what the other ``--dtype`` would (the cost of each
+    choice; :mod:`probegrid.bake.precision`)."""
+    from probegrid.bake.precision import store_bytes
+
+    mib = {d: store_bytes(settings, n_probes, d) / 2**20 for d in ("float", "half")}
+    other = "half" if settings.dtype == "float" else "float"
+    return (f"store: {mib[settings.dtype]:,.1f} MiB with {settings.dtype} maps "
+            f"(--dtype {other}: {mib[other]:,.1f} MiB)")
 
 
 def resume_note(out: str | os.PathLike[str]) -> str | None:
