@@ -19,6 +19,7 @@ __all__ = [
     "ImageFormat",
     "InputLayout",
     "Layout",
+    "MapDType",
     "MapFormat",
     "MapKind",
     "PixelType",
@@ -33,6 +34,8 @@ __all__ = [
 #: Cube-map kinds a probe or a store holds: diffuse (irradiance / pi), the GGX specular chain, the
 #: unfiltered incoming light.
 MapKind = Literal["diffuse", "specular", "incoming"]
+#: Number type of a store's map arrays (diffuse, specular, incoming): float32 or float16.
+MapDType = Literal["float", "half"]
 #: Image layouts of an environment or a cube map (see :mod:`probegrid.core.layouts`).
 Layout = Literal["equirect", "angular", "hcross", "vcross", "faces"]
 #: An input's layout, or ``auto`` to detect it from the image's shape.

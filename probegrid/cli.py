@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import signal
 import socket
 import sys
@@ -23,6 +24,7 @@ from pydantic import BaseModel
 
 from probegrid._types import CubeConvention, CubeLayout, EngineTarget, ImageFormat, choices
 from probegrid.bake import BakeSettings
+from probegrid.imageio import FACE_ORDER_HELP
 from probegrid.jobs.bake import BakeJob
 from probegrid.jobs.filter import FilterSettings
 
@@ -57,6 +59,18 @@ def _finite_float(text: str) -> float:
     if not math.isfinite(v):
         raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
     return v
+
+
+def _rgb(text: str) -> str:
+    """``R,G,B`` (or one value for grey) of finite, non-negative numbers; the text itself."""
+    try:
+        rgb = [float(x) for x in text.split(",")]
+    except ValueError:
+        rgb = []
+    if len(rgb) not in (1, 3) or not all(math.isfinite(v) and v >= 0 for v in rgb):
+        raise argparse.ArgumentTypeError(
+            f"expected R,G,B (or one value) of finite numbers >= 0, got {text!r}")
+    return text
 
 
 def _option(p: argparse.ArgumentParser, model: type[BaseModel], field: str, *flags: str,
@@ -106,7 +120,8 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
             "and manifest.json into --out."
         ),
     )
-    p.add_argument("env", nargs="+", type=Path, help="environment image, or six face files")
+    p.add_argument("env", nargs="+", type=Path,
+                   help=f"environment image, or six face files ({FACE_ORDER_HELP})")
     p.add_argument("--out", required=True, type=Path, help="output directory")
     F = FilterSettings
     _option(p, F, "layout", help="input layout (auto: detected from the aspect ratio)")
@@ -138,6 +153,8 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     _option(p, F, "clamp",
             help="clamp radiance to [0, CLAMP]; NaN becomes 0 (otherwise non-finite pixels are "
                  "an error)")
+    _option(p, F, "keep_negative",
+            help="keep negative input pixels (by default they are set to 0 and counted)")
     _option(p, F, "lut_size", help="DFG LUT size")
     _option(p, F, "previews", "--no-previews", help="skip the PNG previews")
     p.set_defaults(handler=_run_filter)
@@ -199,10 +216,14 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
             "probes at the centres of the grid's cells)")
     _option(p, J, "margin", help="grow (or, negative, shrink) the scene bounds by this much")
-    _option(p, J, "environment", type=Path, nargs="+", metavar="FILE",
-            help="HDR environment: one image (any layout) or six face files")
+    e = p.add_mutually_exclusive_group()
+    _option(e, J, "environment", type=Path, nargs=1, metavar="FILE",
+            help="HDR environment image (any layout; see --environment-layout)")
+    e.add_argument("--environment-faces", dest="environment", type=Path, nargs=6,
+                   metavar="FACE", default=argparse.SUPPRESS,
+                   help=f"HDR environment as six face files ({FACE_ORDER_HELP})")
     _option(p, J, "environment_layout", help="layout of --environment")
-    _option(p, J, "environment_color", help="constant environment radiance R,G,B")
+    _option(p, J, "environment_color", type=_rgb, help="constant environment radiance R,G,B")
     _option(p, J, "environment_intensity", help="environment scale")
     _option(p, J, "environment_rotation", help="degrees about +Y (right-handed)")
     _option(p, S, "face_size", help="incoming cube face size")
@@ -216,6 +237,9 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, S, "store_incoming", help="also store the raw cubes")
     _option(p, S, "relocate", "--no-relocate", help="do not move probes that are inside geometry")
     _option(p, S, "batch_size", help="probes per task")
+    _option(p, S, "dtype", help="map arrays (diffuse, specular, incoming) as float32, or as "
+            "half floats: half the size, 11 significant bits, values above 65504 (a direct "
+            "sun) clamped; the bake prints both sizes")
     x = p.add_mutually_exclusive_group()
     _option(x, J, "workers", help="local worker processes (default: all cores)")
     _option(x, J, "scheduler", help="Dask scheduler address, e.g. tcp://HOST:8786")
@@ -227,9 +251,16 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
 
 def _run_bake(args: argparse.Namespace) -> int:
     from probegrid.jobs.bake import run_bake
+    from probegrid.jobs.staging import check_writable_location
 
     settings = BakeSettings(**_given(args, BakeSettings))
-    opts = BakeJob(settings=settings, **_given(args, BakeJob))
+    given = _given(args, BakeJob)
+    check_writable_location(args.out, "store")  # before the scene loads and workers start
+    if len(given.get("environment") or ()) == 6:  # face names checked before any work
+        from probegrid.imageio import order_face_files
+
+        given["environment"] = order_face_files(given["environment"])
+    opts = BakeJob(settings=settings, **given)
     report = run_bake(opts)
     print(report.summary())
     print(f"look at it: probegrid info {args.out}   |   probegrid export {args.out} "
@@ -296,6 +327,10 @@ def _run_export(args: argparse.Namespace) -> int:
                            fmt=args.format, half=args.half)
     print(f"wrote {len(written)} files to {args.out}/ (manifest.json lists them with the "
           "conventions)")
+    if written.valid is False:
+        print(f"note: probe {','.join(map(str, written.probe))} is invalid (the bake found it "
+              "inside geometry); its maps show the inside of a surface, not the room",
+              file=sys.stderr)
     return 0
 
 
@@ -352,8 +387,25 @@ _SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
 )
 
 
+#: A negative number or a comma-separated list starting with one (``-20,0.2,-20,20,2.4,20``,
+#: ``-1e-3``, ``-.5,1``): an option's value, never an option (no option starts with a digit).
+_NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d)[0-9eE.+\-]*(,[ ]*[-+]?[0-9eE.+\-]*)*$")
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (``probegrid: error: ...``) and exit code 2."""
+    """argparse with one-line errors (``probegrid: error: ...``) and exit code 2.
+
+    argparse takes an argument for an option when it starts with ``-``, unless it is a single
+    negative number: ``--bounds -20,0.2,-20,20,2.4,20`` would fail with "expected one
+    argument". Negative numbers and comma lists starting with one (:data:`_NEGATIVE_VALUE`) are
+    values here, so every comma-separated option (bounds, colours, spacing, positions) works as
+    typed.
+    """
+
+    def _parse_optional(self, arg_string: str):  # type: ignore[no-untyped-def]
+        if _NEGATIVE_VALUE.match(arg_string):
+            return None  # a positional string: the value of the option before it
+        return super()._parse_optional(arg_string)
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_BAD_INPUT, f"probegrid: error: {message} (see {self.prog} --help)\n")
@@ -420,6 +472,9 @@ def _error_line(exc: BaseException) -> str:
         option = f"--{field.replace('_', '-')}" if field else exc.title
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         return f"{option}: {err['msg']}{more}"
+    if isinstance(exc, OSError) and exc.strerror and type(exc).__str__ is OSError.__str__:
+        where = f"{exc.filename}: " if exc.filename else ""  # words, not "[Errno 2] ..."
+        return f"{where}{exc.strerror}"
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 

@@ -21,8 +21,8 @@ and a *truncated* file (OpenImageIO's error state after reading, plus a check th
 of values returned is ``H W C``; a short read is never returned as partial data).
 
 :func:`read_environment` reads one image in any :mod:`probegrid.core.layouts` layout (detected from
-the aspect ratio by default) or six face files (order ``+X, -X, +Y, -Y, +Z, -Z``) and
-resamples it, anti-aliased, to a cube map.
+the aspect ratio by default) or six face files (put in the order ``+X, -X, +Y, -Y, +Z, -Z`` by
+their names, :func:`order_face_files`) and resamples it, anti-aliased, to a cube map.
 
 Writing
 -------
@@ -73,8 +73,9 @@ References
 from __future__ import annotations
 
 import os
+import re
 import secrets
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Final, Literal, get_args
 
@@ -102,6 +103,8 @@ from probegrid.core.layouts import (
 from probegrid.errors import ImageError
 
 __all__ = [
+    "FACE_NAMES",
+    "FACE_ORDER_HELP",
     "FACE_SUFFIXES",
     "HALF_MAX",
     "PIXEL_TYPES",
@@ -115,7 +118,9 @@ __all__ = [
     "clamp_radiance",
     "count_nonfinite",
     "cube_exposure",
+    "face_of",
     "linear_to_srgb",
+    "order_face_files",
     "read_environment",
     "read_image",
     "read_metadata",
@@ -152,6 +157,79 @@ _CUBE_FORMATS: Final[tuple[str, ...]] = get_args(ImageFormat)
 
 # --------------------------------------------------------------------------------------------
 # Reading
+
+#: The face names :func:`order_face_files` recognises, per face in face order (+X, -X, +Y, -Y,
+#: +Z, -Z), matched case-insensitively as whole words of the file name (delimited by anything
+#: but a letter or digit): ``px``/``posx``/``positive_x``/``xpos``/``right``/``+x``, ... The
+#: words right, left, top, bottom, front, back follow the usual skybox naming (three.js,
+#: Babylon.js): right = +X, top = +Y, front = +Z.
+FACE_NAMES: Final[tuple[tuple[str, ...], ...]] = (
+    ("px", "posx", "pos_x", "positive_x", "xpos", "xp", "right", "+x"),
+    ("nx", "negx", "neg_x", "negative_x", "xneg", "xn", "left", "-x"),
+    ("py", "posy", "pos_y", "positive_y", "ypos", "yp", "top", "up", "+y"),
+    ("ny", "negy", "neg_y", "negative_y", "yneg", "yn", "bottom", "down", "-y"),
+    ("pz", "posz", "pos_z", "positive_z", "zpos", "zp", "front", "+z"),
+    ("nz", "negz", "neg_z", "negative_z", "zneg", "zn", "back", "-z"),
+)
+#: One sentence for ``--help``: how six face files are ordered.
+FACE_ORDER_HELP: Final[str] = (
+    "six face files are put in the order +X, -X, +Y, -Y, +Z, -Z by their names (px/nx/py/ny/"
+    "pz/nz, posx/negx..., right/left/top/bottom/front/back or +X/-X...), whatever their order "
+    "on the command line (files without face names are taken in the order given)"
+)
+_FACE_PATTERNS = [
+    [re.compile(r"(?<![a-z0-9])" + re.escape(word) + r"(?![a-z0-9])") for word in words]
+    for words in FACE_NAMES
+]
+
+
+def face_of(path: str | os.PathLike[str]) -> int | None:
+    """The face (0..5, order +X, -X, +Y, -Y, +Z, -Z) a file's name says, or None.
+
+    Only the file name counts (not its folder), without its extension; when it holds several
+    face words, the last one (the suffix, as in ``left_wall_px.hdr``) wins.
+    """
+    stem = Path(Path(path).name.lower()).stem
+    best: tuple[int, int, int] | None = None  # (end, -start, face): the last, longest word
+    for face, patterns in enumerate(_FACE_PATTERNS):
+        for pattern in patterns:
+            for m in pattern.finditer(stem):
+                best = max(best or (m.end(), -m.start(), face), (m.end(), -m.start(), face))
+    return None if best is None else best[2]
+
+
+def order_face_files(paths: Sequence[str | os.PathLike[str]]) -> list[Path]:
+    """Six face files in face order (+X, -X, +Y, -Y, +Z, -Z), by their names (:data:`FACE_NAMES`).
+
+    Shells sort ``sky_*.exr`` alphabetically (``nx, ny, nz, px, py, pz``), so the order of
+    the arguments says nothing; the names do. Six files of which none names a face keep the
+    order given. Raises ValueError (one line) when some files name faces and others do not, or
+    when two name the same face.
+    """
+    plist = [Path(p) for p in paths]
+    if len(plist) != 6:
+        raise ValueError(f"a cube needs six face files, got {len(plist)}.")
+    faces = [face_of(p) for p in plist]
+    labels = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+    unnamed = [p.name for p, f in zip(plist, faces, strict=True) if f is None]
+    if len(unnamed) == 6:  # no face names at all (f0..f5): the order given is the face order
+        return plist
+    if unnamed:
+        raise ValueError(
+            f"cannot tell which cube face {unnamed[0]!r} is: name the six face files with "
+            "px/nx/py/ny/pz/nz (or posx/negx..., right/left/top/bottom/front/back, +X/-X...), "
+            "or give one image in a cross or equirect layout.")
+    if sorted(faces) != list(range(6)):  # type: ignore[type-var]
+        seen: dict[int, str] = {}
+        for p, f in zip(plist, faces, strict=True):
+            assert f is not None
+            if f in seen:
+                raise ValueError(f"{seen[f]!r} and {p.name!r} both name cube face {labels[f]}; "
+                                 "give one file per face.")
+            seen[f] = p.name
+    by_face = dict(zip(faces, plist, strict=True))
+    return [by_face[f] for f in range(6)]
+
 
 
 def _one_line(text: str) -> str:
@@ -281,6 +359,8 @@ def read_environment(
     size: int | None = None,
     max_size: int | None = None,
     clamp: float | None = None,
+    keep_negative: bool = False,
+    report: Callable[[str], None] | None = None,
 ) -> NDArray[np.float32]:
     """Read an environment as a cube map of linear radiance.
 
@@ -288,7 +368,8 @@ def read_environment(
     ----------
     paths : path or sequence of 1 or 6 paths
         One image in any layout of :mod:`probegrid.core.layouts`, or six face images (square, same
-        size) in the order ``+X, -X, +Y, -Y, +Z, -Z``.
+        size), put in the order ``+X, -X, +Y, -Y, +Z, -Z`` by their names
+        (:func:`order_face_files`), not by their order here.
     layout : {"auto", "equirect", "angular", "hcross", "vcross", "faces"}
         ``"auto"`` detects a single image's layout from its aspect ratio
         (:func:`probegrid.core.layouts.detect_layout`) and means ``"faces"`` for six files.
@@ -301,6 +382,11 @@ def read_environment(
         If given, source pixels are clamped to ``[0, clamp]`` (NaN -> 0, +inf -> clamp) before
         resampling. If not, a source with non-finite pixels raises :class:`ImageError` giving
         their number.
+    keep_negative : bool
+        Keep negative source values; by default they are set to 0 (radiance is never
+        negative) and ``report`` is told how many there were.
+    report : callable, optional
+        Receives one line for what was changed in the source (negative values set to 0).
 
     Returns
     -------
@@ -323,6 +409,7 @@ def read_environment(
     if len(plist) == 6:
         if layout not in ("auto", "faces"):
             raise ValueError(f"six files are six faces; layout {layout!r} needs one file.")
+        plist = order_face_files(plist)
         images = [_read_checked(p, clamp) for p in plist]
         shapes = {im.shape for im in images}
         first = images[0].shape
@@ -347,6 +434,13 @@ def read_environment(
             lay = layout
     else:
         raise ValueError(f"give one environment image or six face files, got {len(plist)} paths.")
+    negative = int(np.count_nonzero(source < 0))
+    if negative and not keep_negative:
+        source = np.maximum(source, np.float32(0.0))
+        if report is not None:
+            what = plist[0].name if len(plist) == 1 else "the six faces"
+            report(f"note: {negative} negative values of {what} "
+                   "set to 0 (radiance is never negative)")
     n = default_face_size(h, w, lay) if size is None else size
     if size is None and max_size is not None:
         n = min(n, max_size)

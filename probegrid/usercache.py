@@ -26,14 +26,23 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut"]
+__all__ = ["CACHE_ENV", "CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut"]
 
 #: Bumped when the layout of the cache or any cached computation changes.
 CACHE_VERSION = 1
 
 
+#: Environment variable that names the cache's root directory instead (tests give each session
+#: a fresh one).
+CACHE_ENV = "PROBEGRID_CACHE_DIR"
+
+
 def cache_dir() -> Path:
-    """``$XDG_CACHE_HOME/probegrid/v<CACHE_VERSION>`` (``~/.cache`` when unset or relative)."""
+    """``$PROBEGRID_CACHE_DIR/v<CACHE_VERSION>`` when that is set, else
+    ``$XDG_CACHE_HOME/probegrid/v<CACHE_VERSION>`` (``~/.cache`` when unset or relative)."""
+    own = os.environ.get(CACHE_ENV, "")
+    if own and os.path.isabs(own):
+        return Path(own) / f"v{CACHE_VERSION}"
     base = os.environ.get("XDG_CACHE_HOME", "")
     root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
     return root / "probegrid" / f"v{CACHE_VERSION}"

@@ -5,7 +5,8 @@
   parameter (404 ``not_found`` for a name that is not served).
 * :data:`ProbeQueryDep` -- the grid (as above) and the point of a probe query (``/sh``,
   ``/maps``): the ``x``, ``y``, ``z`` query parameters (required, finite) and the optional
-  ``nx``, ``ny``, ``nz`` (all three or none, finite, not all zero), as a :class:`ProbeQuery`.
+  ``nx``, ``ny``, ``nz`` (all three or none, finite, not all zero; no parameter repeated), as a
+  :class:`ProbeQuery`.
 
 The same rules as plain functions of the request, for the routes' fast paths
 (:mod:`service.fastroute`): :func:`served_grid`, :func:`parse_point`, :func:`probe_query` and
@@ -34,6 +35,7 @@ from service.settings import Settings
 __all__ = [
     "DFG_SIZE",
     "POINT_PARAMETERS",
+    "QUERY_NAMES",
     "GridDep",
     "PointQuery",
     "ProbeQuery",
@@ -95,17 +97,33 @@ async def get_grid(
 GridDep = Annotated[ServedGrid, Depends(get_grid)]
 
 #: OpenAPI description of the query parameters :func:`get_point` reads (routes that depend on
-#: it add these with ``openapi_extra={"parameters": POINT_PARAMETERS}``).
+#: it add these with ``openapi_extra={"parameters": POINT_PARAMETERS}``). The normal is one
+#: exploded form object (serialised ``nx=..&ny=..&nz=..``) so that the schema states what
+#: :func:`parse_point` enforces: all three components or none, not all zero.
 POINT_PARAMETERS: list[dict[str, object]] = [
     {"name": c, "in": "query", "required": True, "schema": {"type": "number"},
-     "description": f"World {c} coordinate (finite)."}
+     "description": f"World {c} coordinate (finite; each parameter at most once)."}
     for c in "xyz"
 ] + [
-    {"name": f"n{c}", "in": "query", "required": False, "schema": {"type": "number"},
-     "description": "Surface normal component (finite); give nx, ny and nz together for "
-                    "visibility-aware (DDGI) weights."}
-    for c in "xyz"
+    {"name": "normal", "in": "query", "required": False, "style": "form", "explode": True,
+     "description": "Surface normal nx, ny, nz (finite, any non-zero length): give all three "
+                    "for visibility-aware (DDGI) weights, or none.",
+     "schema": {
+         "type": "object",
+         "properties": {f"n{c}": {"type": "number"} for c in "xyz"},
+         "anyOf": [
+             {"not": {"anyOf": [{"required": [f"n{c}"]} for c in "xyz"]}},
+             {"required": ["nx", "ny", "nz"],
+              "not": {"properties": {f"n{c}": {"const": 0} for c in "xyz"}}},
+         ],
+     }},
 ]
+
+
+#: The query parameters of the probe queries (``/sh``, ``/maps``); each may be given once
+#: (others are ignored, as HTTP APIs do).
+QUERY_NAMES: frozenset[str] = frozenset({"x", "y", "z", "nx", "ny", "nz", "level", "format",
+                                         "layout"})
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,9 +158,17 @@ def parse_point(params: Mapping[str, str]) -> PointQuery:
     Parameters
     ----------
     params : mapping of str to str
-        The decoded query parameters, the last value of a repeated name (``request.query_params``
-        or :func:`plain_query`).
+        The decoded query parameters (``request.query_params`` or :func:`plain_query`). A
+        repeated name (``x=1&x=2``) is a 422 naming it (seen through ``multi_items`` of
+        Starlette's ``QueryParams``; :func:`plain_query` leaves such queries to it).
     """
+    multi = getattr(params, "multi_items", None)
+    if multi is not None:  # a repeated parameter (x=1&x=2) is refused, not the last one taken
+        names = [k for k, _ in multi() if k in QUERY_NAMES]
+        if len(names) != len(set(names)):
+            twice = next(k for k in names if names.count(k) > 1)
+            raise ApiError(422, f"query {twice}: given more than once; give each parameter "
+                                "once.")
     xyz = [_number(params, c) for c in "xyz"]
     for c, v in zip("xyz", xyz, strict=True):
         if v is None:
@@ -169,8 +195,9 @@ def plain_query(request: Request) -> dict[str, str] | None:
     Without ``%`` and ``+`` the query string decodes to itself, and splitting it on ``&`` and
     the first ``=`` (empty fields skipped, the last value of a repeated name kept) gives
     exactly Starlette's ``request.query_params`` (``urllib.parse.parse_qsl`` with
-    ``keep_blank_values``), at a seventh of the cost. Used by the routes' fast paths
-    (:mod:`service.fastroute`).
+    ``keep_blank_values``), at a seventh of the cost. A query that repeats a name gives None
+    too: FastAPI's handler then refuses it (:func:`parse_point`). Used by the routes' fast
+    paths (:mod:`service.fastroute`).
     """
     raw = request.scope["query_string"]
     if b"%" in raw or b"+" in raw:
@@ -179,6 +206,8 @@ def plain_query(request: Request) -> dict[str, str] | None:
     for field_ in raw.decode("latin-1").split("&"):
         if field_:
             name, _, value = field_.partition("=")
+            if name in params:
+                return None
             params[name] = value
     return params
 

@@ -151,8 +151,8 @@ def encode_cube(
     """
     if fmt not in MEDIA_TYPES:
         raise ValueError(f"unknown format {fmt!r}; choose one of {', '.join(MEDIA_TYPES)}.")
-    if layout not in ("faces", "cross"):
-        raise ValueError(f"unknown layout {layout!r}; choose 'faces' or 'cross'.")
+    if layout not in ("faces", "cross", "hcross"):  # hcross: the CLI's name of the cross
+        raise ValueError(f"unknown layout {layout!r}; choose 'faces' or 'hcross' ('cross').")
     arr = np.ascontiguousarray(cube_image(faces, layout), dtype=np.float32)
     if fmt == "npy":  # exactly np.save's bytes (tested), without its per-call header building
         return _npy_header(arr.shape) + arr.tobytes()
@@ -165,5 +165,5 @@ def encode_cube(
         doc = dict(meta or {})
         doc.update(layout=layout, shape=list(arr.shape), data=arr.tolist())
         return to_json(doc, inf_nan_mode="null")
-    image = arr if layout == "cross" else arr.reshape(-1, arr.shape[2], arr.shape[3])
+    image = arr if layout != "faces" else arr.reshape(-1, arr.shape[2], arr.shape[3])
     return _encode_image(image, fmt, scratch)

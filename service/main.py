@@ -30,7 +30,7 @@ import weakref
 from collections.abc import AsyncIterator, Callable, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from fastapi import FastAPI
 
@@ -44,7 +44,8 @@ from service.routers import grids, health, lights, maps, sh, shade, viewer, web
 from service.settings import Settings, load_settings, settings_environment
 from service.webassets import StaticAssets
 
-__all__ = ["OPENAPI_TAGS", "app_from_environment", "create_app", "example_usage", "run"]
+__all__ = ["NONZERO_VECTORS", "OPENAPI_TAGS", "app_from_environment", "create_app",
+           "example_usage", "openapi_document", "run"]
 
 #: The route groups, in the order the docs list them.
 OPENAPI_TAGS: Final[tuple[dict[str, str], ...]] = (
@@ -115,7 +116,88 @@ def create_app(
     app.include_router(web.router)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            levels = [g.field.map_levels(k) - 1 for g in registry.values()
+                      for k in g.field.kinds]
+            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings, levels)
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app
+
+
+#: Request fields that must not be the zero vector (the models refuse it), by schema and field.
+NONZERO_VECTORS: Final[tuple[tuple[str, str], ...]] = (
+    ("SurfacePoint", "normal"), ("SurfacePoint", "view"), ("LightMapsRequest", "normal"),
+    ("SpotLightIn", "direction"), ("DirectionalLightIn", "direction"),
+)
+
+
+def _tuples_as_arrays(node: Any) -> None:
+    """Write each homogeneous tuple (``prefixItems`` of equal schemas, pydantic's form) as an
+    array of that schema with ``minItems = maxItems``: the same constraint, read alike by
+    OpenAPI 3.0 and 3.1 tools, code generators and fuzzers."""
+    if isinstance(node, dict):
+        prefix = node.get("prefixItems")
+        if (isinstance(prefix, list) and prefix and "items" not in node
+                and all(item == prefix[0] for item in prefix)):
+            del node["prefixItems"]
+            node["items"] = prefix[0]
+            node["minItems"] = node["maxItems"] = len(prefix)
+        for value in node.values():
+            _tuples_as_arrays(value)
+    elif isinstance(node, list):
+        for value in node:
+            _tuples_as_arrays(value)
+
+
+def openapi_document(doc: dict[str, Any], settings: Settings,
+                     served_levels: Sequence[int] = ()) -> dict[str, Any]:
+    """FastAPI's OpenAPI 3.1 document, made to state what the server enforces.
+
+    * homogeneous tuples as fixed-length arrays (:func:`_tuples_as_arrays`);
+    * the vectors of :data:`NONZERO_VECTORS` must hold a non-zero component
+      (``contains: {not: {const: 0}}``);
+    * the limits of ``settings``: at most ``max_lights`` lights and face sizes up to
+      ``max_light_map_size`` in ``/v1/lights/maps``, at most ``max_batch`` points in ``/shade``;
+    * ``level`` at most the last level of the served grids' longest chain
+      (``served_levels``: the last level of each served map kind) in ``/maps/{kind}``, and of
+      that or of a light map of the largest face size in ``/v1/lights/maps``.
+
+    Not stated (they depend on the served data or on arithmetic of several fields, which
+    OpenAPI cannot express): a level beyond the chain of the kind asked for (a diffuse map has
+    one level; a specular chain's length depends on the face size or the grid); these stay
+    422s naming the valid range.
+
+    The normal of ``/sh`` and ``/maps`` (all three components or none, not all zero) is stated
+    by :data:`service.deps.POINT_PARAMETERS`.
+    """
+    schemas = doc["components"]["schemas"]
+    for model, name in NONZERO_VECTORS:
+        prop = schemas[model]["properties"][name]
+        target = next((alt for alt in prop.get("anyOf", []) if alt.get("type") == "array"), prop)
+        target["contains"] = {"not": {"const": 0}}
+        target["description"] = (target.get("description") or prop.get("description")
+                                 or "A vector") + " Not the zero vector."
+    maps = schemas["LightMapsRequest"]["properties"]
+    for name in ("diffuse_size", "specular_size"):
+        maps[name]["maximum"] = settings.max_light_map_size
+        maps[name]["description"] = (
+            maps[name].get("description", "Face size.")
+            + f" At most {settings.max_light_map_size} (PROBEGRID_MAX_LIGHT_MAP_SIZE).")
+    maps["lights"]["maxItems"] = settings.max_lights
+    # levels: no served grid and no light map of the largest face size has more
+    top = max([(settings.max_light_map_size).bit_length() - 1, *served_levels])
+    maps["level"]["maximum"] = top
+    maps_get = doc["paths"].get("/v1/grids/{grid}/maps/{kind}", {}).get("get", {})
+    for param in maps_get.get("parameters", []):
+        if param["name"] == "level":
+            param["schema"]["maximum"] = max(served_levels, default=0)
+    schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
+    _tuples_as_arrays(doc)
+    return doc
 
 
 def example_usage(store_path: str | os.PathLike[str], base_url: str) -> str:

@@ -8,24 +8,57 @@ sends becomes a path.
 Each :class:`ServedGrid` keeps the open :class:`probegrid.store.ProbeStore` (read-only memory maps,
 shared between worker processes through the page cache), its :class:`probegrid.core.ddgi.ProbeField`
 and the JSON-ready summary the ``/v1/grids`` routes return.
+
+A store is checked when it is opened as ``probegrid export`` checks it
+(:func:`probegrid.store.check.check_store`: manifest, array shapes, specular levels, no NaN or
+infinity anywhere), so the service never answers with a value it would refuse to export.
+
+A store replaced on disk while it is served (a new bake with ``--overwrite`` renames a new
+directory into place) is noticed: at most every :data:`RECHECK_SECONDS` a request looks at the
+store's ``manifest.json`` (device, inode, size, modification time); when it changed, a
+background thread opens and checks the new store and then swaps it in with one assignment, so
+a request is answered whole from the old store or whole from the new one, never from a mix.
+A new store that fails its checks is not served (the old one stays, and ``/v1/grids/{grid}``
+says why in ``replaced_on_disk``). ``content_hash`` (SHA-256 of the served ``manifest.json``,
+which names the bake, its settings and creation time) says which bake is served; it is in the
+``/v1/grids`` bodies and so in their ETags.
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
 import os
 import re
+import threading
+import time
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from probegrid.errors import StoreError
 from probegrid.query import ProbeField
 from probegrid.store import ProbeStore, open_store
+from probegrid.store.check import check_store
 from probegrid.store.manifest import store_name
 
-__all__ = ["GridRegistry", "ServedGrid", "grid_name"]
+__all__ = ["RECHECK_SECONDS", "GridRegistry", "ServedGrid", "grid_name"]
+
+#: Seconds between two looks at a served store's ``manifest.json`` (see the module docstring).
+RECHECK_SECONDS = 1.0
+_log = logging.getLogger("probegrid.service")
+
+
+def _signature(path: Path) -> tuple[int, ...] | None:
+    """What identifies the store directory's manifest file on disk (None if it is gone)."""
+    try:
+        st = os.stat(path / "manifest.json")
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
@@ -63,20 +96,27 @@ class ServedGrid:
     store: ProbeStore
     field: ProbeField
     summary: dict[str, Any]
+    signature: tuple[int, ...] | None = None
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> ServedGrid:
-        """Open a store and describe it; StoreError or ValueError if it cannot be served.
+        """Open a store, check it (:func:`~probegrid.store.check.check_store`) and describe it;
+        StoreError or ValueError if it cannot be served.
 
-        Every array is memory-mapped now, not on first use: a store replaced on disk while the
-        service runs (a new bake with ``--overwrite`` renames a new directory into place) is
-        still served whole from the old files, whose mappings stay valid, never as a mix of
-        old and new arrays. Serving the new store takes a restart.
+        Every array is memory-mapped now, not on first use: a store replaced on disk is served
+        whole from the old files, whose mappings stay valid, until the registry swaps the new
+        one in (see the module docstring), never as a mix of old and new arrays.
         """
         name = grid_name(path)
+        signature = _signature(Path(path))
         store = open_store(path)
+        try:
+            manifest_bytes = (Path(path) / "manifest.json").read_bytes()
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot read manifest.json: {exc.strerror}") from None
         for array_name in store.names:
             store.arrays[array_name]
+        check_store(store)
         field = ProbeField(store)
         arrays = store.manifest.arrays
         valid = int(np.count_nonzero(store.arrays["valid"])) if "valid" in arrays else None
@@ -99,12 +139,26 @@ class ServedGrid:
             "visibility": "moments" in arrays,
             "scene_hash": store.manifest.scene_hash,
             "created": store.manifest.created.isoformat(),
+            "content_hash": hashlib.sha256(manifest_bytes).hexdigest(),
+            "replaced_on_disk": None,
         }
-        return cls(name=name, store=store, field=field, summary=summary)
+        return cls(name=name, store=store, field=field, summary=summary, signature=signature)
+
+
+@dataclass(eq=False)
+class _Watch:
+    """When a grid's store was last looked at on disk, and the reload under way, if any."""
+
+    path: Path
+    next_check: float = 0.0
+    failed: tuple[tuple[int, ...] | None, str] | None = None
+    reloading: threading.Thread | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
 
 
 class GridRegistry(Mapping[str, ServedGrid]):
-    """Name -> :class:`ServedGrid`, immutable after construction."""
+    """Name -> :class:`ServedGrid`; the names are fixed at construction, the grid behind a name
+    is swapped for the new store when its directory is replaced on disk (module docstring)."""
 
     def __init__(self, grids: Sequence[ServedGrid]) -> None:
         by_name: dict[str, ServedGrid] = {}
@@ -116,6 +170,7 @@ class GridRegistry(Mapping[str, ServedGrid]):
                 )
             by_name[g.name] = g
         self._grids = by_name
+        self._watch = {g.name: _Watch(Path(g.store.path)) for g in grids}
 
     @classmethod
     def open(cls, paths: Sequence[str | os.PathLike[str]]) -> GridRegistry:
@@ -123,7 +178,60 @@ class GridRegistry(Mapping[str, ServedGrid]):
         return cls([ServedGrid.open(p) for p in paths])
 
     def __getitem__(self, name: str) -> ServedGrid:
+        grid = self._grids[name]
+        watch = self._watch[name]
+        now = time.monotonic()
+        if now >= watch.next_check:
+            watch.next_check = now + RECHECK_SECONDS
+            self._check(name, grid, watch)
         return self._grids[name]
+
+    def _check(self, name: str, grid: ServedGrid, watch: _Watch) -> None:
+        """Start a reload when the store's manifest on disk is not the served one."""
+        signature = _signature(watch.path)
+        if signature is None or signature == grid.signature:
+            return
+        if watch.failed is not None and watch.failed[0] == signature:
+            return  # this replacement was refused already
+        with watch.lock:
+            if watch.reloading is not None and watch.reloading.is_alive():
+                return
+            watch.reloading = threading.Thread(target=self._reload, args=(name, watch),
+                                               name=f"probegrid-reload-{name}", daemon=True)
+            watch.reloading.start()
+
+    def _reload(self, name: str, watch: _Watch) -> None:
+        """Open and check the store now at the grid's path; swap it in, or say why not."""
+        signature = _signature(watch.path)
+        try:
+            new = ServedGrid.open(watch.path)
+        except (StoreError, ValueError, OSError) as exc:
+            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
+            watch.failed = (signature, reason)
+            old = self._grids[name]
+            summary = {**old.summary, "replaced_on_disk": (
+                f"the store on disk was replaced by one that cannot be served ({reason}); "
+                "still serving the bake opened before")}
+            self._grids[name] = ServedGrid(name=old.name, store=old.store, field=old.field,
+                                           summary=summary, signature=old.signature)
+            _log.warning("grid %r: not serving the replaced store: %s", name, reason)
+            return
+        if new.name != name:  # pragma: no cover - same path, same name
+            return
+        watch.failed = None
+        self._grids[name] = new  # one assignment: requests see the old grid or the new one
+        _log.info("grid %r: serving the replaced store (content hash %s)", name,
+                  new.summary["content_hash"][:16])
+
+    def wait_for_reloads(self, timeout: float = 30.0) -> None:
+        """Look at every store on disk now and wait for the reloads this starts (for tests and
+        tools; requests never wait)."""
+        for name, watch in self._watch.items():
+            watch.next_check = 0.0
+            self[name]
+            thread = watch.reloading
+            if thread is not None:
+                thread.join(timeout)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._grids)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, model_validator
 
 __all__ = [
     "CubeFormat",
@@ -45,18 +45,28 @@ __all__ = [
 CubeFormat = Literal["exr", "hdr", "png", "npy", "json", "ktx2"]
 #: ``/sh``'s ``sh`` parameter (:data:`probegrid.query.SHKind`).
 SHKind = Literal["deringed", "raw"]
-CubeLayout = Literal["faces", "cross"]
+#: ``hcross`` is the name ``probegrid filter`` / ``export`` use for the same horizontal cross.
+CubeLayout = Literal["faces", "cross", "hcross"]
 
+def _not_bool(value: Any) -> Any:
+    """JSON true/false is not a number (pydantic's lax mode would read it as 1/0)."""
+    if isinstance(value, bool):
+        raise ValueError("expected a number, not a boolean")  # noqa: TRY004 (pydantic reads ValueError)
+    return value
+
+
+#: Refuses JSON booleans where an integer is expected (integral numbers such as 2.0 pass).
+NotBool = BeforeValidator(_not_bool)
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+Unit = Annotated[float, Field(ge=0.0, le=1.0, strict=True)]
 Color = tuple[
-    Annotated[float, Field(ge=0.0, le=1e6)],
-    Annotated[float, Field(ge=0.0, le=1e6)],
-    Annotated[float, Field(ge=0.0, le=1e6)],
+    Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
+    Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
+    Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
 ]
 Reflectance = tuple[Unit, Unit, Unit]
 #: A bounded coordinate: finite and small enough that squares and sums stay finite.
-Coord = Annotated[float, Field(ge=-1e12, le=1e12, allow_inf_nan=False)]
+Coord = Annotated[float, Field(ge=-1e12, le=1e12, allow_inf_nan=False, strict=True)]
 Point = tuple[Coord, Coord, Coord]
 
 
@@ -95,6 +105,11 @@ class GridSummary(_Model):
     visibility: bool = Field(description="Whether distance moments are stored (DDGI weights).")
     scene_hash: str
     created: str
+    content_hash: str = Field(description="SHA-256 of the served store's manifest.json: which "
+                                          "bake is served (a re-bake changes it).")
+    replaced_on_disk: str | None = Field(
+        default=None, description="Set when the store on disk was replaced by one that cannot "
+        "be served (why); the bake opened before is still served.")
 
 
 class GridList(_Model):
@@ -188,8 +203,8 @@ class ShadeOut(_Model):
 
 
 # ------------------------------------------------------------------------------ lights
-Intensity = Annotated[float, Field(ge=0.0, le=1e12)]
-Range = Annotated[float, Field(gt=0.0, le=1e12)]
+Intensity = Annotated[float, Field(ge=0.0, le=1e12, strict=True)]
+Range = Annotated[float, Field(gt=0.0, le=1e12, strict=True)]
 
 
 class PointLightIn(_Model):
@@ -207,8 +222,8 @@ class SpotLightIn(_Model):
     color: Color = (1.0, 1.0, 1.0)
     intensity: Intensity = Field(description="Candela inside the inner cone.")
     range: Range | None = None
-    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2)] = 0.0
-    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2)] = math.pi / 4
+    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2, strict=True)] = 0.0
+    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2, strict=True)] = math.pi / 4
 
     @model_validator(mode="after")
     def _cone(self) -> SpotLightIn:
@@ -236,7 +251,7 @@ LightIn = Annotated[
     PointLightIn | SpotLightIn | DirectionalLightIn, Field(discriminator="type")
 ]
 
-FaceSize = Annotated[int, Field(ge=1, le=4096)]
+FaceSize = Annotated[int, Field(ge=1, le=4096), NotBool]
 
 
 class LightMapsRequest(_Model):
@@ -254,10 +269,10 @@ class LightMapsRequest(_Model):
         "leak-free blending of the grid's maps.")
     lights: list[LightIn] = Field(min_length=1)
     kind: Literal["diffuse", "specular"] = "diffuse"
-    level: Annotated[int, Field(ge=0, le=16)] = 0
+    level: Annotated[int, Field(ge=0, le=16), NotBool] = 0
     diffuse_size: FaceSize = 16
     specular_size: FaceSize = Field(default=32, description="Power of two for a full chain.")
-    specular_levels: Annotated[int, Field(ge=1, le=13)] | None = None
+    specular_levels: Annotated[int, Field(ge=1, le=13), NotBool] | None = None
     grid: Annotated[str, Field(max_length=128)] | None = None
     format: CubeFormat = "npy"
     layout: CubeLayout = "faces"

@@ -1,7 +1,20 @@
-"""Shared fixtures: paths to the real test data in ``../shared/data``."""
+"""Shared fixtures: paths to the real test data in ``../shared/data``, and the test session's
+private cache directory.
+
+Markers (registered in ``pyproject.toml``): ``slow`` marks the few long physics and fuzzing
+checks; the default run (``pytest -q``, the README's command) leaves them out and ``.ci/run``
+runs them in a second invocation (``pytest -q -m slow``); ``pytest -m ""`` runs everything.
+``browser`` marks tests that drive a real browser.
+
+Expensive inputs shared by several test modules are session-scoped fixtures here, so each is
+made once per run.
+"""
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +22,22 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+_CACHE: list[str] = []
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A fresh cache directory (``PROBEGRID_CACHE_DIR``) for this session and the CLI processes
+    it starts: the DFG table a filter run caches is computed once per session, never read from
+    the user's cache."""
+    if not _CACHE and "PROBEGRID_CACHE_DIR" not in os.environ:
+        _CACHE.append(tempfile.mkdtemp(prefix="probegrid-test-cache-"))
+        os.environ["PROBEGRID_CACHE_DIR"] = _CACHE[0]
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if _CACHE:
+        os.environ.pop("PROBEGRID_CACHE_DIR", None)
+        shutil.rmtree(_CACHE.pop(), ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

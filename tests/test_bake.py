@@ -235,6 +235,7 @@ def test_stored_maps_are_the_filters_of_the_stored_incoming_cube(tmp_path):
             np.testing.assert_allclose(s[f"specular_{k}"][i], ref[k], rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_bake_equals_local_bake(tmp_path):
     distributed = pytest.importorskip("distributed")
     from probegrid.bake.executors import DaskExecutor
@@ -274,6 +275,7 @@ def _start_cli_bake(out: Path, *, probes_done: int, stderr: int
     pytest.fail("the bake made no progress")
 
 
+@pytest.mark.slow
 def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
     out = tmp_path / "room.probes"
     cmd, proc = _start_cli_bake(out, probes_done=4, stderr=subprocess.DEVNULL)

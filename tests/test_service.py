@@ -460,6 +460,7 @@ def _fuzz_check(label: str, strategy, url: str, seen: dict[int, int]):
     return check
 
 
+@pytest.mark.slow
 def test_fuzz_openapi_never_gives_5xx(server):
     schema = schemathesis.openapi.from_url(server.url + "/openapi.json")
     seen: dict[int, int] = {}
@@ -566,8 +567,9 @@ def test_plain_query_reads_what_starlette_reads():
                 b"x=\xe9", b"x=%31", b"x=+1", b"a+b=1"):
         request = Request({"type": "http", "query_string": raw})
         got = plain_query(request)
-        if b"%" in raw or b"+" in raw:
-            assert got is None
+        names = [k for k, _ in request.query_params.multi_items()]
+        if b"%" in raw or b"+" in raw or len(names) != len(set(names)):
+            assert got is None  # FastAPI's handler decides (a repeated name is a 422)
         else:
             assert got == {k: request.query_params[k] for k in request.query_params}, raw
 
@@ -608,8 +610,9 @@ def test_npy_bodies_are_numpy_save_bytes_and_exr_bodies_carry_no_date(tmp_path):
 
 # ------------------------------------------------------------------------------ app building
 def test_a_store_replaced_on_disk_is_served_whole_from_the_old_files(stores, tmp_path):
-    """A new bake renamed over a served store (``--overwrite``) changes nothing the running
-    service answers, not even for arrays no request had touched yet."""
+    """A new bake renamed over a served store (``--overwrite``) is served whole from the old
+    files until the registry has opened and checked the new one (then whole from the new;
+    test_service_stores.py), never as a mix, not even for arrays no request had touched."""
     import asyncio
     import shutil
 
@@ -634,6 +637,7 @@ def test_a_store_replaced_on_disk_is_served_whole_from_the_old_files(stores, tmp
             return [await c.get("/v1/grids/swap/sh", params=q),
                     await c.get("/v1/grids/swap/maps/diffuse", params={**q, "format": "npy"})]
 
+    app.state.probegrid.grids._watch["swap"].next_check = float("inf")  # no reload yet
     sh_r, map_r = asyncio.run(fetch())
     old = ProbeField(open_store(stores["lin"]))
     w = old.weights(POS, normals=(0.0, 1.0, 0.0))

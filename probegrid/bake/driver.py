@@ -50,6 +50,7 @@ from probegrid.bake.extras import write_store_extras
 from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
 from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import light_quality, printable
+from probegrid.bake.precision import fit_map_dtype, map_dtype
 from probegrid.bake.render import (
     IndirectField,
     ProbeRenderer,
@@ -86,9 +87,10 @@ def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
     n, d = settings.face_size, settings.diffuse_size
     m = min(settings.moments_size, n)
     levels = settings.levels()
+    md = map_dtype(settings)  # float32, or float16 with --dtype half
     arrays = {
         "sh": ArraySpec((9, 3), "float32", "radiance SH coefficients L_lm, index l(l+1)+m, RGB"),
-        "diffuse": ArraySpec((6, d, d, 3), "float32", "diffuse cube: irradiance / pi"),
+        "diffuse": ArraySpec((6, d, d, 3), md, "diffuse cube: irradiance / pi"),
         "valid": ArraySpec((), "bool", "probe is not inside geometry"),
         "positions": ArraySpec((3,), "float64", "probe position (moved if relocated), world"),
         "moments": ArraySpec((6, m, m, 2), "float32",
@@ -100,10 +102,10 @@ def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
         s = n >> k
         r = k / (levels - 1) if levels > 1 else 0.0
         arrays[f"specular_{k}"] = ArraySpec(
-            (6, s, s, 3), "float32", f"GGX prefiltered radiance, roughness {r:.4g}"
+            (6, s, s, 3), md, f"GGX prefiltered radiance, roughness {r:.4g}"
         )
     if settings.store_incoming:
-        arrays["incoming"] = ArraySpec((6, n, n, 3), "float32", "incoming radiance cube")
+        arrays["incoming"] = ArraySpec((6, n, n, 3), md, "incoming radiance cube")
     return arrays
 
 
@@ -303,6 +305,7 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     out["backface_fraction"] = res.backface_fraction.astype(np.float32)
     out["_energy"] = np.array(energy)
     out["_seam"] = np.array(seam)
+    fit_map_dtype(out, st)
     return out
 
 

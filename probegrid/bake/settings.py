@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from probegrid._types import MapDType
 from probegrid.core.cubemap import mip_sizes
 
 if TYPE_CHECKING:
@@ -41,6 +42,7 @@ class BakeSettings(BaseModel):
     relocate_fraction: float = Field(default=0.45, ge=0, lt=0.5)
     ray_offset: float | None = Field(default=None, gt=0)
     batch_size: int = Field(default=8, ge=1, le=4096)
+    dtype: MapDType = "float"  # map arrays as float32 or float16 (probegrid.bake.precision)
 
     def levels(self) -> int:
         """Specular mip levels (the full chain of ``face_size`` by default)."""

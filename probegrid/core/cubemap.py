@@ -374,6 +374,12 @@ class CubeMap:
                 )
         object.__setattr__(self, "levels", lv)
 
+    def __repr__(self) -> str:
+        """One line: kind, face size, levels, channels and dtype (not every texel)."""
+        a = self.levels[0]
+        return (f"CubeMap(kind={self.kind!r}, size={a.shape[1]}, levels={len(self.levels)}, "
+                f"channels={a.shape[3]}, dtype={a.dtype})")
+
     @classmethod
     def from_faces(cls, faces: ArrayLike, *, kind: str = "other", mips: bool = False) -> CubeMap:
         """Wrap one cube array, optionally with its full box-filtered mip chain."""

@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 import shutil
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,12 +44,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from probegrid._types import InputLayout
 from probegrid.bake.settings import BakeSettings
 from probegrid.core.grid import GridSpec, parse_bounds, parse_grid, parse_spacing
+from probegrid.jobs.progress import BakeProgress, resume_note, size_note
 from probegrid.store.manifest import check_store_name
 
 if TYPE_CHECKING:  # the heavy modules (Embree, numba, trimesh) load when a bake runs
     from probegrid.bake.driver import BakeReport
     from probegrid.bake.environment import Environment
-    from probegrid.bake.executors import Progress
     from probegrid.scene import Scene
 
 __all__ = ["BakeEstimate", "BakeJob", "default_grid", "estimate", "grid_for",
@@ -402,43 +401,9 @@ def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
         return Environment(color=np.array(rgb), intensity=intensity, rotation=rotation)
     from probegrid.imageio import read_environment
 
-    faces = read_environment(path, layout=layout, max_size=MAX_ENVIRONMENT_SIZE)
+    faces = read_environment(path, layout=layout, max_size=MAX_ENVIRONMENT_SIZE,
+                             report=lambda line: print(line, file=sys.stderr))
     return Environment(faces=faces, intensity=intensity, rotation=rotation)
-
-
-class _Bar:
-    """A progress bar per stage: probes done, rays per second, time left (tqdm, stderr)."""
-
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
-        self._bar = None
-        self._stage: str | None = None
-        self._t0 = time.perf_counter()
-        self._rays0 = 0
-
-    def __call__(self, stage: str, p: Progress, rays: int) -> None:
-        if not self.enabled:
-            return
-        from tqdm import tqdm
-
-        if stage != self._stage:
-            self.close()
-            self._stage = stage
-            width = shutil.get_terminal_size(fallback=(100, 24)).columns or 100
-            self._bar = tqdm(total=p.probes_total, desc=stage, unit="probe", file=sys.stderr,
-                             ncols=min(width, 120), mininterval=0.5)
-            self._t0 = time.perf_counter() - p.elapsed
-            self._rays0 = rays
-        assert self._bar is not None
-        self._bar.n = p.probes_done
-        dt = max(time.perf_counter() - self._t0, 1e-9)
-        self._bar.set_postfix_str(f"{(rays - self._rays0) / dt / 1e6:.2f} Mrays/s", refresh=False)
-        self._bar.refresh()
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
 
 
 def run_bake(job: BakeJob) -> BakeReport:
@@ -467,11 +432,14 @@ def run_bake(job: BakeJob) -> BakeReport:
     notes.append(est.summary())
     check_disk(job.out, est)
     executor = make_executor(workers=job.workers, scheduler=job.scheduler)
-    bar = _Bar(enabled=job.progress and sys.stderr.isatty())
+    bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     for line in notes:
         print(line, file=sys.stderr)
     print(f"baking {grid.label} = {grid.n_probes} probes of {job.scene} on "
           f"{executor.description}", file=sys.stderr)
+    print(size_note(job.settings, grid.n_probes), file=sys.stderr)
+    if (note := resume_note(job.out)) is not None:
+        print(note, file=sys.stderr)
     try:
         return bake(scene, grid, job.out, settings=job.settings, environment=env,
                     executor=executor, progress=bar, overwrite=job.overwrite,

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 from typing import Any
 
@@ -26,76 +25,17 @@ from probegrid._types import CubeLayout, ImageFormat
 from probegrid._version import __version__
 from probegrid.jobs.filter import prepare_output_dir
 from probegrid.store import ProbeStore, StoreError, open_store, partial_path, partial_progress
+from probegrid.store.check import map_arrays as _map_arrays
+from probegrid.store.check import specular_levels as _specular_levels
 
-__all__ = ["EXPORT_FORMAT", "describe_store", "export_probe", "parse_probe"]
+__all__ = ["EXPORT_FORMAT", "ExportResult", "describe_store", "export_probe", "parse_probe"]
 
 #: ``format`` of the manifest of an export directory.
 EXPORT_FORMAT = "probegrid.probe-export"
-_SPECULAR_RE = re.compile(r"^specular_(0|[1-9][0-9]*)$")
 
 
 def _mb(nbytes: int) -> str:
     return f"{nbytes / 2**20:.1f} MiB"
-
-
-def _specular_levels(store: ProbeStore) -> list[int]:
-    """The levels ``0 .. n-1`` of the store's ``specular_<k>`` arrays (``[]`` if none).
-
-    Raises ``StoreError`` unless they are exactly ``specular_0 .. specular_<n-1>``, each
-    ``(P, 6, s_k, s_k, 3)`` with ``s_k = s_0 >> k``.
-    """
-    names = [n for n in store.names if n.startswith("specular_")]
-    bad = [n for n in names if not _SPECULAR_RE.match(n)]
-    if bad:
-        raise StoreError(f"{store.path}: array {bad[0]!r} is not a specular level "
-                         "(specular_<k>); the store is damaged")
-    levels = sorted(int(n.removeprefix("specular_")) for n in names)
-    if levels != list(range(len(levels))):
-        raise StoreError(f"{store.path}: specular levels {levels} are not 0..{len(levels) - 1} "
-                         "(level k has roughness k/(levels-1)); the store is damaged")
-    if levels:
-        s0 = _cube_size(store, "specular_0")
-        for k in levels[1:]:
-            s = s0 >> k
-            _check_shape(store, f"specular_{k}", (6, s, s, 3) if s >= 1 else
-                         f"no such level (level 0 is {s0}^2: at most {s0.bit_length()} levels)")
-    return levels
-
-
-def _check_shape(store: ProbeStore, name: str, want: tuple[int, ...] | str) -> None:
-    """StoreError unless array ``name`` has per-probe shape ``want`` (a str: never right, the
-    words say what was expected)."""
-    shape = tuple(store.manifest.arrays[name].shape[1:])
-    if shape != want:
-        raise StoreError(f"{store.path}: array {name!r} has per-probe shape {shape}, expected "
-                         f"{want}; the store is damaged")
-
-
-def _cube_size(store: ProbeStore, name: str) -> int:
-    """Face size ``n`` of array ``name``; StoreError unless it holds ``(6, n, n, 3)`` per probe."""
-    shape = tuple(store.manifest.arrays[name].shape[1:])
-    n = shape[1] if len(shape) == 4 else 0
-    _check_shape(store, name, (6, n, n, 3) if n else "(6, n, n, 3)")
-    return n
-
-
-def _map_arrays(store: ProbeStore) -> list[tuple[str, str, int | None]]:
-    """``(array, kind, specular level)`` of every map export writes, after checking that the
-    store has them in the shapes it needs (``sh`` and ``diffuse`` are required)."""
-    missing = [n for n in ("sh", "diffuse") if n not in store.names]
-    if missing:
-        raise StoreError(f"{store.path} has no {' or '.join(repr(n) for n in missing)} array; "
-                         "export needs both (the store is damaged or not a baked store)")
-    _check_shape(store, "sh", (9, 3))
-    maps: list[tuple[str, str, int | None]] = [("diffuse", "diffuse", None)]
-    maps += [(f"specular_{k}", "specular", k) for k in _specular_levels(store)]
-    if "incoming" in store.names:
-        maps.append(("incoming", "incoming", None))
-    for name, _, _ in maps:
-        _cube_size(store, name)
-    if "positions" in store.names:
-        _check_shape(store, "positions", (3,))
-    return maps
 
 
 def _text(value: Any) -> str:
@@ -206,22 +146,26 @@ def export_probe(
     layout: CubeLayout = "faces",
     fmt: ImageFormat = "exr",
     half: bool = False,
-) -> list[Path]:
+) -> ExportResult:
     """Write one probe's maps (diffuse, specular levels, incoming if stored, SH) and a manifest.
 
     Everything is read and checked before anything is written: a damaged store (missing or
     misshapen arrays, non-contiguous specular levels, non-finite values in this probe) raises
     ``StoreError``, an ``out_dir`` that is not new or an earlier export raises ``ValueError``
-    (both one line).
+    (both one line), and ``half`` with the RGBE ``hdr`` format is refused. The files are
+    named as ``probegrid filter`` names them (``diffuse``, ``specular_m<k>``, ``incoming``) and
+    written into a staging folder moved into place when complete
+    (:mod:`probegrid.jobs.staging`).
     """
-    from probegrid import imageio
-    from probegrid.core.conventions import conventions
+    from probegrid.jobs.staging import staged_output
 
+    if fmt == "hdr" and half:
+        raise ValueError("--half applies to EXR; Radiance HDR files are always RGBE (8-bit "
+                         "mantissas, shared exponent)")
     store = open_store(store_path)
     ijk = parse_probe(probe, store) if isinstance(probe, str) else probe
     index = int(store.probe_index(*ijk))
     maps = _map_arrays(store)
-    n_levels = sum(kind == "specular" for _, kind, _ in maps)
     names = store.names
     data = {name: np.asarray(store[name][index], dtype=np.float32) for name, _, _ in maps}
     data["sh"] = np.asarray(store["sh"][index], dtype=np.float64)
@@ -234,7 +178,43 @@ def export_probe(
         raise StoreError(f"probe {tuple(ijk)} of {store.path} holds non-finite values (NaN or "
                          f"inf): {where}; the store is damaged")
 
-    out = prepare_output_dir(out_dir, EXPORT_FORMAT)
+    out = prepare_output_dir(out_dir, EXPORT_FORMAT, create=False)
+    with staged_output(out, lambda final: prepare_output_dir(final, EXPORT_FORMAT,
+                                                             create=False)) as stage:
+        written = _write_export(stage, store, store_path, ijk, index, maps, data, layout=layout,
+                                fmt=fmt, half=half)
+    return ExportResult([out / p.relative_to(stage) for p in written],
+                        probe=tuple(ijk), valid=_probe_valid(store, index))
+
+
+class ExportResult(list[Path]):
+    """The files :func:`export_probe` wrote (a list of Path), the probe and whether it is valid.
+
+    ``valid`` is False for a probe the bake marked invalid (inside geometry: its maps hold the
+    inside of a wall), None when the store records no validity.
+    """
+
+    def __init__(self, paths: list[Path], *, probe: tuple[int, ...], valid: bool | None) -> None:
+        super().__init__(paths)
+        self.probe = probe
+        self.valid = valid
+
+
+def _probe_valid(store: ProbeStore, index: int) -> bool | None:
+    if "valid" in store.names and store.manifest.arrays["valid"].shape == (store.n_probes,):
+        return bool(store["valid"][index])
+    return None
+
+
+def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[str],
+                  ijk: tuple[int, ...], index: int, maps: list[tuple[str, str, int | None]],
+                  data: dict[str, Any], *, layout: CubeLayout, fmt: ImageFormat,
+                  half: bool) -> list[Path]:
+    """Write the probe's files into (staging) directory ``out``; returns their paths."""
+    from probegrid import imageio
+    from probegrid.core.conventions import conventions
+
+    n_levels = sum(kind == "specular" for _, kind, _ in maps)
     manifest_path = out / "manifest.json"
     conv = conventions()
     meta = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__,
@@ -243,7 +223,9 @@ def export_probe(
     written: list[Path] = []
     for name, kind, level in maps:
         faces = data[name]
-        paths = imageio.write_cube(out / name, faces, layout=layout, fmt=fmt, half=half,
+        # files named as probegrid filter names them: specular_m<k>, diffuse, incoming
+        stem = f"specular_m{level}" if kind == "specular" else name
+        paths = imageio.write_cube(out / stem, faces, layout=layout, fmt=fmt, half=half,
                                    metadata={**meta, "probegrid:kind": kind})
         written += paths
         r = None if level is None else (level / (n_levels - 1) if n_levels > 1 else 0.0)
@@ -256,9 +238,7 @@ def export_probe(
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None})
     written.append(out / "sh.json")
     position = data["positions"].tolist() if "positions" in data else None
-    valid = None
-    if "valid" in names and store.manifest.arrays["valid"].shape == (store.n_probes,):
-        valid = bool(store["valid"][index])
+    valid = _probe_valid(store, index)
     atomic_write_json(manifest_path, {
         "format": EXPORT_FORMAT, "format_version": 1,
         "probegrid_version": __version__, "store": str(Path(store_path)),

@@ -14,9 +14,16 @@ resample it to a cube without aliasing, and compute
   :mod:`probegrid.usercache`),
 
 then applies the seam export mode to every map and level and writes the maps, ``sh.json``, the
-LUT, PNG previews and, last, ``manifest.json``. Every image file is written atomically and the
-manifest of an earlier run in the same directory is removed first, so an interrupted run never
-leaves a manifest: a directory with a manifest holds a finished job.
+LUT, PNG previews and, last, ``manifest.json``. Option combinations that cannot work and an
+output location that cannot be written are refused before any work (:func:`check_settings`,
+:func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
+beside the output directory and moved into place only when complete, so a failed or
+interrupted run leaves the output directory as it was (an earlier output whole) and no
+temporary file: a directory with a manifest holds a finished job. An all-black input is
+legitimate: its maps are black and its quality figures finite (energy ratios 1).
+
+Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
+depends only on its size and is cached per machine (:mod:`probegrid.usercache`).
 
 The output directory must be new, or hold an earlier output of the same kind (its
 ``manifest.json`` has the same ``format``): :func:`prepare_output_dir` refuses a probe grid store
@@ -60,6 +67,7 @@ __all__ = [
     "FILTER_FORMAT",
     "FilterResult",
     "FilterSettings",
+    "check_settings",
     "default_cube_size",
     "energy_ratio",
     "prepare_output_dir",
@@ -96,6 +104,7 @@ class FilterSettings(BaseModel):
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
     clamp: float | None = Field(default=None, gt=0)
+    keep_negative: bool = False
     lut_size: int = Field(default=128, ge=2, le=1024)
     previews: bool = True
 
@@ -204,10 +213,16 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
 
     A diffuse map (irradiance / pi) and every level of a normalised specular filter integrate to
     the same value as the radiance they came from (the kernels are symmetric and normalised), so
-    this ratio is 1 for a correct filter.
+    this ratio is 1 for a correct filter, and 1 for a black input with a black output (0 of 0
+    lost; the manifest's quality figures stay finite).
     """
     r = float(solid_angle_integral(ref).sum())
-    return float(solid_angle_integral(out).sum()) / r if r != 0 else float("nan")
+    o = float(solid_angle_integral(out).sum())
+    if r == 0.0:  # a black input: a black output kept all of its (zero) energy
+        if o != 0.0:
+            raise ValueError("a filter made light out of a black environment")
+        return 1.0
+    return o / r
 
 
 #: Largest cube face size chosen by default (a 256^2 chain takes ~2 s and ~300 MB here).
@@ -258,14 +273,16 @@ def _diffuse_source_size(n: int, requested: int | None) -> int:
 
 def _load_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
-) -> tuple[NDArray[np.float32], str, int]:
-    """Read, check and resample the environment; returns (cube, layout, nonfinite count)."""
+) -> tuple[NDArray[np.float32], str, int, int, tuple[int, int]]:
+    """Read, check and resample the environment; returns (cube, layout, nonfinite count,
+    negative count, source width and height (of one face for six files))."""
     from probegrid import imageio
     from probegrid.core import layouts
 
     paths = [Path(p) for p in paths]
     layout = settings.layout
     if len(paths) == 6 and layout in ("auto", "faces"):
+        paths = imageio.order_face_files(paths)  # by their names, not the shell's sort
         images = [imageio.read_image(p) for p in paths]
         shapes = {im.shape for im in images}
         if len(shapes) != 1 or images[0].shape[0] != images[0].shape[1]:
@@ -293,10 +310,17 @@ def _load_environment(
                 "pass --clamp to replace them"
             )
         progress(f"replacing {bad} non-finite values (NaN -> 0, inf -> clamp)")
+    negative = int(np.count_nonzero(source < 0))
     if settings.clamp is not None:
         source = imageio.clamp_radiance(source, settings.clamp)
-    elif (source < 0).any():
-        progress(f"note: {int((source < 0).sum())} negative values kept (use --clamp to cut them)")
+        if negative:
+            progress(f"note: {negative} negative values set to 0 (radiance is never negative)")
+    elif negative and settings.keep_negative:
+        progress(f"note: {negative} negative values kept (--keep-negative)")
+    elif negative:
+        source = np.maximum(source, np.float32(0.0))
+        progress(f"note: {negative} negative values set to 0 (radiance is never negative; "
+                 "--keep-negative keeps them)")
 
     if settings.size:
         n = settings.size
@@ -308,7 +332,7 @@ def _load_environment(
     _diffuse_source_size(n, settings.diffuse_source_size)  # a bad value is refused before work
     progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube ({why})")
     cube = layouts.to_cube(source, layout, n)
-    return cube, layout, bad
+    return cube, layout, bad, negative, (int(source.shape[-2]), int(source.shape[-3]))
 
 
 def run_filter(
@@ -321,32 +345,57 @@ def run_filter(
     """Run the whole filter job; see the module docstring. Returns what was written.
 
     Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
-    for bad input, before anything is written to ``out_dir``.
+    for bad input, before anything is written to ``out_dir``. Every option combination and the
+    output location are checked before any work; the files are written into a staging folder
+    moved into place only when complete (:mod:`probegrid.jobs.staging`), so a failure leaves
+    ``out_dir`` as it was and no temporary file behind.
     """
-    from probegrid import imageio, usercache
-    from probegrid.core import diffuse, seams, shbands, specular
-    from probegrid.export.shforms import sh_forms
+    from probegrid.jobs.staging import staged_output
 
     settings = settings or FilterSettings()
-    say: Progress = progress or (lambda _m: None)
+    check_settings(settings)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
     out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    with staged_output(out, lambda final: prepare_output_dir(final, FILTER_FORMAT,
+                                                             create=False)) as stage:
+        manifest, files = _filter_into(stage, paths, settings, progress)
+    return FilterResult(out, manifest, files)
+
+
+def check_settings(settings: FilterSettings) -> None:
+    """Refuse option combinations that cannot work (one-line ``ValueError``), before any work."""
+    if settings.seam == "border" and settings.output_layout != "faces":
+        raise ValueError("--seam border writes (n+2)^2 faces, which only --output-layout faces "
+                         f"can hold (got --output-layout {settings.output_layout})")
+    if settings.samples is not None and settings.specular_method != "fis":
+        raise ValueError("--samples applies to --specular-method fis (importance sampling)")
+    if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
+            and settings.sh_window_width is None):
+        raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
     if settings.format == "ktx2" and (settings.output_layout != "faces"
                                       or settings.seam == "border"):
         raise ValueError("--format ktx2 writes cube maps: it needs --output-layout faces and a "
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
-    # options that conflict with each other are refused before any work
-    if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
-            and settings.sh_window_width is None):
-        raise ValueError(f"--sh-window {settings.sh_window} needs --sh-window-width")
-    if settings.samples is not None and settings.specular_method != "fis":
-        raise ValueError("--samples applies to --specular-method fis (importance sampling)")
+
+
+def _filter_into(
+    out: Path, paths: Sequence[str | os.PathLike[str]], settings: FilterSettings,
+    progress: Progress | None,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Compute everything, then write it into the (staging) directory ``out``; returns the
+    manifest and its file list."""
+    from probegrid import imageio, usercache
+    from probegrid.core import diffuse, seams, shbands, specular
+    from probegrid.export.shforms import sh_forms
+
+    say: Progress = progress or (lambda _m: None)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    cube, in_layout, nonfinite = _load_environment([Path(p) for p in paths], settings, say)
+    cube, in_layout, nonfinite, negative, source_wh = _load_environment(
+        [Path(p) for p in paths], settings, say)
     n = cube.shape[1]
     # the full chain by default; a cube that is not a power of two gets its level 0 only
     default_levels = None if n & (n - 1) == 0 else 1
@@ -419,8 +468,7 @@ def run_filter(
                      (spec_out if settings.seam != "border" else spec)],
     }
 
-    # --- write ----------------------------------------------------------------------------
-    prepare_output_dir(out, FILTER_FORMAT)  # checked again: it may have changed meanwhile
+    # --- write (into the staging folder) ----------------------------------------------------
     manifest_path = out / "manifest.json"
     t = time.perf_counter()
     conv = conventions()
@@ -428,8 +476,6 @@ def run_filter(
     files: list[dict[str, Any]] = []
     ext = settings.format
     write_layout = settings.output_layout
-    if settings.seam == "border" and write_layout != "faces":
-        raise ValueError("seam mode 'border' writes (n+2)^2 faces; use --output-layout faces")
 
     def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
         written = imageio.write_cube(
@@ -515,8 +561,12 @@ def run_filter(
         "probegrid_version": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "input": {"paths": [str(p) for p in paths], "layout": in_layout,
-                  "nonfinite_values_replaced": nonfinite, "cube_size": n,
-                  "diffuse_source_size": diffuse_source},
+                  "source_size": list(source_wh),
+                  "nonfinite_values_replaced": nonfinite,
+                  "negative_values": {"count": negative, "action": (
+                      "kept" if settings.keep_negative and settings.clamp is None
+                      else "set to 0")},
+                  "cube_size": n, "diffuse_source_size": diffuse_source},
         "settings": settings.model_dump(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
@@ -532,7 +582,7 @@ def run_filter(
         "files": files,
     }
     atomic_write_json(manifest_path, manifest)
-    return FilterResult(out, manifest, files)
+    return manifest, files
 
 
 def _specular_sheet(levels: Sequence[NDArray[np.float32]]) -> NDArray[np.float32]:

@@ -53,6 +53,10 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
     if len(body.lights) > settings.max_lights:
         raise ApiError(422, f"{len(body.lights)} lights is over the limit of "
                             f"{settings.max_lights}.")
+    for name in ("diffuse_size", "specular_size"):  # checked even where a grid's sizes apply
+        if getattr(body, name) > settings.max_light_map_size:
+            raise ApiError(422, f"{name} {getattr(body, name)} is over the limit of "
+                                f"{settings.max_light_map_size}.")
     served = None
     chain: int | None  # levels of the chain to make (None: full)
     if body.grid is not None:  # the grid's map sizes

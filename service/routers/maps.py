@@ -57,7 +57,7 @@ def resolve_map(request: Request) -> dict[str, Any] | None:
         return None
     query = probe_query(request, params)
     level = _level(params.get("level"))
-    fmt = params.get("format", "exr")
+    fmt = params.get("format", "npy")  # the default of /v1/lights/maps too
     layout = params.get("layout", "faces")
     if level is None or fmt not in _FORMATS or layout not in _LAYOUTS:
         return None
@@ -79,7 +79,7 @@ async def get_map(
     query: ProbeQueryDep,
     kind: Annotated[str, Path(description="diffuse, specular or incoming (where stored).")],
     level: Annotated[int, Query(ge=0, le=MAX_LEVEL, description="Specular mip level.")] = 0,
-    fmt: Annotated[CubeFormat, Query(alias="format", description="Encoding.")] = "exr",
+    fmt: Annotated[CubeFormat, Query(alias="format", description="Encoding.")] = "npy",
     layout: Annotated[CubeLayout, Query(description="Six faces or a horizontal cross.")] = "faces",
 ) -> Response:
     """The cube map of one kind (and specular level) at ``(x, y, z)``, blended from the probes.

@@ -1,0 +1,242 @@
+"""The service's trust in its stores and its OpenAPI document (issue 14, items 6, 8, 13).
+
+Stores are checked at open as ``probegrid export`` checks them (a NaN is refused, not served as
+``null``); a store replaced on disk while served is opened, checked and swapped in whole (or
+refused, saying so); ``/v1/grids/{grid}`` names the served bake by a content hash that changes
+its ETag; a repeated query parameter is a 422; and the OpenAPI document states the limits and
+cross-field rules the server enforces. In-process apps (httpx's ASGI transport), tiny stores.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from probe_stores import GRID, linear_arrays, write_store
+
+from probegrid.query import ProbeField
+from probegrid.store import StoreError, open_store
+from service.main import NONZERO_VECTORS, create_app
+from service.settings import Settings
+
+POINT = {"x": "0.75", "y": "0.25", "z": "1.5"}
+POS = np.array([0.75, 0.25, 1.5])
+LIMITS = Settings(max_batch=64, max_lights=4, max_light_map_size=32, max_json_values=1000)
+
+
+def _get(app, *urls: str, **kw) -> list[httpx.Response]:
+    async def run() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return [await c.get(u, **kw) for u in urls]
+
+    return asyncio.run(run())
+
+
+@pytest.fixture(scope="module")
+def lin(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("st") / "lin.probes"
+    write_store(path, GRID, linear_arrays(GRID))
+    return path
+
+
+@pytest.mark.parametrize("name, bad", [("sh", np.nan), ("specular_2", np.inf),
+                                       ("moments", -np.inf)])
+def test_a_store_with_non_finite_values_is_refused_at_open(tmp_path, name, bad):
+    arrays = linear_arrays(GRID)
+    arrays[name].reshape(-1)[5] = bad
+    write_store(tmp_path / "bad.probes", GRID, arrays)
+    with pytest.raises(StoreError, match=f"non-finite values .*1 in '{name}'"):
+        create_app([tmp_path / "bad.probes"])
+
+
+def test_a_store_without_its_maps_is_refused_at_open(tmp_path):
+    arrays = linear_arrays(GRID)
+    del arrays["diffuse"]
+    write_store(tmp_path / "nodiff.probes", GRID, arrays)
+    with pytest.raises(StoreError, match="no 'diffuse' array"):
+        create_app([tmp_path / "nodiff.probes"])
+
+
+def _replace(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """What ``bake --overwrite`` does: the new store renamed over the served directory."""
+    new = path.with_name("incoming.probes")
+    write_store(new, GRID, arrays)
+    shutil.rmtree(path)
+    new.rename(path)
+
+
+def test_a_replaced_store_is_swapped_in_whole_and_named_by_its_hash(lin, tmp_path):
+    path = tmp_path / "swap.probes"
+    shutil.copytree(lin, path)
+    app = create_app([path], LIMITS)
+    grids = app.state.probegrid.grids
+    detail, sh_before = _get(app, "/v1/grids/swap", "/v1/grids/swap/sh?x=0.75&y=0.25&z=1.5")
+    hash_before, etag_before = detail.json()["content_hash"], detail.headers["etag"]
+    assert len(hash_before) == 64 and detail.json()["replaced_on_disk"] is None
+
+    doubled = linear_arrays(GRID)
+    for name in ("sh", "diffuse"):
+        doubled[name] = doubled[name] * 2
+    _replace(path, doubled)
+    grids.wait_for_reloads()
+    detail, sh_after = _get(app, "/v1/grids/swap", "/v1/grids/swap/sh?x=0.75&y=0.25&z=1.5")
+    assert detail.json()["content_hash"] != hash_before
+    assert detail.headers["etag"] != etag_before
+    np.testing.assert_array_equal(np.array(sh_after.json()["coefficients"]),
+                                  2 * np.array(sh_before.json()["coefficients"]))
+    new = ProbeField(open_store(path))
+    np.testing.assert_array_equal(np.array(sh_after.json()["coefficients"]),
+                                  new.sh(new.weights(POS))[0])
+
+    broken = linear_arrays(GRID)  # a damaged replacement is not served: the last good one is
+    broken["sh"][0, 0, 0] = np.nan
+    _replace(path, broken)
+    grids.wait_for_reloads()
+    detail, sh_kept = _get(app, "/v1/grids/swap", "/v1/grids/swap/sh?x=0.75&y=0.25&z=1.5")
+    assert "cannot be served" in detail.json()["replaced_on_disk"]
+    assert "non-finite" in detail.json()["replaced_on_disk"]
+    assert sh_kept.json()["coefficients"] == sh_after.json()["coefficients"]
+
+
+@pytest.mark.parametrize("query", ["x=1&x=2&y=0.5&z=1", "x=1&y=0.5&z=1&nx=0&ny=1&nz=0&ny=1",
+                                   "x=1&y=0.5&z=1&level=0&level=1"])
+@pytest.mark.parametrize("fastapi_path", [False, True])
+def test_repeated_query_parameters_are_422_on_both_paths(lin, query, fastapi_path):
+    app = create_app([lin], LIMITS)
+    if fastapi_path:  # any override sends every request through FastAPI's resolution
+        app.dependency_overrides[test_repeated_query_parameters_are_422_on_both_paths] = id
+    for route in ("sh", "maps/specular"):
+        (r,) = _get(app, f"/v1/grids/lin/{route}?{query}")
+        assert r.status_code == 422, (route, r.text)
+        assert "given more than once" in r.json()["message"]
+    (ok,) = _get(app, "/v1/grids/lin/sh?x=1&y=0.5&z=1&other=1&other=2")  # unknown: ignored
+    assert ok.status_code == 200
+
+
+# ------------------------------------------------------------------------------ OpenAPI 3.1
+def _walk(node, path=()):
+    if isinstance(node, dict):
+        yield path, node
+        for k, v in node.items():
+            yield from _walk(v, (*path, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _walk(v, (*path, i))
+
+
+def test_openapi_is_valid_31_and_states_what_the_server_enforces(lin):
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    doc = r.json()
+    assert doc["openapi"].startswith("3.1")
+    for path, node in _walk(doc):  # 3.1 schema objects: `items` is one schema, never a list
+        assert not isinstance(node.get("items", {}), list), path
+        assert "prefixItems" not in node, path  # homogeneous tuples: fixed-length arrays
+    s = doc["components"]["schemas"]
+    bmax = s["GridSummary"]["properties"]["bounds_max"]
+    assert bmax["items"] == {"type": "number"} and bmax["minItems"] == bmax["maxItems"] == 3
+    maps = s["LightMapsRequest"]["properties"]
+    assert maps["diffuse_size"]["maximum"] == 32 == maps["specular_size"]["maximum"]
+    assert maps["lights"]["maxItems"] == 4
+    assert s["ShadeRequest"]["properties"]["points"]["maxItems"] == 64
+    for model, field in NONZERO_VECTORS:
+        prop = s[model]["properties"][field]
+        arr = next((a for a in prop.get("anyOf", []) if a.get("type") == "array"), prop)
+        assert arr["contains"] == {"not": {"const": 0}}, (model, field)
+    for route in ("/v1/grids/{grid}/sh", "/v1/grids/{grid}/maps/{kind}"):
+        params = {p["name"]: p for p in doc["paths"][route]["get"]["parameters"]}
+        assert {"nx", "ny", "nz"}.isdisjoint(params)  # one object: all three or none
+        normal = params["normal"]
+        assert normal["style"] == "form" and normal["explode"] is True
+        assert set(normal["schema"]["properties"]) == {"nx", "ny", "nz"}
+
+
+def _normal_schema_accepts(schema: dict, value: dict) -> bool:
+    """The advertised normal schema, read by hand (no JSON Schema library here): properties
+    numbers; anyOf [none of nx/ny/nz | all three and not all zero]."""
+    none_branch, all_branch = schema["anyOf"]
+    keys = {"nx", "ny", "nz"}
+    none = not any(k in value for k in keys)
+    assert none_branch == {"not": {"anyOf": [{"required": [k]} for k in ("nx", "ny", "nz")]}}
+    assert all_branch["required"] == ["nx", "ny", "nz"]
+    zero = all_branch["not"]["properties"]
+    every = keys <= set(value) and not all(value[k] == zero[k]["const"] for k in keys)
+    return none or every
+
+
+@pytest.mark.parametrize("normal", [{}, {"nx": 1, "ny": 0, "nz": 0}, {"nx": 0, "ny": 0},
+                                    {"nx": 0, "ny": 0, "nz": 0}, {"nz": 2.5}])
+def test_the_normal_schema_and_the_server_agree(lin, normal):
+    app = create_app([lin], LIMITS)
+    (doc,) = _get(app, "/openapi.json")
+    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/sh"]["get"]
+              ["parameters"]}
+    valid = _normal_schema_accepts(params["normal"]["schema"], normal)
+    (r,) = _get(app, "/v1/grids/lin/sh", params={**POINT, **{k: str(v) for k, v in
+                                                              normal.items()}})
+    assert (r.status_code == 200) == valid, (normal, r.text)
+
+
+def test_enforced_limits_match_the_advertised_ones(lin):
+    app = create_app([lin], LIMITS)
+    light = {"type": "point", "position": [0.0, 3.0, 0.0], "intensity": 1.0}
+
+    async def post(body):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post("/v1/lights/maps", json=body)
+
+    base = {"position": [0.5, 0.5, 0.5], "lights": [light]}
+    assert asyncio.run(post({**base, "diffuse_size": 32})).status_code == 200
+    for body in ({**base, "diffuse_size": 33}, {**base, "specular_size": 33, "grid": "lin"},
+                 {**base, "lights": [light] * 5}, {**base, "level": 1},
+                 {**base, "level": True}, {**base, "diffuse_size": True}):
+        r = asyncio.run(post(body))
+        assert r.status_code == 422, (body, r.text)
+    shade = {"points": [{"position": [0.5, 0.5, 0.5], "normal": [0, 1, 0], "view": [0, 1, 0]}],
+             "material": {"roughness": False}}
+
+    async def post_shade():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post("/v1/grids/lin/shade", json=shade)
+
+    assert asyncio.run(post_shade()).status_code == 422  # a boolean is not a roughness
+
+
+def test_maps_take_the_cli_layout_name_and_a_cube_map_repr_is_one_line(lin):
+    from probegrid.core.cubemap import CubeMap
+
+    app = create_app([lin], LIMITS)
+    cross, hcross = _get(app, *(f"/v1/grids/lin/maps/diffuse?x=1&y=0.5&z=1&format=npy&layout={v}"
+                                for v in ("cross", "hcross")))
+    assert hcross.status_code == 200 and hcross.content == cross.content
+    cube = CubeMap.from_faces(np.zeros((6, 8, 8, 3), np.float32), kind="specular", mips=True)
+    assert repr(cube) == ("CubeMap(kind='specular', size=8, levels=4, channels=3, "
+                          "dtype=float32)")
+
+
+def test_maps_and_light_maps_have_the_same_default_format(lin):
+    app = create_app([lin], LIMITS)
+    (maps,) = _get(app, "/v1/grids/lin/maps/diffuse?x=1&y=0.5&z=1")
+
+    async def post():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post("/v1/lights/maps", json={
+                "position": [1, 0.5, 1], "lights": [
+                    {"type": "point", "position": [0, 3, 0], "intensity": 1.0}]})
+
+    lights = asyncio.run(post())
+    assert maps.status_code == lights.status_code == 200
+    assert maps.headers["content-type"] == lights.headers["content-type"]
+    (doc,) = _get(app, "/openapi.json")
+    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/maps/{kind}"]["get"]
+              ["parameters"]}
+    assert params["format"]["schema"]["default"] == doc.json()["components"]["schemas"][
+        "LightMapsRequest"]["properties"]["format"]["default"] == "npy"
