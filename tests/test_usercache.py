@@ -13,8 +13,17 @@ from probegrid.core import dfg
 
 @pytest.fixture()
 def cache(tmp_path, monkeypatch):
+    monkeypatch.delenv(usercache.CACHE_ENV, raising=False)  # (the test session sets its own)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     return tmp_path / "probegrid" / f"v{usercache.CACHE_VERSION}"
+
+
+def test_the_cache_directory_variable_comes_first(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setenv(usercache.CACHE_ENV, str(tmp_path / "own"))
+    assert usercache.cache_dir() == tmp_path / "own" / f"v{usercache.CACHE_VERSION}"
+    monkeypatch.setenv(usercache.CACHE_ENV, "relative")  # ignored, like a relative XDG path
+    assert usercache.cache_dir() == tmp_path / "xdg" / "probegrid" / f"v{usercache.CACHE_VERSION}"
 
 
 def test_dfg_table_is_stored_once_and_read_back_bit_for_bit(cache):

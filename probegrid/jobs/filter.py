@@ -216,8 +216,12 @@ def energy_ratio(out: NDArray[np.floating], ref: NDArray[np.floating]) -> float:
     this ratio is 1 for a correct filter, and 1 for a black input with a black output (0 of 0
     lost; the manifest's quality figures stay finite).
     """
-    r = float(solid_angle_integral(ref).sum())
-    o = float(solid_angle_integral(out).sum())
+    return _integral_ratio(float(solid_angle_integral(out).sum()),
+                           float(solid_angle_integral(ref).sum()))
+
+
+def _integral_ratio(o: float, r: float) -> float:
+    """``o / r``, and 1 for a black reference with a black output (see :func:`energy_ratio`)."""
     if r == 0.0:  # a black input: a black output kept all of its (zero) energy
         if o != 0.0:
             raise ValueError("a filter made light out of a black environment")
@@ -456,8 +460,7 @@ def _filter_into(
     cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
 
     def ratio(x: NDArray[np.float32]) -> float:
-        v = float(solid_angle_integral(x).sum())
-        return v / cube_integral if cube_integral != 0 else float("nan")
+        return _integral_ratio(float(solid_angle_integral(x).sum()), cube_integral)
 
     energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
     diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
