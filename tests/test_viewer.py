@@ -238,7 +238,7 @@ def three_lightprobegrid(header: dict, atlas: np.ndarray, points: np.ndarray,
     cosine-lobe constants; ``max(E, 0)``."""
     res = np.array(header["resolution"], dtype=np.float64)
     lo, hi = np.array(header["min"]), np.array(header["max"])
-    nx, ny, nz = (int(n) for n in res)
+    nz = int(res[2])
     coeffs = engines.threejs_unpack(atlas, nz).astype(np.float64)  # (nx, ny, nz, 9, 3)
     sample = points + normals * (hi - lo) / res * offset
     uvw = np.clip((sample - lo) / (hi - lo), 0.5 / res, 1 - 0.5 / res)
@@ -396,9 +396,13 @@ def test_screenshot_is_not_blank(viewer, tmp_path):
 
 def test_grid_selector_shows_a_grid_without_scene(viewer):
     page, watch, _ = viewer
+    page.check("#compare")  # side by side stays on across the switch: the new grid's export
     page.select_option("#grid", "synthetic")
     page.wait_for_function("window.probegrid.ready && window.probegrid.grid.name === 'synthetic'",
                            timeout=10_000)
+    assert page.evaluate("window.probegrid.compare.grid") == "synthetic"
+    assert page.evaluate("window.probegrid.compare.header.filled_invalid") == 1
+    page.uncheck("#compare")
     assert page.evaluate("window.probegrid.probeCount") == GRID.n_probes
     flags = page.evaluate("[...window.probegrid.probes.valid]")
     assert [i for i, v in enumerate(flags) if not v] == [3]  # the one invalid probe, marked

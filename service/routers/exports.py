@@ -39,7 +39,7 @@ from service.schemas import ErrorOut
 router = APIRouter(tags=["grids"])
 
 #: Largest finite half float.
-HALF_MAX = 65504.0
+HALF_MAX = ktx2.HALF_MAX
 
 _lock = threading.Lock()
 
