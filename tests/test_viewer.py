@@ -15,6 +15,12 @@ the same answers in Python:
 Both within a relative error of 1e-4 per pixel: float32 GPU arithmetic against float64 (measured
 about 1e-6 with SwiftShader).
 
+* side by side: the sphere drawn by three.js' own ``LightProbeGridWebGL`` fed by the service's
+  three.js export, against three's shader formula re-implemented here on the exported half
+  floats (trilinear filtering, the half-cell offset along the normal, three's constants), within
+  1e-3 relative (measured 3e-4: SwiftShader's filter weights); and three's blend at the object's
+  centre equals the service's plain trilinear blend there to 2e-3 (half-float rounding).
+
 Skipped, with the reason, when Chromium (``apt-get install chromium``) or the ``playwright``
 package is missing. ``PROBEGRID_VIEWER_SCREENSHOT=docs/viewer.png`` saves the screenshot the
 suite makes (the README's picture).

@@ -54,7 +54,11 @@ def stores(tmp_path_factory) -> dict[str, Path]:
     arrays["valid"][[1, 5]] = False
     arrays["positions"][4] += np.float32(0.125)  # relocated
     write_store(root / "plain.probes", GRID, arrays)  # keeps no scene
-    return {"kept": root / "kept.probes", "plain": root / "plain.probes"}
+    hot = linear_arrays(GRID)
+    hot["sh"][7, 0, 1] = 1e5  # beyond half float
+    write_store(root / "hot.probes", GRID, hot)
+    return {"kept": root / "kept.probes", "plain": root / "plain.probes",
+            "hot": root / "hot.probes"}
 
 
 @pytest.fixture(scope="module")
@@ -246,6 +250,14 @@ def test_threejs_export_route_is_the_store_sh_in_three_layout(client, stores):
         "If-None-Match": r.headers["etag"]}).status_code == 304
     bad = client.get("/v1/grids/plain/export/threejs.bin", params={"dtype": "int8"})
     assert bad.status_code == 422 and "dtype" in bad.json()["message"]
+    # a value beyond half float: the float16 forms refuse (one line), float32 carries it
+    assert client.get("/v1/grids/hot/export/threejs.json").json()["float16_range_ok"] is False
+    for form in ("threejs.bin", "threejs.ktx2"):
+        r = client.get(f"/v1/grids/hot/export/{form}")
+        assert r.status_code == 422 and "dtype=float32" in r.json()["message"], form
+    hot = np.frombuffer(client.get("/v1/grids/hot/export/threejs.bin",
+                                   params={"dtype": "float32"}).content, "<f4")
+    assert hot.max() == 1e5
     missing = client.get("/v1/grids/nope/export/threejs.json")
     assert missing.status_code == 404 and "plain" in missing.json()["message"]
 
