@@ -20,6 +20,7 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
     GET  /v1/grids/{grid}/probes    every probe (positions, SH, validity), for drawing the grid
     GET  /v1/grids/{grid}/scene     the baked glTF scene, when the store keeps it
     GET  /v1/dfg                    the split-sum DFG table
+    GET  /v1/grids/{grid}/export/threejs.json|.bin|.ktx2   three.js' LightProbeGrid export
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from service.deps import ServiceState
 from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
 from service.registry import GridRegistry, grid_name
-from service.routers import grids, health, lights, maps, sh, shade, viewer, web
+from service.routers import exports, grids, health, lights, maps, sh, shade, viewer, web
 from service.settings import Settings, load_settings, settings_environment
 from service.webassets import StaticAssets
 
@@ -112,7 +113,9 @@ def create_app(
     app.state.probegrid_pages = {}
     app.state.probegrid_probes = {}
     app.state.probegrid_scenes = viewer.open_scenes(registry)
+    app.state.probegrid_threejs = {}  # grid name -> service.routers.exports.ThreeExport
     app.include_router(viewer.router)
+    app.include_router(exports.router)
     app.include_router(web.router)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed

@@ -15,6 +15,12 @@ the same answers in Python:
 Both within a relative error of 1e-4 per pixel: float32 GPU arithmetic against float64 (measured
 about 1e-6 with SwiftShader).
 
+* side by side: the sphere drawn by three.js' own ``LightProbeGridWebGL`` fed by the service's
+  three.js export, against three's shader formula re-implemented here on the exported half
+  floats (trilinear filtering, the half-cell offset along the normal, three's constants), within
+  1e-3 relative (measured 3e-4: SwiftShader's filter weights); and three's blend at the object's
+  centre equals the service's plain trilinear blend there to 2e-3 (half-float rounding).
+
 Skipped, with the reason, when Chromium (``apt-get install chromium``) or the ``playwright``
 package is missing. ``PROBEGRID_VIEWER_SCREENSHOT=docs/viewer.png`` saves the screenshot the
 suite makes (the README's picture).
@@ -38,6 +44,7 @@ from probe_stores import GRID, linear_arrays, write_store
 from probegrid.core import sh as shlib
 from probegrid.core.grid import GridSpec
 from probegrid.core.shading import shade_split_sum
+from probegrid.export import engines
 
 pytestmark = pytest.mark.browser
 
@@ -229,6 +236,83 @@ def test_reflections_match_the_split_sum_of_the_served_maps(viewer, server):
     assert watch.problems == []
 
 
+def three_lightprobegrid(header: dict, atlas: np.ndarray, points: np.ndarray,
+                         normals: np.ndarray, *, offset: float = 0.5) -> np.ndarray:
+    """three.js r187's ``getLightProbeGridIrradiance`` (lightprobes_pars_fragment) in numpy:
+    the sample point moved half a cell along the normal, clamped to the probe centres, the atlas
+    filtered trilinearly (what the GPU's linear filter does inside one sub-volume), then three's
+    cosine-lobe constants; ``max(E, 0)``."""
+    res = np.array(header["resolution"], dtype=np.float64)
+    lo, hi = np.array(header["min"]), np.array(header["max"])
+    nz = int(res[2])
+    coeffs = engines.threejs_unpack(atlas, nz).astype(np.float64)  # (nx, ny, nz, 9, 3)
+    sample = points + normals * (hi - lo) / res * offset
+    uvw = np.clip((sample - lo) / (hi - lo), 0.5 / res, 1 - 0.5 / res)
+    g = uvw * res - 0.5  # texel (= probe) coordinates
+    i0 = np.minimum(np.floor(g).astype(int), np.maximum(res.astype(int) - 2, 0))
+    i1 = np.minimum(i0 + 1, res.astype(int) - 1)
+    f = g - i0
+    c = np.zeros((len(points), 9, 3))
+    for corner in range(8):
+        pick = [(corner >> a) & 1 for a in range(3)]
+        idx = [np.where(pick[a], i1[:, a], i0[:, a]) for a in range(3)]
+        w = np.prod([np.where(pick[a], f[:, a], 1 - f[:, a]) for a in range(3)], axis=0)
+        c += w[:, None, None] * coeffs[idx[0], idx[1], idx[2]]
+    x, y, z = (normals[:, a:a + 1] for a in range(3))
+    e = (c[:, 0] * 0.886227 + c[:, 1] * 2.0 * 0.511664 * y + c[:, 2] * 2.0 * 0.511664 * z
+         + c[:, 3] * 2.0 * 0.511664 * x + c[:, 4] * 2.0 * 0.429043 * x * y
+         + c[:, 5] * 2.0 * 0.429043 * y * z + c[:, 6] * (0.743125 * z * z - 0.247708)
+         + c[:, 7] * 2.0 * 0.429043 * x * z + c[:, 8] * 0.429043 * (x * x - y * y))
+    return np.maximum(e, 0.0)
+
+
+def test_side_by_side_three_lightprobegrid_is_fed_by_the_export(viewer, server):
+    """The toggle draws the sphere with three.js' own LightProbeGridWebGL fed by the service's
+    three.js export; its pixels are three's formula on the exported (half-float) SH."""
+    page, watch, _ = viewer
+    page.evaluate("window.probegrid.moveObject(0.35, 1.1, 0.25)")
+    with page.expect_response(lambda r: "/v1/grids/room/export/threejs.bin" in r.url and r.ok):
+        page.evaluate("window.probegrid.setCompare(true)")
+    page.evaluate("new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    assert page.locator("#split").is_visible()
+    assert page.evaluate("window.probegrid.compare.light.isLightProbeGrid") is True
+    got = page.evaluate("window.probegrid.readObject(128, 'three')")
+    assert got["covered"] > 20_000 and got["source"] == "three"
+    header = got["three"]["header"]
+    atlas = np.frombuffer(httpx.get(f"{server.url}/v1/grids/room/export/threejs.bin").content,
+                          "<f2").reshape(header["atlas_size"][::-1] + [4]).astype(np.float32)
+    rgb = np.array([p["rgb"] for p in got["pixels"]])
+    normals = np.array([p["normal"] for p in got["pixels"]])
+    points = np.array([p["position"] for p in got["pixels"]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = np.array(got["three"]["albedo"])
+    expected = albedo * three_lightprobegrid(header, atlas, points, normals) / np.pi
+    assert expected.min() > 0.01  # lit, not black
+    rel = np.abs(rgb - expected).max(axis=1) / np.maximum(expected.max(axis=1), 1e-3)
+    # and how far three's sampling (half a cell along the normal, no validity) is from the
+    # service's blend at the object's centre, on the same pixels
+    mine = _query(server, got["query"])
+    service = albedo * shlib.irradiance(np.array(mine["coefficients"]), normals) / np.pi
+    apart = np.abs(rgb - service).max(axis=1) / np.maximum(service.max(axis=1), 1e-3)
+    print(f"\nthree.js LightProbeGridWebGL sphere: {len(rgb)} pixels, max relative error "
+          f"{rel.max():.2e} against three's formula on the export; differs from the service-lit "
+          f"sphere by {np.median(apart):.1%} median, {apart.max():.1%} max")
+    assert rel.max() <= 1e-3
+    # the export sits where the store's probes are: three's blend at the object's centre (no
+    # offset) is the service's plain trilinear blend there (all eight probes valid), to half
+    # float rounding
+    x, y, z = got["query"]["position"]
+    plain = httpx.get(f"{server.url}/v1/grids/room/sh", params={"x": x, "y": y, "z": z}).json()
+    assert len(plain["probes"]) == 8 and not plain["flags"]["unlit"]
+    centre = np.array([[x, y, z]] * len(normals))
+    at_centre = three_lightprobegrid(header, atlas, centre, normals, offset=0.0)
+    blended = shlib.irradiance(np.array(plain["coefficients"]), normals)
+    assert np.abs(at_centre - blended).max() <= 2e-3 * np.abs(blended).max()
+    page.evaluate("window.probegrid.setCompare(false)")
+    assert page.locator("#split").is_hidden()
+    assert watch.problems == []
+
+
 def test_moves_are_coalesced(viewer):
     page, watch, _ = viewer
     before = sum("/sh?" in u for u in watch.responses)
@@ -318,9 +402,13 @@ def test_screenshot_is_not_blank(viewer, tmp_path):
 
 def test_grid_selector_shows_a_grid_without_scene(viewer):
     page, watch, _ = viewer
+    page.check("#compare")  # side by side stays on across the switch: the new grid's export
     page.select_option("#grid", "synthetic")
     page.wait_for_function("window.probegrid.ready && window.probegrid.grid.name === 'synthetic'",
                            timeout=10_000)
+    assert page.evaluate("window.probegrid.compare.grid") == "synthetic"
+    assert page.evaluate("window.probegrid.compare.header.filled_invalid") == 1
+    page.uncheck("#compare")
     assert page.evaluate("window.probegrid.probeCount") == GRID.n_probes
     flags = page.evaluate("[...window.probegrid.probes.valid]")
     assert [i for i, v in enumerate(flags) if not v] == [3]  # the one invalid probe, marked

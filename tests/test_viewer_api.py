@@ -54,7 +54,11 @@ def stores(tmp_path_factory) -> dict[str, Path]:
     arrays["valid"][[1, 5]] = False
     arrays["positions"][4] += np.float32(0.125)  # relocated
     write_store(root / "plain.probes", GRID, arrays)  # keeps no scene
-    return {"kept": root / "kept.probes", "plain": root / "plain.probes"}
+    hot = linear_arrays(GRID)
+    hot["sh"][7, 0, 1] = 1e5  # beyond half float
+    write_store(root / "hot.probes", GRID, hot)
+    return {"kept": root / "kept.probes", "plain": root / "plain.probes",
+            "hot": root / "hot.probes"}
 
 
 @pytest.fixture(scope="module")
@@ -190,6 +194,74 @@ def test_store_with_external_gltf_keeps_none_and_a_damaged_copy_is_refused(tmp_p
         open_store(s.path)
 
 
+# ------------------------------------------------------------------------------ three.js export
+def _three_texel(atlas: np.ndarray, counts, i: int, j: int, k: int) -> np.ndarray:
+    """Probe (i, j, k)'s 27 SH floats read from the atlas by three's shader layout
+    (lightprobes_pars_fragment r187: sub-volume t at slices t (nz + 2) + 1 + k, four per texel)."""
+    nz = counts[2]
+    flat = np.concatenate([atlas[t * (nz + 2) + 1 + k, j, i] for t in range(7)])
+    assert flat[27] == 0
+    return flat[:27].reshape(9, 3)
+
+
+def test_threejs_export_route_is_the_store_sh_in_three_layout(client, stores):
+    store = open_store(stores["plain"])  # probes 1 and 5 invalid
+    nx, ny, nz = store.grid.counts
+    head = client.get("/v1/grids/plain/export/threejs.json").json()
+    # three places probe i at min + (i + 0.5) size / n: the store's lattice (0..2, 0..1, 0..2)
+    assert head["resolution"] == [3, 2, 3] and head["size"] == [3.0, 2.0, 3.0]
+    assert head["position"] == [1.0, 0.5, 1.0]
+    assert head["min"] == [-0.5, -0.5, -0.5] and head["max"] == [2.5, 1.5, 2.5]
+    assert head["atlas_size"] == [3, 2, 7 * (3 + 2)] and head["filled_invalid"] == 2
+    r = client.get("/v1/grids/plain/export/threejs.bin")
+    assert r.headers["content-type"] == "application/octet-stream"
+    atlas = np.frombuffer(r.content, "<f2").reshape(7 * (nz + 2), ny, nx, 4).astype(np.float32)
+    sh = np.asarray(store["sh"], np.float64)
+    valid = np.asarray(store["valid"], bool)
+    for p in range(store.n_probes):
+        i, j, k = np.unravel_index(p, (nx, ny, nz))
+        if valid[p]:
+            want = sh[p]
+        else:  # the mean of the valid face neighbours
+            nb = [(i + a, j + b, k + c) for a, b, c in
+                  [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]]
+            idx = [np.ravel_multi_index(q, (nx, ny, nz)) for q in nb
+                   if all(0 <= q[d] < (nx, ny, nz)[d] for d in range(3))]
+            want = np.mean([sh[q] for q in idx if valid[q]], axis=0)
+        # the decoded atlas is the store's SH after rounding to half float, exactly
+        np.testing.assert_array_equal(_three_texel(atlas, (nx, ny, nz), i, j, k),
+                                      want.astype(np.float16).astype(np.float32), err_msg=str(p))
+    for t in range(7):  # one padding slice each end, a copy of the edge data slice
+        base = t * (nz + 2)
+        np.testing.assert_array_equal(atlas[base], atlas[base + 1])
+        np.testing.assert_array_equal(atlas[base + nz + 1], atlas[base + nz])
+    full = np.frombuffer(client.get("/v1/grids/plain/export/threejs.bin",
+                                    params={"dtype": "float32"}).content, "<f4")
+    full = full.reshape(atlas.shape)
+    np.testing.assert_array_equal(_three_texel(full, (nx, ny, nz), 2, 1, 0),
+                                  np.asarray(store["sh"], np.float32)[
+                                      np.ravel_multi_index((2, 1, 0), (nx, ny, nz))])
+    from probegrid.export.ktx2 import read_ktx2
+
+    tex = read_ktx2(client.get("/v1/grids/plain/export/threejs.ktx2").content)
+    assert tex.kind == "3d" and tex.vk_format == 97
+    np.testing.assert_array_equal(tex.levels[0], atlas)
+    assert client.get("/v1/grids/plain/export/threejs.bin", headers={
+        "If-None-Match": r.headers["etag"]}).status_code == 304
+    bad = client.get("/v1/grids/plain/export/threejs.bin", params={"dtype": "int8"})
+    assert bad.status_code == 422 and "dtype" in bad.json()["message"]
+    # a value beyond half float: the float16 forms refuse (one line), float32 carries it
+    assert client.get("/v1/grids/hot/export/threejs.json").json()["float16_range_ok"] is False
+    for form in ("threejs.bin", "threejs.ktx2"):
+        r = client.get(f"/v1/grids/hot/export/{form}")
+        assert r.status_code == 422 and "dtype=float32" in r.json()["message"], form
+    hot = np.frombuffer(client.get("/v1/grids/hot/export/threejs.bin",
+                                   params={"dtype": "float32"}).content, "<f4")
+    assert hot.max() == 1e5
+    missing = client.get("/v1/grids/nope/export/threejs.json")
+    assert missing.status_code == 404 and "plain" in missing.json()["message"]
+
+
 # ------------------------------------------------------------------------------ dfg
 def test_dfg_route_is_the_library_table(client):
     r = client.get("/v1/dfg")
@@ -203,7 +275,9 @@ def test_dfg_route_is_the_library_table(client):
 
 def test_openapi_lists_the_viewer_routes_not_the_pages(client):
     paths = set(client.get("/openapi.json").json()["paths"])
-    assert {"/v1/grids/{grid}/probes", "/v1/grids/{grid}/scene", "/v1/dfg"} <= paths
+    assert {"/v1/grids/{grid}/probes", "/v1/grids/{grid}/scene", "/v1/dfg",
+            "/v1/grids/{grid}/export/threejs.json", "/v1/grids/{grid}/export/threejs.bin",
+            "/v1/grids/{grid}/export/threejs.ktx2"} <= paths
     assert not {"/", "/docs", "/redoc"} & paths and not any(p.startswith("/static") for p in paths)
 
 

@@ -15,7 +15,14 @@
 // * every probe (GET /v1/grids/{grid}/probes) as an instanced sphere shaded E(n)/pi by its own SH;
 // * a sphere you can drag: each move queries /sh and /maps/specular at its centre with the normal
 //   toward the camera, at most one query in flight, the latest position winning; it is shaded
-//   with the split sum, out = albedo (1 - s) E(n)/pi + s Prefiltered(R), s = F0 A + B.
+//   with the split sum, out = albedo (1 - s) E(n)/pi + s Prefiltered(R), s = F0 A + B;
+// * side by side (the "three.js LightProbeGridWebGL" toggle): right of the object's centre the
+//   view shows the same sphere drawn by three.js itself, a MeshLambertMaterial (albedo 0.8) lit
+//   by the vendored LightProbeGridWebGL whose texture is the service's three.js export of the
+//   grid (GET /v1/grids/{grid}/export/threejs.json and .bin: the SH atlas as half floats). Three
+//   samples the grid at the fragment moved half a cell along its normal and blends probes
+//   trilinearly without validity (invalid probes were filled by the export), so the two halves
+//   differ where the service's blend does (leaks, near invalid probes).
 //
 // window.probegrid exposes the state and hooks the browser tests use.
 
@@ -169,7 +176,109 @@ let renderQueued = false;
 function requestRender() {
   if (renderQueued) return;
   renderQueued = true;
-  requestAnimationFrame(() => { renderQueued = false; renderer.render(world, camera); });
+  requestAnimationFrame(() => { renderQueued = false; draw(); });
+}
+
+// ---------------------------------------------------------------------------- three.js' own grid
+// A second scene: three's LightProbeGridWebGL (fed by the export) and a Lambertian sphere at the
+// object's place; drawn over the right part of the view (from the object's centre) when on.
+const threeWorld = new THREE.Scene();
+const threeObject = new THREE.Mesh(undefined, new THREE.MeshLambertMaterial({ color: new THREE.Color(0.8, 0.8, 0.8) }));
+threeObject.name = 'three-object';
+threeWorld.add(threeObject);
+const compare = { on: false, grid: null, light: null, header: null, loading: null, cache: new Map() };
+
+async function threeExport(name) {
+  // the export of a grid (header and atlas) is asked for once per page
+  if (!compare.cache.has(name)) {
+    const base = `${api.grid(name)}/export/threejs`;
+    compare.cache.set(name, Promise.all([
+      getJSON(`${base}.json`),
+      fetchOk(`${base}.bin?dtype=float16`).then((r) => r.arrayBuffer()),
+      import('three/addons/lighting/LightProbeGridWebGL.js'),
+    ]).catch((e) => { compare.cache.delete(name); throw e; }));
+  }
+  return compare.cache.get(name);
+}
+
+async function loadThreeGrid(name) {
+  const [header, buffer, { LightProbeGridWebGL }] = await threeExport(name);
+  const [nx, ny, nz] = header.resolution;
+  const [w, h, d] = header.atlas_size;
+  const tex = new THREE.Data3DTexture(new Uint16Array(buffer), w, h, d);
+  tex.format = THREE.RGBAFormat;
+  tex.type = THREE.HalfFloatType;  // filterable in every WebGL2
+  tex.minFilter = tex.magFilter = THREE.LinearFilter;
+  tex.wrapS = tex.wrapT = tex.wrapR = THREE.ClampToEdgeWrapping;
+  tex.generateMipmaps = false;
+  tex.unpackAlignment = 1;
+  tex.needsUpdate = true;
+  const [sx, sy, sz] = header.size;
+  const light = new LightProbeGridWebGL(sx, sy, sz, nx, ny, nz);
+  light.position.fromArray(header.position);
+  light.updateBoundingBox();
+  light.texture = tex;  // what bake() would have rendered: the atlas of seven SH sub-volumes
+  if (compare.light) {
+    threeWorld.remove(compare.light);
+    compare.light.texture.dispose();
+  }
+  threeWorld.add(light);
+  compare.light = light;
+  compare.header = header;
+  compare.grid = name;
+}
+
+async function setCompare(on) {
+  compare.on = on;
+  $('compare').checked = on;
+  if (!PG.grid) return;  // showGrid loads the export once the grid is there
+  if (on && compare.grid !== PG.grid.name) {
+    const name = PG.grid.name;
+    compare.loading = loadThreeGrid(name);
+    try { await compare.loading; } finally { compare.loading = null; }
+    if (PG.grid.name !== name) return setCompare(compare.on);  // the grid changed meanwhile
+    syncThreeObject();
+    renderer.compile(threeWorld, camera);
+  }
+  requestRender();
+}
+
+function syncThreeObject() {
+  threeObject.geometry = object.geometry;
+  threeObject.position.copy(object.position);
+  threeObject.scale.copy(object.scale);
+}
+
+// The split's x in CSS pixels (the object's centre on screen, inside the canvas).
+function splitX() {
+  const w = canvas.clientWidth;
+  const v = object.position.clone().project(camera);
+  return Math.round(THREE.MathUtils.clamp((v.x + 1) / 2, 0, 1) * w);
+}
+
+function draw() {
+  const split = $('split');
+  if (!compare.on || !compare.light || compare.grid !== PG.grid?.name) {
+    split.hidden = true;
+    renderer.render(world, camera);
+    return;
+  }
+  syncThreeObject();
+  const w = canvas.clientWidth, h = canvas.clientHeight;
+  const x = splitX();
+  renderer.setScissorTest(true);
+  renderer.setScissor(0, 0, x, h);
+  renderer.render(world, camera);
+  renderer.setScissor(x, 0, w - x, h);
+  object.visible = false;
+  renderer.render(world, camera);
+  renderer.autoClear = false;
+  renderer.render(threeWorld, camera);  // on the world's depth: the scene still hides it
+  renderer.autoClear = true;
+  object.visible = true;
+  renderer.setScissorTest(false);
+  split.hidden = false;
+  split.style.left = `${x}px`;
 }
 controls.addEventListener('change', () => { requestRender(); scheduleQuery(); });
 
@@ -701,7 +810,8 @@ async function showGrid(name) {
   moveObject(centre.x, centre.y, centre.z);
   await waitForQuery();
   mark('query');
-  await new Promise((r) => requestAnimationFrame(() => { renderer.render(world, camera); r(); }));
+  if (compare.on) await setCompare(true).catch(report);  // the new grid's export
+  await new Promise((r) => requestAnimationFrame(() => { draw(); r(); }));
   mark('frame');
   setStatus(`${grid.name}: ${grid.probes} probes${hasScene ? '' : ' (the store keeps no scene)'}`);
   PG.ready = true;
@@ -718,7 +828,9 @@ function report(e) {
 // Render the object alone into float targets (linear, no tone mapping: three applies those
 // only when drawing to the screen) and return `count` pixels inside it: shaded RGB and the
 // world normal of the same fragment.
-PG.readObject = function readObject(count = 64) {
+// readObject(count, 'three') shades with three's sphere (LightProbeGridWebGL, the export) instead,
+// with the normals and positions of the service's sphere (the same geometry and place).
+PG.readObject = function readObject(count = 64, source = 'service') {
   const w = 256, h = 256;
   const target = new THREE.WebGLRenderTarget(w, h, { type: THREE.FloatType, format: THREE.RGBAFormat });
   const solo = new THREE.Scene();
@@ -741,7 +853,18 @@ PG.readObject = function readObject(count = 64) {
     renderer.readRenderTargetPixels(target, 0, 0, w, h, buf);
     return buf;
   };
-  const shaded = read(0);
+  let shaded;
+  if (source === 'three') {
+    syncThreeObject();
+    renderer.setRenderTarget(target);
+    renderer.setClearColor(0x000000, 0);
+    renderer.clear();
+    renderer.render(threeWorld, cam);
+    shaded = new Float32Array(w * h * 4);
+    renderer.readRenderTargetPixels(target, 0, 0, w, h, shaded);
+  } else {
+    shaded = read(0);
+  }
   const normals = read(1);
   const positions = read(2);
   objUniforms.uOutput.value = 0;
@@ -750,7 +873,7 @@ PG.readObject = function readObject(count = 64) {
   parent.add(object);
   target.dispose();
   const inside = [];
-  for (let t = 0; t < w * h; t++) if (normals[4 * t + 3] > 0) inside.push(t);
+  for (let t = 0; t < w * h; t++) if (normals[4 * t + 3] > 0 && shaded[4 * t + 3] > 0) inside.push(t);
   const step = Math.max(1, Math.floor(inside.length / count));
   const pixels = [];
   for (let i = 0; i < inside.length && pixels.length < count; i += step) {
@@ -763,12 +886,16 @@ PG.readObject = function readObject(count = 64) {
   return { covered: inside.length, pixels, camera: cam.position.toArray(),
            albedo: objUniforms.uAlbedo.value.toArray(), f0: objUniforms.uF0.value.toArray(),
            roughness: objUniforms.uRoughness.value, specular: objUniforms.uSpecOn.value,
-           query: PG.lastQuery };
+           query: PG.lastQuery, source,
+           three: source === 'three' ? { albedo: threeObject.material.color.toArray(),
+                                         header: compare.header } : null };
 };
 PG.moveObject = async (x, y, z) => { moveObject(x, y, z); return waitForQuery(); };
 PG.setMaterial = (key) => { $('material').value = key; setMaterial(key); return waitForQuery(); };
 PG.setToneMapping = (key) => { $('tonemap').value = key; renderer.toneMapping = TONEMAPS[key]; requestRender(); };
-PG.render = () => renderer.render(world, camera);
+PG.render = () => draw();
+PG.setCompare = setCompare;
+PG.compare = compare;
 PG.scene = world;
 PG.camera = camera;
 
@@ -784,6 +911,7 @@ $('show-probes').addEventListener('change', (e) => { probeRoot.visible = e.targe
 $('show-scene').addEventListener('change', (e) => { sceneRoot.visible = e.target.checked; requestRender(); });
 $('probe-size').addEventListener('input', (e) => setProbeSize(Number(e.target.value)));
 $('material').addEventListener('change', (e) => setMaterial(e.target.value));
+$('compare').addEventListener('change', (e) => setCompare(e.target.checked).catch(report));
 ['x', 'y', 'z'].forEach((c) => $(`o${c}`).addEventListener('change', () => {
   moveObject(Number($('ox').value), Number($('oy').value), Number($('oz').value));
 }));
