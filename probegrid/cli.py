@@ -128,7 +128,8 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
             help="SH windowing against ringing (auto: the least that makes irradiance >= 0)")
     _option(p, F, "sh_window_width", help="window width (bands)")
     _option(p, F, "format", help="map file format (ktx2: specular.ktx2 with the chain as mips and "
-            "diffuse.ktx2, RGBA16F, or RGBA32F with --float)")
+            "diffuse.ktx2, RGBA16F, or RGBA32F with --float; gltf: environment.gltf with "
+            "EXT_lights_image_based, RGBD PNG faces down to 16^2, as Babylon.js reads it)")
     _option(p, F, "cube_convention",
             help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table (glTF "
                  "Sample Viewer), mirrored in x (three.js) or z (Bevy)")

@@ -324,7 +324,7 @@ def run_filter(
     for bad input, before anything is written to ``out_dir``.
     """
     from probegrid import imageio, usercache
-    from probegrid.core import diffuse, seams, shbands, specular
+    from probegrid.core import diffuse, seams, sh, shbands, specular
     from probegrid.export.shforms import sh_forms
 
     settings = settings or FilterSettings()
@@ -337,6 +337,12 @@ def run_filter(
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
+    if settings.format == "gltf" and (settings.output_layout != "faces"
+                                      or settings.seam == "border"
+                                      or settings.specular_levels is not None):
+        raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2): it needs "
+                         "--output-layout faces, no --specular-levels and a seam mode other "
+                         "than 'border'")
     # options that conflict with each other are refused before any work
     if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
             and settings.sh_window_width is None):
@@ -351,6 +357,10 @@ def run_filter(
     # the full chain by default; a cube that is not a power of two gets its level 0 only
     default_levels = None if n & (n - 1) == 0 else 1
     levels = len(mip_sizes(n, settings.specular_levels or default_levels))
+    if settings.format == "gltf":
+        from probegrid.export import gltf_ibl
+
+        levels = gltf_ibl.mip_count(n)  # ValueError (one line) unless n is a power of two >= 32
     timings["read"] = time.perf_counter() - t0
 
     # --- compute everything before touching the output directory -----------------------
@@ -386,7 +396,8 @@ def run_filter(
     with ThreadPoolExecutor(max_workers=1) as pool:
         diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
         t = time.perf_counter()
-        spec = specular.ggx_prefilter(cube, **spec_kwargs)
+        spec = (specular.ggx_prefilter(cube, **spec_kwargs) if settings.format != "gltf"
+                else gltf_ibl.specular_chain(cube))  # Babylon's mip -> alpha mapping
         timings["specular"] = time.perf_counter() - t
         if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
             specular.clear_caches()
@@ -455,11 +466,13 @@ def run_filter(
                                         vk_format=97 if settings.half else 109,
                                         cube_convention=settings.cube_convention,
                                         key_values={"probegrid:conventions": json.dumps(conv)})
+    elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
+        files += gltf_ibl.write_environment_gltf(out, spec_out, sh.project_cube(cube))
     else:
         write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
                    content="irradiance / pi", method=settings.diffuse_method,
                    sh_window=sh_window["window"])
-    for k, lv in enumerate(spec_out if ext != "ktx2" else []):
+    for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
         r = k / (levels - 1) if levels > 1 else 0.0
         write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
@@ -518,8 +531,9 @@ def run_filter(
         "settings": settings.model_dump(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
-                     "roughness": [k / (levels - 1) if levels > 1 else 0.0
-                                   for k in range(levels)]},
+                     "roughness": ([k / (levels - 1) if levels > 1 else 0.0
+                                    for k in range(levels)] if ext != "gltf" else
+                                   [float(np.sqrt(a)) for a in gltf_ibl.babylon_alphas(n)])},
         "quality": {
             "sh_min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
             "diffuse_sh_window": sh_window,
