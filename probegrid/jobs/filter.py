@@ -343,6 +343,10 @@ def run_filter(
         raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2): it needs "
                          "--output-layout faces, no --specular-levels and a seam mode other "
                          "than 'border'")
+    if settings.format == "gltf" and settings.size is not None:
+        from probegrid.export.gltf_ibl import check_size
+
+        check_size(settings.size)
     # options that conflict with each other are refused before any work
     if (settings.diffuse_method == "sh" and settings.sh_window not in ("none", "auto")
             and settings.sh_window_width is None):
