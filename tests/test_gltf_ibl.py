@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-
 from node_readers import JS_DIR, node_package_dir
+
 from probegrid import imageio
 from probegrid.cli import main
 from probegrid.core import sh
