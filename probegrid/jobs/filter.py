@@ -371,6 +371,7 @@ def run_filter(
     t = time.perf_counter()
     bands = settings.sh_bands
     coeffs = shbands.project_cube(cube, bands)
+    sh9 = sh.project_cube(cube)  # band 2, what sh.json's consumers and the glTF light take
     irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 
@@ -471,7 +472,7 @@ def run_filter(
                                         cube_convention=settings.cube_convention,
                                         key_values={"probegrid:conventions": json.dumps(conv)})
     elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
-        files += gltf_ibl.write_environment_gltf(out, spec_out, sh.project_cube(cube))
+        files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
     else:
         write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
                    content="irradiance / pi", method=settings.diffuse_method,
@@ -494,7 +495,7 @@ def run_filter(
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
         "diffuse_map": {"method": settings.diffuse_method, **sh_window},
-        "consumers": sh_forms(coeffs),
+        "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
     }
     atomic_write_json(out / "sh.json", sh_doc)
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
