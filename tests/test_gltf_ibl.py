@@ -274,7 +274,9 @@ def test_manifest_and_refusals(gltf_out, tmp_path, capsys):
     imageio.write_image(sky, np.ones((8, 16, 3), np.float32), half=False)
     for extra, words in ((["--size", "16"], "at least 32"),
                          (["--size", "32", "--specular-levels", "2"], "--specular-levels"),
-                         (["--size", "32", "--output-layout", "hcross"], "--output-layout")):
+                         (["--size", "32", "--output-layout", "hcross"], "--output-layout"),
+                         (["--size", "32", "--specular-method", "exact"], "--specular-method"),
+                         (["--size", "32", "--cube-convention", "bevy"], "--cube-convention")):
         capsys.readouterr()
         assert main(["filter", str(sky), "--format", "gltf", "--out", str(tmp_path / "o"),
                      *extra]) != 0

@@ -339,10 +339,11 @@ def run_filter(
         raise ValueError("--cube-convention applies to --format ktx2")
     if settings.format == "gltf" and (settings.output_layout != "faces"
                                       or settings.seam == "border"
-                                      or settings.specular_levels is not None):
-        raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2): it needs "
-                         "--output-layout faces, no --specular-levels and a seam mode other "
-                         "than 'border'")
+                                      or settings.specular_levels is not None
+                                      or settings.specular_method != "tiered"):
+        raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2, tiered GGX): "
+                         "it needs --output-layout faces, no --specular-levels or "
+                         "--specular-method and a seam mode other than 'border'")
     if settings.format == "gltf" and settings.size is not None:
         from probegrid.export.gltf_ibl import check_size
 
