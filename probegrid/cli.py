@@ -143,7 +143,8 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
             help="SH windowing against ringing (auto: the least that makes irradiance >= 0)")
     _option(p, F, "sh_window_width", help="window width (bands)")
     _option(p, F, "format", help="map file format (ktx2: specular.ktx2 with the chain as mips and "
-            "diffuse.ktx2, RGBA16F, or RGBA32F with --float)")
+            "diffuse.ktx2, RGBA16F, or RGBA32F with --float; gltf: environment.gltf with "
+            "EXT_lights_image_based, RGBD PNG faces down to 16^2, as Babylon.js reads it)")
     _option(p, F, "cube_convention",
             help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table (glTF "
                  "Sample Viewer), mirrored in x (three.js) or z (Bevy)")
@@ -285,7 +286,8 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="write one probe's maps as image files, or the grid for "
                        "an engine (--target)")
     p.add_argument("store", type=Path)
-    p.add_argument("--probe", help="I,J,K")
+    p.add_argument("--probe", help="I,J,K; or 'all', or a box I0,J0,K0:I1,J1,K1 (corners "
+                   "included): a folder I_J_K per probe, with PNG previews")
     p.add_argument("--target", choices=choices(EngineTarget),
                    help="the whole grid as an engine loads it (three.js LightProbeGrid atlas, "
                         "Bevy IrradianceVolume, KTX2 cube-map arrays); see manifest.json")
@@ -299,6 +301,8 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--layout", choices=choices(CubeLayout), default="faces")
     p.add_argument("--format", choices=choices(ImageFormat), default="exr")
     p.add_argument("--half", action="store_true", help="half-float EXR")
+    p.add_argument("--no-previews", dest="previews", action="store_false",
+                   help="no PNG previews with --probe all or a box")
     p.set_defaults(handler=_run_export)
 
 
@@ -323,6 +327,12 @@ def _run_export(args: argparse.Namespace) -> int:
                          "threejs|bevy|ktx2 (the grid)")
     if args.vk_format is not None or args.zstd or args.cube_convention != "gltf":
         raise ValueError("--vk-format, --zstd and --cube-convention apply to --target exports")
+    if args.probe.strip() == "all" or ":" in args.probe:
+        from probegrid.jobs.export import export_probes
+
+        print(export_probes(args.store, args.probe, args.out, layout=args.layout,
+                            fmt=args.format, half=args.half, previews=args.previews).summary())
+        return 0
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
                            fmt=args.format, half=args.half)
     print(f"wrote {len(written)} files to {args.out}/ (manifest.json lists them with the "

@@ -469,3 +469,75 @@ def test_service_maps_answer_format_ktx2(store):
                                   np.load(io.BytesIO(npy.content), allow_pickle=False))
     assert json.loads(tex.key_values["probegrid:meta"].rstrip(b"\0"))["level"] == 1
     assert cross.status_code == 422 and "layout=faces" in cross.json()["message"]
+
+
+# ------------------------------------------------------------ many probes: --probe all / a box
+def test_export_probe_all_and_box_write_every_probe_and_name_the_invalid(tmp_path, capsys):
+    from probe_stores import linear_arrays
+
+    from probegrid import imageio
+
+    arrays = linear_arrays(GRID)
+    grid_ijk = [(i, j, k) for i in range(3) for j in range(2) for k in range(3)]
+    invalid = [(0, 1, 2), (2, 0, 1)]
+    for ijk in invalid:
+        arrays["valid"][GRID.probe_index(*ijk)] = False
+    path = tmp_path / "v.probes"
+    write_store(path, GRID, arrays).close()
+    out = tmp_path / "all"
+    capsys.readouterr()
+    assert main(["export", str(path), "--probe", "all", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "wrote 18 probes" in said and "2 of them invalid" in said
+    assert "0,1,2" in said and "2,0,1" in said
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["format"] == "probegrid.probes-export" and man["count"] == 18
+    assert [tuple(p["ijk"]) for p in man["probes"]] == grid_ijk
+    assert sorted(map(tuple, man["invalid"])) == sorted(invalid)
+    files = 0
+    for p in man["probes"]:
+        ijk, index = tuple(p["ijk"]), GRID.probe_index(*p["ijk"])
+        assert p["index"] == index and p["valid"] == (ijk not in invalid)
+        np.testing.assert_allclose(p["position"], arrays["positions"][index])
+        sub = out / "_".join(map(str, ijk))
+        files += len(list(sub.iterdir()))
+        got = np.stack([imageio.read_image(sub / f"diffuse_{s}.exr") for s in
+                        ("px", "nx", "py", "ny", "pz", "nz")])
+        np.testing.assert_array_equal(got, arrays["diffuse"][index])
+        spec = np.stack([imageio.read_image(sub / f"specular_2_{s}.exr") for s in
+                         ("px", "nx", "py", "ny", "pz", "nz")])
+        np.testing.assert_array_equal(spec, arrays["specular_2"][index])
+        sh_doc = json.loads((sub / "sh.json").read_text())
+        np.testing.assert_array_equal(sh_doc["coefficients"], arrays["sh"][index])
+        prev = imageio.read_image(sub / "preview_diffuse.png")
+        assert prev.shape[:2] == (12, 16)  # hcross of 4^2 faces
+        assert (sub / "preview_specular.png").is_file()
+        assert (sub / "preview_incoming.png").is_file()
+    assert f"({files + 1} files)" in said
+    # a box, corners included, in store order
+    box = tmp_path / "box"
+    assert main(["export", str(path), "--probe", "1,0,1:2,1,2", "--out", str(box),
+                 "--no-previews"]) == 0
+    man = json.loads((box / "manifest.json").read_text())
+    assert [tuple(p["ijk"]) for p in man["probes"]] == [
+        (1, 0, 1), (1, 0, 2), (1, 1, 1), (1, 1, 2), (2, 0, 1), (2, 0, 2), (2, 1, 1), (2, 1, 2)]
+    assert not list(box.glob("*/preview_*.png"))
+    assert [tuple(p) for p in man["invalid"]] == [(2, 0, 1)]  # the one inside the box
+
+
+def test_export_probe_box_refusals_write_nothing(tmp_path, capsys):
+    from probe_stores import linear_arrays
+
+    arrays = linear_arrays(GRID)
+    arrays["specular_1"][GRID.probe_index(2, 1, 2), 3, 1, 1, 0] = np.nan
+    path = tmp_path / "n.probes"
+    write_store(path, GRID, arrays).close()
+    for sel, words in (("2,0,0:1,1,1", "must not exceed"), ("0,0,0:3,0,0", "outside the grid"),
+                       ("0,0:1,1,1", "three integers"), ("al", "three integers"),
+                       ("all", "probe (2, 1, 2)"), ("1,1,1:2,1,2", "1 in 'specular_1'")):
+        out = tmp_path / "o"
+        capsys.readouterr()
+        assert main(["export", str(path), "--probe", sel, "--out", str(out)]) != 0
+        err = capsys.readouterr().err.strip()
+        assert words in err and len(err.splitlines()) == 1, (sel, err)
+        assert not out.exists()

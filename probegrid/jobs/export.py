@@ -1,5 +1,7 @@
 """Reading a grid store back out: ``probegrid info`` (the manifest in words) and
-``probegrid export`` (one probe's maps as image files with the conventions beside them).
+``probegrid export`` (one probe's maps as image files with the conventions beside them, or
+many probes' at once: ``--probe all`` or a box ``I0,J0,K0:I1,J1,K1``, a folder per probe with
+PNG previews).
 
 Both trust nothing in the store beyond what :func:`probegrid.store.open_store` checks (manifest
 schema, file headers and sizes) and refuse, with a one-line :class:`~probegrid.store.StoreError`:
@@ -15,10 +17,13 @@ from __future__ import annotations
 
 import json
 import os
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from probegrid._fs import atomic_write_json
 from probegrid._types import CubeLayout, ImageFormat
@@ -28,10 +33,14 @@ from probegrid.store import ProbeStore, StoreError, open_store, partial_path, pa
 from probegrid.store.check import map_arrays as _map_arrays
 from probegrid.store.check import specular_levels as _specular_levels
 
-__all__ = ["EXPORT_FORMAT", "ExportResult", "describe_store", "export_probe", "parse_probe"]
+__all__ = ["EXPORT_FORMAT", "EXPORT_MANY_FORMAT", "ExportResult", "ProbesExport",
+           "describe_store", "export_probe", "export_probes", "parse_probe", "parse_probes"]
 
 #: ``format`` of the manifest of an export directory.
 EXPORT_FORMAT = "probegrid.probe-export"
+#: ``format`` of the manifest of a many-probe export (``--probe all`` or a box).
+EXPORT_MANY_FORMAT = "probegrid.probes-export"
+_SPECULAR_RE = re.compile(r"^specular_(0|[1-9][0-9]*)$")
 
 
 def _mb(nbytes: int) -> str:
@@ -138,6 +147,102 @@ def parse_probe(text: str, store: ProbeStore) -> tuple[int, int, int]:
     return ijk  # type: ignore[return-value]
 
 
+def parse_probes(text: str, store: ProbeStore) -> list[tuple[int, int, int]]:
+    """``"all"``, a box ``"I0,J0,K0:I1,J1,K1"`` (both corners included) or ``"I,J,K"`` -> the
+    selected probes in store order, with a one-line error for anything else."""
+    t = text.strip()
+    nx, ny, nz = store.grid.counts
+    if t == "all":
+        lo, hi = (0, 0, 0), (nx - 1, ny - 1, nz - 1)
+    elif ":" in t:
+        a, _, b = t.partition(":")
+        try:
+            lo, hi = parse_probe(a, store), parse_probe(b, store)
+        except ValueError as e:
+            raise ValueError(f"--probe box {text!r}: {e}") from None
+        if any(x > y for x, y in zip(lo, hi, strict=True)):
+            raise ValueError(f"--probe box {text!r}: the first corner must not exceed the second "
+                             "in any of i, j, k")
+    else:
+        return [parse_probe(t, store)]
+    return [(i, j, k) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)
+            for k in range(lo[2], hi[2] + 1)]
+
+
+def _read_probes(store: ProbeStore, maps: list[tuple[str, str, int | None]],
+                 probes: list[tuple[int, int, int]]) -> list[int]:
+    """The store indices of ``probes``, after checking every exported value of them is finite
+    (``StoreError`` naming the first damaged probe). Reads a bounded number of probes at once."""
+    indices = [int(store.probe_index(*ijk)) for ijk in probes]
+    idx = np.asarray(indices, dtype=np.intp)
+    names = [name for name, _, _ in maps] + ["sh"] + (["positions"] if "positions" in store.names
+                                                      else [])
+    for name in names:
+        per = int(np.prod(store.manifest.arrays[name].shape[1:])) * 4
+        step = max(1, (64 << 20) // max(per, 1))  # ~64 MB per read
+        for c in range(0, idx.size, step):
+            block = np.asarray(store[name][idx[c:c + step]])
+            finite = np.isfinite(block.reshape(block.shape[0], -1))
+            ok = finite.all(axis=1)
+            if not ok.all():
+                first = int(np.argmin(ok))
+                count = int(np.count_nonzero(~finite[first]))
+                raise StoreError(f"probe {probes[c + first]} of {store.path} holds non-finite "
+                                 f"values (NaN or inf): {count} in {name!r}; the store is "
+                                 "damaged")
+    return indices
+
+
+def _write_probe(out: Path, store: ProbeStore, maps: list[tuple[str, str, int | None]],
+                 index: int, ijk: tuple[int, int, int], conv: dict[str, Any], *,
+                 layout: CubeLayout, fmt: ImageFormat, half: bool,
+                 previews: bool) -> tuple[list[dict[str, Any]], list[Path]]:
+    """One probe's maps, ``sh.json`` and (``previews``) PNG previews into ``out``."""
+    from probegrid import imageio
+    from probegrid.jobs.filter import _specular_sheet
+
+    n_levels = sum(kind == "specular" for _, kind, _ in maps)
+    meta = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__,
+            "probegrid:probe": json.dumps(list(ijk))}
+    files: list[dict[str, Any]] = []
+    written: list[Path] = []
+    data: dict[str, np.ndarray] = {}
+    for name, kind, level in maps:
+        faces = data[name] = np.asarray(store[name][index], dtype=np.float32)
+        # files named as probegrid filter names them: specular_m<k>, diffuse, incoming
+        stem = f"specular_m{level}" if kind == "specular" else name
+        paths = imageio.write_cube(out / stem, faces, layout=layout, fmt=fmt, half=half,
+                                   metadata={**meta, "probegrid:kind": kind})
+        written += paths
+        r = None if level is None else (level / (n_levels - 1) if n_levels > 1 else 0.0)
+        files.append({"path": [str(q.relative_to(out)) for q in paths], "kind": kind,
+                      "level": level, "roughness": r, "layout": layout, "format": fmt,
+                      "dtype": paths.pixel_type, "face_size": int(faces.shape[1])})
+    atomic_write_json(out / "sh.json", {
+        "coefficients": np.asarray(store["sh"][index], dtype=np.float64).tolist(),
+        "basis": conv["sh_basis"], "content": conv["sh_coefficients"]})
+    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None})
+    written.append(out / "sh.json")
+    if previews:  # as filter's: one exposure (the incoming light's, else level 0's) for all
+        exposure = imageio.cube_exposure(data.get("incoming", data.get("specular_0",
+                                                                       data["diffuse"])))
+        shown = [("diffuse", data["diffuse"])]
+        if n_levels:
+            shown.append(("specular", _specular_sheet([data[f"specular_{k}"]
+                                                       for k in range(n_levels)])))
+        if "incoming" in data:
+            shown.append(("incoming", data["incoming"]))
+        for what, img in shown:
+            path = out / f"preview_{what}.png"
+            imageio.write_preview_png(path, img, exposure=exposure)
+            files.append({"path": path.name, "kind": "preview", "of": what, "level": None,
+                          "roughness": None, "format": "png",
+                          "layout": "hcross per level, level 0 at the top"
+                          if what == "specular" else "hcross"})
+            written.append(path)
+    return files, written
+
+
 def export_probe(
     store_path: str | os.PathLike[str],
     probe: str | tuple[int, int, int],
@@ -146,6 +251,7 @@ def export_probe(
     layout: CubeLayout = "faces",
     fmt: ImageFormat = "exr",
     half: bool = False,
+    previews: bool = False,
 ) -> ExportResult:
     """Write one probe's maps (diffuse, specular levels, incoming if stored, SH) and a manifest.
 
@@ -164,25 +270,14 @@ def export_probe(
                          "mantissas, shared exponent)")
     store = open_store(store_path)
     ijk = parse_probe(probe, store) if isinstance(probe, str) else probe
-    index = int(store.probe_index(*ijk))
     maps = _map_arrays(store)
-    names = store.names
-    data = {name: np.asarray(store[name][index], dtype=np.float32) for name, _, _ in maps}
-    data["sh"] = np.asarray(store["sh"][index], dtype=np.float64)
-    if "positions" in names:
-        data["positions"] = np.asarray(store["positions"][index], dtype=np.float64)
-    bad = {name: int(np.count_nonzero(~np.isfinite(a))) for name, a in data.items()}
-    bad = {name: count for name, count in bad.items() if count}
-    if bad:
-        where = ", ".join(f"{count} in {name!r}" for name, count in bad.items())
-        raise StoreError(f"probe {tuple(ijk)} of {store.path} holds non-finite values (NaN or "
-                         f"inf): {where}; the store is damaged")
+    index = _read_probes(store, maps, [ijk])[0]
 
     out = prepare_output_dir(out_dir, EXPORT_FORMAT, create=False)
     with staged_output(out, lambda final: prepare_output_dir(final, EXPORT_FORMAT,
                                                              create=False)) as stage:
-        written = _write_export(stage, store, store_path, ijk, index, maps, data, layout=layout,
-                                fmt=fmt, half=half)
+        written = _write_export(stage, store, store_path, ijk, index, maps, layout=layout,
+                                fmt=fmt, half=half, previews=previews)
     return ExportResult([out / p.relative_to(stage) for p in written],
                         probe=tuple(ijk), valid=_probe_valid(store, index))
 
@@ -208,36 +303,17 @@ def _probe_valid(store: ProbeStore, index: int) -> bool | None:
 
 def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[str],
                   ijk: tuple[int, ...], index: int, maps: list[tuple[str, str, int | None]],
-                  data: dict[str, Any], *, layout: CubeLayout, fmt: ImageFormat,
-                  half: bool) -> list[Path]:
+                  *, layout: CubeLayout, fmt: ImageFormat, half: bool,
+                  previews: bool) -> list[Path]:
     """Write the probe's files into (staging) directory ``out``; returns their paths."""
-    from probegrid import imageio
     from probegrid.core.conventions import conventions
 
-    n_levels = sum(kind == "specular" for _, kind, _ in maps)
     manifest_path = out / "manifest.json"
     conv = conventions()
-    meta = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__,
-            "probegrid:probe": json.dumps(list(ijk))}
-    files: list[dict[str, Any]] = []
-    written: list[Path] = []
-    for name, kind, level in maps:
-        faces = data[name]
-        # files named as probegrid filter names them: specular_m<k>, diffuse, incoming
-        stem = f"specular_m{level}" if kind == "specular" else name
-        paths = imageio.write_cube(out / stem, faces, layout=layout, fmt=fmt, half=half,
-                                   metadata={**meta, "probegrid:kind": kind})
-        written += paths
-        r = None if level is None else (level / (n_levels - 1) if n_levels > 1 else 0.0)
-        files.append({"path": [str(q.relative_to(out)) for q in paths], "kind": kind,
-                      "level": level, "roughness": r, "layout": layout, "format": fmt,
-                      "dtype": paths.pixel_type, "face_size": int(faces.shape[1])})
-    atomic_write_json(out / "sh.json", {"coefficients": data["sh"].tolist(),
-                                        "basis": conv["sh_basis"],
-                                        "content": conv["sh_coefficients"]})
-    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None})
-    written.append(out / "sh.json")
-    position = data["positions"].tolist() if "positions" in data else None
+    files, written = _write_probe(out, store, maps, index, ijk, conv, layout=layout, fmt=fmt,
+                                  half=half, previews=previews)
+    position = (np.asarray(store["positions"][index], dtype=np.float64).tolist()
+                if "positions" in store.names else None)
     valid = _probe_valid(store, index)
     atomic_write_json(manifest_path, {
         "format": EXPORT_FORMAT, "format_version": 1,
@@ -247,3 +323,96 @@ def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[st
     })
     written.append(manifest_path)
     return written
+
+
+@dataclass
+class ProbesExport:
+    """What :func:`export_probes` wrote."""
+
+    out_dir: Path
+    probes: list[tuple[int, int, int]]
+    invalid: list[tuple[int, int, int]]
+    files: int
+
+    def summary(self) -> str:
+        """One line, plus the invalid probes when there are any."""
+        line = (f"wrote {len(self.probes)} probe{'s' if len(self.probes) != 1 else ''} "
+                f"({self.files} files) to {self.out_dir}/, one folder I_J_K each "
+                "(manifest.json lists them with the conventions)")
+        if self.invalid:
+            shown = ", ".join(",".join(map(str, p)) for p in self.invalid[:20])
+            more = f" and {len(self.invalid) - 20} more" if len(self.invalid) > 20 else ""
+            line += (f"\n  {len(self.invalid)} of them invalid (inside geometry; exported as "
+                     f"baked, not filled): {shown}{more}")
+        return line
+
+
+def export_probes(
+    store_path: str | os.PathLike[str],
+    selection: str,
+    out_dir: str | os.PathLike[str],
+    *,
+    layout: CubeLayout = "faces",
+    fmt: ImageFormat = "exr",
+    half: bool = False,
+    previews: bool = True,
+) -> ProbesExport:
+    """Many probes' maps at once (``selection``: ``all``, ``I0,J0,K0:I1,J1,K1`` or ``I,J,K``):
+    a folder ``I_J_K`` per probe holding what :func:`export_probe` writes plus PNG previews
+    (``preview_diffuse.png``, ``preview_specular.png``, ``preview_incoming.png``), and one
+    ``manifest.json`` listing every probe with its position and validity. Checked first like
+    :func:`export_probe` (every selected probe's values must be finite)."""
+
+    store = open_store(store_path)
+    probes = parse_probes(selection, store)
+    maps = _map_arrays(store)
+    indices = _read_probes(store, maps, probes)
+    valid = None
+    if "valid" in store.names and store.manifest.arrays["valid"].shape == (store.n_probes,):
+        valid = np.asarray(store["valid"], dtype=bool)
+    positions = (np.asarray(store["positions"], dtype=np.float64)
+                 if "positions" in store.names else None)
+
+    from probegrid.jobs.staging import staged_output
+
+    out = prepare_output_dir(out_dir, EXPORT_MANY_FORMAT, create=False)
+    with staged_output(out, lambda final: prepare_output_dir(final, EXPORT_MANY_FORMAT,
+                                                             create=False)) as stage:
+        count, invalid = _write_many(stage, store, store_path, selection, probes, indices, maps,
+                                     valid, positions, layout=layout, fmt=fmt, half=half,
+                                     previews=previews)
+    return ProbesExport(out, probes, invalid, count)
+
+
+def _write_many(out: Path, store: ProbeStore, store_path: str | os.PathLike[str], selection: str,
+                probes: list[tuple[int, int, int]], indices: list[int],
+                maps: list[tuple[str, str, int | None]], valid: NDArray[np.bool_] | None,
+                positions: NDArray[np.float64] | None, *, layout: CubeLayout, fmt: ImageFormat,
+                half: bool, previews: bool) -> tuple[int, list[tuple[int, int, int]]]:
+    """Write :func:`export_probes`' folders and manifest into (staging) directory ``out``;
+    returns the number of files and the invalid probes."""
+    from probegrid.core.conventions import conventions
+
+    conv = conventions()
+    entries: list[dict[str, Any]] = []
+    count = 0
+    for ijk, index in zip(probes, indices, strict=True):
+        sub = out / "_".join(map(str, ijk))
+        sub.mkdir(exist_ok=True)
+        files, written = _write_probe(sub, store, maps, index, ijk, conv, layout=layout,
+                                      fmt=fmt, half=half, previews=previews)
+        count += len(written)
+        entries.append({"ijk": list(ijk), "index": index, "folder": sub.name,
+                        "position": None if positions is None else positions[index].tolist(),
+                        "valid": None if valid is None else bool(valid[index]),
+                        "files": files})
+    invalid = [ijk for ijk, index in zip(probes, indices, strict=True)
+               if valid is not None and not valid[index]]
+    atomic_write_json(out / "manifest.json", {
+        "format": EXPORT_MANY_FORMAT, "format_version": 1,
+        "probegrid_version": __version__, "store": str(Path(store_path)),
+        "selection": selection, "count": len(probes),
+        "invalid": [list(p) for p in invalid],
+        "conventions": conv, "probes": entries,
+    })
+    return count + 1, invalid

@@ -382,6 +382,17 @@ def check_settings(settings: FilterSettings) -> None:
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
+    if settings.format == "gltf" and (settings.output_layout != "faces"
+                                      or settings.seam == "border"
+                                      or settings.specular_levels is not None
+                                      or settings.specular_method != "tiered"):
+        raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2, tiered GGX): "
+                         "it needs --output-layout faces, no --specular-levels or "
+                         "--specular-method and a seam mode other than 'border'")
+    if settings.format == "gltf" and settings.size is not None:
+        from probegrid.export.gltf_ibl import check_size
+
+        check_size(settings.size)
 
 
 def _filter_into(
@@ -391,7 +402,7 @@ def _filter_into(
     """Compute everything, then write it into the (staging) directory ``out``; returns the
     manifest and its file list."""
     from probegrid import imageio, usercache
-    from probegrid.core import diffuse, seams, shbands, specular
+    from probegrid.core import diffuse, seams, sh, shbands, specular
     from probegrid.export.shforms import sh_forms
 
     say: Progress = progress or (lambda _m: None)
@@ -404,12 +415,17 @@ def _filter_into(
     # the full chain by default; a cube that is not a power of two gets its level 0 only
     default_levels = None if n & (n - 1) == 0 else 1
     levels = len(mip_sizes(n, settings.specular_levels or default_levels))
+    if settings.format == "gltf":
+        from probegrid.export import gltf_ibl
+
+        levels = gltf_ibl.mip_count(n)  # ValueError (one line) unless n is a power of two >= 32
     timings["read"] = time.perf_counter() - t0
 
     # --- compute everything before touching the output directory -----------------------
     t = time.perf_counter()
     bands = settings.sh_bands
     coeffs = shbands.project_cube(cube, bands)
+    sh9 = sh.project_cube(cube)  # band 2, what sh.json's consumers and the glTF light take
     irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 
@@ -439,7 +455,8 @@ def _filter_into(
     with ThreadPoolExecutor(max_workers=1) as pool:
         diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
         t = time.perf_counter()
-        spec = specular.ggx_prefilter(cube, **spec_kwargs)
+        spec = (specular.ggx_prefilter(cube, **spec_kwargs) if settings.format != "gltf"
+                else gltf_ibl.specular_chain(cube))  # Babylon's mip -> alpha mapping
         timings["specular"] = time.perf_counter() - t
         if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
             specular.clear_caches()
@@ -504,11 +521,13 @@ def _filter_into(
                                         vk_format=97 if settings.half else 109,
                                         cube_convention=settings.cube_convention,
                                         key_values={"probegrid:conventions": json.dumps(conv)})
+    elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
+        files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
     else:
         write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
                    content="irradiance / pi", method=settings.diffuse_method,
                    sh_window=sh_window["window"])
-    for k, lv in enumerate(spec_out if ext != "ktx2" else []):
+    for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
         r = k / (levels - 1) if levels > 1 else 0.0
         write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
@@ -526,9 +545,7 @@ def _filter_into(
         "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
         "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
         "diffuse_map": {"method": settings.diffuse_method, **sh_window},
-        # these consumers take bands 0-2 (9 coefficients): their forms are of the leading 9 of
-        # the same basis (zeros for bands --sh-bands left out)
-        "consumers": sh_forms(np.pad(coeffs[:9], ((0, max(0, 9 - len(coeffs))), (0, 0)))),
+        "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
     }
     atomic_write_json(out / "sh.json", sh_doc)
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
@@ -573,8 +590,9 @@ def _filter_into(
         "settings": settings.model_dump(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
-                     "roughness": [k / (levels - 1) if levels > 1 else 0.0
-                                   for k in range(levels)]},
+                     "roughness": ([k / (levels - 1) if levels > 1 else 0.0
+                                    for k in range(levels)] if ext != "gltf" else
+                                   [float(np.sqrt(a)) for a in gltf_ibl.babylon_alphas(n)])},
         "quality": {
             "sh_min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
             "diffuse_sh_window": sh_window,
