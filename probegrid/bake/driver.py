@@ -10,18 +10,30 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    turns the test off). With ``relocate``, an invalid probe is moved to the nearest point of a
    small lattice within ``relocate_fraction`` of a cell that passes the tests; otherwise it
    stays invalid and every reader gives it zero weight.
-2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.bake.render`)
-   with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
-   projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
-   the punctual lights' direct light at the probe (the surface points that read them get it
-   from their own shadow rays; through the grid it would count twice).
-3. **final** (bounce B) -- the same render, then per probe: SH coefficients, the diffuse cube
-   (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the distance
-   moments and, optionally, the raw incoming cube, written to the store.
+2. **trace** (bounce 0) -- every probe's rays are cast once
+   (:class:`probegrid.bake.records.RecordTracer`: primary rays, shadow rays toward the punctual
+   lights and toward points sampled on the emitters at every hit, the probe's own rays toward
+   the lights and the emitter pieces of its direct view); the worker keeps per-hit records in
+   per-block work files (``NAME.probes.work/records/``, or its temporary directory on a Dask
+   worker) and returns only the probe's small data: distance moments and the irradiance cube of
+   its bounced light at level 0.
+3. **bounce 1 .. B-1** -- a pass over the records per bounce, no ray cast
+   (:func:`probegrid.bake.records.replay`): each hit reads the previous level's irradiance cubes
+   of its 8 probes (DDGI weights computed once, in the first pass, and kept with the records);
+   only the grid's per-probe irradiance cubes move between the driver and the workers. With
+   ``bounces="converge"`` the passes go on until the grid's total energy (over valid probes)
+   changes by less than ``tolerance`` (relative), at most ``max_bounces``.
+4. **final** (bounce B) -- a last pass gives what each probe sees (emission, its exact direct
+   view of the emitters, the punctual lights folded in), then per probe: SH coefficients, the
+   diffuse cube (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the
+   distance moments and, optionally, the raw incoming cube, written to the store. The block's
+   records are deleted after their last use.
 
-So ``bounces = B`` gives light that has bounced B times off the scene's surfaces (a furnace box
-reads ``Le (1 - rho^(B+1)) / (1 - rho)``). The store's manifest records the settings, the scene
-and environment hash, the conventions and the quality figures. A killed bake leaves only
+So ``bounces = B`` gives light from emitters and the environment that has bounced B times off
+the scene's surfaces (a furnace box reads ``Le (1 - rho^(B+1)) / (1 - rho)``; punctual lights,
+as before, add one reflection more, lit by shadow rays at every hit). The store's manifest
+records the settings, the scene and environment hash, the conventions and the quality figures
+(``bounces`` reached, ``bounce_residual``, ``bounce_energy`` per level). A killed bake leaves only
 ``.partial``/``.work`` directories, which never load as a store, and the same command resumes
 from the probes it finished. Results depend only on the settings and seed, not on the executor,
 the number of workers or the batch size.
@@ -54,6 +66,7 @@ from probegrid.bake.records import (
     irradiance_cubes,
     load_records,
     records_file,
+    remove_records,
     replay,
     resolve_directory,
     save_records,
@@ -300,7 +313,7 @@ def _weighted_records(state: _State, batch: NDArray[np.int64], *, keep: bool = T
         assert state.data is not None
         rec["weight_index"], rec["weight"] = hit_weights(rec, state.data)
         if path is not None and keep:
-            save_records(path, rec)
+            save_records(path, {k: rec[k] for k in ("weight_index", "weight")})
     return rec, path, rays
 
 
@@ -329,7 +342,7 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
         cubes = None
     incoming, _ = replay(rec, ctx.render, ctx.level, cubes, final=True)
     if path is not None:  # the block's last use: its records go (a retry traces them again)
-        path.unlink(missing_ok=True)
+        remove_records(path)
     levels = st.levels()
     out: dict[str, Any] = {
         "positions": state.positions[batch],
@@ -729,6 +742,8 @@ def bake(
         }
         store = w.finish(quality=quality)
         shutil.rmtree(work, ignore_errors=True)
+        if not files:  # (this machine's Dask workers' record directory, emptied block by block)
+            shutil.rmtree(resolve_directory(records), ignore_errors=True)
 
         seconds = time.perf_counter() - t0
         return BakeReport(store, seconds, stages.rays, grid.n_probes, resumed, quality)

@@ -60,7 +60,13 @@ from numpy.typing import NDArray
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment
 from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
-from probegrid.core.cubemap import FACE_U, FACE_V, texel_directions, texel_solid_angles
+from probegrid.core.cubemap import (
+    FACE_U,
+    FACE_V,
+    downsample,
+    texel_directions,
+    texel_solid_angles,
+)
 from probegrid.core.ddgi import (
     CRUSH_THRESHOLD,
     DEFAULT_NORMAL_BIAS,
@@ -118,20 +124,31 @@ def _irradiance_matrix(n: int, g: int) -> NDArray[np.float32]:
 
 def irradiance_cubes(cubes: NDArray[np.float32], size: int = IRRADIANCE_SIZE
                      ) -> NDArray[np.float32]:
-    """Irradiance / pi cubes ``(B, 6, size, size, 3)`` of radiance cubes ``(B, 6, n, n, 3)``,
-    one probe at a time (the bits do not depend on the batch)."""
-    b, _, n, _, _ = cubes.shape
+    """Irradiance / pi cubes ``(B, 6, size, size, 3)`` of radiance cubes ``(B, 6, n, n, 3)``
+    (box-filtered to ``size`` first when larger: the clamped cosine is smooth at that scale),
+    8 probes per product, zero-padded to a fixed shape (the bits do not depend on the batch)."""
+    b, _, n0, _, _ = cubes.shape
+    n = n0
+    while n > size and n % 2 == 0:  # the source box-filtered down to the output's size
+        n //= 2
     mat = _irradiance_matrix(n, size)
     out = np.empty((b, 6, size, size, 3), np.float32)
-    for j in range(b):  # per probe: a fixed-shape product
-        out[j] = (mat @ np.ascontiguousarray(cubes[j], np.float32).reshape(-1, 3)).reshape(
-            6, size, size, 3)
+    group = 8
+    for g0 in range(0, b, group):  # groups of probes as the columns of one fixed-shape product
+        k = min(group, b - g0)
+        stacked = np.zeros((6, n0, n0, group * 3), np.float32)
+        stacked[..., :3 * k] = np.moveaxis(cubes[g0:g0 + k], 0, 3).reshape(6, n0, n0, 3 * k)
+        while stacked.shape[1] > n:
+            stacked = downsample(stacked)
+        res = mat @ stacked.reshape(6 * n * n, group * 3)  # (6 size^2, group * 3)
+        out[g0:g0 + k] = np.moveaxis(res[:, :3 * k].reshape(-1, k, 3), 1, 0).reshape(
+            k, 6, size, size, 3)
     return out
 
 
 def records_file(directory: str | Path, block: int) -> Path:
-    """The record file of the block starting at probe ``block``."""
-    return Path(directory) / f"records_{block:09d}.npz"
+    """The record directory of the block starting at probe ``block``."""
+    return Path(directory) / f"records_{block:09d}"
 
 
 def resolve_directory(directory: str) -> Path:
@@ -141,26 +158,49 @@ def resolve_directory(directory: str) -> Path:
     return p if p.is_absolute() else Path(tempfile.gettempdir()) / directory
 
 
-def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
-    """Write ``records`` atomically (a killed worker leaves no half file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
+def _atomic_npy(path: Path, array: NDArray[Any]) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npy")
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **records)
+            np.save(fh, np.asarray(array), allow_pickle=False)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
 
 
+def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
+    """Write ``records`` as one ``.npy`` per array into the directory ``path``, each file
+    atomically and the ``complete`` mark last (a killed worker leaves no half record); arrays
+    already there (the same bits) are not written again."""
+    path.mkdir(parents=True, exist_ok=True)
+    done = (path / "complete").is_file()
+    for k, v in records.items():
+        f = path / f"{k}.npy"
+        if not (done and f.is_file()):
+            _atomic_npy(f, np.asarray(v))
+    if not done:
+        (path / "complete").touch()
+
+
 def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
-    """The records in ``path``, or None when there is no such (complete) file."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, KeyError):
+    """The records in the directory ``path`` (large arrays memory-mapped read-only), or None
+    when there is no complete record."""
+    if not (path / "complete").is_file():
         return None
+    try:
+        return {f.stem: np.load(f, mmap_mode="r" if f.stat().st_size > 1 << 16 else None,
+                                allow_pickle=False)
+                for f in path.glob("*.npy") if not f.name.startswith(".")}
+    except (OSError, ValueError):
+        return None
+
+
+def remove_records(path: Path) -> None:
+    """Delete a block's records (its last use)."""
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
 
 
 def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
