@@ -184,14 +184,14 @@ def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
 
 
 def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
-    """The records in the directory ``path`` (large arrays memory-mapped read-only), or None
+    """The records in the directory ``path`` (one block: memory bounded by the batch), or None
     when there is no complete record."""
     if not (path / "complete").is_file():
         return None
     try:
-        return {f.stem: np.load(f, mmap_mode="r" if f.stat().st_size > 1 << 16 else None,
-                                allow_pickle=False)
-                for f in path.glob("*.npy") if not f.name.startswith(".")}
+        out = {f.stem: np.load(f, allow_pickle=False)
+               for f in path.glob("*.npy") if not f.name.startswith(".")}
+        return out
     except (OSError, ValueError):
         return None
 
