@@ -29,8 +29,9 @@ What a probe sees of the emitters (:meth:`Emitters.texel_view`)
 A probe's rays leave through texel centres (or a few jittered points), and would catch a panel
 smaller than a texel whole or not at all. Instead, each emitting triangle facing the probe is
 clipped to every cube texel it overlaps (on the face plane, where its edges stay straight) and
-the exact solid angle of each piece is computed (:func:`probegrid.kernels.texel_emitter_coverage`);
-one shadow ray toward the piece's centroid gives its visibility. A texel's emission is then
+the exact solid angle of each piece is computed (:func:`probegrid.kernels.texel_emitter_coverage`,
+on sub-texels, :data:`VIEW_SUBDIVISION` per texel side); one shadow ray toward each piece's
+centroid gives its visibility. A texel's emission is then
 ``sum Le * Omega_piece * V / Omega_texel``: a panel keeps its exact energy whatever its size,
 and the texel's own rays supply the rest (the light reflected by the surfaces they hit).
 
@@ -53,7 +54,10 @@ from probegrid.kernels import emitter_irradiance, emitter_shadow_rays, texel_emi
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
-__all__ = ["MAX_ANALYTIC", "Emitters"]
+__all__ = ["MAX_ANALYTIC", "VIEW_SUBDIVISION", "Emitters"]
+
+#: Sub-texels per texel side whose pieces of the emitters get their own visibility ray.
+VIEW_SUBDIVISION = 4
 
 #: Emitting triangles up to which the control variate's exact integral is used at every hit
 #: (its cost grows with their number; above, plain next-event estimation).
@@ -167,22 +171,35 @@ class Emitters:
 
         Returns the flat texel indices ``(k,)`` that see some emitter (unique, sorted), their
         mean emitted radiance ``(k, 3)`` (exact solid-angle coverage, one shadow ray per
-        texel and triangle piece for visibility) and the rays cast.
+        sub-texel and triangle piece for visibility, :data:`VIEW_SUBDIVISION`) and the rays
+        cast.
         """
         if len(self) == 0:
             return np.zeros(0, np.int64), np.zeros((0, 3)), 0
         o = np.ascontiguousarray(origin, dtype=np.float64)
-        cap = 256
-        while True:
-            count, tex, tri, omega, dirs, dist = texel_emitter_coverage(
-                o, self.vertices, self.normals, n, FACE_NORMALS, FACE_U, FACE_V, cap)
-            if count <= cap:
+        # pieces of sub-texels (VIEW_SUBDIVISION^2 per texel), each with its own shadow ray:
+        # an occluder's edge across a texel is resolved to a sub-texel; the coverage stays exact.
+        # Emitters that would need more than 4 rays per texel of the whole cube get 1 per piece.
+        for sub in (VIEW_SUBDIVISION, 1):
+            m = n * sub
+            limit = 24 * n * n if sub > 1 else np.inf
+            cap = 256
+            while True:
+                count, tex, tri, omega, dirs, dist = texel_emitter_coverage(
+                    o, self.vertices, self.normals, m, FACE_NORMALS, FACE_U, FACE_V, cap)
+                if count <= cap or count > limit:
+                    break
+                cap = count
+            if count <= min(cap, limit):
                 break
-            cap = count
         tex, tri, omega, dirs, dist = (tex[:count], tri[:count], omega[:count], dirs[:count],
                                        dist[:count])
         if count == 0:
             return np.zeros(0, np.int64), np.zeros((0, 3)), 0
+        if sub > 1:  # sub-texel (face, row, col) of the m-cube -> texel of the n-cube
+            face, rest = np.divmod(tex, m * m)
+            row, col = np.divmod(rest, m)
+            tex = (face * n + row // sub) * n + col // sub
         ok = np.isfinite(dist) & (dist > 2 * eps)
         visible = np.zeros(count, bool)
         if ok.any():
