@@ -1,26 +1,23 @@
-"""Bake throughput against the physical limit: raw embreex on the same rays, in the same run.
+"""Bake throughput against the physical limit: raw embreex on the bake's own rays, same run.
 
-1. Bakes a 4x3x4 grid (32^2 faces, 2 bounces, the bundled sky) in this process while recording
-   every ray batch the bake hands to Embree (primary and shadow rays, classification rays
-   included), then replays exactly those rays through ``embreex`` directly (float32 arrays, the
-   same batches, ``INTERSECT`` / ``OCCLUDED``) and prints both rates and their ratio: the share
-   of the bake's time that is ray casting. Two scenes: the bundled room (44 triangles, where a
-   ray costs Embree about 75 ns, less than shading its hit) and the same room with a
-   327,680-triangle sculpture; 1 and 8 rays per texel (the per-probe filters are amortised over
-   more rays at 8). The rays are recorded in one run and the bake is timed in another (recording
-   costs time); a third, instrumented run splits the bake's time into ray casting (Embree and
-   our argument handling), the indirect lookup at ray hits, the per-probe filters, and the rest.
-   From the split it prints the efficiency of the ray casting alone (raw over our casting) and
-   two ceilings of the ratio: with the per-probe filters as the bake's only other work, and with
-   the filters and the indirect lookup (the two costs the issue's items 3 and 5 require).
+1. Distinct-ray efficiency (issue 10, 13a): bakes a 4x3x4 grid (32^2 faces, the bundled sky)
+   in this process while recording every ray batch the bake hands to Embree (classification,
+   primary rays, shadow rays toward the punctual lights and the emitters, the probes' rays
+   toward the lights and emitter pieces), drops repeated rays (bit for bit) to keep the bake's
+   *distinct* rays, casts each of them once through ``embreex`` directly (float32 arrays,
+   ``INTERSECT`` / ``OCCLUDED``), and divides that CPU time by the CPU time of the same bake run
+   again uninstrumented. Both are CPU times of this process, so a busy machine changes them
+   less than wall time. Two scenes (the bundled room, 44 triangles, and the same room with a
+   327,680-triangle sculpture), 1 and 4 rays per texel, 2 bounces and ``converge``; and the
+   converged bake's time over the 2-bounce bake's.
 2. Probes per second for the sample scene with 1 and 2 local worker processes, for two grid
    sizes (time should grow linearly in probes and fall with workers), and the peak memory of
    the workers.
-3. Worker memory for a 32-probe and a 16,384-probe grid: bounded by a batch per worker, not by
-   the grid (workers memory-map the previous bounce's grid instead of holding a copy).
+3. Worker memory and the records' disk use for 16x8x16 and 32x16x32 grids at 16^2 faces:
+   memory bounded by a batch per worker, not by the grid (the per-hit records are per-block
+   work files, the grid's per-probe data is memory-mapped).
 
-Run: ``.venv/bin/python benchmarks/bench_bake.py`` (about 2-4 minutes on 2 cores; ``--part N``
-runs one part).
+Run: ``.venv/bin/python benchmarks/bench_bake.py`` (``--part N`` runs one part).
 """
 
 from __future__ import annotations
@@ -95,60 +92,15 @@ class Recorder:
         return sum(len(b[1]) for b in self.batches)
 
 
-class Split:
-    """Times the bake's parts: RayTracer calls (Embree and its argument handling), the indirect
-    lookup (IndirectField.irradiance) and the per-probe filters and SH minima."""
-
-    def __init__(self) -> None:
-        self.seconds = {"cast": 0.0, "indirect": 0.0, "filters": 0.0}
-        self.total = 0.0
-        self._patched: list[tuple[object, str, object]] = []
-
-    def _wrap(self, owner: object, name: str, key: str) -> None:
-        orig = getattr(owner, name)
-        split = self
-
-        def timed(*args, **kwargs):
-            t = time.perf_counter()
-            try:
-                return orig(*args, **kwargs)
-            finally:
-                split.seconds[key] += time.perf_counter() - t
-
-        self._patched.append((owner, name, orig))
-        setattr(owner, name, timed)
-
-    def __enter__(self) -> Self:
-        from probegrid.bake import driver as bake_module
-        from probegrid.bake.render import IndirectField
-
-        self._wrap(raytrace.RayTracer, "intersect", "cast")
-        self._wrap(raytrace.RayTracer, "occluded", "cast")
-        self._wrap(IndirectField, "irradiance", "indirect")
-        self._wrap(bake_module, "_filter_groups", "filters")
-        self._wrap(bake_module, "_sh_minima", "filters")
-        self._t0 = time.perf_counter()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.total = time.perf_counter() - self._t0
-        for owner, name, orig in reversed(self._patched):
-            setattr(owner, name, orig)
-
-    def shares(self) -> tuple[float, float, float, float]:
-        c, i, f = (self.seconds[k] / self.total for k in ("cast", "indirect", "filters"))
-        return c, i, f, 1.0 - c - i - f
-
-
 def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
-    """Time to cast the recorded batches with embreex alone (best of 3)."""
+    """CPU time to cast the recorded batches with embreex alone (best of 3)."""
     centre = 0.5 * (scene.vertices.min(0) + scene.vertices.max(0))
     es = rtcore_scene.EmbreeScene()
     TriangleMesh(scene=es, vertices=(scene.vertices - centre).astype(np.float32),
                  indices=scene.triangles.astype(np.int32))
     best = np.inf
-    for _ in range(3):
-        t = time.perf_counter()
+    for _ in range(3):  # CPU time of this process: the machine may be shared
+        t = time.process_time()
         for kind, org, d, far in batches:
             for s in range(0, len(d), chunk):
                 dist = far[s:s + chunk].copy()
@@ -157,7 +109,7 @@ def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
                 else:
                     es.run(org[s:s + chunk], d[s:s + chunk], dists=dist,
                            query="OCCLUDED")
-        best = min(best, time.perf_counter() - t)
+        best = min(best, time.process_time() - t)
     return best
 
 
@@ -244,7 +196,10 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--part", type=int, action="append", choices=(1, 2, 3),
                     help="run only this part (repeatable); all three by default")
-    parts = set(ap.parse_args(argv).part or (1, 2, 3))
+    ap.add_argument("--memory-grids", default="16x8x16,32x16x32",
+                    help="grids of part 3 (comma-separated)")
+    args = ap.parse_args(argv)
+    parts = set(args.part or (1, 2, 3))
     scene = load_gltf(SCENE)
     env = load_environment(SKY)
     tmp = Path(tempfile.mkdtemp(prefix="bench-bake-"))
@@ -254,57 +209,72 @@ def main(argv: list[str] | None = None) -> None:
         if 2 in parts:
             part_probes_per_second(scene, env, tmp)
         if 3 in parts:
-            part_memory(scene, env, tmp)
+            part_memory(scene, env, tmp, tuple(args.memory_grids.split(",")))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def distinct_batches(batches: list) -> tuple[list, int, int]:
+    """The recorded rays with every repeat dropped (same query, origin, direction and length,
+    bit for bit): the bake's distinct rays, as one batch per query kind. Returns them, their
+    count and the count of rays the bake cast."""
+    out, total, kept = [], 0, 0
+    for kind in ("intersect", "occluded"):
+        parts = [b for b in batches if b[0] == kind]
+        if not parts:
+            continue
+        org = np.concatenate([b[1] for b in parts])
+        d = np.concatenate([b[2] for b in parts])
+        far = np.concatenate([b[3] for b in parts])
+        key = np.ascontiguousarray(np.concatenate([org, d, far[:, None]], axis=1))
+        rows = key.view(np.dtype((np.void, key.dtype.itemsize * 7))).reshape(-1)
+        _, first = np.unique(rows, return_index=True)
+        first.sort()
+        total += len(rows)
+        kept += len(first)
+        out.append((kind, org[first], d[first], far[first]))
+    return out, kept, total
+
+
 def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
-    """Part 1: the ratio to raw embreex, where the time goes, and the ceilings."""
-    print("1. ray throughput: bake vs raw embreex on the same rays (1 process)")
-    print("   grid 4x3x4, 32^2 faces, 2 bounces, the bundled sky")
-    print("   scene                     triangles samples      rays   bake Mray/s  raw Mray/s"
-          "   ratio  (target >= 0.8)")
+    """Part 1: distinct-ray efficiency (issue 10, 13a): the time raw embreex needs for the
+    bake's distinct rays, each cast once, over the bake's CPU time."""
+    print("1. distinct-ray efficiency: raw embreex time for the bake's distinct rays / bake CPU")
+    print("   time (1 process; grid 4x3x4, 32^2 faces, the bundled sky; targets: >= 0.3 sample")
+    print("   room at 1 ray/texel and 2 bounces, >= 0.4 with the sculpture or 4 rays/texel)")
+    print("   scene                     triangles spp bounces  reached  distinct rays (cast)"
+          "  bake CPU s  raw s  efficiency")
     scenes = [("sample room", scene), ("sample room + sculpture", detailed_scene(scene))]
-    rows = []
+    times: dict[tuple[str, int, str], float] = {}
     for label, sc in scenes:
         grid = grid_for(scene, grid="4x3x4")
         # warm-up: numba kernels loaded, the BVH's first traversals
-        bake(sc, grid, tmp / f"warm{len(label)}.probes", settings=BakeSettings(face_size=8, bounces=1),
-             environment=env, executor=InlineExecutor(check_pickle=False))
-        for samples in (1, 8):
-            st = BakeSettings(face_size=32, bounces=2, samples=samples)
-            run = InlineExecutor(check_pickle=False)
-            with Recorder() as rec:  # the rays (recording costs time: not the timed run)
-                bake(sc, grid, tmp / f"r{samples}{len(label)}.probes", settings=st,
-                     environment=env, executor=run)
-            t = time.perf_counter()  # the same bake, timed, uninstrumented
-            bake(sc, grid, tmp / f"a{samples}{len(label)}.probes", settings=st,
-                 environment=env, executor=run)
-            t_bake = time.perf_counter() - t
-            with Split() as split:  # and once more, timing its parts
-                bake(sc, grid, tmp / f"s{samples}{len(label)}.probes", settings=st,
-                     environment=env, executor=run)
-            t_raw = raw_embree_seconds(sc, rec.batches)
-            n = rec.rays
-            rows.append((label, samples, split.shares(), t_raw, dict(split.seconds)))
-            print(f"   {label:<25} {sc.n_triangles:9,d} {samples:7d} {n / 1e6:7.2f} M "
-                  f"{n / t_bake / 1e6:10.2f} {n / t_raw / 1e6:11.2f}   {t_raw / t_bake:.3f}")
-    print("\n   where the bake's time goes (share of an instrumented run):")
-    print("   scene                     samples  ray casting  indirect lookup  filters+SH min"
-          "  rest")
-    for label, samples, (cast, ind, filt, rest), _, _ in rows:
-        print(f"   {label:<25} {samples:7d} {cast:11.0%} {ind:16.0%} {filt:15.0%} "
-              f"{rest:5.0%}")
-    print("\n   what the ratio could be (raw embreex seconds over the sum of the parts kept):")
-    print("   casting = raw / the bake's own ray casting (Embree plus argument handling);")
-    print("   the ceilings assume everything else in the bake took no time at all.")
-    print("   scene                     samples   casting   ceiling: filters only"
-          "   filters + indirect")
-    for label, samples, _, t_raw, sec in rows:
-        cast, ind, filt = sec["cast"], sec["indirect"], sec["filters"]
-        print(f"   {label:<25} {samples:7d} {t_raw / cast:9.2f} "
-              f"{t_raw / (t_raw + filt):23.2f} {t_raw / (t_raw + filt + ind):20.2f}")
+        bake(sc, grid, tmp / f"warm{len(label)}.probes",
+             settings=BakeSettings(face_size=8, bounces=1), environment=env,
+             executor=InlineExecutor(check_pickle=False))
+        for samples in (1, 4):
+            for bounces in (2, "converge"):
+                st = BakeSettings(face_size=32, bounces=bounces, samples=samples)
+                run = InlineExecutor(check_pickle=False)
+                tag = f"{samples}{bounces}{len(label)}"
+                with Recorder() as rec:  # the rays (recording costs time: not the timed run)
+                    bake(sc, grid, tmp / f"r{tag}.probes", settings=st, environment=env,
+                         executor=run)
+                c = time.process_time()  # the same bake, timed, uninstrumented
+                rep = bake(sc, grid, tmp / f"a{tag}.probes", settings=st, environment=env,
+                           executor=run)
+                cpu = time.process_time() - c
+                batches, distinct, total = distinct_batches(rec.batches)
+                t_raw = raw_embree_seconds(sc, batches)
+                times[(label, samples, str(bounces))] = cpu
+                print(f"   {label:<25} {sc.n_triangles:9,d} {samples:3d} {bounces!s:>8} "
+                      f"{rep.quality['bounces']:8d}  {distinct / 1e6:7.2f} M ({total / 1e6:5.2f} M)"
+                      f"  {cpu:10.2f} {t_raw:6.2f}  {t_raw / cpu:10.3f}")
+    print("\n   converged bake / 2-bounce bake, CPU time (target <= 1.5):")
+    for label, _ in scenes:
+        for samples in (1, 4):
+            r = times[(label, samples, "converge")] / times[(label, samples, "2")]
+            print(f"   {label:<25} {samples} ray(s)/texel: {r:.2f}")
 
 
 def part_probes_per_second(scene: Scene, env: Environment, tmp: Path) -> None:
@@ -335,22 +305,40 @@ def part_probes_per_second(scene: Scene, env: Environment, tmp: Path) -> None:
     print(f"   16x8x16 (2048 probes) at the 2-worker rate: about {est:.0f} s")
 
 
-def part_memory(scene: Scene, env: Environment, tmp: Path) -> None:
-    """Part 3: worker memory against grid size."""
-    print("\n3. worker memory against grid size (8^2 faces, 1 bounce, 2 workers)")
-    print("   grid        probes   seconds  largest worker: resident, private")
-    small_st = BakeSettings(face_size=8, bounces=1)
-    for label in ("4x2x4", "32x16x32"):
+def part_memory(scene: Scene, env: Environment, tmp: Path, grids: tuple[str, ...]) -> None:
+    """Part 3: worker memory against grid size: bounded by the batch, not the grid (records in
+    per-block work files, the grid's per-probe data memory-mapped)."""
+    print("\n3. worker memory against grid size (16^2 faces, 2 bounces, 2 workers)")
+    print("   grid        probes   seconds  largest worker: resident, private   records on disk")
+    st = BakeSettings(face_size=16, bounces=2)
+    for label in grids:
         g = grid_for(scene, grid=label)
+        out = tmp / f"m{label}.probes"
+        peak_disk = [0]
+        stop = threading.Event()
+
+        def watch(out: Path = out, peak: list[int] = peak_disk) -> None:
+            work = out.with_name(out.name + ".work") / "records"
+            while not stop.wait(0.5):
+                try:
+                    size = sum(f.stat().st_size for f in work.rglob("*.npy"))
+                except OSError:
+                    continue
+                peak[0] = max(peak[0], size)
+
+        th = threading.Thread(target=watch, daemon=True)
+        th.start()
         with LocalExecutor(2) as ex, DescendantMemory() as mem:
             t = time.perf_counter()
-            bake(scene, g, tmp / f"m{label}.probes", settings=small_st, environment=env,
-                 executor=ex)
+            bake(scene, g, out, settings=st, environment=env, executor=ex)
             sec = time.perf_counter() - t
+        stop.set()
+        th.join()
         print(f"   {label:<10} {g.n_probes:7d}  {sec:8.2f}  {mem.peak_mb:8.0f} MB, "
-              f"{mem.peak_private_mb:4.0f} MB")
-    print("   (resident memory includes the pages of the memory-mapped previous bounce a "
-          "worker has read; private memory is what it holds alone)")
+              f"{mem.peak_private_mb:4.0f} MB {peak_disk[0] / 2**20:14.0f} MB")
+        shutil.rmtree(out, ignore_errors=True)
+    print("   (resident memory includes the pages of memory-mapped files a worker has read; "
+          "private memory is what it holds alone)")
 
 
 if __name__ == "__main__":

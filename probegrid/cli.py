@@ -93,7 +93,11 @@ def _option(p: argparse.ArgumentParser, model: type[BaseModel], field: str, *fla
         kw["action"] = "store_false" if default else "store_true"
     else:
         literal = next((a for a in kinds if get_origin(a) is Literal), None)
-        if literal is not None:
+        if literal is not None and int in kinds:  # an int or a word (--bounces 2 / converge)
+            words = get_args(literal)
+            kw["type"] = lambda t: t if t in words else _int(t)
+            kw["metavar"] = "{N," + ",".join(words) + "}"
+        elif literal is not None:
             kw["choices"] = get_args(literal)
         elif int in kinds:
             kw["type"] = _int
@@ -228,7 +232,11 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "environment_intensity", help="environment scale")
     _option(p, J, "environment_rotation", help="degrees about +Y (right-handed)")
     _option(p, S, "face_size", help="incoming cube face size")
-    _option(p, S, "bounces", help="indirect bounces")
+    _option(p, S, "bounces", help="indirect bounces, or converge: until the grid's energy "
+            "changes by less than --tolerance")
+    _option(p, S, "tolerance", help="relative energy change that ends --bounces converge")
+    _option(p, S, "max_bounces", help="most bounces --bounces converge makes")
+    _option(p, S, "light_samples", help="points sampled on the emitters at every hit")
     _option(p, S, "samples", help="rays per texel")
     _option(p, S, "seed", help="random seed of the ray jitter")
     _option(p, S, "diffuse_size", help="diffuse cube face size")

@@ -721,3 +721,594 @@ def segment_rays(
                 ok = False
         far[i] = np.float32(1.0 - 2.0 * lo)
     return org, d32, far, ok
+# ------------------------------------------------------------------------------ trace once
+@numba.njit(**_JIT)
+def hit_probe_weights(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
+    step: NDArray[np.float64],
+    counts: NDArray[np.int64],
+    corner_offsets: NDArray[np.int64],
+    valid: NDArray[np.bool_],
+    positions: NDArray[np.float64],
+    moments: NDArray[np.float32],
+    moments_n: int,
+    bias: float,
+    face_u: NDArray[np.float64],
+    face_v: NDArray[np.float64],
+    normal_floor: float,
+    min_weight: float,
+    crush: float,
+) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """The 8 probes around each surface point and their normalised DDGI weights.
+
+    The weight half of :func:`indirect_irradiance` (same parameters, same arithmetic): the
+    weights of :func:`probegrid.core.ddgi.probe_weights` with normals and moments, divided by
+    their sum. They depend only on the geometry and the probes' distance moments, never on the
+    light, so a bake computes them once per hit and every bounce reuses them.
+
+    Returns
+    -------
+    indices : (n, 8) int32
+        Linear probe indices (corner order of :data:`probegrid.core.grid.CORNER_OFFSETS`).
+    weights : (n, 8) float32
+        Normalised weights; all 0 where no valid probe carries weight.
+    """
+    n_pts = points.shape[0]
+    out_i = np.zeros((n_pts, 8), np.int32)
+    out_w = np.zeros((n_pts, 8), np.float32)
+    use_moments = moments.shape[0] > 0
+    m = moments_n
+    mb = m + 2
+    texels = 6 * mb * mb
+    half = 0.5 * m
+    crush2 = crush * crush
+    w = np.empty(8)
+    base = np.empty(3, np.int64)
+    frac = np.empty(3)
+    cp = np.empty(3)
+    for i in range(n_pts):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        big = max(abs(nx), abs(ny), abs(nz))
+        if not big > 0:
+            continue
+        nx, ny, nz = nx / big, ny / big, nz / big
+        nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+        nx, ny, nz = nx / nl, ny / nl, nz / nl
+        for a in range(3):
+            c = min(max(points[i, a], lo[a]), hi[a])
+            cp[a] = c
+            if counts[a] > 1:
+                t = (c - lo[a]) / step[a]
+                b = min(max(math.floor(t), 0.0), float(max(counts[a] - 2, 0)))
+                base[a] = int(b)
+                frac[a] = min(max(t - b, 0.0), 1.0)
+            else:
+                base[a] = 0
+                frac[a] = 0.0
+        qx, qy, qz = cp[0] + bias * nx, cp[1] + bias * ny, cp[2] + bias * nz
+        total = 0.0
+        for c in range(8):
+            ii = min(base[0] + corner_offsets[c, 0], counts[0] - 1)
+            jj = min(base[1] + corner_offsets[c, 1], counts[1] - 1)
+            kk = min(base[2] + corner_offsets[c, 2], counts[2] - 1)
+            p = (ii * counts[1] + jj) * counts[2] + kk
+            out_i[i, c] = p
+            tw = 1.0
+            for a in range(3):
+                f = frac[a]
+                tw *= f if corner_offsets[c, a] == 1 else 1.0 - f
+            if not valid[p]:
+                tw *= 0.0
+            if tw == 0.0:
+                w[c] = 0.0
+                continue
+            ex = positions[p, 0] - cp[0]
+            ey = positions[p, 1] - cp[1]
+            ez = positions[p, 2] - cp[2]
+            el = math.sqrt(ex * ex + ey * ey + ez * ez)
+            if el > 1e-300:
+                dot = (ex * nx + ey * ny + ez * nz) / el
+            else:
+                dot = 0.0
+            s = ((dot + 1.0) * 0.5) ** 2 + normal_floor
+            if use_moments:
+                ox = qx - positions[p, 0]
+                oy = qy - positions[p, 1]
+                oz = qz - positions[p, 2]
+                r = math.sqrt(ox * ox + oy * oy + oz * oz)
+                face, u, v = _face_uv(ox, oy, oz, face_u, face_v)
+                x = (u + 1.0) * half + 0.5
+                y = (v + 1.0) * half + 0.5
+                x0 = min(math.floor(x), float(m))
+                y0 = min(math.floor(y), float(m))
+                fx, fy = x - x0, y - y0
+                gx, gy = 1.0 - fx, 1.0 - fy
+                t0 = p * texels + (face * mb + int(y0)) * mb + int(x0)
+                w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
+                mean = (moments[t0, 0] * w00 + moments[t0 + 1, 0] * w01
+                        + moments[t0 + mb, 0] * w10 + moments[t0 + mb + 1, 0] * w11)
+                if not r <= mean:
+                    mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
+                               + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
+                    var = abs(mean_sq - mean * mean)
+                    excess = max(r - mean, 0.0)
+                    den = var + excess * excess
+                    if excess > 0:
+                        cheb = var / den if den != 0 else math.nan
+                    else:
+                        cheb = 1.0
+                    if math.isnan(cheb):
+                        cheb = 0.0
+                    s *= cheb * cheb * cheb
+            s = max(s, min_weight)
+            if s < crush:
+                s = s * s * s / crush2
+            tw *= s
+            w[c] = tw
+            total += tw
+        if total <= 0:
+            continue
+        for c in range(8):
+            out_w[i, c] = w[c] / total
+    return out_i, out_w
+
+
+@numba.njit(**_JIT)
+def replay_radiance(
+    kind: NDArray[np.uint8],
+    emission: NDArray[np.float32],
+    light_punctual: NDArray[np.float32],
+    light_emitters: NDArray[np.float32],
+    albedo: NDArray[np.float32],
+    normals: NDArray[np.float32],
+    indices: NDArray[np.int32],
+    weights: NDArray[np.float32],
+    cubes: NDArray[np.float32],
+    cube_n: int,
+    face_u: NDArray[np.float64],
+    face_v: NDArray[np.float64],
+    level: int,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """One bounce of a probe's rays from their per-hit records (no ray is cast).
+
+    Per ray, by ``kind`` (0 a miss, 1 a front hit, 2 a back hit):
+
+    * a miss returns ``light_punctual`` (where a miss keeps the environment's radiance);
+    * a back hit returns 0;
+    * a front hit returns ``emission + albedo * lit`` with, at ``level`` 0,
+      ``lit = light_punctual`` (the punctual lights' irradiance / pi) and, at higher levels,
+      ``lit = light_punctual + light_emitters + sum_c weights[c] * G[indices[c]](normal)``:
+      the emitters' irradiance / pi (next-event estimation) and the grid's bounced
+      irradiance / pi, ``G`` each probe's bordered irradiance cube ``cubes`` (face ``cube_n``,
+      :class:`probegrid.core.ddgi.BorderedCubes` layout ``(P * 6 (n + 2)^2, 3)``) read
+      bilinearly at the normal; an empty ``cubes`` is a black grid.
+
+    Returns
+    -------
+    radiance : (N, 3) float32
+        What the probe sees along each ray.
+    bounced : (N, 3) float32
+        The same without the emission of the surfaces hit: the light that the grid carries
+        (reflected at least once, or the environment).
+    """
+    nr = kind.shape[0]
+    rad = np.zeros((nr, 3), np.float32)
+    bnc = np.zeros((nr, 3), np.float32)
+    use_grid = level > 0 and cubes.shape[0] > 0
+    n = cube_n
+    mb = n + 2
+    texels = 6 * mb * mb
+    half = 0.5 * n
+    for i in range(nr):
+        k = kind[i]
+        if k == 2:
+            continue
+        if k == 0:
+            for c in range(3):
+                rad[i, c] = light_punctual[i, c]
+                bnc[i, c] = light_punctual[i, c]
+            continue
+        l0 = np.float64(light_punctual[i, 0])
+        l1 = np.float64(light_punctual[i, 1])
+        l2 = np.float64(light_punctual[i, 2])
+        if level > 0:
+            l0 += light_emitters[i, 0]
+            l1 += light_emitters[i, 1]
+            l2 += light_emitters[i, 2]
+        if use_grid:
+            face, u, v = _face_uv(np.float64(normals[i, 0]), np.float64(normals[i, 1]),
+                                  np.float64(normals[i, 2]), face_u, face_v)
+            x = (u + 1.0) * half + 0.5
+            y = (v + 1.0) * half + 0.5
+            x0 = min(math.floor(x), float(n))
+            y0 = min(math.floor(y), float(n))
+            fx, fy = x - x0, y - y0
+            gx, gy = 1.0 - fx, 1.0 - fy
+            off = (face * mb + int(y0)) * mb + int(x0)
+            w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
+            for c in range(8):
+                wc = np.float64(weights[i, c])
+                if wc == 0.0:
+                    continue
+                t0 = indices[i, c] * texels + off
+                l0 += wc * (cubes[t0, 0] * w00 + cubes[t0 + 1, 0] * w01
+                            + cubes[t0 + mb, 0] * w10 + cubes[t0 + mb + 1, 0] * w11)
+                l1 += wc * (cubes[t0, 1] * w00 + cubes[t0 + 1, 1] * w01
+                            + cubes[t0 + mb, 1] * w10 + cubes[t0 + mb + 1, 1] * w11)
+                l2 += wc * (cubes[t0, 2] * w00 + cubes[t0 + 1, 2] * w01
+                            + cubes[t0 + mb, 2] * w10 + cubes[t0 + mb + 1, 2] * w11)
+        b0 = albedo[i, 0] * l0
+        b1 = albedo[i, 1] * l1
+        b2 = albedo[i, 2] * l2
+        bnc[i, 0], bnc[i, 1], bnc[i, 2] = b0, b1, b2
+        rad[i, 0] = emission[i, 0] + b0
+        rad[i, 1] = emission[i, 1] + b1
+        rad[i, 2] = emission[i, 2] + b2
+    return rad, bnc
+
+
+@numba.njit(**_JIT)
+def _clip_plane(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: float,
+                out: NDArray[np.float64]) -> int:
+    """Sutherland-Hodgman: the polygon ``px[:count] (k, 3)`` clipped to ``dot(p, n) >= 0``
+    into ``out``; returns its vertex count."""
+    k = 0
+    for i in range(count):
+        j = (i + 1) % count
+        di = px[i, 0] * nx + px[i, 1] * ny + px[i, 2] * nz
+        dj = px[j, 0] * nx + px[j, 1] * ny + px[j, 2] * nz
+        if di >= 0:
+            out[k, 0], out[k, 1], out[k, 2] = px[i, 0], px[i, 1], px[i, 2]
+            k += 1
+        if (di >= 0) != (dj >= 0):
+            t = di / (di - dj)
+            for a in range(3):
+                out[k, a] = px[i, a] + t * (px[j, a] - px[i, a])
+            k += 1
+    return k
+
+
+@numba.njit(**_JIT)
+def _polygon_form_factor(px: NDArray[np.float64], count: int, nx: float, ny: float,
+                         nz: float) -> float:
+    """Lambert's edge formula: ``(1 / 2) |sum_i theta_i (n . g_i)|`` for the polygon
+    ``px[:count]`` (relative to the receiver, entirely in its upper half-space): the cosine-
+    weighted solid angle, i.e. the irradiance of a unit-radiance polygon."""
+    total = 0.0
+    for i in range(count):
+        j = (i + 1) % count
+        ax, ay, az = px[i, 0], px[i, 1], px[i, 2]
+        bx, by, bz = px[j, 0], px[j, 1], px[j, 2]
+        la = math.sqrt(ax * ax + ay * ay + az * az)
+        lb = math.sqrt(bx * bx + by * by + bz * bz)
+        if not (la > 0 and lb > 0):
+            continue
+        cx = ay * bz - az * by
+        cy = az * bx - ax * bz
+        cz = ax * by - ay * bx
+        lc = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if not lc > 0:
+            continue
+        theta = math.atan2(lc, ax * bx + ay * by + az * bz)
+        total += theta * (cx * nx + cy * ny + cz * nz) / lc
+    return 0.5 * abs(total)
+
+
+@numba.njit(**_JIT)
+def emitter_irradiance(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    tri_vertices: NDArray[np.float64],
+    tri_normals: NDArray[np.float64],
+    tri_radiance: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Unoccluded irradiance of uniformly emitting triangles at surface points (exact).
+
+    Each triangle ``tri_vertices (E, 3, 3)`` emits ``tri_radiance (E, 3)`` from its front (the
+    side ``tri_normals (E, 3)`` points to, as wound); at a point ``points (n, 3)`` with unit
+    ``normals (n, 3)`` in front of it, the triangle is clipped to the point's upper half-space
+    and integrated by Lambert's edge formula. Returns ``(n, 3)`` lux.
+    """
+    n = points.shape[0]
+    ne = tri_vertices.shape[0]
+    out = np.zeros((n, 3))
+    poly = np.empty((3, 3))
+    clipped = np.empty((8, 3))
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        for e in range(ne):
+            side = (tri_normals[e, 0] * (px - tri_vertices[e, 0, 0])
+                    + tri_normals[e, 1] * (py - tri_vertices[e, 0, 1])
+                    + tri_normals[e, 2] * (pz - tri_vertices[e, 0, 2]))
+            if not side > 0:
+                continue
+            for v in range(3):
+                poly[v, 0] = tri_vertices[e, v, 0] - px
+                poly[v, 1] = tri_vertices[e, v, 1] - py
+                poly[v, 2] = tri_vertices[e, v, 2] - pz
+            k = _clip_plane(poly, 3, nx, ny, nz, clipped)
+            if k < 3:
+                continue
+            f = _polygon_form_factor(clipped, k, nx, ny, nz)
+            out[i, 0] += f * tri_radiance[e, 0]
+            out[i, 1] += f * tri_radiance[e, 1]
+            out[i, 2] += f * tri_radiance[e, 2]
+    return out
+
+
+@numba.njit(**_JIT)
+def emitter_shadow_rays(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    sample_points: NDArray[np.float64],
+    sample_normals: NDArray[np.float64],
+    sample_radiance: NDArray[np.float64],
+    sample_control: NDArray[np.float64],
+    inverse_pdf: NDArray[np.float64],
+    eps: float,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+           NDArray[np.float64], NDArray[np.float64]]:
+    """Next-event estimation toward points sampled on emitters, as a control-variate correction.
+
+    Point ``i`` has ``L`` samples ``sample_points (n, L, 3)`` on emitting triangles (unit
+    ``sample_normals``, front as wound), with radiance ``sample_radiance (n, L, 3)`` (textures
+    applied), the control variate's radiance ``sample_control (n, L, 3)`` (the uniform radiance
+    whose unoccluded integral is known exactly, :func:`emitter_irradiance`; 0 without one) and
+    ``inverse_pdf (n, L)`` (area over the area density). A sample contributes
+    ``g = cos_x cos_y / d^2 * inverse_pdf / L`` times ``(radiance - control)`` if its shadow ray
+    is unoccluded and ``-control`` if it is occluded, so that
+
+        E = exact unoccluded integral of the control + sum of contributions
+
+    is unbiased, and exact when nothing occludes the emitters.
+
+    Returns
+    -------
+    point : (k,) int64; origins, directions : (k, 3); tmax : (k,);
+    visible, occluded : (k, 3) contributions (lux) for the two outcomes.
+    """
+    n, ns = sample_points.shape[0], sample_points.shape[1]
+    cap = n * ns
+    which = np.empty(cap, np.int64)
+    org = np.empty((cap, 3))
+    dirs = np.empty((cap, 3))
+    tmax = np.empty(cap)
+    vis = np.empty((cap, 3))
+    occ = np.empty((cap, 3))
+    k = 0
+    inv_l = 1.0 / ns
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        for s in range(ns):
+            dx = sample_points[i, s, 0] - px
+            dy = sample_points[i, s, 1] - py
+            dz = sample_points[i, s, 2] - pz
+            d2 = dx * dx + dy * dy + dz * dz
+            if not d2 > 0:
+                continue
+            dist = math.sqrt(d2)
+            wx, wy, wz = dx / dist, dy / dist, dz / dist
+            cx = wx * nx + wy * ny + wz * nz
+            cy = -(wx * sample_normals[i, s, 0] + wy * sample_normals[i, s, 1]
+                   + wz * sample_normals[i, s, 2])
+            if not (cx > 0 and cy > 0):
+                continue
+            g = cx * cy / d2 * inverse_pdf[i, s] * inv_l
+            r0, r1, r2 = sample_radiance[i, s, 0], sample_radiance[i, s, 1], \
+                sample_radiance[i, s, 2]
+            c0, c1, c2 = sample_control[i, s, 0], sample_control[i, s, 1], \
+                sample_control[i, s, 2]
+            if max(r0, r1, r2, c0, c1, c2) <= 0:
+                continue
+            which[k] = i
+            # the shadow ray runs between the two points each lifted eps off its surface (a ray
+            # grazing the emitter's plane would hit it early in float32) and stops eps short
+            ox, oy, oz = px + eps * nx, py + eps * ny, pz + eps * nz
+            sx = sample_points[i, s, 0] + eps * sample_normals[i, s, 0] - ox
+            sy = sample_points[i, s, 1] + eps * sample_normals[i, s, 1] - oy
+            sz = sample_points[i, s, 2] + eps * sample_normals[i, s, 2] - oz
+            sl = math.sqrt(sx * sx + sy * sy + sz * sz)
+            org[k, 0], org[k, 1], org[k, 2] = ox, oy, oz
+            dirs[k, 0], dirs[k, 1], dirs[k, 2] = sx / sl, sy / sl, sz / sl
+            tmax[k] = sl - eps
+            vis[k, 0], vis[k, 1], vis[k, 2] = g * (r0 - c0), g * (r1 - c1), g * (r2 - c2)
+            occ[k, 0], occ[k, 1], occ[k, 2] = -g * c0, -g * c1, -g * c2
+            k += 1
+    return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
+
+
+@numba.njit(**_JIT)
+def _polygon_solid_angle(px: NDArray[np.float64], count: int) -> float:
+    """Solid angle of a planar convex polygon ``px[:count]`` (relative to the eye), as a fan
+    of triangles (Van Oosterom & Strackee 1983)."""
+    total = 0.0
+    ax, ay, az = px[0, 0], px[0, 1], px[0, 2]
+    la = math.sqrt(ax * ax + ay * ay + az * az)
+    for i in range(1, count - 1):
+        bx, by, bz = px[i, 0], px[i, 1], px[i, 2]
+        cx, cy, cz = px[i + 1, 0], px[i + 1, 1], px[i + 1, 2]
+        lb = math.sqrt(bx * bx + by * by + bz * bz)
+        lc = math.sqrt(cx * cx + cy * cy + cz * cz)
+        trip = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
+               + (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la)
+        total += 2.0 * math.atan2(abs(trip), den)
+    return total
+
+
+@numba.njit(**_JIT)
+def texel_emitter_coverage(
+    origin: NDArray[np.float64],
+    tri_vertices: NDArray[np.float64],
+    tri_normals: NDArray[np.float64],
+    n: int,
+    face_normals: NDArray[np.float64],
+    face_u: NDArray[np.float64],
+    face_v: NDArray[np.float64],
+    capacity: int,
+) -> tuple[int, NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64],
+           NDArray[np.float64]]:
+    """The exact solid angle of every (cube texel, emitting triangle) overlap seen from a point.
+
+    Each triangle whose front faces ``origin (3,)`` is clipped to every face's frustum
+    (``|x.U| <= x.N``, ``|x.V| <= x.N``), projected onto the face plane (straight edges stay
+    straight), and clipped to each texel square of an ``n``-cube it touches; the piece's solid
+    angle is the fan sum of :func:`_polygon_solid_angle`. Visibility is not tested here.
+
+    Returns
+    -------
+    count : int
+        Overlaps found (more than ``capacity`` means: call again with a larger one; only the
+        first ``capacity`` are filled).
+    texel : (capacity,) int64
+        Flat texel index ``(face * n + row) * n + col``.
+    triangle : (capacity,) int64
+    solid_angle : (capacity,) float64
+    direction : (capacity, 3) float64
+        Unit direction of the piece's centroid.
+    distance : (capacity,) float64
+        Distance along it to the triangle's plane.
+    """
+    ne = tri_vertices.shape[0]
+    tex = np.empty(capacity, np.int64)
+    tri = np.empty(capacity, np.int64)
+    omega = np.empty(capacity)
+    dirs = np.empty((capacity, 3))
+    dist = np.empty(capacity)
+    count = 0
+    poly = np.empty((16, 3))
+    tmp = np.empty((16, 3))
+    uv = np.empty((16, 2))
+    sq = np.empty((24, 2))
+    sq2 = np.empty((24, 2))
+    pts = np.empty((24, 3))
+    half = 0.5 * n
+    for e in range(ne):
+        ox = tri_vertices[e, 0, 0] - origin[0]
+        oy = tri_vertices[e, 0, 1] - origin[1]
+        oz = tri_vertices[e, 0, 2] - origin[2]
+        tn0, tn1, tn2 = tri_normals[e, 0], tri_normals[e, 1], tri_normals[e, 2]
+        plane = -(tn0 * ox + tn1 * oy + tn2 * oz)  # > 0: the origin is in front
+        if not plane > 0:
+            continue
+        for f in range(6):
+            for v in range(3):
+                for a in range(3):
+                    poly[v, a] = tri_vertices[e, v, a] - origin[a]
+            k = 3
+            for side in range(4):
+                sgn = 1.0 if side % 2 == 0 else -1.0
+                if side < 2:
+                    ax_ = face_normals[f, 0] + sgn * face_u[f, 0]
+                    ay_ = face_normals[f, 1] + sgn * face_u[f, 1]
+                    az_ = face_normals[f, 2] + sgn * face_u[f, 2]
+                else:
+                    ax_ = face_normals[f, 0] + sgn * face_v[f, 0]
+                    ay_ = face_normals[f, 1] + sgn * face_v[f, 1]
+                    az_ = face_normals[f, 2] + sgn * face_v[f, 2]
+                k = _clip_plane(poly, k, ax_, ay_, az_, tmp)
+                for j in range(k):
+                    poly[j, 0], poly[j, 1], poly[j, 2] = tmp[j, 0], tmp[j, 1], tmp[j, 2]
+                if k < 3:
+                    break
+            if k < 3:
+                continue
+            umin, umax, vmin, vmax = 1.0, -1.0, 1.0, -1.0
+            ok = True
+            for j in range(k):
+                zz = (poly[j, 0] * face_normals[f, 0] + poly[j, 1] * face_normals[f, 1]
+                      + poly[j, 2] * face_normals[f, 2])
+                if not zz > 0:
+                    ok = False
+                    break
+                uu = (poly[j, 0] * face_u[f, 0] + poly[j, 1] * face_u[f, 1]
+                      + poly[j, 2] * face_u[f, 2]) / zz
+                vv = (poly[j, 0] * face_v[f, 0] + poly[j, 1] * face_v[f, 1]
+                      + poly[j, 2] * face_v[f, 2]) / zz
+                uu = min(max(uu, -1.0), 1.0)
+                vv = min(max(vv, -1.0), 1.0)
+                uv[j, 0], uv[j, 1] = uu, vv
+                umin, umax = min(umin, uu), max(umax, uu)
+                vmin, vmax = min(vmin, vv), max(vmax, vv)
+            if not ok:
+                continue
+            c0 = min(int(math.floor((umin + 1.0) * half)), n - 1)
+            c1 = min(int(math.floor((umax + 1.0) * half)), n - 1)
+            r0 = min(int(math.floor((vmin + 1.0) * half)), n - 1)
+            r1 = min(int(math.floor((vmax + 1.0) * half)), n - 1)
+            for row in range(r0, r1 + 1):
+                for col in range(c0, c1 + 1):
+                    u_lo = col / half - 1.0
+                    u_hi = (col + 1) / half - 1.0
+                    v_lo = row / half - 1.0
+                    v_hi = (row + 1) / half - 1.0
+                    m = k
+                    for j in range(m):
+                        sq[j, 0], sq[j, 1] = uv[j, 0], uv[j, 1]
+                    for side in range(4):  # clip to the texel square
+                        q = 0
+                        for j in range(m):
+                            jj = (j + 1) % m
+                            if side == 0:
+                                di, dj = sq[j, 0] - u_lo, sq[jj, 0] - u_lo
+                            elif side == 1:
+                                di, dj = u_hi - sq[j, 0], u_hi - sq[jj, 0]
+                            elif side == 2:
+                                di, dj = sq[j, 1] - v_lo, sq[jj, 1] - v_lo
+                            else:
+                                di, dj = v_hi - sq[j, 1], v_hi - sq[jj, 1]
+                            if di >= 0:
+                                sq2[q, 0], sq2[q, 1] = sq[j, 0], sq[j, 1]
+                                q += 1
+                            if (di >= 0) != (dj >= 0):
+                                t = di / (di - dj)
+                                sq2[q, 0] = sq[j, 0] + t * (sq[jj, 0] - sq[j, 0])
+                                sq2[q, 1] = sq[j, 1] + t * (sq[jj, 1] - sq[j, 1])
+                                q += 1
+                        m = q
+                        for j in range(m):
+                            sq[j, 0], sq[j, 1] = sq2[j, 0], sq2[j, 1]
+                        if m < 3:
+                            break
+                    if m < 3:
+                        continue
+                    # planar area (for the centroid) and the solid angle of the piece
+                    area = 0.0
+                    cu = 0.0
+                    cv = 0.0
+                    for j in range(m):
+                        jj = (j + 1) % m
+                        cr = sq[j, 0] * sq[jj, 1] - sq[jj, 0] * sq[j, 1]
+                        area += cr
+                        cu += (sq[j, 0] + sq[jj, 0]) * cr
+                        cv += (sq[j, 1] + sq[jj, 1]) * cr
+                    if area == 0.0:
+                        continue
+                    cu /= 3.0 * area
+                    cv /= 3.0 * area
+                    for j in range(m):
+                        for a in range(3):
+                            pts[j, a] = (face_normals[f, a] + sq[j, 0] * face_u[f, a]
+                                         + sq[j, 1] * face_v[f, a])
+                    om = _polygon_solid_angle(pts, m)
+                    if not om > 0:
+                        continue
+                    if count < capacity:
+                        dx = face_normals[f, 0] + cu * face_u[f, 0] + cv * face_v[f, 0]
+                        dy = face_normals[f, 1] + cu * face_u[f, 1] + cv * face_v[f, 1]
+                        dz = face_normals[f, 2] + cu * face_u[f, 2] + cv * face_v[f, 2]
+                        dl = math.sqrt(dx * dx + dy * dy + dz * dz)
+                        dx, dy, dz = dx / dl, dy / dl, dz / dl
+                        tex[count] = (f * n + row) * n + col
+                        tri[count] = e
+                        omega[count] = om
+                        dirs[count, 0], dirs[count, 1], dirs[count, 2] = dx, dy, dz
+                        den = -(tn0 * dx + tn1 * dy + tn2 * dz)
+                        dist[count] = plane / den if den > 0 else math.inf
+                    count += 1
+    return count, tex, tri, omega, dirs, dist

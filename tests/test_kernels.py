@@ -205,3 +205,121 @@ def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
     np.testing.assert_allclose(alb, base[material[prim]]
                                * np.sum(w * colors[tris[prim]][:, :, :3], axis=1), rtol=1e-13)
     np.testing.assert_array_equal(em, emis[material[prim]])
+
+
+# ------------------------------------------------------------------------------ bake v2 kernels
+@pytest.mark.parametrize("counts", [(4, 3, 5), (2, 1, 1)])
+def test_hit_probe_weights_match_probe_weights(counts) -> None:
+    """The trace-once weights are :func:`probegrid.core.ddgi.probe_weights`' (normals and
+    moments), stored normalised in float32."""
+    from probegrid.bake.records import GridData, hit_weights
+    from probegrid.core.ddgi import BorderedCubes, probe_weights
+
+    rng = np.random.default_rng(3)
+    field = _field(rng, counts=counts)
+    n = 3000
+    pts = rng.uniform((-1.3, -0.2, -2.3), (2.3, 1.7, 1.3), (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    mom = BorderedCubes(field.moments)
+    data = GridData(field.grid, field.valid, field.positions, mom.data, mom.n, None)
+    rec = {"kind": np.ones(n, np.uint8), "position": pts, "normal": nrm.astype(np.float32)}
+    idx, w = hit_weights(rec, data)
+    ref = probe_weights(field.grid, pts, valid=field.valid,
+                        normals=nrm.astype(np.float32).astype(np.float64),
+                        probe_positions=field.positions, moments=mom)
+    np.testing.assert_array_equal(idx, ref.indices)
+    np.testing.assert_allclose(w, ref.weights, rtol=1e-6, atol=1e-7)
+
+
+def test_replay_kernel_matches_numpy() -> None:
+    """One bounce from records: ``emission + albedo * (lp + le + sum_c w_c G_c(n))`` with the
+    bilinear bordered-cube lookup of :class:`probegrid.core.ddgi.BorderedCubes`."""
+    from probegrid.core.cubemap import FACE_U, FACE_V
+    from probegrid.core.ddgi import BorderedCubes
+    from probegrid.kernels import replay_radiance
+
+    rng = np.random.default_rng(5)
+    n, p, g = 2000, 7, 4
+    kind = rng.integers(0, 3, n).astype(np.uint8)
+    f32 = lambda *s: rng.random(s).astype(np.float32)
+    em, lp, le, alb = f32(n, 3), f32(n, 3), f32(n, 3), f32(n, 3)
+    nrm = rng.normal(size=(n, 3))
+    nrm = (nrm / np.linalg.norm(nrm, axis=1, keepdims=True)).astype(np.float32)
+    idx = rng.integers(0, p, (n, 8)).astype(np.int32)
+    w = f32(n, 8)
+    cubes = BorderedCubes(rng.random((p, 6, g, g, 3)))
+    for level in (0, 2):
+        rad, bnc = replay_radiance(kind, em, lp, le, alb, nrm, idx, w, cubes.data, g,
+                                   FACE_U, FACE_V, level)
+        grid = np.zeros((n, 3))
+        if level:
+            for c in range(8):
+                grid += w[:, c, None] * cubes.lookup(idx[:, c], nrm.astype(np.float64))
+        lit = lp + (le + grid if level else 0)
+        ref_b = np.where((kind == 1)[:, None], alb * lit, np.where((kind == 0)[:, None], lp, 0))
+        ref_r = ref_b + np.where((kind == 1)[:, None], em, 0)
+        np.testing.assert_allclose(bnc, ref_b, rtol=1e-5)
+        np.testing.assert_allclose(rad, ref_r, rtol=1e-5)
+
+
+def test_emitter_irradiance_is_the_exact_form_factor() -> None:
+    """Lambert's edge formula against the closed form of a parallel rectangle, and a triangle
+    crossing the receiver's horizon (clipped) against a fine quadrature."""
+    from probegrid.kernels import emitter_irradiance
+
+    a, b, c = 1.3, 0.7, 0.9  # rectangle centred above the point, facing down
+    v = np.array([[-a / 2, c, -b / 2], [a / 2, c, -b / 2], [a / 2, c, b / 2], [-a / 2, c, b / 2]])
+    tris = np.array([v[[0, 2, 1]], v[[0, 3, 2]]])
+    nrm = np.tile([0.0, -1.0, 0.0], (2, 1))
+    e = emitter_irradiance(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), tris, nrm,
+                           np.ones((2, 3)))
+    x, y = a / 2 / c, b / 2 / c
+    ff = 4 * (x / np.hypot(1, x) * np.arctan(y / np.hypot(1, x))
+              + y / np.hypot(1, y) * np.arctan(x / np.hypot(1, y))) / (2 * np.pi)
+    np.testing.assert_allclose(e[0], np.pi * ff, rtol=1e-12)
+    # a vertical triangle beside a tilted receiver: quadrature of cos_x cos_y / d^2 dA
+    tri = np.array([[[1.0, -0.5, -0.5], [1.0, 0.8, -0.5], [1.0, -0.5, 0.9]]])
+    tn = np.array([[-1.0, 0.0, 0.0]])
+    rn = np.array([[0.3, 0.8, 0.0]]) / np.hypot(0.3, 0.8)
+    got = emitter_irradiance(np.zeros((1, 3)), rn, tri, tn, np.ones((1, 3)))[0, 0]
+    k = 1500
+    s, t = np.meshgrid((np.arange(k) + 0.5) / k, (np.arange(k) + 0.5) / k)
+    inside = s + t < 1
+    pts = tri[0, 0] + s[inside, None] * (tri[0, 1] - tri[0, 0]) + t[inside, None] * (
+        tri[0, 2] - tri[0, 0])
+    d2 = np.sum(pts**2, axis=1)
+    cx = np.maximum(pts @ rn[0], 0) / np.sqrt(d2)
+    cy = pts[:, 0] / np.sqrt(d2)
+    area = 0.5 * 1.3 * 1.4
+    ref = np.sum(cx * cy / d2) * area / inside.sum()
+    assert got == pytest.approx(ref, rel=2e-3)
+    assert 0 < got < np.pi
+
+
+def test_texel_coverage_adds_up_to_the_triangle_solid_angle() -> None:
+    """The pieces of a triangle clipped to every texel it covers (across cube faces) add up to
+    its solid angle (Van Oosterom-Strackee), each piece inside its texel."""
+    from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, texel_solid_angles
+    from probegrid.kernels import texel_emitter_coverage
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        tri = rng.normal(size=(1, 3, 3)) * 2
+        nrm = np.cross(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0])
+        nrm /= np.linalg.norm(nrm)
+        if np.dot(nrm, tri[0, 0]) > 0:  # make it face the origin
+            tri = tri[:, ::-1].copy()
+            nrm = -nrm
+        a, b, c = tri[0]
+        la, lb, lc = (np.linalg.norm(x) for x in (a, b, c))
+        ref = 2 * np.arctan2(abs(np.dot(a, np.cross(b, c))),
+                             la * lb * lc + np.dot(a, b) * lc + np.dot(a, c) * lb
+                             + np.dot(b, c) * la)
+        count, tex, _, om, dirs, dist = texel_emitter_coverage(
+            np.zeros(3), tri, nrm[None], 8, FACE_NORMALS, FACE_U, FACE_V, 4096)
+        assert 0 < count <= 4096
+        assert om[:count].sum() == pytest.approx(ref, rel=1e-10)
+        assert np.all(om[:count] <= texel_solid_angles(8).reshape(-1)[tex[:count]] * (1 + 1e-9))
+        hit = dist[:count, None] * dirs[:count]
+        np.testing.assert_allclose((hit - a) @ nrm, 0, atol=1e-9)

@@ -11,18 +11,30 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    double-sided or not (:mod:`probegrid.bake.inside`). With ``relocate``, an invalid probe is
    moved to the nearest point of a small lattice within ``relocate_fraction`` of a cell that
    passes the tests; otherwise it stays invalid and every reader gives it zero weight.
-2. **bounce 0 .. B-1** -- the incoming cube of every probe is rendered (:mod:`probegrid.bake.render`)
-   with the *previous* bounce's grid as the indirect light at every hit (none for bounce 0), and
-   projected to 9 SH coefficients; these grids are kept in ``NAME.probes.work/``. They leave out
-   the punctual lights' direct light at the probe (the surface points that read them get it
-   from their own shadow rays; through the grid it would count twice).
-3. **final** (bounce B) -- the same render, then per probe: SH coefficients, the diffuse cube
-   (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the distance
-   moments and, optionally, the raw incoming cube, written to the store.
+2. **trace** (bounce 0) -- every probe's rays are cast once
+   (:class:`probegrid.bake.records.RecordTracer`: primary rays, shadow rays toward the punctual
+   lights and toward points sampled on the emitters at every hit, the probe's own rays toward
+   the lights and the emitter pieces of its direct view); the worker keeps per-hit records in
+   per-block work files (``NAME.probes.work/records/``, or its temporary directory on a Dask
+   worker) and returns only the probe's small data: distance moments and the irradiance cube of
+   its bounced light at level 0.
+3. **bounce 1 .. B-1** -- a pass over the records per bounce, no ray cast
+   (:func:`probegrid.bake.records.replay`): each hit reads the previous level's irradiance cubes
+   of its 8 probes (DDGI weights computed once, in the first pass, and kept with the records);
+   only the grid's per-probe irradiance cubes move between the driver and the workers. With
+   ``bounces="converge"`` the passes go on until the grid's total energy (over valid probes)
+   changes by less than ``tolerance`` (relative), at most ``max_bounces``.
+4. **final** (bounce B) -- a last pass gives what each probe sees (emission, its exact direct
+   view of the emitters, the punctual lights folded in), then per probe: SH coefficients, the
+   diffuse cube (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the
+   distance moments and, optionally, the raw incoming cube, written to the store. The block's
+   records are deleted after their last use.
 
-So ``bounces = B`` gives light that has bounced B times off the scene's surfaces (a furnace box
-reads ``Le (1 - rho^(B+1)) / (1 - rho)``). The store's manifest records the settings, the scene
-and environment hash, the conventions and the quality figures. A killed bake leaves only
+So ``bounces = B`` gives light from emitters and the environment that has bounced B times off
+the scene's surfaces (a furnace box reads ``Le (1 - rho^(B+1)) / (1 - rho)``; punctual lights,
+as before, add one reflection more, lit by shadow rays at every hit). The store's manifest
+records the settings, the scene and environment hash, the conventions and the quality figures
+(``bounces`` reached, ``bounce_residual``, ``bounce_energy`` per level). A killed bake leaves only
 ``.partial``/``.work`` directories, which never load as a store, and the same command resumes
 from the probes it finished. Results depend only on the settings and seed, not on the executor,
 the number of workers or the batch size.
@@ -30,6 +42,7 @@ the number of workers or the batch size.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -51,17 +64,26 @@ from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
 from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import light_quality, printable
 from probegrid.bake.precision import fit_map_dtype, map_dtype
-from probegrid.bake.render import (
-    IndirectField,
-    ProbeRenderer,
-    RenderSettings,
-    probe_irradiance_coefficients,
+from probegrid.bake.records import (
+    IRRADIANCE_SIZE,
+    GridData,
+    RecordTracer,
+    hit_weights,
+    irradiance_cubes,
+    load_records,
+    records_file,
+    remove_records,
+    replay,
+    resolve_directory,
+    save_records,
+    select_probes,
 )
+from probegrid.bake.render import ProbeRenderer, RenderSettings
 from probegrid.bake.settings import BakeSettings
 from probegrid.core import probefilter, sh
 from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import solid_angle_integral
-from probegrid.core.ddgi import BorderedCubes, bordered_cubes
+from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.grid import GridSpec
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
@@ -118,46 +140,20 @@ def environment_hash(env: Environment) -> str:
     return h.hexdigest()
 
 
-# ------------------------------------------------------------------------------ field files
-@dataclass(frozen=True)
-class FieldFiles:
-    """``.npy`` files in the work directory holding a bounce's :class:`IndirectField`."""
-
-    sh: str
-    valid: str
-    positions: str
-    coeffs: str
-    moments_bordered: str
-
-    def open(self, grid: GridSpec) -> IndirectField:
-        """The field, every array memory-mapped read-only."""
-        return IndirectField(grid, _load(self.sh), _load(self.valid), _load(self.positions),
-                             BorderedCubes.from_bordered(_load(self.moments_bordered)),
-                             _load(self.coeffs))
-
-
+# ------------------------------------------------------------------------------ work files
 def _load(path: str) -> NDArray[Any]:
     """The read-only memory map of an ``.npy`` file."""
     return np.load(path, mmap_mode="r", allow_pickle=False)
 
 
-def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArray[np.float32],
-                      *, sh_file: Path, valid_file: Path, positions_file: Path) -> FieldFiles:
-    """Write the derived arrays of a bounce's field into ``directory``: its irradiance
-    coefficients and bordered distance moments, computed a chunk of probes at a time (the
-    inputs may be memory maps), so that workers can memory-map the whole field."""
-    directory.mkdir(parents=True, exist_ok=True)
-    # (create_npy reserves the disk blocks: a full disk is an OSError here, not a SIGBUS later)
-    coeffs = create_npy(directory / "coeffs.npy", np.float64, sh_l.shape)
-    probe_irradiance_coefficients(sh_l, out=coeffs)
-    coeffs.flush()
-    p, _, m, _, c = moments.shape
-    bordered = create_npy(directory / "moments_bordered.npy", np.float32, (p, 6, m + 2, m + 2, c))
-    bordered_cubes(moments, out=bordered)
-    bordered.flush()
-    del coeffs, bordered
-    return FieldFiles(str(sh_file), str(valid_file), str(positions_file),
-                      str(directory / "coeffs.npy"), str(directory / "moments_bordered.npy"))
+def _save_npy(path: Path, array: NDArray[Any]) -> Path:
+    """Write ``array`` to ``path`` (disk blocks reserved first: a full disk is an OSError here,
+    not a SIGBUS in a worker later)."""
+    out = create_npy(path, array.dtype, array.shape)
+    out[...] = array
+    out.flush()
+    del out
+    return path
 
 
 # ------------------------------------------------------------------------------ worker side
@@ -165,12 +161,13 @@ def write_field_files(directory: Path, sh_l: NDArray[np.float64], moments: NDArr
 class _Context:
     """Per-bake-stage worker context: pickled once per worker, ``setup`` builds the BVH.
 
-    The grid-sized arrays (probe positions and validity, the previous bounce's field) travel
-    either as arrays (``previous`` a tuple ``(sh, moments)``; for Dask workers, which may not
-    share this machine's files) or as ``.npy`` paths in the bake's work directory that
-    ``setup`` memory-maps (``positions``/``valid`` strings, ``previous`` a
-    :class:`~probegrid.bake.render.FieldFiles`), so that a local worker's memory is bounded by its
-    batch, not by the grid.
+    The grid-sized arrays (probe positions and validity, the bordered distance moments, the
+    previous bounce's bordered irradiance cubes, the moments to store) travel either as arrays
+    (for Dask workers, which may not share this machine's files) or as ``.npy`` paths in the
+    bake's work directory that ``setup`` memory-maps, so that a local worker's memory is bounded
+    by its batch, not by the grid. They are the grid's small per-probe data; the per-hit records
+    stay with the workers (``records``: a directory, absolute for workers on this machine, else
+    a name under each worker's temporary directory; :mod:`probegrid.bake.records`).
     """
 
     scene: Scene
@@ -180,7 +177,11 @@ class _Context:
     grid: GridSpec
     positions: NDArray[np.float64] | str | None = None
     valid: NDArray[np.bool_] | str | None = None
-    previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
+    records: str = ""
+    level: int = 0
+    moments_bordered: NDArray[np.float32] | str | None = None
+    cubes: NDArray[np.float32] | str | None = None
+    moments: NDArray[np.float32] | str | None = None
 
     def setup(self) -> _State:
         import multiprocessing
@@ -191,16 +192,20 @@ class _Context:
 
             threadpool_limits(1)
         positions, valid = _array(self.positions), _array(self.valid)
-        field = None
-        if isinstance(self.previous, FieldFiles):
-            field = self.previous.open(self.grid)
-        elif self.previous is not None:
+        tracer = RecordTracer(self.scene, self.environment, self.render,
+                              light_samples=self.settings.light_samples,
+                              tracer=RayTracer.shared(self.scene))
+        data = None
+        if self.moments_bordered is not None:
             assert positions is not None and valid is not None
-            field = IndirectField(self.grid, self.previous[0], valid, positions,
-                                  self.previous[1])
-        renderer = ProbeRenderer(self.scene, self.environment, self.render,
-                                 tracer=RayTracer.shared(self.scene))
-        return _State(renderer, self, field, positions, valid)
+            mb = _array(self.moments_bordered)
+            assert mb is not None
+            cubes = _array(self.cubes)
+            data = GridData(self.grid, valid, positions,
+                            np.ascontiguousarray(mb).reshape(-1, mb.shape[-1]),
+                            mb.shape[2] - 2,
+                            None if cubes is None else np.ascontiguousarray(cubes).reshape(-1, 3))
+        return _State(tracer, self, data, positions, valid, _array(self.moments))
 
 
 def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
@@ -210,11 +215,16 @@ def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
 
 @dataclass
 class _State:
-    renderer: ProbeRenderer
+    tracer: RecordTracer
     ctx: _Context
-    field: IndirectField | None
+    data: GridData | None
     positions: NDArray[np.float64] | None
     valid: NDArray[np.bool_] | None
+    moments: NDArray[np.float32] | None
+
+    @property
+    def renderer(self) -> ProbeRenderer:
+        return self.tracer.renderer
 
 
 #: Face size of the texel-centre rays that classify a probe as inside geometry.
@@ -263,13 +273,67 @@ def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     return {"positions": pos, "valid": valid, "backface_fraction": frac, "rays": rays}
 
 
-def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+def _block_records(state: _State, batch: NDArray[np.int64]
+                   ) -> tuple[dict[str, Any], Path | None, int]:
+    """The records of ``batch``: from its block's file, or traced again when it is missing
+    (deterministic: the same bits). Returns them, the block's file when they came from a whole
+    block, and the rays cast."""
+    ctx = state.ctx
+    bs = ctx.settings.batch_size
+    path = records_file(resolve_directory(ctx.records), int(batch[0]) // bs * bs)
+    rec = load_records(path)
+    if rec is not None:
+        whole = np.array_equal(rec["probes"], batch)
+        sel = select_probes(rec, batch)
+        if sel is not None:
+            return sel, (path if whole else None), 0
     assert state.positions is not None
-    # without the punctual lights folded in at the probe: this grid is the next bounce's
-    # indirect light, and its surface points get the lights' direct light by shadow rays
-    res = state.renderer.render(state.positions[batch], batch, field=state.field, direct=False)
-    coeffs = np.stack([sh.project_cube(c) for c in res.incoming])  # (B, 9, 3), per probe
-    return {"sh": coeffs, "moments": res.moments, "rays": res.rays}
+    rec, _, rays = state.tracer.trace(state.positions[batch], batch)
+    return rec, None, rays
+
+
+def _bounced_outputs(rec: dict[str, Any], settings: RenderSettings, level: int,
+                     cubes: NDArray[np.float32] | None) -> dict[str, Any]:
+    """A bounce's per-probe outputs: the irradiance cube of the bounced light and its energy."""
+    cube, _ = replay(rec, settings, level, cubes, final=False)
+    irr = irradiance_cubes(cube)
+    energy = np.array([float(solid_angle_integral(c).sum()) for c in cube])
+    return {"irradiance": irr, "energy": energy}
+
+
+def _trace_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    """Cast every ray of the batch once, keep the records, return bounce 0's grid data."""
+    assert state.positions is not None
+    ctx = state.ctx
+    rec, moments, rays = state.tracer.trace(state.positions[batch], batch)
+    bs = ctx.settings.batch_size
+    save_records(records_file(resolve_directory(ctx.records), int(batch[0]) // bs * bs), rec)
+    out = _bounced_outputs(rec, ctx.render, 0, None)
+    out.update(moments=moments, backface_fraction=rec["backface_fraction"], rays=rays)
+    return out
+
+
+def _weighted_records(state: _State, batch: NDArray[np.int64], *, keep: bool = True
+                      ) -> tuple[dict[str, Any], Path | None, int]:
+    """The batch's records with each hit's probe weights (computed once, then kept when
+    ``keep``)."""
+    rec, path, rays = _block_records(state, batch)
+    if "weight_index" not in rec:
+        assert state.data is not None
+        rec["weight_index"], rec["weight"] = hit_weights(rec, state.data)
+        if path is not None and keep:
+            save_records(path, {k: rec[k] for k in ("weight_index", "weight")})
+    return rec, path, rays
+
+
+def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
+    """One bounce over the batch's records: the grid data of level ``ctx.level``."""
+    ctx = state.ctx
+    rec, _, rays = _weighted_records(state, batch)
+    assert state.data is not None
+    out = _bounced_outputs(rec, ctx.render, ctx.level, state.data.cubes)
+    out["rays"] = rays
+    return out
 
 
 def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
@@ -278,21 +342,30 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     ctx = state.ctx
     st = ctx.settings
     assert state.positions is not None and state.valid is not None
-    res = state.renderer.render(state.positions[batch], batch, field=state.field)
+    assert state.moments is not None
+    if ctx.level > 0:
+        rec, path, rays = _weighted_records(state, batch, keep=False)
+        cubes = None if state.data is None else state.data.cubes
+    else:
+        rec, path, rays = _block_records(state, batch)
+        cubes = None
+    incoming, _ = replay(rec, ctx.render, ctx.level, cubes, final=True)
+    if path is not None:  # the block's last use: its records go (a retry traces them again)
+        remove_records(path)
     levels = st.levels()
     out: dict[str, Any] = {
         "positions": state.positions[batch],
         "valid": state.valid[batch],
-        "moments": res.moments,
-        "rays": res.rays,
+        "moments": np.asarray(state.moments[batch]),
+        "rays": rays,
     }
     energy, seam = [], []
     # per probe: results must not depend on the batch
-    sh_l = [sh.project_cube(cube) for cube in res.incoming]
+    sh_l = [sh.project_cube(cube) for cube in incoming]
     sh_min = _sh_minima(np.stack(sh_l))
-    dif, chains = _filter_groups(res.incoming, st.diffuse_size, levels)
+    dif, chains = _filter_groups(incoming, st.diffuse_size, levels)
     spec = [[c[k] for c in chains] for k in range(levels)]
-    for cube, d in zip(res.incoming, dif, strict=True):
+    for cube, d in zip(incoming, dif, strict=True):
         energy.append(_energy_ratio(d, float(solid_angle_integral(cube).sum())))
         seam.append(seams.seam_score(d))
     out["sh"] = np.stack(sh_l).astype(np.float32)
@@ -301,8 +374,8 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     for k in range(levels):
         out[f"specular_{k}"] = np.stack(spec[k])
     if st.store_incoming:
-        out["incoming"] = res.incoming
-    out["backface_fraction"] = res.backface_fraction.astype(np.float32)
+        out["incoming"] = incoming
+    out["backface_fraction"] = np.asarray(rec["backface_fraction"]).astype(np.float32)
     out["_energy"] = np.array(energy)
     out["_seam"] = np.array(seam)
     fit_map_dtype(out, st)
@@ -573,24 +646,71 @@ def bake(
             probe_pos = str(work / "classify.probes" / "positions.npy")
             probe_valid = str(work / "classify.probes" / "valid.npy")
 
-        # 2. bounces
+        # 2. trace once: every probe's rays, kept as per-hit records by the workers; bounce 0
+        records = (str(work / "records") if files
+                   else "probegrid-records-" + hashlib.sha256(
+                       (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
         m = render.moments_size
-        previous: tuple[NDArray[np.float64], NDArray[np.float32]] | FieldFiles | None = None
-        for k in range(st.bounces):
-            ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
-            arrays = {"sh": ArraySpec((9, 3), "float64", "radiance SH of this bounce"),
-                      "moments": ArraySpec((6, m, m, 2), "float32", "distance moments")}
-            w, _ = stages.run(f"bounce {k + 1}/{st.bounces + 1}", work / f"bounce{k}.probes",
-                              arrays, _bounce_task, ctx)
+        g = IRRADIANCE_SIZE
+        grid_arrays = {
+            "irradiance": ArraySpec((6, g, g, 3), "float32", "irradiance / pi of bounced light"),
+            "energy": ArraySpec((), "float64", "solid-angle integral of the bounced light"),
+        }
+        trace_arrays = {**grid_arrays,
+                        "moments": ArraySpec((6, m, m, 2), "float32", "distance moments"),
+                        "backface_fraction": ArraySpec((), "float64", "backface ray fraction")}
+        converge = st.bounces == "converge"
+        cap = st.max_bounces if converge else int(st.bounces)
+
+        def label(k: int, residual: float | None, final: bool = False) -> str:
+            if not converge:
+                return f"bounce {k} of {cap}" + (" (final)" if final else
+                                                 " (tracing)" if k == 0 else "")
+            r = "-" if residual is None else f"{100 * residual:.2g} %"
+            if final:
+                return f"converged: bounce {k}, residual {r} (final)"
+            return "tracing: bounce 0" if k == 0 else f"converging: bounce {k}, residual {r}"
+
+        ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
+        w, _ = stages.run(label(0, None), work / "trace.probes", trace_arrays, _trace_task, ctx)
+        tstore = w.finish() if isinstance(w, StoreWriter) else w
+        moments_all: NDArray[np.float32] | str = np.array(tstore["moments"])
+        bordered = bordered_cubes(tstore["moments"])
+        moments_b: NDArray[np.float32] | str = bordered
+        if files:
+            moments_all = str(work / "trace.probes" / "moments.npy")
+            moments_b = str(_save_npy(work / "moments_bordered.npy", bordered))
+
+        def grid_cubes(store: StoreWriter | ProbeStore, k: int) -> NDArray[np.float32] | str:
+            cubes = bordered_cubes(store["irradiance"])
+            return str(_save_npy(work / f"irradiance{k}.npy", cubes)) if files else cubes
+
+        def grid_energy(store: StoreWriter | ProbeStore) -> float:
+            return float(np.sum(np.asarray(store["energy"])[valid]))
+
+        cubes = grid_cubes(tstore, 0)
+        energies = [grid_energy(tstore)]
+        residual: float | None = None
+        level = 0  # the grid level the final pass reads is level - 1
+        for k in range(1, cap + 1):  # bounce k: a pass over the records with grid k - 1
+            level = k
+            if k == cap:
+                break
+            ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
+                                      records=records, level=k, moments_bordered=moments_b,
+                                      cubes=cubes)
+            w, _ = stages.run(label(k, residual), work / f"bounce{k}.probes", grid_arrays,
+                              _bounce_task, ctx)
             bstore = w.finish() if isinstance(w, StoreWriter) else w
-            if files:
-                previous = write_field_files(
-                    work / f"field{k}", bstore["sh"], bstore["moments"],
-                    sh_file=work / f"bounce{k}.probes" / "sh.npy",
-                    valid_file=work / "classify.probes" / "valid.npy",
-                    positions_file=work / "classify.probes" / "positions.npy")
-            else:
-                previous = (np.array(bstore["sh"]), np.array(bstore["moments"]))
+            cubes = grid_cubes(bstore, k)
+            energies.append(grid_energy(bstore))
+            change = abs(energies[-1] - energies[-2])
+            residual = change / energies[-1] if energies[-1] > 0 else 0.0
+            if converge and residual < st.tolerance:
+                level = k + 1
+                break
+        if cap == 0:
+            level = 0
 
         # 3. final
         energy = np.full(grid.n_probes, np.nan)
@@ -600,10 +720,12 @@ def bake(
             energy[batch] = result["_energy"]
             seam[batch] = result["_seam"]
 
-        ctx = _Context(scene, env, render, st, grid, probe_pos, probe_valid, previous)
-        w, resumed = stages.run(f"bounce {st.bounces + 1}/{st.bounces + 1} (final)", out,
-                                store_arrays(st), _final_task, ctx, overwrite=overwrite,
-                                intermediate=False, extra=keep)
+        ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
+                                  records=records, level=level, moments_bordered=moments_b,
+                                  cubes=cubes if level > 0 else None, moments=moments_all)
+        w, resumed = stages.run(label(level, residual, final=True), out, store_arrays(st),
+                                _final_task, ctx, overwrite=overwrite, intermediate=False,
+                                extra=keep)
         assert isinstance(w, StoreWriter)
         # quality over every probe (resumed ones included): recompute from the stored arrays
         dif = w.array("diffuse")
@@ -629,6 +751,9 @@ def bake(
             "sh_min_irradiance_over_pi": float(np.min(sh_min)),
             "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
             "seam_score_mean": float(np.nanmean(seam)),
+            "bounces": level,
+            "bounce_residual": residual,
+            "bounce_energy": energies,
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
@@ -636,5 +761,8 @@ def bake(
         write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
         store = w.finish(quality=quality, scene_file=scene_file)
         shutil.rmtree(work, ignore_errors=True)
+        if not files:  # (this machine's Dask workers' record directory, emptied block by block)
+            shutil.rmtree(resolve_directory(records), ignore_errors=True)
+
         seconds = time.perf_counter() - t0
         return BakeReport(store, seconds, stages.rays, grid.n_probes, resumed, quality)

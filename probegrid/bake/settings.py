@@ -6,10 +6,10 @@ CLI's ``probegrid bake`` options are generated from it and parse straight into i
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from probegrid._types import MapDType
 from probegrid.core.cubemap import mip_sizes
@@ -30,7 +30,10 @@ class BakeSettings(BaseModel):
     face_size: int = Field(default=32, ge=2, le=512)
     samples: int = Field(default=1, ge=1, le=1024)
     seed: int = Field(default=0, ge=0)
-    bounces: int = Field(default=2, ge=0, le=16)
+    bounces: int | Literal["converge"] = Field(default="converge", union_mode="left_to_right")
+    tolerance: float = Field(default=1e-3, gt=0, lt=1)
+    max_bounces: int = Field(default=32, ge=1, le=256)
+    light_samples: int = Field(default=2, ge=1, le=64)
     diffuse_size: int = Field(default=8, ge=1, le=128)
     specular_levels: int | None = Field(default=None, ge=1, le=10)
     moments_size: int = Field(default=8, ge=1, le=64)
@@ -43,6 +46,17 @@ class BakeSettings(BaseModel):
     ray_offset: float | None = Field(default=None, gt=0)
     batch_size: int = Field(default=8, ge=1, le=4096)
     dtype: MapDType = "float"  # map arrays as float32 or float16 (probegrid.bake.precision)
+
+    @field_validator("bounces", mode="before")
+    @classmethod
+    def _bounces(cls, v: object) -> object:
+        """An int 0..64, or "converge" (iterate until the grid's energy changes by less than
+        ``tolerance``, at most ``max_bounces``); a numeric string is an int (from the CLI)."""
+        if isinstance(v, str) and v.strip().lstrip("+").isdigit():
+            v = int(v)
+        if isinstance(v, bool) or (isinstance(v, int) and not 0 <= v <= 64):
+            raise ValueError(f"bounces must be 0..64 or 'converge', got {v!r}")
+        return v
 
     def levels(self) -> int:
         """Specular mip levels (the full chain of ``face_size`` by default)."""

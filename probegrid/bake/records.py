@@ -1,0 +1,454 @@
+"""Trace once, replay every bounce: per-hit records of a batch of probes.
+
+A bake's bounces differ only in the light its grid carries, never in its rays. So each probe's
+rays are cast once (:meth:`RecordTracer.trace`: the primary rays, the shadow rays toward the
+punctual lights and toward points sampled on the emitters at every hit, the probe's own rays
+toward the lights and the emitter pieces of its direct view) and what a bounce needs of each
+ray is kept as a record:
+
+* ``kind`` -- 0 a miss, 1 a front hit, 2 a back hit (black);
+* ``emission`` -- the radiance the surface emits toward the probe (front of an emitter only,
+  :mod:`probegrid.bake.emitters`);
+* ``light_punctual`` -- for a miss the environment's radiance; for a hit the punctual lights'
+  shadowed irradiance / pi;
+* ``light_emitters`` -- the emitters' direct irradiance / pi at the hit (next-event
+  estimation with an exact control variate);
+* ``albedo``, ``position``, ``normal`` -- the hit (normal turned toward the probe);
+
+and, per probe, the correction of its direct view of the emitters (exact texel coverage) and
+the punctual lights it sees (folded in at the end, :func:`probegrid.core.lights.splat_delta`).
+Once every probe's distance moments are known, each hit's 8 surrounding probes and their DDGI
+weights are computed once (:func:`probegrid.kernels.hit_probe_weights`) and kept beside the
+records. A bounce is then a pass over the records (:func:`replay`,
+:func:`probegrid.kernels.replay_radiance`) that reads only the grid's small per-probe data: each
+probe's irradiance cube of the previous bounce.
+
+What the grid carries
+---------------------
+Only light that has been reflected at least once (and the environment): the ``bounced``
+radiance of a ray leaves out the emission of the surface it hits. Direct light from emitters
+reaches hits by next-event estimation and from punctual lights by shadow rays, so no light is
+counted twice. A hit reads the grid through each surrounding probe's own irradiance cube (the
+exact clamped-cosine convolution of its bounced radiance, :data:`IRRADIANCE_SIZE`-texel faces,
+looked up bilinearly at the normal): a weighted mean of non-negative irradiances, which cannot
+go negative or ring around a small bright source the way 9 SH coefficients do.
+
+Bounce levels (as before this module: ``bounces = B`` makes a furnace box read
+``Le (1 - rho^(B+1)) / (1 - rho)``): at level 0 a hit returns its emission and the punctual
+lights' reflected light; at level ``k > 0`` it adds the emitters' reflected direct light and the
+level ``k - 1`` grid.
+
+Records live in ``.npz`` files, one per block of probes (the fixed batch partition), written
+atomically by the worker that traced them; a pass over a block reads only that block's file, so
+a worker's memory is bounded by its batch. A block whose file is missing (a Dask worker on
+another machine, a file deleted) is traced again: the records are deterministic, so the result
+is the same bits.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid.bake.emitters import Emitters
+from probegrid.bake.environment import Environment
+from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
+from probegrid.core.cubemap import (
+    FACE_U,
+    FACE_V,
+    downsample,
+    texel_directions,
+    texel_solid_angles,
+)
+from probegrid.core.ddgi import (
+    CRUSH_THRESHOLD,
+    DEFAULT_NORMAL_BIAS,
+    MIN_WEIGHT,
+    NORMAL_TERM_FLOOR,
+)
+from probegrid.core.grid import CORNER_OFFSETS, GridSpec
+from probegrid.core.lights import splat_delta
+from probegrid.kernels import (
+    distance_moments,
+    hit_probe_weights,
+    light_rays,
+    orient_hits,
+    replay_radiance,
+    texel_means,
+)
+from probegrid.raytrace import RayTracer
+from probegrid.scene import Scene
+
+__all__ = [
+    "IRRADIANCE_SIZE",
+    "RecordTracer",
+    "irradiance_cubes",
+    "records_file",
+    "replay",
+]
+
+#: Face size of the per-probe irradiance cube that hits read the grid through.
+IRRADIANCE_SIZE = 16
+
+_RECORD_KEYS = ("kind", "emission", "light_punctual", "light_emitters", "albedo", "position",
+                "normal")
+
+
+def _stream(seed: int, index: int, purpose: int) -> np.random.Generator:
+    """A probe's random stream for one purpose (independent of the sample pattern's)."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed),
+                                                        spawn_key=(int(index), purpose)))
+
+
+@lru_cache(maxsize=4)
+def _irradiance_matrix(n: int, g: int) -> NDArray[np.float32]:
+    """``(6 g^2, 6 n^2)`` float32: irradiance / pi at the ``g``-cube's texel directions of an
+    ``n``-cube of radiance (the clamped-cosine sum of :func:`probegrid.core.diffuse.diffuse_exact`,
+    each row normalised to sum to 1)."""
+    out = texel_directions(g).reshape(-1, 3)
+    src = texel_directions(n).reshape(-1, 3)
+    m = np.maximum(out @ src.T, 0.0) * texel_solid_angles(n).reshape(1, -1)
+    # each row normalised to sum to 1 (the clamped cosine / pi integrates to 1): a constant
+    # radiance gives exactly itself, as the furnace requires, whatever n
+    m = (m / m.sum(axis=1, keepdims=True)).astype(np.float32)
+    m.setflags(write=False)
+    return m
+
+
+def irradiance_cubes(cubes: NDArray[np.float32], size: int = IRRADIANCE_SIZE
+                     ) -> NDArray[np.float32]:
+    """Irradiance / pi cubes ``(B, 6, size, size, 3)`` of radiance cubes ``(B, 6, n, n, 3)``
+    (box-filtered to ``size`` first when larger: the clamped cosine is smooth at that scale),
+    8 probes per product, zero-padded to a fixed shape (the bits do not depend on the batch)."""
+    b, _, n0, _, _ = cubes.shape
+    n = n0
+    while n > size and n % 2 == 0:  # the source box-filtered down to the output's size
+        n //= 2
+    mat = _irradiance_matrix(n, size)
+    out = np.empty((b, 6, size, size, 3), np.float32)
+    group = 8
+    for g0 in range(0, b, group):  # groups of probes as the columns of one fixed-shape product
+        k = min(group, b - g0)
+        stacked = np.zeros((6, n0, n0, group * 3), np.float32)
+        stacked[..., :3 * k] = np.moveaxis(cubes[g0:g0 + k], 0, 3).reshape(6, n0, n0, 3 * k)
+        while stacked.shape[1] > n:
+            stacked = downsample(stacked)
+        res = mat @ stacked.reshape(6 * n * n, group * 3)  # (6 size^2, group * 3)
+        out[g0:g0 + k] = np.moveaxis(res[:, :3 * k].reshape(-1, k, 3), 1, 0).reshape(
+            k, 6, size, size, 3)
+    return out
+
+
+def records_file(directory: str | Path, block: int) -> Path:
+    """The record directory of the block starting at probe ``block``."""
+    return Path(directory) / f"records_{block:09d}"
+
+
+def resolve_directory(directory: str) -> Path:
+    """A records directory: an absolute path as is; a bare name under this machine's
+    temporary directory (for workers that do not share the bake's files)."""
+    p = Path(directory)
+    return p if p.is_absolute() else Path(tempfile.gettempdir()) / directory
+
+
+def _atomic_npy(path: Path, array: NDArray[Any]) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npy")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.save(fh, np.asarray(array), allow_pickle=False)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
+    """Write ``records`` as one ``.npy`` per array into the directory ``path``, each file
+    atomically and the ``complete`` mark last (a killed worker leaves no half record); arrays
+    already there (the same bits) are not written again."""
+    path.mkdir(parents=True, exist_ok=True)
+    done = (path / "complete").is_file()
+    for k, v in records.items():
+        f = path / f"{k}.npy"
+        if not (done and f.is_file()):
+            _atomic_npy(f, np.asarray(v))
+    if not done:
+        (path / "complete").touch()
+
+
+def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
+    """The records in the directory ``path`` (one block: memory bounded by the batch), or None
+    when there is no complete record."""
+    if not (path / "complete").is_file():
+        return None
+    try:
+        out = {f.stem: np.load(f, allow_pickle=False)
+               for f in path.glob("*.npy") if not f.name.startswith(".")}
+        return out
+    except (OSError, ValueError):
+        return None
+
+
+def remove_records(path: Path) -> None:
+    """Delete a block's records (its last use)."""
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
+                  ) -> dict[str, NDArray[Any]] | None:
+    """The records of ``probes`` (a subset of the block's, in order), or None if absent."""
+    have = records["probes"]
+    if np.array_equal(have, probes):
+        return records
+    rows = np.searchsorted(have, probes)
+    if np.any(rows >= len(have)) or not np.array_equal(have[np.minimum(rows, len(have) - 1)],
+                                                       probes):
+        return None
+    r = int(records["rays_per_probe"])
+    ray_rows = (rows[:, None] * r + np.arange(r)[None, :]).reshape(-1)
+    out: dict[str, NDArray[Any]] = {"probes": probes, "rays_per_probe": records["rays_per_probe"]}
+    for k in (*_RECORD_KEYS, "weight_index", "weight"):
+        if k in records:
+            out[k] = records[k][ray_rows]
+    for k in ("backface_fraction",):
+        out[k] = records[k][rows]
+    for k, off in (("view", "view_offsets"), ("lights", "lights_offsets")):
+        offsets = records[off]
+        parts = [np.arange(offsets[i], offsets[i + 1]) for i in rows]
+        sel = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        counts = np.array([len(p) for p in parts], np.int64)
+        out[off] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        for name in records:
+            if name.startswith(k + "_"):
+                out[name] = records[name][sel]
+    return out
+
+
+class RecordTracer:
+    """Traces batches of probes into records (build once per worker: it owns the BVH)."""
+
+    def __init__(self, scene: Scene, environment: Environment, settings: RenderSettings, *,
+                 light_samples: int = 2, tracer: RayTracer | None = None) -> None:
+        self.renderer = ProbeRenderer(scene, environment, settings, tracer=tracer)
+        self.scene = scene
+        self.settings = settings
+        self.tracer = self.renderer.tracer
+        self.emitters = Emitters.from_scene(scene)
+        self.light_samples = int(light_samples)
+
+    def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
+              ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float32], int]:
+        """Cast every ray of probes at ``positions (B, 3)`` (linear ``indices``) once.
+
+        Returns the records, the probes' distance moments ``(B, 6, m, m, 2)`` and the rays cast.
+        """
+        st = self.settings
+        rd = self.renderer
+        n, s, m = st.face_size, st.samples, st.moments_size
+        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        b = len(pos)
+        patterns = [sample_pattern(st, int(i)) for i in idx]
+        dirs = np.stack([p[0].reshape(-1, 3) for p in patterns])
+        wts = np.stack([p[1].reshape(-1) for p in patterns])
+        nr = dirs.shape[1]
+        flat = dirs.reshape(-1, 3)
+        origins = np.repeat(pos, nr, axis=0)
+        total = len(flat)
+        rec = {
+            "kind": np.zeros(total, np.uint8),
+            "emission": np.zeros((total, 3), np.float32),
+            "light_punctual": np.zeros((total, 3), np.float32),
+            "light_emitters": np.zeros((total, 3), np.float32),
+            "albedo": np.zeros((total, 3), np.float32),
+            "position": np.zeros((total, 3), np.float64),
+            "normal": np.zeros((total, 3), np.float32),
+        }
+        t = np.empty(total)
+        ls = self.light_samples if len(self.emitters) else 0
+        if ls:
+            rnd = np.concatenate([_stream(st.seed, int(i), 1).random((nr, ls, 3)) for i in idx])
+        rays = total
+        eps = st.ray_offset
+        for c0 in range(0, total, SHADE_CHUNK):  # loop over chunks of rays, not rays
+            sl = slice(c0, min(c0 + SHADE_CHUNK, total))
+            d = flat[sl]
+            hits = self.tracer.intersect(origins[sl], d)
+            miss = hits.prim_id < 0
+            lp = np.zeros((len(d), 3), np.float32)
+            if miss.any() and not rd.environment.is_black:
+                lp[miss] = rd._env.radiance(d[miss])
+            kind = np.zeros(len(d), np.uint8)
+            hit = np.flatnonzero(~miss)
+            t[sl] = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
+            if hit.size:
+                prim = hits.prim_id[hit]
+                p, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
+                # emission leaves the front (as wound) only
+                front_side = np.einsum("ij,ij->i", nrm, d[hit]) < 0
+                is_back = orient_hits(nrm, d, hit, prim, rd._double_sided)
+                emission = np.where(front_side[:, None], emission, 0.0)
+                kind[hit] = np.where(is_back, 2, 1)
+                fh = np.flatnonzero(~is_back)
+                p, nrm, albedo, emission = p[fh], nrm[fh], albedo[fh], emission[fh]
+                rows = c0 + hit[fh]
+                which, s_org, s_dir, s_tmax, s_irr = light_rays(p, nrm, *rd._lights, eps)
+                e_p = np.zeros((len(fh), 3))
+                if len(which):
+                    occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
+                    rays += len(which)
+                    for c in range(3):
+                        e_p[:, c] = np.bincount(which, weights=np.where(occluded, 0.0,
+                                                                        s_irr[:, c]),
+                                                minlength=len(fh))
+                lp[hit[fh]] = e_p / np.pi
+                if ls:
+                    # lit a ray offset short of the hit: a hit exactly on an edge of a closed
+                    # room (texel centres find them) would see the adjacent wall edge-on
+                    e_e, r = self.emitters.irradiance(p - eps * d[hit[fh]], nrm, rnd[rows],
+                                                      self.tracer, eps)
+                    rays += r
+                    rec["light_emitters"][rows] = e_e / np.pi
+                rec["emission"][rows] = emission
+                rec["albedo"][rows] = albedo
+                rec["position"][rows] = p
+                rec["normal"][rows] = nrm
+            rec["kind"][sl] = kind
+            rec["light_punctual"][sl] = lp
+        back = rec["kind"].reshape(b, nr) == 2
+        moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
+        sa = rd._texel_sa * wts
+        tt = t.reshape(b, nr)
+        for j in range(b):  # per probe: the reductions must not depend on the batch
+            moments[j] = distance_moments(tt[j], sa[j], rd._moment_bins,
+                                          6 * m * m).reshape(6, m, m, 2)
+        # the probe's direct view of the emitters (exact texel coverage) replaces what its
+        # rays saw of their emission; the punctual lights it sees are folded in at the end
+        view_tex, view_val, view_off = [], [], [0]
+        for j in range(b):  # loop over probes, not rays
+            tex, val, r = self.emitters.texel_view(pos[j], n, self.tracer, eps)
+            rays += r
+            em = rec["emission"][j * nr:(j + 1) * nr]
+            seen = em if s == 1 else texel_means(em, wts[j], s)
+            delta = -np.asarray(seen, np.float64)
+            delta[tex] += val
+            keep = np.flatnonzero(np.any(delta != 0, axis=1))
+            view_tex.append(keep)
+            view_val.append(delta[keep])
+            view_off.append(view_off[-1] + len(keep))
+        rec["view_texel"] = np.concatenate(view_tex).astype(np.int64)
+        rec["view_value"] = np.concatenate(view_val).astype(np.float64).reshape(-1, 3)
+        rec["view_offsets"] = np.array(view_off, np.int64)
+        l_dir, l_e, l_off = [np.zeros((0, 3))], [np.zeros((0, 3))], [0]
+        if st.direct and self.scene.lights:
+            ldirs, e_perp, visible, r = rd._visible_lights(pos)
+            rays += r
+            for j in range(b):
+                li = np.flatnonzero(visible[j])
+                l_dir.append(ldirs[j, li])
+                l_e.append(e_perp[j, li])
+                l_off.append(l_off[-1] + len(li))
+        else:
+            l_off = [0] * (b + 1)
+        rec["lights_direction"] = np.concatenate(l_dir)
+        rec["lights_irradiance"] = np.concatenate(l_e)
+        rec["lights_offsets"] = np.array(l_off, np.int64)
+        rec["backface_fraction"] = back.mean(axis=1)
+        rec["probes"] = idx
+        rec["rays_per_probe"] = np.array(nr)
+        return rec, moments, rays
+
+
+@dataclass(frozen=True, eq=False)
+class GridData:
+    """What a pass reads of the whole grid: probe validity and positions, the distance moments
+    (bordered, for the weights) and the previous level's irradiance cubes (bordered, flat
+    ``(P * 6 (g + 2)^2, 3)``, or None for a black grid)."""
+
+    grid: GridSpec
+    valid: NDArray[np.bool_]
+    positions: NDArray[np.float64]
+    moments: NDArray[np.float32]
+    moments_n: int
+    cubes: NDArray[np.float32] | None
+
+
+def hit_weights(records: dict[str, NDArray[Any]], data: GridData
+                ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+    """Each front hit's 8 probes and normalised DDGI weights (0 for misses and back hits)."""
+    g = data.grid
+    counts = np.array(g.counts, dtype=np.int64)
+    cells = g.cell_size[counts > 1]
+    bias = DEFAULT_NORMAL_BIAS * (float(cells.min()) if cells.size else 0.0)
+    total = len(records["kind"])
+    idx = np.zeros((total, 8), np.int32)
+    w = np.zeros((total, 8), np.float32)
+    front = np.flatnonzero(records["kind"] == 1)
+    if front.size:
+        i, ww = hit_probe_weights(
+            np.ascontiguousarray(records["position"][front]),
+            np.ascontiguousarray(records["normal"][front], dtype=np.float64),
+            g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS,
+            np.ascontiguousarray(data.valid, dtype=bool),
+            np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
+            data.moments_n, bias, FACE_U, FACE_V, NORMAL_TERM_FLOOR, MIN_WEIGHT,
+            CRUSH_THRESHOLD)
+        idx[front], w[front] = i, ww
+    return idx, w
+
+
+def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,
+           cubes: NDArray[np.float32] | None, *, final: bool
+           ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """A pass over a batch's records at bounce ``level`` with the previous level's bordered
+    irradiance ``cubes`` (None: a black grid).
+
+    Returns the probes' incoming cubes ``(B, 6, n, n, 3)`` float32 -- ``final``: what the probe
+    sees (emission, its exact direct view of the emitters and the punctual lights included);
+    otherwise the bounced light only -- and their texel radiances before the per-probe
+    corrections (for the caller's bookkeeping).
+    """
+    n, s = settings.face_size, settings.samples
+    probes = records["probes"]
+    b = len(probes)
+    empty = np.zeros((0, 3), np.float32)
+    cube_arr = empty if cubes is None else cubes
+    g = IRRADIANCE_SIZE
+    if "weight_index" in records:
+        wi, ww = records["weight_index"], records["weight"]
+    else:
+        wi = np.zeros((len(records["kind"]), 8), np.int32)
+        ww = np.zeros((len(records["kind"]), 8), np.float32)
+    rad, bnc = replay_radiance(records["kind"], records["emission"], records["light_punctual"],
+                               records["light_emitters"], records["albedo"], records["normal"],
+                               wi, ww, cube_arr, g, FACE_U, FACE_V, level)
+    use = rad if final else bnc
+    nr = int(records["rays_per_probe"])
+    if s > 1:
+        wts = np.stack([sample_pattern(settings, int(i))[1].reshape(-1) for i in probes])
+        cube = texel_means(use, wts.reshape(-1), s)
+    else:
+        cube = use
+    cube = cube.reshape(b, 6, n, n, 3)
+    if final:
+        vo, lo = records["view_offsets"], records["lights_offsets"]
+        for j in range(b):  # loop over probes: their sparse corrections
+            flat = cube[j].reshape(-1, 3)
+            tex = records["view_texel"][vo[j]:vo[j + 1]]
+            if tex.size:
+                flat[tex] = np.maximum(
+                    flat[tex].astype(np.float64) + records["view_value"][vo[j]:vo[j + 1]], 0.0)
+            if lo[j + 1] > lo[j]:
+                cube[j] = splat_delta(cube[j], records["lights_direction"][lo[j]:lo[j + 1]],
+                                      records["lights_irradiance"][lo[j]:lo[j + 1]])
+    del nr
+    return cube, use
