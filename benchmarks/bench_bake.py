@@ -317,7 +317,8 @@ def part_memory(scene: Scene, env: Environment, tmp: Path, grids: tuple[str, ...
         peak_disk = [0]
         stop = threading.Event()
 
-        def watch(out: Path = out, peak: list[int] = peak_disk) -> None:
+        def watch(out: Path = out, peak: list[int] = peak_disk,
+                  stop: threading.Event = stop) -> None:
             work = out.with_name(out.name + ".work") / "records"
             while not stop.wait(0.5):
                 try:

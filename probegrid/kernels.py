@@ -1237,10 +1237,10 @@ def texel_emitter_coverage(
                 vmin, vmax = min(vmin, vv), max(vmax, vv)
             if not ok:
                 continue
-            c0 = min(int(math.floor((umin + 1.0) * half)), n - 1)
-            c1 = min(int(math.floor((umax + 1.0) * half)), n - 1)
-            r0 = min(int(math.floor((vmin + 1.0) * half)), n - 1)
-            r1 = min(int(math.floor((vmax + 1.0) * half)), n - 1)
+            c0 = min(int(math.floor((umin + 1.0) * half)), n - 1)  # noqa: RUF046 (numba)
+            c1 = min(int(math.floor((umax + 1.0) * half)), n - 1)  # noqa: RUF046 (numba)
+            r0 = min(int(math.floor((vmin + 1.0) * half)), n - 1)  # noqa: RUF046 (numba)
+            r1 = min(int(math.floor((vmax + 1.0) * half)), n - 1)  # noqa: RUF046 (numba)
             for row in range(r0, r1 + 1):
                 for col in range(c0, c1 + 1):
                     u_lo = col / half - 1.0

@@ -504,7 +504,7 @@ def test_export_probe_all_and_box_write_every_probe_and_name_the_invalid(tmp_pat
         got = np.stack([imageio.read_image(sub / f"diffuse_{s}.exr") for s in
                         ("px", "nx", "py", "ny", "pz", "nz")])
         np.testing.assert_array_equal(got, arrays["diffuse"][index])
-        spec = np.stack([imageio.read_image(sub / f"specular_2_{s}.exr") for s in
+        spec = np.stack([imageio.read_image(sub / f"specular_m2_{s}.exr") for s in
                          ("px", "nx", "py", "ny", "pz", "nz")])
         np.testing.assert_array_equal(spec, arrays["specular_2"][index])
         sh_doc = json.loads((sub / "sh.json").read_text())
