@@ -169,7 +169,7 @@ def test_the_estimate_matches_the_store_and_is_printed(tmp_path, scene_file, cap
     real = _du(out)
     assert abs(est.store_bytes - real) <= 0.05 * real, (est.store_bytes, real)
     assert "estimate: 27 probes" in err and "store " in err and "peak worker memory" in err
-    assert est.primary_rays == 2 * 27 * 6 * 16 * 16
+    assert est.primary_rays == 27 * 6 * 16 * 16  # cast once: the bounces replay the records
     assert est.shadow_rays == est.primary_rays + 27  # one light: a shadow ray per hit at most
 
 

@@ -273,6 +273,11 @@ class BakeEstimate:
                 f"worker memory {_size(self.worker_bytes)}")
 
 
+#: Bytes of per-hit records a traced ray leaves in the work directory (measured on the sample
+#: room: 3.6 GB of records for 32x16x32 probes at face 16, 2 bounces).
+RECORD_BYTES_PER_RAY = 149
+
+
 def _size(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if abs(n) < 1024 or unit == "TiB":
@@ -290,6 +295,8 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     (local processes), else they receive them (Dask)."""
     from probegrid.bake.driver import CLASSIFY_FACE_SIZE, FILTER_GROUP, store_arrays
     from probegrid.bake.inside import DIRECTIONS
+    from probegrid.bake.nolight import light_sources
+    from probegrid.bake.records import IRRADIANCE_SIZE
     from probegrid.bake.render import SHADE_CHUNK
     from probegrid.core import probefilter
     from probegrid.core.cubemap import mip_sizes
@@ -299,23 +306,26 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     n, s = st.face_size, st.samples
     m = min(st.moments_size, n)
     per_probe_rays = 6 * n * n * s
-    passes = st.bounces + 1
-    primary = passes * p * per_probe_rays
+    # every ray is cast once (probegrid.bake.records): the bounces replay the per-hit records
+    primary = p * per_probe_rays
     lights = len(scene.lights)
-    shadow = primary * lights + (p * lights if st.direct else 0)
+    emitters = any("emissive" in what for what in light_sources(scene, environment)) \
+        if environment is not None else False
+    per_hit = lights + (st.light_samples if emitters else 0)
+    shadow = primary * per_hit + (p * lights if st.direct else 0)
     classify = p * (6 * CLASSIFY_FACE_SIZE**2 + DIRECTIONS)
 
     def npy(shape: tuple[int, ...], dtype: str) -> int:
         return NPY_HEADER_BYTES + p * math.prod(shape) * np.dtype(dtype).itemsize
 
     store = MANIFEST_BYTES + sum(npy(a.shape, a.dtype) for a in store_arrays(st).values())
-    # work files of the driver: the classification, every bounce's SH and moments (and, for
-    # local workers, the bounce's derived field files), the done masks
+    # work files: the classification, the per-hit records of every traced ray (kept until the
+    # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
+    # moments, the done masks
+    g = IRRADIANCE_SIZE
     work = npy((3,), "float64") + npy((), "bool") + npy((), "float64") + npy((), "bool")
-    per_bounce = npy((9, 3), "float64") + npy((6, m, m, 2), "float32") + npy((), "bool")
-    if shares_files:
-        per_bounce += npy((9, 3), "float64") + npy((6, m + 2, m + 2, 2), "float32")
-    work += st.bounces * per_bounce + npy((), "bool")
+    work += primary * RECORD_BYTES_PER_RAY
+    work += 2 * npy((6, g, g, 3), "float32") + npy((6, m, m, 2), "float32") + npy((), "bool")
 
     scene_bytes = (scene.vertices.nbytes * 3 + scene.triangles.nbytes * 2
                    + 150 * scene.n_triangles
