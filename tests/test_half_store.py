@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from probegrid.bake import BakeSettings, bake
-from probegrid.bake.precision import HALF_MAX, fit_map_dtype, store_bytes
+from probegrid.bake.precision import HALF_MAX, fit_map_dtype
+from probegrid.bake.settings import store_bytes
 from probegrid.core.grid import GridSpec
 from probegrid.jobs.progress import size_note
 from probegrid.query import ProbeField
@@ -70,7 +71,7 @@ def test_the_estimate_states_both_sizes_and_half_never_overflows(pair):
     assert f"{full / 2**20:,.1f} MiB with float maps" in note
     assert f"--dtype half: {half / 2**20:,.1f} MiB" in note
     out = {"specular_0": np.array([1e6, -1e6, 3.0], np.float32), "sh": np.array([1e6])}
-    fit_map_dtype(out, st.model_copy(update={"dtype": "half"}))
+    fit_map_dtype(out, "half")
     assert out["specular_0"].dtype == np.float16 and np.isfinite(out["specular_0"]).all()
     assert out["specular_0"].tolist() == [HALF_MAX, -HALF_MAX, 3.0]
     assert out["sh"].tolist() == [1e6]

@@ -63,7 +63,7 @@ from probegrid.bake.extras import write_store_extras
 from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
 from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import light_quality, printable
-from probegrid.bake.precision import fit_map_dtype, map_dtype
+from probegrid.bake.precision import fit_map_dtype
 from probegrid.bake.records import (
     IRRADIANCE_SIZE,
     GridData,
@@ -79,7 +79,7 @@ from probegrid.bake.records import (
     select_probes,
 )
 from probegrid.bake.render import ProbeRenderer, RenderSettings
-from probegrid.bake.settings import BakeSettings
+from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.core import probefilter, sh
 from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import solid_angle_integral
@@ -102,33 +102,6 @@ from probegrid.store.manifest import check_store_name, work_path
 __all__ = ["BakeReport", "BakeSettings", "bake", "environment_hash", "store_arrays"]
 
 ProgressFn = Callable[[str, Progress, int], None]
-
-
-def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
-    """The arrays of a store baked with ``settings`` (name -> per-probe shape and dtype)."""
-    n, d = settings.face_size, settings.diffuse_size
-    m = min(settings.moments_size, n)
-    levels = settings.levels()
-    md = map_dtype(settings)  # float32, or float16 with --dtype half
-    arrays = {
-        "sh": ArraySpec((9, 3), "float32", "radiance SH coefficients L_lm, index l(l+1)+m, RGB"),
-        "diffuse": ArraySpec((6, d, d, 3), md, "diffuse cube: irradiance / pi"),
-        "valid": ArraySpec((), "bool", "probe is not inside geometry"),
-        "positions": ArraySpec((3,), "float64", "probe position (moved if relocated), world"),
-        "moments": ArraySpec((6, m, m, 2), "float32",
-                             "mean distance and mean squared distance per direction"),
-        "backface_fraction": ArraySpec((), "float32", "fraction of rays hitting backfaces"),
-        "sh_min": ArraySpec((3,), "float32", "minimum over the sphere of SH irradiance / pi"),
-    }
-    for k in range(levels):
-        s = n >> k
-        r = k / (levels - 1) if levels > 1 else 0.0
-        arrays[f"specular_{k}"] = ArraySpec(
-            (6, s, s, 3), md, f"GGX prefiltered radiance, roughness {r:.4g}"
-        )
-    if settings.store_incoming:
-        arrays["incoming"] = ArraySpec((6, n, n, 3), md, "incoming radiance cube")
-    return arrays
 
 
 def environment_hash(env: Environment) -> str:
@@ -378,7 +351,7 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     out["backface_fraction"] = np.asarray(rec["backface_fraction"]).astype(np.float32)
     out["_energy"] = np.array(energy)
     out["_seam"] = np.array(seam)
-    fit_map_dtype(out, st)
+    fit_map_dtype(out, st.dtype)
     return out
 
 

@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from probegrid.bake.settings import BakeSettings
+    from probegrid._types import MapDType
 
-__all__ = ["HALF_MAX", "MAP_ARRAYS", "fit_map_dtype", "map_dtype", "store_bytes"]
+__all__ = ["HALF_MAX", "MAP_ARRAYS", "fit_map_dtype", "map_dtype"]
 
 #: Largest finite float16.
 HALF_MAX = float(np.finfo(np.float16).max)
@@ -31,27 +31,16 @@ HALF_MAX = float(np.finfo(np.float16).max)
 MAP_ARRAYS = ("diffuse", "specular_", "incoming")
 
 
-def map_dtype(settings: BakeSettings) -> str:
-    """``"float16"`` for ``dtype="half"``, else ``"float32"``."""
-    return "float16" if settings.dtype == "half" else "float32"
+def map_dtype(dtype: MapDType) -> str:
+    """The numpy dtype of the map arrays: ``"float16"`` for ``"half"``, else ``"float32"``."""
+    return "float16" if dtype == "half" else "float32"
 
 
-def fit_map_dtype(out: dict[str, Any], settings: BakeSettings) -> None:
+def fit_map_dtype(out: dict[str, Any], dtype: MapDType) -> None:
     """Clamp the map arrays of a task's results into float16's range (in place) when the store
-    holds half floats; nothing otherwise."""
-    if settings.dtype != "half":
+    holds half floats (``dtype="half"``); nothing otherwise."""
+    if dtype != "half":
         return
     for name, value in out.items():
         if name.startswith(MAP_ARRAYS):
             out[name] = np.clip(value, -HALF_MAX, HALF_MAX).astype(np.float16)
-
-
-def store_bytes(settings: BakeSettings, n_probes: int, dtype: str | None = None) -> int:
-    """Bytes of the store's arrays for ``n_probes`` probes (with ``dtype``, ``"float"`` or
-    ``"half"``, instead of the settings')."""
-    from probegrid.bake.driver import store_arrays
-
-    if dtype is not None:
-        settings = settings.model_copy(update={"dtype": dtype})
-    return sum(int(np.prod(spec.shape, dtype=np.int64)) * np.dtype(spec.dtype).itemsize
-               for spec in store_arrays(settings).values()) * n_probes

@@ -12,14 +12,16 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from probegrid._types import MapDType
+from probegrid.bake.precision import map_dtype
 from probegrid.core.cubemap import mip_sizes
+from probegrid.store.manifest import ArraySpec
 
 if TYPE_CHECKING:
     from probegrid.bake.render import RenderSettings
     from probegrid.core.grid import GridSpec
     from probegrid.scene import Scene
 
-__all__ = ["BakeSettings"]
+__all__ = ["BakeSettings", "store_arrays", "store_bytes"]
 
 
 class BakeSettings(BaseModel):
@@ -76,3 +78,39 @@ class BakeSettings(BaseModel):
             ray_offset=self.ray_offset or max(extent, 1e-6) * 1e-5,
             max_distance=max(extent, 1e-6) * 2.0,
         )
+
+
+def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
+    """The arrays of a store baked with ``settings`` (name -> per-probe shape and dtype)."""
+    n, d = settings.face_size, settings.diffuse_size
+    m = min(settings.moments_size, n)
+    levels = settings.levels()
+    md = map_dtype(settings.dtype)  # float32, or float16 with --dtype half
+    arrays = {
+        "sh": ArraySpec((9, 3), "float32", "radiance SH coefficients L_lm, index l(l+1)+m, RGB"),
+        "diffuse": ArraySpec((6, d, d, 3), md, "diffuse cube: irradiance / pi"),
+        "valid": ArraySpec((), "bool", "probe is not inside geometry"),
+        "positions": ArraySpec((3,), "float64", "probe position (moved if relocated), world"),
+        "moments": ArraySpec((6, m, m, 2), "float32",
+                             "mean distance and mean squared distance per direction"),
+        "backface_fraction": ArraySpec((), "float32", "fraction of rays hitting backfaces"),
+        "sh_min": ArraySpec((3,), "float32", "minimum over the sphere of SH irradiance / pi"),
+    }
+    for k in range(levels):
+        s = n >> k
+        r = k / (levels - 1) if levels > 1 else 0.0
+        arrays[f"specular_{k}"] = ArraySpec(
+            (6, s, s, 3), md, f"GGX prefiltered radiance, roughness {r:.4g}"
+        )
+    if settings.store_incoming:
+        arrays["incoming"] = ArraySpec((6, n, n, 3), md, "incoming radiance cube")
+    return arrays
+
+
+def store_bytes(settings: BakeSettings, n_probes: int, dtype: str | None = None) -> int:
+    """Bytes of the store's arrays for ``n_probes`` probes (with ``dtype``, ``"float"`` or
+    ``"half"``, instead of the settings')."""
+    if dtype is not None:
+        settings = settings.model_copy(update={"dtype": dtype})
+    return sum(int(np.prod(spec.shape, dtype=np.int64)) * np.dtype(spec.dtype).itemsize
+               for spec in store_arrays(settings).values()) * n_probes

@@ -293,11 +293,12 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
 
     ``shares_files``: the workers run on this machine and memory-map the grid-sized arrays
     (local processes), else they receive them (Dask)."""
-    from probegrid.bake.driver import CLASSIFY_FACE_SIZE, FILTER_GROUP, store_arrays
+    from probegrid.bake.driver import CLASSIFY_FACE_SIZE, FILTER_GROUP
     from probegrid.bake.inside import DIRECTIONS
     from probegrid.bake.nolight import light_sources
     from probegrid.bake.records import IRRADIANCE_SIZE
     from probegrid.bake.render import SHADE_CHUNK
+    from probegrid.bake.settings import store_arrays
     from probegrid.core import probefilter
     from probegrid.core.cubemap import mip_sizes
 

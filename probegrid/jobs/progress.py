@@ -133,7 +133,7 @@ class BakeProgress:
 def size_note(settings: BakeSettings, n_probes: int) -> str:
     """What the store will take on disk, and what the other ``--dtype`` would (the cost of each
     choice; :mod:`probegrid.bake.precision`)."""
-    from probegrid.bake.precision import store_bytes
+    from probegrid.bake.settings import store_bytes
 
     mib = {d: store_bytes(settings, n_probes, d) / 2**20 for d in ("float", "half")}
     other = "half" if settings.dtype == "float" else "float"
