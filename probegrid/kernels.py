@@ -1,10 +1,11 @@
 """Compiled per-ray kernels of the bake (the one module that imports numba).
 
-A bake shades every ray hit with the same short sequence of scalar steps: the DDGI weights of the
-8 probes around the hit (:mod:`probegrid.core.ddgi`), a seamless bilinear lookup of each probe's
-distance moments, and the SH irradiance of each probe at the hit's normal. Written as numpy array
-expressions these steps allocate a dozen ``(n, 8)`` and ``(n, 8, 3)`` temporaries per batch and
-cost about 30x the ray casting itself; here they are one fused loop per hit, compiled by numba
+A bake handles every ray hit with the same short sequence of scalar steps: the hit's surface, its
+shadow rays, the DDGI weights of the 8 probes around it (:mod:`probegrid.core.ddgi`, with a
+seamless bilinear lookup of each probe's distance moments), and at every bounce the replay of
+its record. Written as numpy array expressions these steps allocate a dozen ``(n, 8)`` and
+``(n, 8, 3)`` temporaries per batch and cost many times the ray casting itself; here they are
+one fused loop per hit, compiled by numba
 (``cache=True``: compiled once per machine, then loaded from numba's cache). Kernels are pure
 functions of arrays (they allocate their outputs, or fill arrays passed for that purpose) and
 release the GIL.
@@ -12,13 +13,12 @@ release the GIL.
 Each kernel restates, step for step, an array expression that stays the reference and the
 documentation of the maths; ``tests/test_kernels.py`` compares the two on random inputs:
 
-* :func:`indirect_irradiance` -- :meth:`probegrid.bake.render.IndirectField.irradiance_reference`
-  (:func:`probegrid.core.ddgi.probe_weights` with normals and moments, then the SH basis at
-  the normal against the irradiance coefficients ``A_l L_lm``).
+* :func:`hit_probe_weights` -- :func:`probegrid.core.ddgi.probe_weights` with normals and
+  moments, normalised (the trace-once weights, computed once per hit).
 * :func:`hit_surfaces`, :func:`multiply_texture` -- :meth:`probegrid.scene.Scene.surface_at`'s
   barycentric interpolation and :func:`probegrid.scene.sample_texture`.
-* :func:`light_rays` -- :func:`probegrid.core.lights.incident_many` and the renderer's choice of
-  shadow rays; :func:`outgoing_radiance` -- ``emission + albedo / pi * E``.
+* :func:`light_rays` -- :func:`probegrid.core.lights.incident_many` and the choice of shadow
+  rays; :func:`replay_radiance` -- a bounce's pass over the per-hit records.
 * :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
   :func:`orient_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
   per-texel means, distance moments and the backface rule.
@@ -50,11 +50,9 @@ __all__ = [
     "embree_hits",
     "embree_rays",
     "hit_surfaces",
-    "indirect_irradiance",
     "light_rays",
     "multiply_texture",
     "orient_hits",
-    "outgoing_radiance",
     "segment_rays",
     "texel_means",
 ]
@@ -80,187 +78,6 @@ def _face_uv(dx: float, dy: float, dz: float, face_u: NDArray[np.float64],
     u = (dx * face_u[face, 0] + dy * face_u[face, 1] + dz * face_u[face, 2]) / ma
     v = (dx * face_v[face, 0] + dy * face_v[face, 1] + dz * face_v[face, 2]) / ma
     return face, min(max(u, -1.0), 1.0), min(max(v, -1.0), 1.0)
-
-
-@numba.njit(**_JIT)
-def indirect_irradiance(
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64],
-    lo: NDArray[np.float64],
-    hi: NDArray[np.float64],
-    step: NDArray[np.float64],
-    counts: NDArray[np.int64],
-    corner_offsets: NDArray[np.int64],
-    valid: NDArray[np.bool_],
-    positions: NDArray[np.float64],
-    moments: NDArray[np.float32],
-    moments_n: int,
-    bias: float,
-    coeffs: NDArray[np.float64],
-    basis_scale: NDArray[np.float64],
-    face_u: NDArray[np.float64],
-    face_v: NDArray[np.float64],
-    normal_floor: float,
-    min_weight: float,
-    crush: float,
-) -> NDArray[np.float64]:
-    """Irradiance of a probe grid at surface points with the DDGI weights.
-
-    Parameters
-    ----------
-    points, normals : (n, 3) float64
-        Surface points (world) and normals (any non-zero length; normalised here).
-    lo, hi, step : (3,) float64
-        Grid box and lattice spacing (1 on an axis with a single probe).
-    counts : (3,) int64
-    corner_offsets : (8, 3) int64
-        :data:`probegrid.core.grid.CORNER_OFFSETS`.
-    valid : (P,) bool
-    positions : (P, 3) float64
-        Probe positions (possibly moved).
-    moments : (P * 6 (m + 2)^2, 2) float32
-        Bordered distance moments (:class:`probegrid.core.ddgi.BorderedCubes`' layout); an
-        empty array means no Chebyshev test.
-    moments_n : int
-        Face size ``m`` of the unbordered moments cubes.
-    bias : float
-        Offset of the visibility test point along the normal (world units).
-    coeffs : (P, 9, 3) float64
-        Irradiance SH coefficients ``A_l L_lm`` per probe.
-    basis_scale : (9,) float64
-        :data:`probegrid.core.sh.BASIS_SCALE`.
-    face_u, face_v : (6, 3) float64
-    normal_floor, min_weight, crush : float
-        DDGI constants (:mod:`probegrid.core.ddgi`).
-
-    Returns
-    -------
-    (n, 3) float64
-        Irradiance (lux, RGB), clamped at 0; 0 where no valid probe carries weight.
-    """
-    n_pts = points.shape[0]
-    out = np.zeros((n_pts, 3))
-    use_moments = moments.shape[0] > 0
-    m = moments_n
-    mb = m + 2
-    texels = 6 * mb * mb
-    half = 0.5 * m
-    crush2 = crush * crush
-    idx = np.empty(8, np.int64)
-    w = np.empty(8)
-    base = np.empty(3, np.int64)
-    frac = np.empty(3)
-    cp = np.empty(3)
-    k0, k1, k2, k3, k4 = (basis_scale[0], basis_scale[1], basis_scale[4], basis_scale[6],
-                          basis_scale[8])
-    for i in range(n_pts):
-        # unit normal, scaled by its largest component first (interpolate._unit_rows)
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        big = max(abs(nx), abs(ny), abs(nz))
-        nx, ny, nz = nx / big, ny / big, nz / big
-        nl = math.sqrt(nx * nx + ny * ny + nz * nz)
-        nx, ny, nz = nx / nl, ny / nl, nz / nl
-        # cell and trilinear fractions (GridSpec.cell_weights), clamped point
-        for a in range(3):
-            c = min(max(points[i, a], lo[a]), hi[a])
-            cp[a] = c
-            if counts[a] > 1:
-                t = (c - lo[a]) / step[a]
-                b = min(max(math.floor(t), 0.0), float(max(counts[a] - 2, 0)))
-                base[a] = int(b)
-                frac[a] = min(max(t - b, 0.0), 1.0)
-            else:
-                base[a] = 0
-                frac[a] = 0.0
-        qx, qy, qz = cp[0] + bias * nx, cp[1] + bias * ny, cp[2] + bias * nz
-        total = 0.0
-        for c in range(8):
-            ii = min(base[0] + corner_offsets[c, 0], counts[0] - 1)
-            jj = min(base[1] + corner_offsets[c, 1], counts[1] - 1)
-            kk = min(base[2] + corner_offsets[c, 2], counts[2] - 1)
-            p = (ii * counts[1] + jj) * counts[2] + kk
-            idx[c] = p
-            tw = 1.0
-            for a in range(3):
-                f = frac[a]
-                tw *= f if corner_offsets[c, a] == 1 else 1.0 - f
-            if not valid[p]:
-                tw *= 0.0
-            if tw == 0.0:  # no weight whatever the shading factor: skip the lookups
-                w[c] = 0.0
-                continue
-            # normal-facing term
-            ex = positions[p, 0] - cp[0]
-            ey = positions[p, 1] - cp[1]
-            ez = positions[p, 2] - cp[2]
-            el = math.sqrt(ex * ex + ey * ey + ez * ez)
-            if el > 1e-300:
-                dot = (ex * nx + ey * ny + ez * nz) / el
-            else:
-                dot = 0.0
-            s = ((dot + 1.0) * 0.5) ** 2 + normal_floor
-            if use_moments:
-                ox = qx - positions[p, 0]
-                oy = qy - positions[p, 1]
-                oz = qz - positions[p, 2]
-                r = math.sqrt(ox * ox + oy * oy + oz * oz)
-                face, u, v = _face_uv(ox, oy, oz, face_u, face_v)
-                x = (u + 1.0) * half + 0.5
-                y = (v + 1.0) * half + 0.5
-                x0 = min(math.floor(x), float(m))
-                y0 = min(math.floor(y), float(m))
-                fx, fy = x - x0, y - y0
-                gx, gy = 1.0 - fx, 1.0 - fy
-                t0 = p * texels + (face * mb + int(y0)) * mb + int(x0)
-                w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
-                mean = (moments[t0, 0] * w00 + moments[t0 + 1, 0] * w01
-                        + moments[t0 + mb, 0] * w10 + moments[t0 + mb + 1, 0] * w11)
-                if not r <= mean:  # (the mean square is needed only here)
-                    mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
-                               + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
-                    var = abs(mean_sq - mean * mean)
-                    excess = max(r - mean, 0.0)
-                    den = var + excess * excess
-                    if excess > 0:
-                        cheb = var / den if den != 0 else math.nan
-                    else:
-                        cheb = 1.0
-                    if math.isnan(cheb):
-                        cheb = 0.0
-                    s *= cheb * cheb * cheb
-            s = max(s, min_weight)
-            if s < crush:
-                s = s * s * s / crush2
-            tw *= s
-            w[c] = tw
-            total += tw
-        if total <= 0:
-            continue
-        bx, by, bz = nx, ny, nz
-        y0_ = k0
-        y1, y2, y3 = k1 * by, k1 * bz, k1 * bx
-        y4, y5 = k2 * bx * by, k2 * by * bz
-        y6 = k3 * (3.0 * bz * bz - 1.0)
-        y7, y8 = k2 * bx * bz, k4 * (bx * bx - by * by)
-        e0 = e1 = e2 = 0.0
-        for c in range(8):
-            wc = w[c]
-            if wc == 0.0:
-                continue
-            p = idx[c]
-            e0 += wc * (y0_ * coeffs[p, 0, 0] + y1 * coeffs[p, 1, 0] + y2 * coeffs[p, 2, 0]
-                        + y3 * coeffs[p, 3, 0] + y4 * coeffs[p, 4, 0] + y5 * coeffs[p, 5, 0]
-                        + y6 * coeffs[p, 6, 0] + y7 * coeffs[p, 7, 0] + y8 * coeffs[p, 8, 0])
-            e1 += wc * (y0_ * coeffs[p, 0, 1] + y1 * coeffs[p, 1, 1] + y2 * coeffs[p, 2, 1]
-                        + y3 * coeffs[p, 3, 1] + y4 * coeffs[p, 4, 1] + y5 * coeffs[p, 5, 1]
-                        + y6 * coeffs[p, 6, 1] + y7 * coeffs[p, 7, 1] + y8 * coeffs[p, 8, 1])
-            e2 += wc * (y0_ * coeffs[p, 0, 2] + y1 * coeffs[p, 1, 2] + y2 * coeffs[p, 2, 2]
-                        + y3 * coeffs[p, 3, 2] + y4 * coeffs[p, 4, 2] + y5 * coeffs[p, 5, 2]
-                        + y6 * coeffs[p, 6, 2] + y7 * coeffs[p, 7, 2] + y8 * coeffs[p, 8, 2])
-        out[i, 0] = max(e0 / total, 0.0)
-        out[i, 1] = max(e1 / total, 0.0)
-        out[i, 2] = max(e2 / total, 0.0)
-    return out
 
 
 @numba.njit(**_JIT)
@@ -398,33 +215,6 @@ def light_rays(
             irr[k, 0], irr[k, 1], irr[k, 2] = cos * e0, cos * e1, cos * e2
             k += 1
     return which[:k], org[:k], dirs[:k], tmax[:k], irr[:k]
-
-
-@numba.njit(**_JIT)
-def outgoing_radiance(
-    emission: NDArray[np.float64],
-    albedo: NDArray[np.float64],
-    irradiance: NDArray[np.float64],
-    shadow_point: NDArray[np.int64],
-    shadow_irradiance: NDArray[np.float64],
-    occluded: NDArray[np.bool_],
-) -> NDArray[np.float32]:
-    """Lambertian outgoing radiance ``emission + albedo / pi * E`` (n, 3) float32, with ``E`` the
-    ``irradiance (n, 3)`` (indirect; lux) plus every unoccluded shadow ray's ``shadow_irradiance``
-    added to its ``shadow_point``."""
-    e = irradiance.copy()
-    for k in range(shadow_point.shape[0]):
-        if not occluded[k]:
-            i = shadow_point[k]
-            for c in range(3):
-                e[i, c] += shadow_irradiance[k, c]
-    n = emission.shape[0]
-    out = np.empty((n, 3), np.float32)
-    inv_pi = 1.0 / math.pi
-    for i in range(n):
-        for c in range(3):
-            out[i, c] = emission[i, c] + albedo[i, c] * inv_pi * e[i, c]
-    return out
 
 
 @numba.njit(**_JIT)
@@ -744,9 +534,9 @@ def hit_probe_weights(
 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """The 8 probes around each surface point and their normalised DDGI weights.
 
-    The weight half of :func:`indirect_irradiance` (same parameters, same arithmetic): the
-    weights of :func:`probegrid.core.ddgi.probe_weights` with normals and moments, divided by
-    their sum. They depend only on the geometry and the probes' distance moments, never on the
+    The weights of :func:`probegrid.core.ddgi.probe_weights` with normals and moments (the
+    normal-facing term, the Chebyshev test on the seamless bilinear moments, the crush),
+    divided by their sum. They depend only on the geometry and the probes' distance moments, never on the
     light, so a bake computes them once per hit and every bounce reuses them.
 
     Returns

@@ -135,25 +135,23 @@ def test_the_winding_not_the_sidedness_decides():
 
 
 def test_invalid_probes_give_no_light_to_a_bounce():
-    """The bounce lookup gives an invalid probe zero weight: whatever its SH holds, the
-    irradiance at surface points is the same."""
-    from probegrid.bake.render import IndirectField
+    """The bounce lookup (the trace-once weights of every hit, probegrid.bake.records) gives an
+    invalid probe zero weight: whatever light it holds, no surface point reads any of it."""
+    from probegrid.bake.records import GridData, hit_weights
 
     grid = GridSpec.from_counts((0, 0, 0), (1, 1, 1), (2, 2, 2))
     rng = np.random.default_rng(3)
-    sh = np.zeros((8, 9, 3))
-    sh[:, 0] = rng.uniform(0.5, 1.0, (8, 3))
     valid = np.ones(8, bool)
     valid[[1, 6]] = False
-    loud = sh.copy()
-    loud[~valid] = 1e6
     pts = rng.uniform(0.1, 0.9, (50, 3))
     nrm = rng.normal(size=(50, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    a = IndirectField(grid, sh, valid, grid.positions()).irradiance(pts, nrm)
-    b = IndirectField(grid, loud, valid, grid.positions()).irradiance(pts, nrm)
-    assert a.max() > 0
-    np.testing.assert_array_equal(a, b)
+    data = GridData(grid, valid, grid.positions(), np.zeros((0, 2), np.float32), 0, None)
+    rec = {"kind": np.ones(50, np.uint8), "position": pts, "normal": nrm.astype(np.float32)}
+    idx, w = hit_weights(rec, data)
+    assert np.all(w[np.isin(idx, [1, 6])] == 0)  # the invalid probes carry nothing
+    assert np.all(w.sum(axis=1) > 0.99)  # and the valid ones carry it all
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-6)
 
 
 @pytest.mark.parametrize("n", [16, 64])

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from probegrid.bake.render import IndirectField
 from probegrid.core.grid import GridSpec
 
 
 def _field(rng: np.random.Generator, counts=(4, 3, 5), moments=True, invalid=0.2,
-           moved=True) -> IndirectField:
+           moved=True) -> SimpleNamespace:
+    """A random grid's probes: validity, (moved) positions and distance moments."""
     grid = GridSpec(bounds_min=(-1.0, 0.0, -2.0), bounds_max=(2.0, 1.5, 1.0), counts=counts)
     p = grid.n_probes
     pos = grid.positions().reshape(-1, 3)
@@ -21,37 +23,7 @@ def _field(rng: np.random.Generator, counts=(4, 3, 5), moments=True, invalid=0.2
         mean = rng.uniform(0.05, 2.0, (p, 6, 4, 4))
         m2 = mean**2 + rng.uniform(0.0, 0.3, mean.shape)
         m = np.stack([mean, m2], axis=-1).astype(np.float32)
-    return IndirectField(grid=grid, sh=rng.normal(0.3, 0.4, (p, 9, 3)),
-                         valid=rng.random(p) >= invalid, positions=pos, moments=m)
-
-
-@pytest.mark.parametrize("moments", [True, False])
-@pytest.mark.parametrize("counts", [(4, 3, 5), (1, 3, 2), (2, 1, 1)])
-def test_indirect_kernel_matches_numpy(moments: bool, counts: tuple[int, int, int]) -> None:
-    rng = np.random.default_rng(7)
-    field = _field(rng, counts=counts, moments=moments)
-    n = 4000
-    pts = rng.uniform((-1.3, -0.2, -2.3), (2.3, 1.7, 1.3), (n, 3))  # some outside the box
-    pts[:50] = field.positions[rng.integers(0, field.grid.n_probes, 50)]  # at probes
-    nrm = rng.normal(size=(n, 3))
-    nrm[:20] = [[0.0, 1.0, 0.0]] * 20
-    nrm[20:40] = [[1.0, 1.0, 0.0]] * 20  # ties in the face selection
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    got = field.irradiance(pts, nrm)
-    ref = field.irradiance_reference(pts, nrm)
-    assert got.shape == ref.shape == (n, 3)
-    scale = np.abs(ref).max()
-    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12 * scale)
-    assert (ref > 0).mean() > 0.3  # the comparison covers lit points
-
-
-def test_indirect_kernel_all_invalid_is_zero() -> None:
-    rng = np.random.default_rng(1)
-    field = _field(rng, invalid=1.1)
-    pts = rng.uniform((-1.0, 0.0, -2.0), (2.0, 1.5, 1.0), (100, 3))
-    nrm = np.tile([0.0, 0.0, 1.0], (100, 1))
-    assert np.all(field.irradiance(pts, nrm) == 0)
-    assert np.all(field.irradiance_reference(pts, nrm) == 0)
+    return SimpleNamespace(grid=grid, valid=rng.random(p) >= invalid, positions=pos, moments=m)
 
 
 def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,42 +1,20 @@
-"""Rendering the IncomingLight cube of a scene at probe positions, by ray casting through Embree.
+"""The probe's view of a scene: sample patterns, render settings and the shared per-scene state.
 
 For each probe, one ray per texel sample leaves the probe position; the texel holds the mean
 radiance its rays bring back (:class:`RenderSettings.samples` rays per texel, jittered inside
 the texel by a seeded, deterministic pattern and weighted by the cube's area element
-``(1 + u^2 + v^2)^(-3/2)``, so the texel value estimates the mean radiance over its solid angle).
+``(1 + u^2 + v^2)^(-3/2)``, so the texel value estimates the mean radiance over its solid angle;
+:func:`sample_pattern`). The rays are cast once, by the trace-once pass of
+:mod:`probegrid.bake.records`, which keeps a record of every hit and replays it per bounce.
 
-What a ray brings back
-----------------------
-* A miss: the environment (:mod:`probegrid.bake.environment`), box-filtered to the texel's footprint
-  (:attr:`RenderSettings.environment_footprint`), so a sun smaller than a texel keeps its energy.
-* A hit on the front of a surface (the geometric normal faces the ray; double-sided materials
-  have no back): the outgoing radiance of a Lambertian surface,
-
-      L = emission + albedo / pi * (E_direct(x, n) + E_indirect(x, n))
-
-  with ``E_direct`` the irradiance of the punctual lights (:mod:`probegrid.core.lights`: candela,
-  lux and the glTF range window), each checked with a shadow ray, and ``E_indirect`` the
-  irradiance of the *previous bounce's* probe grid at the hit, interpolated with the
-  leak-free weights of :func:`probegrid.core.ddgi.probe_weights` (normal-facing term and
-  Chebyshev visibility from the distance moments) and evaluated from each probe's 9 SH
-  coefficients at the normal (Ramamoorthi & Hanrahan 2001). Bounce 0 has no indirect term, so
-  after ``k`` bounces a closed furnace box of albedo rho and emission Le reads
-  ``Le (1 - rho^(k+1)) / (1 - rho)``.
-* A hit on the back of a single-sided surface: black, and counted. A probe most of whose rays
-  hit backfaces is inside geometry (:func:`backface_fraction`).
-
-Punctual lights are deltas no ray can hit. Unless ``direct=False``, each probe receives the
-direct light of every light it sees (a shadow ray from the probe) folded into its incoming cube
-by :func:`probegrid.core.lights.splat_delta`, which spreads it over the texels around the light's
-direction so the cube's solid-angle integral carries exactly the irradiance ``I / d^2`` (with the
-spec's falloff); every filter then sees it. ``direct=False`` leaves it out, for engines that
-light directly at run time.
-
-Visibility moments
-------------------
-Every probe also records, per texel of a small ``moments_size`` cube, the solid-angle-weighted
-mean distance and mean squared distance to the first hit of its rays (misses count as
-``max_distance``), the inputs of DDGI's Chebyshev test (Majercik et al. 2019).
+:class:`ProbeRenderer` holds what that pass and the classification share for one scene: the
+Embree tracer (:mod:`probegrid.raytrace`), the environment box-filtered to the texel footprint
+(:attr:`RenderSettings.environment_footprint`, so a sun smaller than a texel keeps its energy),
+the punctual lights packed for the kernels with their shadow rays, the per-texel solid angles
+and the bins of the visibility moments (per texel of a small ``moments_size`` cube, the
+solid-angle-weighted mean distance and mean squared distance to the first hit, the inputs of
+DDGI's Chebyshev test, Majercik et al. 2019), and :meth:`ProbeRenderer.surroundings` (backface
+fraction and farthest hit of a point, for the classification).
 
 Determinism
 -----------
@@ -55,7 +33,6 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import probe_rng
-from probegrid.core import sh
 from probegrid.core.cubemap import (
     FACE_NORMALS,
     FACE_U,
@@ -63,34 +40,16 @@ from probegrid.core.cubemap import (
     texel_directions,
     texel_solid_angles,
 )
-from probegrid.core.ddgi import (
-    CRUSH_THRESHOLD,
-    DEFAULT_NORMAL_BIAS,
-    MIN_WEIGHT,
-    NORMAL_TERM_FLOOR,
-    BorderedCubes,
-    probe_weights,
-)
-from probegrid.core.grid import CORNER_OFFSETS, GridSpec
-from probegrid.core.lights import incident_many, pack_lights, splat_delta
+from probegrid.core.lights import incident_many, pack_lights
 from probegrid.kernels import (
     cube_sample_directions,
-    distance_moments,
-    indirect_irradiance,
-    light_rays,
-    orient_hits,
-    outgoing_radiance,
-    texel_means,
 )
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
 __all__ = [
-    "IndirectField",
     "ProbeRenderer",
-    "RenderResult",
     "RenderSettings",
-    "probe_irradiance_coefficients",
     "sample_pattern",
 ]
 
@@ -208,131 +167,10 @@ def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
                                   FACE_NORMALS, FACE_U, FACE_V)
 
 
-def probe_irradiance_coefficients(
-    sh_l: NDArray[np.float64], *, out: NDArray[np.float64] | None = None, chunk: int = 1 << 16
-) -> NDArray[np.float64]:
-    """Irradiance coefficients ``A_l L_lm`` of radiance coefficients ``(P, 9, 3)``, ``chunk``
-    probes at a time (into ``out`` when given); ``(P, 9, 3)`` float64."""
-    if out is None:
-        out = np.empty(sh_l.shape, dtype=np.float64)
-    for s in range(0, len(sh_l), chunk):  # loop over chunks of probes: bounded temporaries
-        part = np.asarray(sh_l[s:s + chunk], dtype=np.float64)
-        out[s:s + len(part)] = np.moveaxis(
-            sh.irradiance_coefficients(np.moveaxis(part, 1, 0)), 0, 1)
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class IndirectField:
-    """Irradiance of the previous bounce's probe grid at surface points.
-
-    Attributes
-    ----------
-    grid : GridSpec
-    sh : (P, 9, 3) float64
-        Radiance SH coefficients of every probe.
-    valid : (P,) bool
-    positions : (P, 3) float64
-        Probe positions (possibly moved).
-    moments : (P, 6, m, m, 2) float32, BorderedCubes or None
-        Distance moments for the Chebyshev visibility test (or their bordered form).
-    coeffs : (P, 9, 3) float64, optional
-        Irradiance coefficients ``A_l L_lm`` of ``sh`` when already computed.
-
-    Any of the arrays may be read-only memory maps: a worker then reads the pages of the probes
-    its rays reach, and its memory does not grow with the grid.
-    """
-
-    grid: GridSpec
-    sh: NDArray[np.float64]
-    valid: NDArray[np.bool_]
-    positions: NDArray[np.float64]
-    moments: NDArray[np.float32] | BorderedCubes | None = None
-    coeffs: NDArray[np.float64] | None = None
-
-    @cached_property
-    def _irradiance_coeffs(self) -> NDArray[np.float64]:
-        # (P, 9, 3) irradiance coefficients A_l L_lm
-        if self.coeffs is not None:
-            return self.coeffs
-        return probe_irradiance_coefficients(self.sh)
-
-    @cached_property
-    def _moments(self) -> BorderedCubes | None:
-        if self.moments is None or isinstance(self.moments, BorderedCubes):
-            return self.moments
-        return BorderedCubes(self.moments)
-
-    @cached_property
-    def _kernel_args(self) -> tuple:
-        g = self.grid
-        counts = np.array(g.counts, dtype=np.int64)
-        cells = g.cell_size[counts > 1]
-        bias = DEFAULT_NORMAL_BIAS * (float(cells.min()) if cells.size else 0.0)
-        mom = self._moments
-        data = np.zeros((0, 2), np.float32) if mom is None else mom.data
-        m = 1 if mom is None else mom.n
-        return (g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS,
-                np.ascontiguousarray(self.valid, dtype=bool),
-                np.ascontiguousarray(self.positions, dtype=np.float64), data, m, bias,
-                np.ascontiguousarray(self._irradiance_coeffs), sh.BASIS_SCALE, FACE_U, FACE_V,
-                NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD)
-
-    def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64]
-                   ) -> NDArray[np.float64]:
-        """Irradiance (lux, RGB) at ``points (n, 3)`` with unit ``normals (n, 3)``; ``(n, 3)``.
-
-        The compiled :func:`probegrid.kernels.indirect_irradiance`; :meth:`irradiance_reference`
-        is the same computation in numpy array expressions (tests compare them).
-        """
-        if len(points) == 0:
-            return np.zeros((0, 3))
-        return indirect_irradiance(np.ascontiguousarray(points, dtype=np.float64),
-                                   np.ascontiguousarray(normals, dtype=np.float64),
-                                   *self._kernel_args)
-
-    def irradiance_reference(self, points: NDArray[np.float64], normals: NDArray[np.float64]
-                             ) -> NDArray[np.float64]:
-        """:meth:`irradiance` through :func:`probegrid.core.ddgi.probe_weights` and the SH
-        basis: the readable statement of what the kernel computes."""
-        if len(points) == 0:
-            return np.zeros((0, 3))
-        pw = probe_weights(
-            self.grid, points, valid=self.valid, normals=normals,
-            probe_positions=self.positions, moments=self._moments,
-        )
-        basis = sh.sh_basis(normals)  # (n, 9)
-        coeffs = self._irradiance_coeffs
-        e = np.zeros((len(points), 3))
-        for c in range(8):  # corner by corner: (n, 9, 3) gathers instead of one (n, 8, 9, 3)
-            e += pw.weights[:, c, None] * np.einsum("nk,nkj->nj", basis, coeffs[pw.indices[:, c]])
-        return np.maximum(e, 0.0)
-
-
-@dataclass
-class RenderResult:
-    """A batch of rendered probes.
-
-    Attributes
-    ----------
-    incoming : (B, 6, n, n, 3) float32
-        Incoming radiance cubes (with the direct light folded in unless disabled).
-    moments : (B, 6, m, m, 2) float32
-        Mean distance and mean squared distance per moments texel.
-    backface_fraction : (B,) float64
-        Fraction of primary rays that hit the back of a single-sided surface.
-    rays : int
-        Rays cast (primary and shadow).
-    """
-
-    incoming: NDArray[np.float32]
-    moments: NDArray[np.float32]
-    backface_fraction: NDArray[np.float64]
-    rays: int
-
-
 class ProbeRenderer:
-    """Renders incoming cubes of one scene (build once per process: it owns the BVH)."""
+    """One scene's ray tracer, environment lookup and per-texel tables (build once per process:
+    it owns the BVH), shared by the classification (:meth:`surroundings`) and the trace-once
+    pass (:class:`probegrid.bake.records.RecordTracer`)."""
 
     def __init__(
         self,
@@ -355,7 +193,7 @@ class ProbeRenderer:
         self._moment_bins = np.repeat(bins.reshape(-1), self.settings.samples)
         self._texel_sa = np.repeat(texel_solid_angles(n).reshape(-1), self.settings.samples)
 
-    # -- shading -------------------------------------------------------------------------
+    # -- lights ---------------------------------------------------------------------------
 
     def _visible_lights(
         self, points: NDArray[np.float64], normals: NDArray[np.float64] | None = None
@@ -389,104 +227,7 @@ class ProbeRenderer:
         return (pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
                 pk.angle_scale, pk.angle_offset)
 
-    def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
-               field: IndirectField | None) -> tuple[NDArray[np.float32], NDArray[np.float64],
-                                                     NDArray[np.bool_], int]:
-        """Radiance, hit distance and backface flag of rays ``(N, 3)`` from ``origins (N, 3)``.
-
-        Misses read the environment; front hits get ``emission + albedo / pi * E`` with ``E``
-        the unshadowed punctual lights (one shadow ray per light in front of the surface,
-        :func:`probegrid.kernels.light_rays`) plus the previous bounce's grid
-        (:meth:`IndirectField.irradiance`); back hits are black.
-        """
-        hits = self.tracer.intersect(origins, dirs)
-        radiance = np.zeros((len(dirs), 3), dtype=np.float32)
-        miss = hits.prim_id < 0
-        if miss.any() and not self.environment.is_black:
-            radiance[miss] = self._env.radiance(dirs[miss])
-        hit = np.flatnonzero(~miss)
-        back = np.zeros(len(dirs), dtype=bool)
-        rays = len(dirs)
-        if hit.size:
-            prim = hits.prim_id[hit]
-            pos, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
-            is_back = orient_hits(nrm, dirs, hit, prim, self._double_sided)
-            back[hit] = is_back
-            fh = np.flatnonzero(~is_back)
-            if fh.size < hit.size:
-                pos, nrm = pos[fh], nrm[fh]
-                albedo, emission = albedo[fh], emission[fh]
-            e = np.zeros((len(fh), 3)) if field is None else field.irradiance(pos, nrm)
-            eps = self.settings.ray_offset
-            which, s_org, s_dir, s_tmax, s_irr = light_rays(pos, nrm, *self._lights, eps)
-            occluded = (self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps) if len(which)
-                        else np.zeros(0, dtype=bool))
-            rays += len(which)
-            radiance[hit[fh]] = outgoing_radiance(emission, albedo, e, which, s_irr, occluded)
-        t = np.where(miss, self.settings.max_distance,
-                     np.minimum(hits.t, self.settings.max_distance))
-        return radiance, t, back, rays
-
-    # -- probes --------------------------------------------------------------------------
-
-    def render(
-        self,
-        positions: NDArray[np.float64],
-        indices: NDArray[np.int64],
-        *,
-        field: IndirectField | None = None,
-        direct: bool | None = None,
-    ) -> RenderResult:
-        """Render the incoming cubes of probes at ``positions (B, 3)`` with linear ``indices``.
-
-        ``direct`` overrides :attr:`RenderSettings.direct` (folding the punctual lights' direct
-        light into the cubes). A bake's intermediate bounces render without it: their grids are
-        the indirect light at later bounces' surface points, which get the lights' direct
-        light from their own shadow rays (through the grid it would be counted twice).
-        """
-        st = self.settings
-        n, s, m = st.face_size, st.samples, st.moments_size
-        pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
-        b = len(pos)
-        patterns = [sample_pattern(st, int(i)) for i in idx]
-        dirs = np.stack([p[0].reshape(-1, 3) for p in patterns])  # (B, R, 3)
-        wts = np.stack([p[1].reshape(-1) for p in patterns])  # (B, R)
-        nr = dirs.shape[1]
-        origins = np.repeat(pos, nr, axis=0)
-        flat = dirs.reshape(-1, 3)
-        radiance = np.empty((len(flat), 3), dtype=np.float32)
-        t = np.empty(len(flat))
-        back = np.empty(len(flat), dtype=bool)
-        rays = 0
-        for c in range(0, len(flat), SHADE_CHUNK):  # loop over chunks of rays, not rays
-            sl = slice(c, c + SHADE_CHUNK)
-            radiance[sl], t[sl], back[sl], r = self._shade(origins[sl], flat[sl], field)
-            rays += r
-        if s == 1:  # one ray per texel: its weight is exactly 1
-            incoming = radiance.reshape(b, 6, n, n, 3)
-        else:
-            incoming = texel_means(radiance, wts.reshape(-1), s).reshape(b, 6, n, n, 3)
-        t = t.reshape(b, nr)
-        backfrac = back.reshape(b, nr).mean(axis=1)
-
-        moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
-        sa = self._texel_sa * wts.reshape(b, nr)  # solid angle carried by each ray
-        for j in range(b):  # per probe: the reductions must not depend on the batch
-            moments[j] = distance_moments(t[j], sa[j], self._moment_bins,
-                                          6 * m * m).reshape(6, m, m, 2)
-
-        if (st.direct if direct is None else direct) and self.scene.lights:
-            rays += self._splat_direct(pos, incoming)
-        return RenderResult(incoming, moments, backfrac, rays)
-
-    def _splat_direct(self, pos: NDArray[np.float64], incoming: NDArray[np.float32]) -> int:
-        """Fold each visible punctual light into the probes' cubes (in place); returns rays."""
-        dirs, e_perp, visible, rays = self._visible_lights(pos)
-        for j in np.flatnonzero(visible.any(axis=1)):  # loop over probes, not rays
-            li = np.flatnonzero(visible[j])
-            incoming[j] = splat_delta(incoming[j], dirs[j, li], e_perp[j, li])
-        return rays
+    # -- classification -------------------------------------------------------------------
 
     def backface_fraction(self, positions: NDArray[np.float64], *, face_size: int = 8
                           ) -> NDArray[np.float64]:
