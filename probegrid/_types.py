@@ -23,6 +23,7 @@ __all__ = [
     "MapFormat",
     "MapKind",
     "PixelType",
+    "SHKind",
     "SHWindow",
     "SeamMode",
     "StartMethod",
@@ -54,6 +55,8 @@ MapFormat = Literal["exr", "hdr", "ktx2", "gltf"]
 CubeConvention = Literal["gltf", "threejs", "bevy"]
 #: Engines a probe grid is exported for (``probegrid export --target``).
 EngineTarget = Literal["threejs", "bevy", "ktx2"]
+#: Which SH a query returns: deringed per probe (irradiance never negative) or as stored.
+SHKind = Literal["deringed", "raw"]
 #: Pixel types of written image files.
 PixelType = Literal["half", "float", "rgbe", "uint8"]
 #: Seam handling of filtered cube maps (see :mod:`probegrid.core.seams`).

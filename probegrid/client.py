@@ -60,7 +60,7 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind
+from probegrid._types import MapKind, SHKind, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import ProbegridError
@@ -591,7 +591,7 @@ class _BaseClient:
 
 
 #: The ``sh`` choices of :meth:`ProbeGridClient.sh_at` (the service's ``/sh?sh=``).
-_SH_KINDS = ("deringed", "raw")
+_SH_KINDS = choices(SHKind)
 
 
 def _segment(name: str) -> str:

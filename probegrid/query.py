@@ -27,12 +27,12 @@ from __future__ import annotations
 import re
 import threading
 from functools import cached_property, partial
-from typing import Any, Final, Literal, cast
+from typing import Any, Final, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind
+from probegrid._types import MapKind, SHKind, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
@@ -54,8 +54,7 @@ from probegrid.store import ProbeStore
 __all__ = ['SH_KINDS', 'ProbeField', 'SHKind']
 
 #: Which SH :meth:`ProbeField.sh` blends: the deringed coefficients (default) or the raw ones.
-SHKind = Literal["deringed", "raw"]
-SH_KINDS: Final[tuple[str, ...]] = ("deringed", "raw")
+SH_KINDS: Final[tuple[str, ...]] = choices(SHKind)
 
 #: Length left out at both ends of a visibility segment, in units of the smallest cell size
 #: (a point on a surface or a probe does not hide itself; far below any wall thickness).

@@ -27,7 +27,7 @@ from fastapi import Depends, Request
 from fastapi import Path as PathParam
 from numpy.typing import NDArray
 
-from probegrid.core.dfg import dfg_lut
+from probegrid.usercache import dfg_lut
 from service.errors import ApiError
 from service.registry import GridRegistry, ServedGrid
 from service.settings import Settings
@@ -76,7 +76,7 @@ class ServiceState:
         if self._dfg is None:
             with self._dfg_lock:
                 if self._dfg is None:
-                    self._dfg = dfg_lut(DFG_SIZE)
+                    self._dfg = dfg_lut(DFG_SIZE)  # computed once per machine (same bits)
         return self._dfg
 
 

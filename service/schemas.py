@@ -18,6 +18,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, model_validator
 
+from probegrid._types import SHKind
+
 __all__ = [
     "CubeFormat",
     "CubeLayout",
@@ -43,8 +45,6 @@ __all__ = [
 ]
 
 CubeFormat = Literal["exr", "hdr", "png", "npy", "json", "ktx2"]
-#: ``/sh``'s ``sh`` parameter (:data:`probegrid.query.SHKind`).
-SHKind = Literal["deringed", "raw"]
 #: ``hcross`` is the name ``probegrid filter`` / ``export`` use for the same horizontal cross.
 CubeLayout = Literal["faces", "cross", "hcross"]
 

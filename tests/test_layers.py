@@ -14,8 +14,8 @@ import each other)::
     7  probegrid (the package's face: nothing imports it)
 
 and, on top of the ranks: ``probegrid.client`` imports only errors, option types, the version,
-core and the store's manifest models; ``service`` only the foundation, core, imageio, export (file formats), raytrace, store and
-query; nothing in ``probegrid`` imports ``service`` but the ``serve`` command's one lazy import;
+core and the store's manifest models; ``service`` only the foundation, core, imageio, export (file formats), raytrace, the
+per-machine cache, store and query; nothing in ``probegrid`` imports ``service`` but the ``serve`` command's one lazy import;
 ``probegrid.core`` imports numpy (and threadpoolctl, to bound BLAS threads) and no module that
 reads or writes files, sockets, settings or the web.
 
@@ -50,7 +50,8 @@ CLIENT_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version
                      "probegrid.core", "probegrid.store.manifest")
 SERVICE_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
                       "probegrid._fs", "probegrid.core", "probegrid.imageio", "probegrid.store",
-                      "probegrid.raytrace", "probegrid.export", "probegrid.query", "service")
+                      "probegrid.raytrace", "probegrid.export", "probegrid.usercache",
+                      "probegrid.query", "service")
 #: The one import of the HTTP layer from the library: ``probegrid serve`` starts it.
 SERVICE_FROM_LIBRARY = {("probegrid.cli", "service.main")}
 CORE_THIRD_PARTY = {"numpy", "threadpoolctl"}

@@ -108,13 +108,14 @@ References
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import lru_cache
-from typing import Final, Literal, get_args
+from typing import Any, Final, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import SHWindow, WindowKind
+from probegrid._types import SHWindow, WindowKind, choices
 from probegrid.core import cubemap as cm
 
 __all__ = [
@@ -203,6 +204,23 @@ def sh_lm(index: int) -> tuple[int, int]:
     return l, index - l * (l + 1)
 
 
+def unit_directions(directions: ArrayLike) -> NDArray[np.float64]:
+    """``(..., 3)`` directions normalised as the SH bases take them: scaled by the largest
+    component first (neither 1e-200 nor 1e200 under- or overflows); a row with a non-finite
+    component becomes all nan (not a partly finite mixture); a zero vector raises."""
+    d = np.asarray(directions, dtype=np.float64)
+    if d.shape[-1:] != (3,):
+        raise ValueError(f"directions must have shape (..., 3), got {d.shape}.")
+    big = np.max(np.abs(d), axis=-1, keepdims=True)
+    if np.any(big == 0.0):
+        raise ValueError("directions must be non-zero vectors; got a zero vector.")
+    with np.errstate(invalid="ignore"):
+        d = d / big
+        d = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
+    d[~np.all(np.isfinite(d), axis=-1)] = np.nan
+    return d
+
+
 def sh_basis(directions: ArrayLike) -> NDArray[np.float64]:
     """The nine basis functions at each direction.
 
@@ -217,18 +235,7 @@ def sh_basis(directions: ArrayLike) -> NDArray[np.float64]:
     (..., 9) float64
         ``Y_i(d / |d|)`` in index order ``l (l + 1) + m`` (see the module docstring).
     """
-    d = np.asarray(directions, dtype=np.float64)
-    if d.shape[-1:] != (3,):
-        raise ValueError(f"directions must have shape (..., 3), got {d.shape}.")
-    # Scale by the largest component first, so neither 1e-200 nor 1e200 under/overflows.
-    big = np.max(np.abs(d), axis=-1, keepdims=True)
-    if np.any(big == 0.0):
-        raise ValueError("directions must be non-zero vectors; got a zero vector.")
-    with np.errstate(invalid="ignore"):
-        d = d / big
-        d = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
-    # nan / inf components: the whole row is nan (not a partly finite mixture).
-    d[~np.all(np.isfinite(d), axis=-1)] = np.nan
+    d = unit_directions(directions)
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     out = np.empty(d.shape[:-1] + (NUM_COEFFS,), dtype=np.float64)
     out[..., 0] = np.where(np.isnan(x), np.nan, K0)
@@ -503,24 +510,45 @@ def diffuse_cube(
     -------
     (6, size, size, C) float32 (or (6, size, size, 1) for a (9,) input)
     """
-    allowed = ("none", "hanning", "lanczos", "gauss", "auto")
-    if window not in allowed:
-        raise ValueError(f"window must be one of {allowed}, got {window!r}.")
+    check_window_option(window)
     c = _check_coeffs(L, "L")
     if c.ndim == 1:
         c = c[:, None]
     if c.ndim != 2:
         raise ValueError(f"L must have shape (9, C) or (9,), got {c.shape}.")
+    c = apply_window_option(c, window, width, auto=auto_window, apply=_apply_window)
+    dirs = cm.texel_directions(size)
+    return (evaluate(irradiance_coefficients(c), dirs) / np.pi).astype(np.float32)
+
+
+def check_window_option(window: str) -> None:
+    """Refuse a ``window`` option that is not one of :data:`probegrid._types.SHWindow`."""
+    allowed = choices(SHWindow)
+    if window not in allowed:
+        raise ValueError(f"window must be one of {allowed}, got {window!r}.")
+
+
+def apply_window_option(
+    c: NDArray[np.float64],
+    window: SHWindow,
+    width: float | None,
+    *,
+    auto: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], Any]],
+    apply: Callable[[NDArray[np.float64], str, float], NDArray[np.float64]],
+) -> NDArray[np.float64]:
+    """Coefficients ``c`` under a diffuse function's ``window`` option: unchanged for "none",
+    ``auto(c)``'s for "auto" (no ``width``: it is searched), ``apply(c, window, width)``
+    otherwise (a ``width`` needed). ``auto`` and ``apply`` are the band count's own (this
+    module's for 3 bands, :mod:`probegrid.core.shbands`' for any)."""
     if window == "auto":
         if width is not None:
             raise ValueError("width must be None with window='auto' (the width is searched).")
-        c, _ = auto_window(c)
+        c, _ = auto(c)
     elif window != "none":
         if width is None:
             raise ValueError(f"window={window!r} needs a width.")
-        c = _apply_window(c, window, width)
-    dirs = cm.texel_directions(size)
-    return (evaluate(irradiance_coefficients(c), dirs) / np.pi).astype(np.float32)
+        c = apply(c, window, width)
+    return c
 
 
 # --------------------------------------------------------------------------------------------
@@ -528,7 +556,8 @@ def diffuse_cube(
 # --------------------------------------------------------------------------------------------
 
 
-def window_factors(kind: WindowKind, width: float) -> NDArray[np.float64]:
+def window_factors(kind: WindowKind, width: float, *, bands: int = NUM_BANDS
+                   ) -> NDArray[np.float64]:
     """Per-band window factors ``(h_0, h_1, h_2)`` (Sloan 2008; formulas in the module docstring).
 
     Parameters
@@ -536,21 +565,23 @@ def window_factors(kind: WindowKind, width: float) -> NDArray[np.float64]:
     kind : {"none", "hanning", "lanczos", "gauss"}
     width : float
         Window width ``w > 0`` (``inf`` means no windowing); ignored for "none".
+    bands : int
+        Bands to give factors for (:mod:`probegrid.core.shbands` asks for any count).
 
     Returns
     -------
-    (3,) float64, ``h_0 = 1``.
+    (bands,) float64, ``h_0 = 1``.
     """
     if kind not in _WINDOW_KINDS:
         raise ValueError(f"window kind must be one of {_WINDOW_KINDS}, got {kind!r}.")
-    l = np.arange(NUM_BANDS, dtype=np.float64)
+    l = np.arange(bands, dtype=np.float64)
     if kind == "none":
-        return np.ones(NUM_BANDS)
+        return np.ones(bands)
     w = float(width)
     if not w > 0:
         raise ValueError(f"window width must be > 0, got {width!r}.")
     if np.isinf(w):
-        return np.ones(NUM_BANDS)
+        return np.ones(bands)
     if kind == "gauss":
         return np.exp(-l * (l + 1.0) / (2.0 * w * w))
     x = np.pi * l / w
@@ -794,6 +825,16 @@ def auto_window(
     ValueError
         For nan / inf coefficients, or if a channel has ``L_00 < 0`` (no window can help).
     """
+    check_auto_window_options(kind, quantity, rtol)
+    c = _check_coeffs(L, "L")
+    check_auto_window_coeffs(c)
+    f = irradiance_coefficients(c) if quantity == "irradiance" else c
+    return gentlest_window(c, f, kind, rtol, minima=_windowed_minima, apply=_apply_window)
+
+
+def check_auto_window_options(kind: str, quantity: str, rtol: float) -> None:
+    """Refuse :func:`auto_window`'s options when they are not a window kind, a quantity and a
+    relative precision in (0, 1) (one-line ``ValueError``)."""
     kinds = ("hanning", "lanczos", "gauss")
     if kind not in kinds:
         raise ValueError(f"kind must be one of {kinds}, got {kind!r}.")
@@ -801,29 +842,46 @@ def auto_window(
         raise ValueError(f"quantity must be one of ('irradiance', 'radiance'), got {quantity!r}.")
     if not 0 < rtol < 1:
         raise ValueError(f"rtol must be in (0, 1), got {rtol!r}.")
-    c = _check_coeffs(L, "L")
+
+
+def check_auto_window_coeffs(c: NDArray[np.float64]) -> None:
+    """Refuse coefficients no window search can serve: non-finite, or ``L_00 < 0``."""
     if not np.all(np.isfinite(c)):
         raise ValueError("L contains nan or inf; cannot choose a window.")
     if np.any(c[0] < 0):
         raise ValueError("L_00 is negative in some channel; no window can make it non-negative.")
-    f = irradiance_coefficients(c) if quantity == "irradiance" else c
-    if _windowed_minima(f, kind, np.array([np.inf]))[0] >= 0.0:
+
+
+def gentlest_window(
+    c: NDArray[np.float64],
+    f: NDArray[np.float64],
+    kind: WindowKind,
+    rtol: float,
+    *,
+    minima: Callable[[NDArray[np.float64], WindowKind, NDArray[np.float64]], NDArray[np.float64]],
+    apply: Callable[[NDArray[np.float64], str, float], NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], float]:
+    """:func:`auto_window`'s search (its docstring): ``c`` windowed at the largest width whose
+    window makes ``f`` non-negative, and that width (``inf`` when none is needed). ``minima``
+    and ``apply`` are the band count's own (this module's for 3 bands,
+    :mod:`probegrid.core.shbands`' for any)."""
+    if minima(f, kind, np.array([np.inf]))[0] >= 0.0:
         return c.copy(), float("inf")
     band0_only = 0.01 if kind == "gauss" else 1.0  # feasible: the constant pi L_00 K0 >= 0
     grid = np.append(np.geomspace(band0_only, 1e3, 48), 1e6)
-    feasible = _windowed_minima(f, kind, grid) >= 0.0
+    feasible = minima(f, kind, grid) >= 0.0
     feasible[0] = True
     k = int(np.flatnonzero(feasible).max())
     if k == grid.size - 1:
-        return _apply_window(c, kind, grid[k]), float(grid[k])
+        return apply(c, kind, grid[k]), float(grid[k])
     lo, hi = grid[k], grid[k + 1]  # lo feasible, hi not
     while hi / lo > 1.0 + rtol:
         ws = np.geomspace(lo, hi, 18)[1:-1]
-        ok = np.flatnonzero(_windowed_minima(f, kind, ws) >= 0.0)
+        ok = np.flatnonzero(minima(f, kind, ws) >= 0.0)
         j = int(ok.max()) if ok.size else -1
         lo = ws[j] if j >= 0 else lo
         hi = ws[j + 1] if j + 1 < ws.size else hi
-    return _apply_window(c, kind, lo), float(lo)
+    return apply(c, kind, lo), float(lo)
 
 
 # --------------------------------------------------------------------------------------------

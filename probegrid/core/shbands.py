@@ -91,6 +91,7 @@ from typing import Final, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid._types import SHWindow, WindowKind
 from probegrid.core import cubemap as cm
 from probegrid.core import sh as sh3
 
@@ -121,8 +122,6 @@ __all__ = [
 
 #: Largest band count accepted (tested up to 9).
 MAX_BANDS: Final = 16
-
-WindowKind = Literal["none", "hanning", "lanczos", "gauss"]
 
 #: Texels / samples per block of a projection (bounded (block, bands^2) float64 basis slices).
 _BLOCK_VALUES: Final = 1 << 20
@@ -195,23 +194,6 @@ def basis_description(bands: int) -> str:
 # Basis
 
 
-def _unit(directions: ArrayLike) -> NDArray[np.float64]:
-    """Normalised directions as :func:`probegrid.sh.sh_basis` normalises them (rows with a
-    non-finite component become nan; a zero vector raises)."""
-    d = np.asarray(directions, dtype=np.float64)
-    if d.shape[-1:] != (3,):
-        raise ValueError(f"directions must have shape (..., 3), got {d.shape}.")
-    big = np.max(np.abs(d), axis=-1, keepdims=True)
-    if np.any(big == 0.0):
-        raise ValueError("directions must be non-zero vectors; got a zero vector.")
-    with np.errstate(invalid="ignore"):
-        d = d / big
-        d = d / np.sqrt(np.einsum("...i,...i->...", d, d))[..., None]
-    d[~np.all(np.isfinite(d), axis=-1)] = np.nan
-    return d
-
-
-@lru_cache(maxsize=MAX_BANDS)
 def _recurrence(bands: int) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """``Qbar_mm`` (bands,), ``a_lm`` and ``b_lm`` (bands, bands) of the module docstring."""
     qmm = np.empty(bands)
@@ -278,7 +260,7 @@ def basis(directions: ArrayLike, bands: int) -> NDArray[np.float64]:
     b = _check_bands(bands)
     if b == sh3.NUM_BANDS:
         return sh3.sh_basis(directions)
-    return _basis_unit(_unit(directions), b)
+    return _basis_unit(sh3.unit_directions(directions), b)
 
 
 # --------------------------------------------------------------------------------------------
@@ -566,25 +548,7 @@ def project_equirect(image: ArrayLike, bands: int) -> NDArray[np.float64]:
 def window_factors(kind: WindowKind, width: float, bands: int) -> NDArray[np.float64]:
     """Per-band window factors ``h_0 .. h_(bands-1)`` (Sloan 2008; formulas in
     :mod:`probegrid.core.sh`), ``h_0 = 1``; ``width = inf`` or kind "none" is no window."""
-    b = _check_bands(bands)
-    if kind not in ("none", "hanning", "lanczos", "gauss"):
-        raise ValueError(f"window kind must be one of ('none', 'hanning', 'lanczos', 'gauss'), "
-                         f"got {kind!r}.")
-    l = np.arange(b, dtype=np.float64)
-    if kind == "none":
-        return np.ones(b)
-    w = float(width)
-    if not w > 0:
-        raise ValueError(f"window width must be > 0, got {width!r}.")
-    if np.isinf(w):
-        return np.ones(b)
-    if kind == "gauss":
-        return np.exp(-l * (l + 1.0) / (2.0 * w * w))
-    if kind == "hanning":
-        h = 0.5 * (1.0 + np.cos(np.pi * l / w))
-    else:
-        h = np.sinc(l / w)
-    return np.where(l < w, h, 0.0)
+    return sh3.window_factors(kind, width, bands=_check_bands(bands))
 
 
 def window(L: ArrayLike, *, kind: WindowKind, width: float) -> NDArray[np.float64]:
@@ -727,34 +691,10 @@ def auto_window(
     c, b = _coeffs(L, "L")
     if b == sh3.NUM_BANDS:
         return sh3.auto_window(c, kind=kind, quantity=quantity, rtol=rtol)
-    if kind not in ("hanning", "lanczos", "gauss"):
-        raise ValueError(f"kind must be one of ('hanning', 'lanczos', 'gauss'), got {kind!r}.")
-    if quantity not in ("irradiance", "radiance"):
-        raise ValueError(f"quantity must be one of ('irradiance', 'radiance'), got {quantity!r}.")
-    if not 0 < rtol < 1:
-        raise ValueError(f"rtol must be in (0, 1), got {rtol!r}.")
-    if not np.all(np.isfinite(c)):
-        raise ValueError("L contains nan or inf; cannot choose a window.")
-    if np.any(c[0] < 0):
-        raise ValueError("L_00 is negative in some channel; no window can make it non-negative.")
+    sh3.check_auto_window_options(kind, quantity, rtol)
+    sh3.check_auto_window_coeffs(c)
     f = irradiance_coefficients(c) if quantity == "irradiance" else c
-    if _windowed_minima(f, kind, np.array([np.inf]))[0] >= 0.0:
-        return c.copy(), float("inf")
-    band0_only = 0.01 if kind == "gauss" else 1.0
-    grid = np.append(np.geomspace(band0_only, 1e3, 48), 1e6)
-    feasible = _windowed_minima(f, kind, grid) >= 0.0
-    feasible[0] = True
-    k = int(np.flatnonzero(feasible).max())
-    if k == grid.size - 1:
-        return _apply_window(c, kind, grid[k]), float(grid[k])
-    lo, hi = grid[k], grid[k + 1]
-    while hi / lo > 1.0 + rtol:
-        ws = np.geomspace(lo, hi, 18)[1:-1]
-        ok = np.flatnonzero(_windowed_minima(f, kind, ws) >= 0.0)
-        j = int(ok.max()) if ok.size else -1
-        lo = ws[j] if j >= 0 else lo
-        hi = ws[j + 1] if j + 1 < ws.size else hi
-    return _apply_window(c, kind, lo), float(lo)
+    return sh3.gentlest_window(c, f, kind, rtol, minima=_windowed_minima, apply=_apply_window)
 
 
 # --------------------------------------------------------------------------------------------
@@ -765,7 +705,7 @@ def diffuse_cube(
     L: ArrayLike,
     size: int,
     *,
-    window: Literal["none", "hanning", "lanczos", "gauss", "auto"] = "none",
+    window: SHWindow = "none",
     width: float | None = None,
 ) -> NDArray[np.float32]:
     """Diffuse (irradiance / pi) cube from radiance coefficients ``(bands^2, C)`` of any order.
@@ -776,20 +716,11 @@ def diffuse_cube(
     c, b = _coeffs(L, "L")
     if b == sh3.NUM_BANDS:
         return sh3.diffuse_cube(c, size, window=window, width=width)
-    allowed = ("none", "hanning", "lanczos", "gauss", "auto")
-    if window not in allowed:
-        raise ValueError(f"window must be one of {allowed}, got {window!r}.")
+    sh3.check_window_option(window)
     if c.ndim == 1:
         c = c[:, None]
     if c.ndim != 2:
         raise ValueError(f"L must have shape (bands^2, C) or (bands^2,), got {c.shape}.")
-    if window == "auto":
-        if width is not None:
-            raise ValueError("width must be None with window='auto' (the width is searched).")
-        c, _ = auto_window(c)
-    elif window != "none":
-        if width is None:
-            raise ValueError(f"window={window!r} needs a width.")
-        c = _apply_window(c, window, width)
+    c = sh3.apply_window_option(c, window, width, auto=auto_window, apply=_apply_window)
     dirs = cm.texel_directions(size)
     return (evaluate(irradiance_coefficients(c), dirs) / np.pi).astype(np.float32)

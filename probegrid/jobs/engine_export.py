@@ -39,7 +39,7 @@ from typing import Any, Literal
 import numpy as np
 
 from probegrid._fs import atomic_write_json
-from probegrid._types import CubeConvention, EngineTarget
+from probegrid._types import CubeConvention, EngineTarget, choices
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
 from probegrid.export import engines, ktx2
@@ -49,8 +49,7 @@ from probegrid.store import StoreError, open_store
 
 __all__ = ["TARGETS", "export_grid"]
 
-Target = EngineTarget
-TARGETS: tuple[str, ...] = ("threejs", "bevy", "ktx2")
+TARGETS: tuple[str, ...] = choices(EngineTarget)
 _DEFAULT_FORMAT = {"threejs": 97, "bevy": 123, "ktx2": 97}
 _ALLOWED_FORMATS = {"threejs": (97, 109), "bevy": (97, 109, 123), "ktx2": (97, 109, 123)}
 
@@ -99,7 +98,7 @@ def export_grid(
     store_path: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
-    target: Target,
+    target: EngineTarget,
     vk_format: int | str | None = None,
     zstd: bool = False,
     probe: str | tuple[int, int, int] | None = None,
@@ -126,9 +125,8 @@ def export_grid(
     grid = store.grid
     nx, ny, nz = grid.counts
     maps = _map_arrays(store)  # checks sh, diffuse and the specular levels' shapes
-    valid = np.ones(grid.n_probes, dtype=bool)
-    if "valid" in store.names and store.manifest.arrays["valid"].shape == (grid.n_probes,):
-        valid = np.asarray(store["valid"], dtype=bool)
+    recorded = store.valid_mask()
+    valid = np.ones(grid.n_probes, dtype=bool) if recorded is None else recorded
     output_format = f"probegrid.export.{target}"
     out = prepare_output_dir(out_dir, output_format, create=False)  # refuse early
     ijk = None

@@ -71,9 +71,7 @@ def describe_store(path: str | os.PathLike[str]) -> str:
     store = open_store(p)
     m = store.manifest
     g = m.grid
-    valid = None
-    if "valid" in store.names and store.manifest.arrays["valid"].shape == (g.n_probes,):
-        valid = np.asarray(store["valid"])
+    valid = store.valid_mask()
     spec_levels = _specular_levels(store)
     conv = m.conventions
     bake = m.bake.get("settings", {})
@@ -296,9 +294,8 @@ class ExportResult(list[Path]):
 
 
 def _probe_valid(store: ProbeStore, index: int) -> bool | None:
-    if "valid" in store.names and store.manifest.arrays["valid"].shape == (store.n_probes,):
-        return bool(store["valid"][index])
-    return None
+    valid = store.valid_mask()
+    return None if valid is None else bool(valid[index])
 
 
 def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[str],
@@ -367,9 +364,7 @@ def export_probes(
     probes = parse_probes(selection, store)
     maps = _map_arrays(store)
     indices = _read_probes(store, maps, probes)
-    valid = None
-    if "valid" in store.names and store.manifest.arrays["valid"].shape == (store.n_probes,):
-        valid = np.asarray(store["valid"], dtype=bool)
+    valid = store.valid_mask()
     positions = (np.asarray(store["positions"], dtype=np.float64)
                  if "positions" in store.names else None)
 

@@ -425,7 +425,8 @@ def _filter_into(
     t = time.perf_counter()
     bands = settings.sh_bands
     coeffs = shbands.project_cube(cube, bands)
-    sh9 = sh.project_cube(cube)  # band 2, what sh.json's consumers and the glTF light take
+    # band 2, what sh.json's consumers and the glTF light take (the same projection at 3 bands)
+    sh9 = coeffs if bands == 3 else sh.project_cube(cube)
     irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 

@@ -226,6 +226,13 @@ class ProbeStore:
         except KeyError:
             raise KeyError(f"no array {name!r} in {self.path.name} (has {self.names})") from None
 
+    def valid_mask(self) -> NDArray[np.bool_] | None:
+        """``(P,)`` bool: the bake's per-probe validity (False inside geometry), or None when the
+        store records none (or not one value per probe)."""
+        if "valid" in self.names and self.manifest.arrays["valid"].shape == (self.n_probes,):
+            return np.asarray(self["valid"], dtype=bool)
+        return None
+
     def probe_index(self, i: ArrayLike, j: ArrayLike, k: ArrayLike) -> NDArray[np.int64]:
         """Linear index ``(i * ny + j) * nz + k`` (see :meth:`GridSpec.probe_index`)."""
         return self.grid.probe_index(i, j, k)
