@@ -200,13 +200,18 @@ def test_bake_info_export_on_the_sample_room(tmp_path, cli_bake):
 
 
 def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path, cli_bake):
-    r = run_cli("serve", tmp_path / "nope.probes")
+    import socket
+
+    with socket.socket() as free:  # a port nothing listens on (not 8000, which may be busy)
+        free.bind(("127.0.0.1", 0))
+        port = str(free.getsockname()[1])
+    r = run_cli("serve", tmp_path / "nope.probes", "--port", port)
     assert "not a probe store" in _one_error_line(r) and "serving" not in r.stdout
     env = {**os.environ, "PROBEGRID_MAX_BATCH": "abc"}
-    r = subprocess.run([sys.executable, "-m", "probegrid.cli", "serve", tmp_path / "x.probes"],
+    r = subprocess.run([sys.executable, "-m", "probegrid.cli", "serve", tmp_path / "x.probes",
+                        "--port", port],
                        check=False, capture_output=True, text=True, timeout=600, env=env)
     assert "PROBEGRID_MAX_BATCH" in _one_error_line(r) and "serving" not in r.stdout
-    import socket
 
     store, r = cli_bake  # a valid store
     assert r.returncode == 0, r.stderr
