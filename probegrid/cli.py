@@ -95,7 +95,16 @@ def _option(p: argparse.ArgumentParser, model: type[BaseModel], field: str, *fla
         literal = next((a for a in kinds if get_origin(a) is Literal), None)
         if literal is not None and int in kinds:  # an int or a word (--bounces 2 / converge)
             words = get_args(literal)
-            kw["type"] = lambda t: t if t in words else _int(t)
+            def int_or_word(text: str, words: tuple[str, ...] = words) -> int | str:
+                if text in words:
+                    return text
+                try:
+                    return int(text)
+                except ValueError:
+                    raise argparse.ArgumentTypeError(
+                        f"expected an integer or {' or '.join(words)}, got {text!r}") from None
+
+            kw["type"] = int_or_word
             kw["metavar"] = "{N," + ",".join(words) + "}"
         elif literal is not None:
             kw["choices"] = get_args(literal)
@@ -489,7 +498,8 @@ def _error_line(exc: BaseException) -> str:
         field = ".".join(str(part) for part in err.get("loc", ()))
         option = f"--{field.replace('_', '-')}" if field else exc.title
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-        return f"{option}: {err['msg']}{more}"
+        msg = str(err["msg"]).removeprefix("Value error, ")  # (a validator's own sentence)
+        return f"{option}: {msg}{more}"
     if isinstance(exc, OSError) and exc.strerror and type(exc).__str__ is OSError.__str__:
         where = f"{exc.filename}: " if exc.filename else ""  # words, not "[Errno 2] ..."
         return f"{where}{exc.strerror}"
