@@ -682,7 +682,8 @@ def replay_radiance(
         What the probe sees along each ray.
     bounced : (N, 3) float32
         The same without the emission of the surfaces hit: the light that the grid carries
-        (reflected at least once, or the environment).
+        (reflected at least once, or the environment: the caller zeroes the misses when the
+        environment is sampled at the hits instead).
     """
     nr = kind.shape[0]
     rad = np.zeros((nr, 3), np.float32)

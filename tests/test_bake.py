@@ -385,6 +385,38 @@ def test_an_interrupted_overwrite_bake_resumes_and_a_running_bake_is_never_delet
     assert (work / "theirs").read_text() == "in use"
 
 
+def test_a_sun_patch_is_lit_by_sampling_the_sky_not_read_from_the_probes(tmp_path):
+    """Hits are lit by the environment sampled as a light (shadow rays), not through the probes:
+    the floor in a roof's shadow reads exactly 0 after one bounce although the probe beside it
+    stands in the sun (read through the grid, the patch's light leaked into the shadow), and
+    the sunlit floor reads rho E / pi with E the sun's exact irradiance."""
+    from probegrid.core.cubemap import direction_to_texel, texel_directions, texel_solid_angles
+
+    b = SceneBuilder()
+    rho = 0.5
+    floor = b.add_material(Material.diffuse(rho))
+    b.add_quad((-10, 0, -10), (0, 0, 20), (20, 0, 0), material=floor)  # faces +Y
+    b.add_box((-1, 1, -1), (1.6, 1.1, 1), material=b.add_material(Material.diffuse(0.5)))
+    scene = b.build()
+    m = 64
+    sky = np.zeros((6, m, m, 3), np.float32)
+    sky[2, 31:33, 31:33] = 1000.0  # a small sun straight up (+Y)
+    grid = GridSpec.from_counts((0, 0.5, 0), (4, 0.5, 0), (3, 1, 1))  # x = 0 (shaded), 2, 4
+    st = BakeSettings(bounces=1, relocate=False, store_incoming=True, **FAST)
+    s = bake(scene, grid, tmp_path / "sun.probes", settings=st,
+             environment=Environment(faces=sky)).store
+    inc = np.asarray(s["incoming"])
+    # the floor at x = 1.2 (in the roof's shadow) seen from the shaded probe
+    face, row, col = direction_to_texel(np.array([1.2, -0.5, 0.0]), FAST["face_size"])
+    assert inc[0, face, row, col].max() == 0.0
+    # the sunlit floor straight below the probe at x = 4
+    d = texel_directions(m)[2, 31:33, 31:33]
+    e_sun = 1000.0 * float((texel_solid_angles(m)[2, 31:33, 31:33] * d[..., 1]).sum())
+    n = FAST["face_size"]
+    below = inc[2, 3, n // 2 - 1:n // 2 + 1, n // 2 - 1:n // 2 + 1]
+    np.testing.assert_allclose(below, rho * e_sun / np.pi, rtol=2e-3)
+
+
 def test_environment_rotation_rotates_the_probes(tmp_path):
     from probegrid.core.sh import rotate_y
 

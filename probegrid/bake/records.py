@@ -11,8 +11,9 @@ ray is kept as a record:
   :mod:`probegrid.bake.emitters`);
 * ``light_punctual`` -- for a miss the environment's radiance; for a hit the punctual lights'
   shadowed irradiance / pi;
-* ``light_emitters`` -- the emitters' direct irradiance / pi at the hit (next-event
-  estimation with an exact control variate);
+* ``light_emitters`` -- the direct irradiance / pi at the hit from the emitters (next-event
+  estimation with an exact control variate) and from the environment (sampled as a light,
+  :class:`probegrid.bake.environment.EnvironmentLight`);
 * ``albedo``, ``position``, ``normal`` -- the hit (normal turned toward the probe);
 
 and, per probe, the correction of its direct view of the emitters (exact texel coverage) and
@@ -25,18 +26,19 @@ probe's irradiance cube of the previous bounce.
 
 What the grid carries
 ---------------------
-Only light that has been reflected at least once (and the environment): the ``bounced``
-radiance of a ray leaves out the emission of the surface it hits. Direct light from emitters
-reaches hits by next-event estimation and from punctual lights by shadow rays, so no light is
-counted twice. A hit reads the grid through each surrounding probe's own irradiance cube (the
+Only light that has been reflected at least once: the ``bounced`` radiance of a ray leaves out
+the emission of the surface it hits and, for a miss, the environment. Direct light reaches hits
+from the emitters and the environment by explicit sampling and from punctual lights by shadow
+rays, so no light is counted twice, and none of it is interpolated between probes (a sun patch
+read through the probes leaked into the shadows beside it). A hit reads the grid through each surrounding probe's own irradiance cube (the
 exact clamped-cosine convolution of its bounced radiance, :data:`IRRADIANCE_SIZE`-texel faces,
 looked up bilinearly at the normal): a weighted mean of non-negative irradiances, which cannot
 go negative or ring around a small bright source the way 9 SH coefficients do.
 
 Bounce levels (as before this module: ``bounces = B`` makes a furnace box read
 ``Le (1 - rho^(B+1)) / (1 - rho)``): at level 0 a hit returns its emission and the punctual
-lights' reflected light; at level ``k > 0`` it adds the emitters' reflected direct light and the
-level ``k - 1`` grid.
+lights' reflected light; at level ``k > 0`` it adds the emitters' and the environment's
+reflected direct light and the level ``k - 1`` grid.
 
 Records live in ``.npz`` files, one per block of probes (the fixed batch partition), written
 atomically by the worker that traced them; a pass over a block reads only that block's file, so
@@ -58,7 +60,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.bake.emitters import Emitters
-from probegrid.bake.environment import Environment
+from probegrid.bake.environment import Environment, EnvironmentLight
 from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
 from probegrid.core.cubemap import (
     FACE_U,
@@ -216,6 +218,8 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
     r = int(records["rays_per_probe"])
     ray_rows = (rows[:, None] * r + np.arange(r)[None, :]).reshape(-1)
     out: dict[str, NDArray[Any]] = {"probes": probes, "rays_per_probe": records["rays_per_probe"]}
+    if "sky_sampled" in records:
+        out["sky_sampled"] = records["sky_sampled"]
     for k in (*_RECORD_KEYS, "weight_index", "weight"):
         if k in records:
             out[k] = records[k][ray_rows]
@@ -243,6 +247,7 @@ class RecordTracer:
         self.settings = settings
         self.tracer = self.renderer.tracer
         self.emitters = Emitters.from_scene(scene)
+        self.sky = EnvironmentLight(environment)
         self.light_samples = int(light_samples)
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
@@ -277,6 +282,10 @@ class RecordTracer:
         ls = self.light_samples if len(self.emitters) else 0
         if ls:
             rnd = np.concatenate([_stream(st.seed, int(i), 1).random((nr, ls, 3)) for i in idx])
+        ks = 0 if self.sky.is_black else self.light_samples
+        if ks:
+            rnd_sky = np.concatenate([_stream(st.seed, int(i), 2).random((nr, ks, 3))
+                                      for i in idx])
         rays = total
         eps = st.ray_offset
         for c0 in range(0, total, SHADE_CHUNK):  # loop over chunks of rays, not rays
@@ -318,6 +327,11 @@ class RecordTracer:
                                                       self.tracer, eps)
                     rays += r
                     rec["light_emitters"][rows] = e_e / np.pi
+                if ks:  # the environment, sampled as a light (it no longer reaches the grid)
+                    e_s, r = self.sky.irradiance(p - eps * d[hit[fh]], nrm, rnd_sky[rows],
+                                                 self.tracer, eps)
+                    rays += r
+                    rec["light_emitters"][rows] += e_s / np.pi
                 rec["emission"][rows] = emission
                 rec["albedo"][rows] = albedo
                 rec["position"][rows] = p
@@ -365,6 +379,7 @@ class RecordTracer:
         rec["backface_fraction"] = back.mean(axis=1)
         rec["probes"] = idx
         rec["rays_per_probe"] = np.array(nr)
+        rec["sky_sampled"] = np.array(bool(ks))
         return rec, moments, rays
 
 
@@ -431,6 +446,10 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
     rad, bnc = replay_radiance(records["kind"], records["emission"], records["light_punctual"],
                                records["light_emitters"], records["albedo"], records["normal"],
                                wi, ww, cube_arr, g, FACE_U, FACE_V, level)
+    if not final and bool(records.get("sky_sampled", False)):
+        # the environment reaches hits by sampling (light_emitters): the grid carries only
+        # light reflected at least once, not what the probe's misses see of the sky
+        bnc[records["kind"] == 0] = 0.0
     use = rad if final else bnc
     nr = int(records["rays_per_probe"])
     if s > 1:

@@ -1,4 +1,4 @@
-"""Colour transfer functions and tone mapping: sRGB encoding and decoding, ACES filmic, exposure.
+"""Colour: luminance, sRGB encoding and decoding, ACES filmic tone mapping, exposure.
 
 Values are linear scene-referred Rec.709 RGB (the library's colour space); the sRGB functions are
 the IEC 61966-2-1 EOTF and its inverse; :func:`tonemap_preview` maps radiance to display sRGB
@@ -18,7 +18,13 @@ from numpy.typing import ArrayLike, NDArray
 _LUMA: Final[NDArray[np.float64]] = np.array([0.2126, 0.7152, 0.0722])
 _KEY: Final[float] = 0.18
 
-__all__ = ["aces_filmic", "auto_exposure", "linear_to_srgb", "srgb_to_linear", "tonemap_preview"]
+__all__ = ["aces_filmic", "auto_exposure", "linear_to_srgb", "luminance", "srgb_to_linear",
+           "tonemap_preview"]
+
+
+def luminance(rgb: ArrayLike) -> NDArray[np.float64]:
+    """Rec.709 luminance ``(...)`` of linear RGB ``(..., 3)`` (float64)."""
+    return np.asarray(rgb, dtype=np.float64) @ _LUMA
 
 
 def srgb_to_linear(encoded: ArrayLike) -> NDArray[np.float32]:

@@ -310,9 +310,11 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     # every ray is cast once (probegrid.bake.records): the bounces replay the per-hit records
     primary = p * per_probe_rays
     lights = len(scene.lights)
-    emitters = any("emissive" in what for what in light_sources(scene, environment)) \
-        if environment is not None else False
-    per_hit = lights + (st.light_samples if emitters else 0)
+    sources = light_sources(scene, environment) if environment is not None else []
+    emitters = any("emissive" in what for what in sources)
+    sky = "the environment" in sources  # sampled as a light at every hit
+    # (at most: samples below a hit's horizon cast no ray)
+    per_hit = lights + st.light_samples * (int(emitters) + int(sky))
     shadow = primary * per_hit + (p * lights if st.direct else 0)
     classify = p * (6 * CLASSIFY_FACE_SIZE**2 + DIRECTIONS)
 
