@@ -58,3 +58,23 @@ def test_unwritable_cache_still_returns_the_table(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", "relative/dir")  # ignored, as the XDG spec says
     assert usercache.cache_dir().is_absolute()
     assert not os.path.exists("relative")
+
+
+def test_probe_filter_matrix_is_stored_once_with_the_same_bits(cache):
+    from probegrid.core import probefilter
+
+    usercache.probe_filter_matrix.cache_clear()
+    first = usercache.probe_filter_matrix(8, 4, 3)
+    assert len(list(cache.glob("probe_filter-*.npy"))) == 1
+    assert first.tobytes() == probefilter.filter_matrix(8, 4, 3)[0].tobytes()
+    usercache.probe_filter_matrix.cache_clear()  # a new process reads the file
+    again = usercache.probe_filter_matrix(8, 4, 3)
+    assert again.tobytes() == first.tobytes() and not again.flags.writeable
+    # the bake's filter through the cached matrix gives the bits of the computed one
+    cube = np.random.default_rng(1).random((6, 8, 8, 6)).astype(np.float32)
+    d0, c0 = probefilter.filter_cube(cube, 4, 3)
+    d1, c1 = probefilter.filter_cube(cube, 4, 3, matrix=again)
+    assert d0.tobytes() == d1.tobytes()
+    assert all(a.tobytes() == b.tobytes() for a, b in zip(c0, c1, strict=True))
+    with pytest.raises(ValueError, match="shape"):
+        probefilter.filter_cube(cube, 4, 2, matrix=again)

@@ -79,6 +79,7 @@ from probegrid.bake.records import (
     select_probes,
 )
 from probegrid.bake.render import ProbeRenderer, RenderSettings
+from probegrid import usercache
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.core import probefilter, sh
 from probegrid.core.conventions import conventions
@@ -421,10 +422,11 @@ def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
     dense = probefilter.supported(n, diffuse_size)
     dif: list[NDArray[np.float32]] = []
     chains: list[list[NDArray[np.float32]]] = []
+    matrix = usercache.probe_filter_matrix(n, diffuse_size, levels) if dense else None
     for _, k, group in _padded_groups(cubes):
         stacked = np.ascontiguousarray(np.moveaxis(group, 0, 3).reshape(6, n, n, -1))
         if dense:
-            d, chain = probefilter.filter_cube(stacked, diffuse_size, levels)
+            d, chain = probefilter.filter_cube(stacked, diffuse_size, levels, matrix=matrix)
         else:
             d = diffuse.diffuse_exact(stacked, diffuse_size)
             chain = specular.ggx_prefilter(stacked, levels=levels)

@@ -37,10 +37,14 @@ from threadpoolctl import threadpool_limits
 from probegrid.core import lobes
 from probegrid.core.cubemap import check_cube, mip_sizes, texel_directions, texel_solid_angles
 
-__all__ = ["MAX_FACE", "describe", "filter_cube", "filter_matrix", "supported"]
+__all__ = ["MATRIX_VERSION", "MAX_FACE", "describe", "filter_cube", "filter_matrix", "filter_sizes",
+           "supported"]
 
 #: Largest input face size filtered through the cached matrix.
 MAX_FACE = 32
+
+#: Bumped whenever :func:`filter_matrix` would return other bits (keys the per-machine cache).
+MATRIX_VERSION = 1
 
 #: Rows of the matrix computed together (bounded float64 temporaries: rows x 6 n^2 x 8 bytes).
 _ROWS = 256
@@ -58,6 +62,12 @@ def describe(n: int, diffuse_size: int) -> dict[str, str]:
         return {"diffuse": how, "specular": how}
     return {"diffuse": "exact sum over every incoming texel (probegrid.core.diffuse.diffuse_exact)",
             "specular": "tiered multi-resolution sum (probegrid.core.specular.ggx_prefilter)"}
+
+
+def filter_sizes(n: int, diffuse_size: int, levels: int) -> tuple[int, ...]:
+    """Face sizes of the matrix's row blocks: ``(diffuse_size, n >> 1, ..., n >> (levels - 1))``
+    (the GGX chain's sizes after level 0)."""
+    return (int(diffuse_size), *mip_sizes(n, levels)[1:])
 
 
 @lru_cache(maxsize=2)
@@ -78,7 +88,7 @@ def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.fl
         raise ValueError(f"the filter matrix is for faces up to {MAX_FACE}, got input {n} and "
                          f"diffuse {diffuse_size}.")
     chain = mip_sizes(n, levels)
-    sizes = (diffuse_size, *chain[1:])
+    sizes = filter_sizes(n, diffuse_size, levels)
     w = texel_directions(n).reshape(-1, 3)
     om = texel_solid_angles(n).reshape(-1)
     rows = sum(6 * s * s for s in sizes)
@@ -103,7 +113,8 @@ def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.fl
     return out, sizes
 
 
-def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int
+def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
+                matrix: NDArray[np.float32] | None = None
                 ) -> tuple[NDArray[np.float32], list[NDArray[np.float32]]]:
     """Diffuse map and GGX chain of ``faces (6, n, n, C)`` (finite, ``n <= MAX_FACE``).
 
@@ -117,12 +128,20 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int
     chain : list of (6, n >> k, n >> k, C) float32, k = 0 .. levels - 1
         Level 0 is a copy of the input; the others as
         :func:`probegrid.core.specular.reference_convolution`.
+
+    ``matrix``: :func:`filter_matrix`'s matrix for these sizes when the caller already has it
+    (e.g. read from a per-machine cache); computed (and kept per process) otherwise.
     """
     src = check_cube(faces, name="faces")
     if not np.all(np.isfinite(src)):
         raise ValueError("faces must be finite (no nan or inf radiance).")
     n, c = src.shape[1], src.shape[3]
-    matrix, sizes = filter_matrix(n, int(diffuse_size), int(levels))
+    sizes = filter_sizes(n, int(diffuse_size), int(levels))
+    if matrix is None:
+        matrix = filter_matrix(n, int(diffuse_size), int(levels))[0]
+    elif matrix.shape != (sum(6 * s * s for s in sizes), 6 * n * n):
+        raise ValueError(f"the filter matrix has shape {matrix.shape}, expected "
+                         f"{(sum(6 * s * s for s in sizes), 6 * n * n)}")
     with threadpool_limits(limits=1, user_api="blas"):  # workers are processes (cf. specular)
         y = matrix @ np.ascontiguousarray(src.reshape(-1, c), dtype=np.float32)
     parts = []
