@@ -245,7 +245,10 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
             "changes by less than --tolerance")
     _option(p, S, "tolerance", help="relative energy change that ends --bounces converge")
     _option(p, S, "max_bounces", help="most bounces --bounces converge makes")
-    _option(p, S, "light_samples", help="shadow rays toward the emitters, and toward the environment, at every hit (each)")
+    _option(p, S, "light_samples", help="shadow rays toward the emitters and toward the "
+            "environment at every hit (each)")
+    _option(p, S, "gather_samples", help="cosine-weighted rays from every hit that bring back "
+            "the light bounced off what they hit (0: read the probes at the hit itself)")
     _option(p, S, "samples", help="rays per texel")
     _option(p, S, "seed", help="random seed of the ray jitter")
     _option(p, S, "diffuse_size", help="diffuse cube face size")

@@ -661,6 +661,7 @@ def replay_radiance(
     face_u: NDArray[np.float64],
     face_v: NDArray[np.float64],
     level: int,
+    indirect: NDArray[np.float32],
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """One bounce of a probe's rays from their per-hit records (no ray is cast).
 
@@ -674,7 +675,8 @@ def replay_radiance(
       the emitters' irradiance / pi (next-event estimation) and the grid's bounced
       irradiance / pi, ``G`` each probe's bordered irradiance cube ``cubes`` (face ``cube_n``,
       :class:`probegrid.core.ddgi.BorderedCubes` layout ``(P * 6 (n + 2)^2, 3)``) read
-      bilinearly at the normal; an empty ``cubes`` is a black grid.
+      bilinearly at the normal; an empty ``cubes`` is a black grid. A non-empty ``indirect``
+      ``(N, 3)`` (irradiance / pi gathered at each hit) takes the grid's place.
 
     Returns
     -------
@@ -688,7 +690,8 @@ def replay_radiance(
     nr = kind.shape[0]
     rad = np.zeros((nr, 3), np.float32)
     bnc = np.zeros((nr, 3), np.float32)
-    use_grid = level > 0 and cubes.shape[0] > 0
+    use_indirect = level > 0 and indirect.shape[0] > 0
+    use_grid = level > 0 and cubes.shape[0] > 0 and not use_indirect
     n = cube_n
     mb = n + 2
     texels = 6 * mb * mb
@@ -709,6 +712,10 @@ def replay_radiance(
             l0 += light_emitters[i, 0]
             l1 += light_emitters[i, 1]
             l2 += light_emitters[i, 2]
+        if use_indirect:
+            l0 += indirect[i, 0]
+            l1 += indirect[i, 1]
+            l2 += indirect[i, 2]
         if use_grid:
             face, u, v = _face_uv(np.float64(normals[i, 0]), np.float64(normals[i, 1]),
                                   np.float64(normals[i, 2]), face_u, face_v)

@@ -206,7 +206,8 @@ def test_hit_probe_weights_match_probe_weights(counts) -> None:
 
 def test_replay_kernel_matches_numpy() -> None:
     """One bounce from records: ``emission + albedo * (lp + le + sum_c w_c G_c(n))`` with the
-    bilinear bordered-cube lookup of :class:`probegrid.core.ddgi.BorderedCubes`."""
+    bilinear bordered-cube lookup of :class:`probegrid.core.ddgi.BorderedCubes`, or with the
+    gathered irradiance in the grid's place."""
     from probegrid.core.cubemap import FACE_U, FACE_V
     from probegrid.core.ddgi import BorderedCubes
     from probegrid.kernels import replay_radiance
@@ -221,11 +222,15 @@ def test_replay_kernel_matches_numpy() -> None:
     idx = rng.integers(0, p, (n, 8)).astype(np.int32)
     w = f32(n, 8)
     cubes = BorderedCubes(rng.random((p, 6, g, g, 3)))
-    for level in (0, 2):
+    gathered = f32(n, 3)
+    none = np.zeros((0, 3), np.float32)
+    for level, indirect in ((0, none), (2, none), (0, gathered), (2, gathered)):
         rad, bnc = replay_radiance(kind, em, lp, le, alb, nrm, idx, w, cubes.data, g,
-                                   FACE_U, FACE_V, level)
+                                   FACE_U, FACE_V, level, indirect)
         grid = np.zeros((n, 3))
-        if level:
+        if level and len(indirect):  # gathered irradiance takes the grid's place
+            grid = indirect.astype(np.float64)
+        elif level:
             for c in range(8):
                 grid += w[:, c, None] * cubes.lookup(idx[:, c], nrm.astype(np.float64))
         lit = lp + (le + grid if level else 0)

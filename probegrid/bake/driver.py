@@ -68,7 +68,9 @@ from probegrid.bake.records import (
     IRRADIANCE_SIZE,
     GridData,
     RecordTracer,
-    hit_weights,
+    all_hit_weights,
+    grid_level_read,
+    has_hit_weights,
     irradiance_cubes,
     load_records,
     records_file,
@@ -168,6 +170,7 @@ class _Context:
         positions, valid = _array(self.positions), _array(self.valid)
         tracer = RecordTracer(self.scene, self.environment, self.render,
                               light_samples=self.settings.light_samples,
+                              gather_samples=self.settings.gather_samples,
                               tracer=RayTracer.shared(self.scene))
         data = None
         if self.moments_bordered is not None:
@@ -292,11 +295,12 @@ def _weighted_records(state: _State, batch: NDArray[np.int64], *, keep: bool = T
     """The batch's records with each hit's probe weights (computed once, then kept when
     ``keep``)."""
     rec, path, rays = _block_records(state, batch)
-    if "weight_index" not in rec:
+    if not has_hit_weights(rec):
         assert state.data is not None
-        rec["weight_index"], rec["weight"] = hit_weights(rec, state.data)
+        new = all_hit_weights(rec, state.data)
+        rec.update(new)
         if path is not None and keep:
-            save_records(path, {k: rec[k] for k in ("weight_index", "weight")})
+            save_records(path, new)
     return rec, path, rays
 
 
@@ -663,7 +667,13 @@ def bake(
         def grid_energy(store: StoreWriter | ProbeStore) -> float:
             return float(np.sum(np.asarray(store["energy"])[valid]))
 
-        cubes = grid_cubes(tstore, 0)
+        gather = st.gather_samples > 0
+        cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
+
+        def cubes_for(k: int) -> NDArray[np.float32] | str | None:
+            """The grid a pass at bounce k reads (records.grid_level_read)."""
+            return cubes_at.get(grid_level_read(k, gather))
+
         energies = [grid_energy(tstore)]
         residual: float | None = None
         level = 0  # the grid level the final pass reads is level - 1
@@ -673,11 +683,11 @@ def bake(
                 break
             ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                       records=records, level=k, moments_bordered=moments_b,
-                                      cubes=cubes)
+                                      cubes=cubes_for(k))
             w, _ = stages.run(label(k, residual), work / f"bounce{k}.probes", grid_arrays,
                               _bounce_task, ctx)
             bstore = w.finish() if isinstance(w, StoreWriter) else w
-            cubes = grid_cubes(bstore, k)
+            cubes_at[k] = grid_cubes(bstore, k)
             energies.append(grid_energy(bstore))
             change = abs(energies[-1] - energies[-2])
             residual = change / energies[-1] if energies[-1] > 0 else 0.0
@@ -697,7 +707,8 @@ def bake(
 
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                   records=records, level=level, moments_bordered=moments_b,
-                                  cubes=cubes if level > 0 else None, moments=moments_all)
+                                  cubes=cubes_for(level) if level > 0 else None,
+                                  moments=moments_all)
         w, resumed = stages.run(label(level, residual, final=True), out, store_arrays(st),
                                 _final_task, ctx, overwrite=overwrite, intermediate=False,
                                 extra=keep)

@@ -223,6 +223,16 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
     for k in (*_RECORD_KEYS, "weight_index", "weight"):
         if k in records:
             out[k] = records[k][ray_rows]
+    if "gather_primary" in records:  # the gather rays of the kept rays, renumbered
+        new_row = np.full(len(records["kind"]), -1, np.int64)
+        new_row[ray_rows] = np.arange(len(ray_rows))
+        g_new = new_row[records["gather_primary"]]
+        g_rows = np.flatnonzero(g_new >= 0)
+        for k in records:
+            if k.startswith("gather_") and k not in ("gather_primary", "gather_samples"):
+                out[k] = records[k][g_rows]
+        out["gather_primary"] = g_new[g_rows]
+        out["gather_samples"] = records["gather_samples"]
     for k in ("backface_fraction",):
         out[k] = records[k][rows]
     for k, off in (("view", "view_offsets"), ("lights", "lights_offsets")):
@@ -237,11 +247,29 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
     return out
 
 
+def cosine_directions(normals: NDArray[np.float64], random: NDArray[np.float64]
+                      ) -> NDArray[np.float64]:
+    """Cosine-weighted directions about unit ``normals (n, 3)`` from uniform ``random (n, 2)``
+    (density ``cos / pi``; the orthonormal basis of Duff et al., JCGT 6(1), 2017)."""
+    nx, ny, nz = normals[:, 0], normals[:, 1], normals[:, 2]
+    sign = np.where(nz >= 0.0, 1.0, -1.0)
+    a = -1.0 / (sign + nz)
+    bb = nx * ny * a
+    t1 = np.stack([1.0 + sign * nx * nx * a, sign * bb, -sign * nx], axis=1)
+    t2 = np.stack([bb, sign + ny * ny * a, -ny], axis=1)
+    r = np.sqrt(random[:, 0])
+    phi = 2.0 * np.pi * random[:, 1]
+    z = np.sqrt(np.maximum(1.0 - random[:, 0], 0.0))
+    d = (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2 + z[:, None] * normals
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 class RecordTracer:
     """Traces batches of probes into records (build once per worker: it owns the BVH)."""
 
     def __init__(self, scene: Scene, environment: Environment, settings: RenderSettings, *,
-                 light_samples: int = 2, tracer: RayTracer | None = None) -> None:
+                 light_samples: int = 2, gather_samples: int = 0,
+                 tracer: RayTracer | None = None) -> None:
         self.renderer = ProbeRenderer(scene, environment, settings, tracer=tracer)
         self.scene = scene
         self.settings = settings
@@ -249,6 +277,73 @@ class RecordTracer:
         self.emitters = Emitters.from_scene(scene)
         self.sky = EnvironmentLight(environment)
         self.light_samples = int(light_samples)
+        self.gather_samples = int(gather_samples)
+
+    def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
+               rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None, *,
+               sky_at_misses: bool) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
+        """Records of one chunk of rays (:data:`_RECORD_KEYS`), their hit distances and the rays
+        cast: the rays themselves and every shadow ray of their front hits (punctual lights;
+        ``rnd_e (n, L, 3)`` points on the emitters, ``rnd_s (n, L, 3)`` directions of the
+        environment, None for none). A miss keeps the environment's radiance when
+        ``sky_at_misses`` (what a probe sees), else 0 (the environment reaches hits by sampling)."""
+        st = self.settings
+        rd = self.renderer
+        eps = st.ray_offset
+        k = len(dirs)
+        rec = {
+            "kind": np.zeros(k, np.uint8),
+            "emission": np.zeros((k, 3), np.float32),
+            "light_punctual": np.zeros((k, 3), np.float32),
+            "light_emitters": np.zeros((k, 3), np.float32),
+            "albedo": np.zeros((k, 3), np.float32),
+            "position": np.zeros((k, 3), np.float64),
+            "normal": np.zeros((k, 3), np.float32),
+        }
+        hits = self.tracer.intersect(origins, dirs)
+        rays = k
+        miss = hits.prim_id < 0
+        if sky_at_misses and miss.any() and not rd.environment.is_black:
+            rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
+        t = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
+        hit = np.flatnonzero(~miss)
+        if not hit.size:
+            return rec, t, rays
+        prim = hits.prim_id[hit]
+        p, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
+        # emission leaves the front (as wound) only
+        front_side = np.einsum("ij,ij->i", nrm, dirs[hit]) < 0
+        is_back = orient_hits(nrm, dirs, hit, prim, rd._double_sided)
+        emission = np.where(front_side[:, None], emission, 0.0)
+        rec["kind"][hit] = np.where(is_back, 2, 1)
+        fh = np.flatnonzero(~is_back)
+        p, nrm, albedo, emission = p[fh], nrm[fh], albedo[fh], emission[fh]
+        rows = hit[fh]
+        which, s_org, s_dir, s_tmax, s_irr = light_rays(p, nrm, *rd._lights, eps)
+        e_p = np.zeros((len(fh), 3))
+        if len(which):
+            occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
+            rays += len(which)
+            for c in range(3):
+                e_p[:, c] = np.bincount(which, weights=np.where(occluded, 0.0, s_irr[:, c]),
+                                        minlength=len(fh))
+        rec["light_punctual"][rows] = e_p / np.pi
+        # lit a ray offset short of the hit: a hit exactly on an edge of a closed room (texel
+        # centres find them) would see the adjacent wall edge-on
+        back_off = p - eps * dirs[rows]
+        if rnd_e is not None:
+            e_e, r = self.emitters.irradiance(back_off, nrm, rnd_e[rows], self.tracer, eps)
+            rays += r
+            rec["light_emitters"][rows] = e_e / np.pi
+        if rnd_s is not None:  # the environment, sampled as a light (it no longer reaches the grid)
+            e_s, r = self.sky.irradiance(back_off, nrm, rnd_s[rows], self.tracer, eps)
+            rays += r
+            rec["light_emitters"][rows] += e_s / np.pi
+        rec["emission"][rows] = emission
+        rec["albedo"][rows] = albedo
+        rec["position"][rows] = p
+        rec["normal"][rows] = nrm
+        return rec, t, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
               ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float32], int]:
@@ -269,75 +364,56 @@ class RecordTracer:
         flat = dirs.reshape(-1, 3)
         origins = np.repeat(pos, nr, axis=0)
         total = len(flat)
-        rec = {
-            "kind": np.zeros(total, np.uint8),
-            "emission": np.zeros((total, 3), np.float32),
-            "light_punctual": np.zeros((total, 3), np.float32),
-            "light_emitters": np.zeros((total, 3), np.float32),
-            "albedo": np.zeros((total, 3), np.float32),
-            "position": np.zeros((total, 3), np.float64),
-            "normal": np.zeros((total, 3), np.float32),
-        }
-        t = np.empty(total)
-        ls = self.light_samples if len(self.emitters) else 0
-        if ls:
-            rnd = np.concatenate([_stream(st.seed, int(i), 1).random((nr, ls, 3)) for i in idx])
-        ks = 0 if self.sky.is_black else self.light_samples
-        if ks:
-            rnd_sky = np.concatenate([_stream(st.seed, int(i), 2).random((nr, ks, 3))
-                                      for i in idx])
-        rays = total
         eps = st.ray_offset
+        ls = self.light_samples if len(self.emitters) else 0
+        ks = 0 if self.sky.is_black else self.light_samples
+        kg = self.gather_samples
+
+        def draw(purpose: int, shape: tuple[int, ...]) -> NDArray[np.float64]:
+            # per probe and purpose: what a probe draws does not depend on its batch
+            return np.concatenate([_stream(st.seed, int(i), purpose).random((nr, *shape))
+                                   for i in idx])
+
+        rnd_e = draw(1, (ls, 3)) if ls else None
+        rnd_s = draw(2, (ks, 3)) if ks else None
+        parts, t_parts, rays = [], [], 0
         for c0 in range(0, total, SHADE_CHUNK):  # loop over chunks of rays, not rays
             sl = slice(c0, min(c0 + SHADE_CHUNK, total))
-            d = flat[sl]
-            hits = self.tracer.intersect(origins[sl], d)
-            miss = hits.prim_id < 0
-            lp = np.zeros((len(d), 3), np.float32)
-            if miss.any() and not rd.environment.is_black:
-                lp[miss] = rd._env.radiance(d[miss])
-            kind = np.zeros(len(d), np.uint8)
-            hit = np.flatnonzero(~miss)
-            t[sl] = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
-            if hit.size:
-                prim = hits.prim_id[hit]
-                p, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
-                # emission leaves the front (as wound) only
-                front_side = np.einsum("ij,ij->i", nrm, d[hit]) < 0
-                is_back = orient_hits(nrm, d, hit, prim, rd._double_sided)
-                emission = np.where(front_side[:, None], emission, 0.0)
-                kind[hit] = np.where(is_back, 2, 1)
-                fh = np.flatnonzero(~is_back)
-                p, nrm, albedo, emission = p[fh], nrm[fh], albedo[fh], emission[fh]
-                rows = c0 + hit[fh]
-                which, s_org, s_dir, s_tmax, s_irr = light_rays(p, nrm, *rd._lights, eps)
-                e_p = np.zeros((len(fh), 3))
-                if len(which):
-                    occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
-                    rays += len(which)
-                    for c in range(3):
-                        e_p[:, c] = np.bincount(which, weights=np.where(occluded, 0.0,
-                                                                        s_irr[:, c]),
-                                                minlength=len(fh))
-                lp[hit[fh]] = e_p / np.pi
-                if ls:
-                    # lit a ray offset short of the hit: a hit exactly on an edge of a closed
-                    # room (texel centres find them) would see the adjacent wall edge-on
-                    e_e, r = self.emitters.irradiance(p - eps * d[hit[fh]], nrm, rnd[rows],
-                                                      self.tracer, eps)
-                    rays += r
-                    rec["light_emitters"][rows] = e_e / np.pi
-                if ks:  # the environment, sampled as a light (it no longer reaches the grid)
-                    e_s, r = self.sky.irradiance(p - eps * d[hit[fh]], nrm, rnd_sky[rows],
-                                                 self.tracer, eps)
-                    rays += r
-                    rec["light_emitters"][rows] += e_s / np.pi
-                rec["emission"][rows] = emission
-                rec["albedo"][rows] = albedo
-                rec["position"][rows] = p
-                rec["normal"][rows] = nrm
-            rec["kind"][sl] = kind
-            rec["light_punctual"][sl] = lp
+            r, t_c, cast = self._shade(origins[sl], flat[sl],
+                                       None if rnd_e is None else rnd_e[sl],
+                                       None if rnd_s is None else rnd_s[sl], sky_at_misses=True)
+            parts.append(r)
+            t_parts.append(t_c)
+            rays += cast
+        rec = {k: np.concatenate([p[k] for p in parts]) for k in _RECORD_KEYS}
+        t = np.concatenate(t_parts)
+        if kg:
+            # final gather: kg cosine-weighted rays from every front hit, each lit as a probe's
+            # ray is (one emitter and one environment sample); a bounce reads the grid at their
+            # hits instead of at the hit itself (replay)
+            front = np.flatnonzero(rec["kind"] == 1)
+            g_dirs_rnd = draw(3, (kg, 2))[front].reshape(-1, 2)
+            g_e = draw(4, (kg, 1, 3))[front].reshape(-1, 1, 3) if ls else None
+            g_s = draw(5, (kg, 1, 3))[front].reshape(-1, 1, 3) if ks else None
+            g_nrm = np.repeat(rec["normal"][front].astype(np.float64), kg, axis=0)
+            # off the surface and back along the ray that found the hit: a hit on an edge of a
+            # closed room (texel centres find them) would start its rays in the next wall
+            g_org = np.repeat(rec["position"][front] - eps * flat[front], kg, axis=0) \
+                + eps * g_nrm
+            g_dir = cosine_directions(g_nrm, g_dirs_rnd)
+            gparts = []
+            for c0 in range(0, len(g_dir), SHADE_CHUNK):  # chunks of gather rays
+                sl = slice(c0, min(c0 + SHADE_CHUNK, len(g_dir)))
+                r, _, cast = self._shade(g_org[sl], g_dir[sl],
+                                         None if g_e is None else g_e[sl],
+                                         None if g_s is None else g_s[sl], sky_at_misses=False)
+                gparts.append(r)
+                rays += cast
+            for k in _RECORD_KEYS:
+                rec["gather_" + k] = (np.concatenate([p[k] for p in gparts]) if gparts
+                                      else np.zeros((0, *rec[k].shape[1:]), rec[k].dtype))
+            rec["gather_primary"] = np.repeat(front, kg).astype(np.int64)
+            rec["gather_samples"] = np.array(kg)
         back = rec["kind"].reshape(b, nr) == 2
         moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
         sa = rd._texel_sa * wts
@@ -397,6 +473,30 @@ class GridData:
     cubes: NDArray[np.float32] | None
 
 
+def grid_level_read(level: int, gather: bool) -> int:
+    """The grid level a pass at bounce ``level`` reads (negative: none): the level below, or
+    two below with gather rays (their hits reflect light of the level below)."""
+    return level - 2 if gather else level - 1
+
+
+def all_hit_weights(records: dict[str, NDArray[Any]], data: GridData
+                    ) -> dict[str, NDArray[Any]]:
+    """The probe weights of every hit a bounce reads the grid at: the gather rays' hits when
+    the records have them (the rays' own hits read the gathered light instead), else the rays'
+    hits. Returns the arrays to add to the records."""
+    if "gather_primary" in records:
+        sub = {k: records["gather_" + k] for k in ("kind", "position", "normal")}
+        gi, gw = hit_weights(sub, data)
+        return {"gather_weight_index": gi, "gather_weight": gw}
+    wi, ww = hit_weights(records, data)
+    return {"weight_index": wi, "weight": ww}
+
+
+def has_hit_weights(records: dict[str, NDArray[Any]]) -> bool:
+    """Whether :func:`all_hit_weights` was already added to ``records``."""
+    return ("gather_weight_index" if "gather_primary" in records else "weight_index") in records
+
+
 def hit_weights(records: dict[str, NDArray[Any]], data: GridData
                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Each front hit's 8 probes and normalised DDGI weights (0 for misses and back hits)."""
@@ -424,8 +524,9 @@ def hit_weights(records: dict[str, NDArray[Any]], data: GridData
 def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,
            cubes: NDArray[np.float32] | None, *, final: bool
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """A pass over a batch's records at bounce ``level`` with the previous level's bordered
-    irradiance ``cubes`` (None: a black grid).
+    """A pass over a batch's records at bounce ``level`` with the bordered irradiance ``cubes``
+    (None: a black grid) of the grid level the hits read: ``level - 1``, or ``level - 2`` when
+    the records have gather rays (:func:`grid_level_read`).
 
     Returns the probes' incoming cubes ``(B, 6, n, n, 3)`` float32 -- ``final``: what the probe
     sees (emission, its exact direct view of the emitters and the punctual lights included);
@@ -438,14 +539,34 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
     empty = np.zeros((0, 3), np.float32)
     cube_arr = empty if cubes is None else cubes
     g = IRRADIANCE_SIZE
-    if "weight_index" in records:
-        wi, ww = records["weight_index"], records["weight"]
-    else:
-        wi = np.zeros((len(records["kind"]), 8), np.int32)
-        ww = np.zeros((len(records["kind"]), 8), np.float32)
+
+    def weights(prefix: str) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
+        rows = len(records[prefix + "kind"])
+        if prefix + "weight_index" in records:
+            return records[prefix + "weight_index"], records[prefix + "weight"]
+        return np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
+
+    indirect = empty
+    if "gather_primary" in records:
+        # final gather: the rays' hits read the light their gather rays bring back, the light
+        # those rays' hits reflect at level - 1 (read from the grid of level - 2 at their hits)
+        gi, gw = weights("gather_")
+        indirect = np.zeros((len(records["kind"]), 3), np.float32)
+        if level > 0:
+            _, g_bnc = replay_radiance(
+                records["gather_kind"], records["gather_emission"],
+                records["gather_light_punctual"], records["gather_light_emitters"],
+                records["gather_albedo"], records["gather_normal"], gi, gw, cube_arr, g,
+                FACE_U, FACE_V, level - 1, empty)
+            inv = 1.0 / int(records["gather_samples"])
+            for c in range(3):  # cosine-weighted rays: irradiance / pi is their mean radiance
+                indirect[:, c] = np.bincount(records["gather_primary"], weights=g_bnc[:, c],
+                                             minlength=len(indirect)) * inv
+        cube_arr = empty
+    wi, ww = weights("")
     rad, bnc = replay_radiance(records["kind"], records["emission"], records["light_punctual"],
                                records["light_emitters"], records["albedo"], records["normal"],
-                               wi, ww, cube_arr, g, FACE_U, FACE_V, level)
+                               wi, ww, cube_arr, g, FACE_U, FACE_V, level, indirect)
     if not final and bool(records.get("sky_sampled", False)):
         # the environment reaches hits by sampling (light_emitters): the grid carries only
         # light reflected at least once, not what the probe's misses see of the sky
