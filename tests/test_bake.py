@@ -417,6 +417,47 @@ def test_a_sun_patch_is_lit_by_sampling_the_sky_not_read_from_the_probes(tmp_pat
     np.testing.assert_allclose(below, rho * e_sun / np.pi, rtol=2e-3)
 
 
+def test_one_bounce_off_a_floor_is_gathered_not_read_from_the_probe(tmp_path):
+    """A point light just above a floor, a ceiling above it, one probe between: after one
+    bounce the ceiling reads rho / pi (E_direct + E_floor) with E_floor the exact integral of
+    the floor's reflected light over its form factor (a polar quadrature here). Gathered at the
+    ceiling's hits, the face's mean is within 1.5 %; read from the probe's own irradiance (the
+    probe sits nearer the floor's hot spot than the ceiling does) it was 1.97x too bright."""
+    from probegrid.core.cubemap import texel_directions
+
+    rho, power, hl, hc, hp = 0.5, 10.0, 0.3, 2.0, 1.0
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(rho))
+    b.add_quad((-10, 0, -10), (0, 0, 20), (20, 0, 0), material=m)  # floor, faces +Y
+    b.add_quad((-10, hc, -10), (20, 0, 0), (0, 0, 20), material=m)  # ceiling, faces -Y
+    b.add_light(PointLight((0.0, hl, 0.0), (1.0, 1.0, 1.0), power))
+    n = 16
+    grid = GridSpec.from_counts((0, hp, 0), (0, hp, 0), (1, 1, 1))
+    st = BakeSettings(face_size=n, diffuse_size=4, moments_size=4, bounces=1, gather_samples=64,
+                      relocate=False, store_incoming=True)
+    inc = np.asarray(bake(b.build(), grid, tmp_path / "g.probes", settings=st).store["incoming"])
+    # the exact value at each +Y texel's ceiling point
+    d = texel_directions(n)[2].reshape(-1, 3)
+    pts = np.array([0.0, hp, 0.0]) + d * ((hc - hp) / d[:, 1])[:, None]
+    e_dir = power * (hc - hl) / np.sum((pts - [0.0, hl, 0.0]) ** 2, axis=1) ** 1.5
+    edges = np.concatenate([[0.0], np.geomspace(1e-3, 10.0, 300)])  # rings about the hot spot
+    r = 0.5 * (edges[1:] + edges[:-1])
+    phi = (np.arange(128) + 0.5) * (2 * np.pi / 128)
+    rr, pp = np.meshgrid(r, phi)
+    area = (0.5 * (edges[1:] ** 2 - edges[:-1] ** 2))[None, :] * (2 * np.pi / 128)
+    fx, fz, da = (rr * np.cos(pp)).ravel(), (rr * np.sin(pp)).ravel(), np.broadcast_to(
+        area, rr.shape).ravel()
+    d2 = fx ** 2 + hl ** 2 + fz ** 2
+    radiance = rho * power * hl / d2 ** 1.5 / np.pi  # the floor's reflected light
+    vx, vz = fx[None, :] - pts[:, :1], fz[None, :] - pts[:, 2:]
+    r2 = vx ** 2 + vz ** 2 + hc ** 2
+    e_floor = (radiance * da * (hc * hc) / r2 ** 2).sum(axis=1)  # cos cos / r^2
+    exact = rho / np.pi * (e_dir + e_floor)
+    got = inc[0, 2].reshape(-1, 3)
+    assert float(np.mean(e_floor / (e_dir + e_floor))) > 0.3  # the bounce is a third of it
+    np.testing.assert_allclose(got.mean(axis=0), exact.mean(), rtol=0.015)
+
+
 def test_environment_rotation_rotates_the_probes(tmp_path):
     from probegrid.core.sh import rotate_y
 

@@ -24,6 +24,19 @@ records. A bounce is then a pass over the records (:func:`replay`,
 :func:`probegrid.kernels.replay_radiance`) that reads only the grid's small per-probe data: each
 probe's irradiance cube of the previous bounce.
 
+Final gather
+------------
+Each front hit also casts ``gather_samples`` cosine-weighted rays (``gather_*`` records,
+:func:`cosine_directions`), traced once and lit as the probe's rays are (punctual lights, one
+emitter and one environment sample at their hits; their misses and emission count 0: the
+environment and the emitters reach the hit by sampling). A bounce at level ``k`` reads the grid
+at the gather rays' hits, for the light they reflect at level ``k - 1`` (the grid of level
+``k - 2``, :func:`grid_level_read`), and the mean of their radiance is the hit's irradiance / pi.
+The probes' irradiance interpolated between them is then one reflection further from what is
+seen: read at the hit itself, it is the irradiance where the probes stand, not where the hit
+is (a ceiling above a floor's hot spot read a probe nearer the spot: 1.97x too bright;
+``tests/test_bake.py``). ``gather_samples = 0`` reads the grid at the hit.
+
 What the grid carries
 ---------------------
 Only light that has been reflected at least once: the ``bounced`` radiance of a ray leaves out

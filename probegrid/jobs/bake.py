@@ -232,10 +232,12 @@ class BakeEstimate:
     Attributes
     ----------
     probes : int
-    classify_rays, primary_rays, shadow_rays : int
-        Rays of the classification (without relocation's extra points), of every render of the
-        incoming cubes (``bounces + 1`` of them) and, at most, their shadow rays (one per hit
-        and punctual light).
+    classify_rays, primary_rays, gather_rays, shadow_rays : int
+        Rays of the classification (without relocation's extra points), the probes' own rays
+        (each cast once: the bounces replay their records), at most the gather rays (``K`` from
+        every hit) and at most the shadow rays of all their hits (one per punctual light, and
+        ``--light-samples`` toward the emitters and the environment each; one each at a gather
+        ray's hit).
     store_bytes : int
         Size of the finished store: every array's ``.npy`` file and the manifest.
     work_bytes : int
@@ -250,6 +252,7 @@ class BakeEstimate:
     probes: int
     classify_rays: int
     primary_rays: int
+    gather_rays: int
     shadow_rays: int
     store_bytes: int
     work_bytes: int
@@ -258,7 +261,7 @@ class BakeEstimate:
     @property
     def rays(self) -> int:
         """All rays, shadow rays at their most."""
-        return self.classify_rays + self.primary_rays + self.shadow_rays
+        return self.classify_rays + self.primary_rays + self.gather_rays + self.shadow_rays
 
     @property
     def disk_bytes(self) -> int:
@@ -268,7 +271,8 @@ class BakeEstimate:
     def summary(self) -> str:
         return (f"estimate: {self.probes} probes, {self.rays / 1e6:.3g} M rays "
                 f"({self.classify_rays / 1e6:.3g} M classify, {self.primary_rays / 1e6:.3g} M "
-                f"primary, up to {self.shadow_rays / 1e6:.3g} M shadow), store "
+                f"primary, up to {self.gather_rays / 1e6:.3g} M gather and "
+                f"{self.shadow_rays / 1e6:.3g} M shadow), store "
                 f"{_size(self.store_bytes)} (+ {_size(self.work_bytes)} work files), peak "
                 f"worker memory {_size(self.worker_bytes)}")
 
@@ -315,7 +319,9 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     sky = "the environment" in sources  # sampled as a light at every hit
     # (at most: samples below a hit's horizon cast no ray)
     per_hit = lights + st.light_samples * (int(emitters) + int(sky))
-    shadow = primary * per_hit + (p * lights if st.direct else 0)
+    gather = primary * st.gather_samples
+    shadow = (primary * per_hit + gather * (lights + int(emitters) + int(sky))
+              + (p * lights if st.direct else 0))
     classify = p * (6 * CLASSIFY_FACE_SIZE**2 + DIRECTIONS)
 
     def npy(shape: tuple[int, ...], dtype: str) -> int:
@@ -327,7 +333,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     # moments, the done masks
     g = IRRADIANCE_SIZE
     work = npy((3,), "float64") + npy((), "bool") + npy((), "float64") + npy((), "bool")
-    work += primary * RECORD_BYTES_PER_RAY
+    work += (primary + gather) * RECORD_BYTES_PER_RAY
     work += 2 * npy((6, g, g, 3), "float32") + npy((6, m, m, 2), "float32") + npy((), "bool")
 
     scene_bytes = (scene.vertices.nbytes * 3 + scene.triangles.nbytes * 2
@@ -337,7 +343,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     env_bytes = 0
     if environment is not None and environment.faces is not None:
         env_bytes = 3 * environment.faces.nbytes
-    batch_rays = min(st.batch_size, p) * per_probe_rays
+    batch_rays = min(st.batch_size, p) * per_probe_rays * (1 + st.gather_samples)
     cube = 6 * n * n * 3 * 4
     if probefilter.supported(n, st.diffuse_size):
         sizes = (st.diffuse_size, *mip_sizes(n, st.specular_levels)[1:])
@@ -349,7 +355,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
               + 3 * min(st.batch_size, p) * cube)
     if not shares_files:  # positions, validity, the previous bounce's SH, coefficients, moments
         worker += p * (24 + 1 + 2 * 216 + 6 * (m + 2) ** 2 * 8)
-    return BakeEstimate(p, classify, primary, shadow, store, work, worker)
+    return BakeEstimate(p, classify, primary, gather, shadow, store, work, worker)
 
 
 def check_disk(out: Path, est: BakeEstimate) -> None:
