@@ -65,11 +65,11 @@ from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import light_quality, printable
 from probegrid.bake.precision import fit_map_dtype
 from probegrid.bake.records import (
-    IRRADIANCE_SIZE,
     GridData,
     RecordTracer,
     all_hit_weights,
     grid_level_read,
+    irradiance_size,
     has_hit_weights,
     irradiance_cubes,
     load_records,
@@ -273,7 +273,7 @@ def _bounced_outputs(rec: dict[str, Any], settings: RenderSettings, level: int,
                      cubes: NDArray[np.float32] | None) -> dict[str, Any]:
     """A bounce's per-probe outputs: the irradiance cube of the bounced light and its energy."""
     cube, _ = replay(rec, settings, level, cubes, final=False)
-    irr = irradiance_cubes(cube)
+    irr = irradiance_cubes(cube, irradiance_size("gather_primary" in rec))
     energy = np.array([float(solid_angle_integral(c).sum()) for c in cube])
     return {"irradiance": irr, "energy": energy}
 
@@ -630,7 +630,7 @@ def bake(
                    else "probegrid-records-" + hashlib.sha256(
                        (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
         m = render.moments_size
-        g = IRRADIANCE_SIZE
+        g = irradiance_size(st.gather_samples > 0)
         grid_arrays = {
             "irradiance": ArraySpec((6, g, g, 3), "float32", "irradiance / pi of bounced light"),
             "energy": ArraySpec((), "float64", "solid-angle integral of the bounced light"),

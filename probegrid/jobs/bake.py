@@ -300,7 +300,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     from probegrid.bake.driver import CLASSIFY_FACE_SIZE, FILTER_GROUP
     from probegrid.bake.inside import DIRECTIONS
     from probegrid.bake.nolight import light_sources
-    from probegrid.bake.records import IRRADIANCE_SIZE
+    from probegrid.bake.records import irradiance_size
     from probegrid.bake.render import SHADE_CHUNK
     from probegrid.bake.settings import store_arrays
     from probegrid.core import probefilter
@@ -331,7 +331,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     # work files: the classification, the per-hit records of every traced ray (kept until the
     # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
     # moments, the done masks
-    g = IRRADIANCE_SIZE
+    g = irradiance_size(st.gather_samples > 0)
     work = npy((3,), "float64") + npy((), "bool") + npy((), "float64") + npy((), "bool")
     work += (primary + gather) * RECORD_BYTES_PER_RAY
     work += 2 * npy((6, g, g, 3), "float32") + npy((6, m, m, 2), "float32") + npy((), "bool")
