@@ -73,6 +73,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment, EnvironmentLight
@@ -161,7 +162,8 @@ def irradiance_cubes(cubes: NDArray[np.float32], size: int) -> NDArray[np.float3
         stacked[..., :3 * k] = np.moveaxis(cubes[g0:g0 + k], 0, 3).reshape(6, n0, n0, 3 * k)
         while stacked.shape[1] > n:
             stacked = downsample(stacked)
-        res = mat @ stacked.reshape(6 * n * n, group * 3)  # (6 size^2, group * 3)
+        with threadpool_limits(limits=1, user_api="blas"):  # small: threads only spin
+            res = mat @ stacked.reshape(6 * n * n, group * 3)  # (6 size^2, group * 3)
         out[g0:g0 + k] = np.moveaxis(res[:, :3 * k].reshape(-1, k, 3), 1, 0).reshape(
             k, 6, size, size, 3)
     return out
