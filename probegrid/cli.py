@@ -241,9 +241,10 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "environment_intensity", help="environment scale")
     _option(p, J, "environment_rotation", help="degrees about +Y (right-handed)")
     _option(p, S, "face_size", help="incoming cube face size")
-    _option(p, S, "bounces", help="indirect bounces, or converge: until the grid's energy "
-            "changes by less than --tolerance")
-    _option(p, S, "tolerance", help="relative energy change that ends --bounces converge")
+    _option(p, S, "bounces", help="indirect bounces, or converge: until the estimated limit of "
+            "the grid's energy changes by less than --tolerance, then extrapolated to it")
+    _option(p, S, "tolerance", help="relative change of the estimated limit that ends "
+            "--bounces converge")
     _option(p, S, "max_bounces", help="most bounces --bounces converge makes")
     _option(p, S, "light_samples", help="shadow rays toward the emitters and toward the "
             "environment at every hit (each)")

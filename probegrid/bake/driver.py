@@ -22,8 +22,11 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    (:func:`probegrid.bake.records.replay`): each hit reads the previous level's irradiance cubes
    of its 8 probes (DDGI weights computed once, in the first pass, and kept with the records);
    only the grid's per-probe irradiance cubes move between the driver and the workers. With
-   ``bounces="converge"`` the passes go on until the grid's total energy (over valid probes)
-   changes by less than ``tolerance`` (relative), at most ``max_bounces``.
+   ``bounces="converge"`` the passes go on until the estimated limit of the grid's total energy
+   (over valid probes; :mod:`probegrid.bake.converge`) changes by less than ``tolerance``
+   (relative), at most ``max_bounces``; the final pass then reads the grid extrapolated to that
+   limit. With gather rays a pass at level ``k`` reads the grid of level ``k - 2``, so a
+   ``bounces = B`` bake makes the grids up to level ``B - 2`` only.
 4. **final** (bounce B) -- a last pass gives what each probe sees (emission, its exact direct
    view of the emitters, the punctual lights folded in), then per probe: SH coefficients, the
    diffuse cube (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the
@@ -34,7 +37,8 @@ So ``bounces = B`` gives light from emitters and the environment that has bounce
 the scene's surfaces (a furnace box reads ``Le (1 - rho^(B+1)) / (1 - rho)``; punctual lights,
 as before, add one reflection more, lit by shadow rays at every hit). The store's manifest
 records the settings, the scene and environment hash, the conventions and the quality figures
-(``bounces`` reached, ``bounce_residual``, ``bounce_energy`` per level). A killed bake leaves only
+(``bounces`` reached, ``bounce_passes``, ``bounce_residual``, ``bounce_energy`` per level,
+``bounce_extrapolation`` and ``bounce_energy_limit``). A killed bake leaves only
 ``.partial``/``.work`` directories, which never load as a store, and the same command resumes
 from the probes it finished. Results depend only on the settings and seed, not on the executor,
 the number of workers or the batch size.
@@ -57,6 +61,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid.bake.converge import Convergence, convergence
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
@@ -675,12 +680,19 @@ def bake(
             return cubes_at.get(grid_level_read(k, gather))
 
         energies = [grid_energy(tstore)]
+        irradiance_at = {0: tstore["irradiance"]}
         residual: float | None = None
-        level = 0  # the grid level the final pass reads is level - 1
-        for k in range(1, cap + 1):  # bounce k: a pass over the records with grid k - 1
-            level = k
-            if k == cap:
+        state = Convergence(False, None)
+        step = 2 if gather else 1  # the final pass at level L reads the grid of level L - step
+        k = 0
+        while True:  # bounce k: a pass over the records that makes the grid of level k
+            if not converge and k >= grid_level_read(cap, gather):
+                level = cap
                 break
+            if converge and k + step >= cap:
+                level = cap
+                break
+            k += 1
             ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                       records=records, level=k, moments_bordered=moments_b,
                                       cubes=cubes_for(k))
@@ -688,14 +700,22 @@ def bake(
                               _bounce_task, ctx)
             bstore = w.finish() if isinstance(w, StoreWriter) else w
             cubes_at[k] = grid_cubes(bstore, k)
+            irradiance_at[k] = bstore["irradiance"]
             energies.append(grid_energy(bstore))
-            change = abs(energies[-1] - energies[-2])
-            residual = change / energies[-1] if energies[-1] > 0 else 0.0
-            if converge and residual < st.tolerance:
-                level = k + 1
-                break
-        if cap == 0:
-            level = 0
+            if converge:
+                state = convergence(energies, st.tolerance)
+                residual = state.residual
+                if state.done:
+                    level = k + step
+                    break
+        final_cubes = cubes_for(level) if level > 0 else None
+        if state.factor is not None and k >= 2:
+            # the final pass reads the extrapolated limit of the grid (bake.converge)
+            g_k = np.asarray(irradiance_at[k], dtype=np.float64)
+            limit = g_k + (g_k - np.asarray(irradiance_at[k - 2], np.float64)) * state.factor
+            cubes = bordered_cubes(limit.astype(np.float32))
+            final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
+                           else cubes)
 
         # 3. final
         energy = np.full(grid.n_probes, np.nan)
@@ -707,8 +727,7 @@ def bake(
 
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                   records=records, level=level, moments_bordered=moments_b,
-                                  cubes=cubes_for(level) if level > 0 else None,
-                                  moments=moments_all)
+                                  cubes=final_cubes, moments=moments_all)
         w, resumed = stages.run(label(level, residual, final=True), out, store_arrays(st),
                                 _final_task, ctx, overwrite=overwrite, intermediate=False,
                                 extra=keep)
@@ -739,6 +758,9 @@ def bake(
             "seam_score_mean": float(np.nanmean(seam)),
             "bounces": level,
             "bounce_residual": residual,
+            "bounce_passes": k,
+            "bounce_extrapolation": state.factor,
+            "bounce_energy_limit": state.limit,
             "bounce_energy": energies,
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},

@@ -53,8 +53,9 @@ class BakeSettings(BaseModel):
     @field_validator("bounces", mode="before")
     @classmethod
     def _bounces(cls, v: object) -> object:
-        """An int 0..64, or "converge" (iterate until the grid's energy changes by less than
-        ``tolerance``, at most ``max_bounces``); a numeric string is an int (from the CLI)."""
+        """An int 0..64, or "converge" (iterate until the estimated limit of the grid's energy
+        changes by less than ``tolerance``, at most ``max_bounces``; probegrid.bake.converge); a
+        numeric string is an int (from the CLI)."""
         if isinstance(v, str) and v.strip().lstrip("+").isdigit():
             v = int(v)
         if isinstance(v, bool) or (isinstance(v, int) and not 0 <= v <= 64):
