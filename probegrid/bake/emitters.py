@@ -8,21 +8,25 @@ ceiling lights the room, not the ceiling behind it).
 Light at surface points (:meth:`Emitters.irradiance`)
 -----------------------------------------------------
 The irradiance a surface point receives directly from the emitters is estimated by explicit
-light sampling with a control variate, which is unbiased and exact wherever nothing occludes
-the emitters:
+light sampling, scaled to the exact unoccluded integral (a ratio estimator, as Heitz et al.):
 
-    E = A + (1 / L) sum_i g_i [V_i (Le_i - Lc_i) - (1 - V_i) Lc_i] / p_i,
+    E = A * [sum_i V_i g_i Le_i / p_i] / [sum_i g_i Lc_i / p_i],
 
 with ``A`` the exact unoccluded irradiance of the emitters at their uniform radiance ``Lc``
 (each triangle clipped to the point's upper half-space and integrated by Lambert's edge formula,
 :func:`probegrid.kernels.emitter_irradiance`), ``L`` points sampled on the emitters (a triangle
 picked in proportion to its power ``area * mean(Le)``, a uniform point on it),
-``g = cos_x cos_y / d^2``, ``V`` the shadow ray's visibility and ``p`` the area density. Since
-``E[g Lc / p] = A``, the expectation is ``E[g V Le / p]``, the direct irradiance. In a scene with
-more than :data:`MAX_ANALYTIC` emitting triangles ``A`` is left out (``Lc = 0``): plain
-next-event estimation. Unlike light that reaches hits through a probe grid, this does not
-depend on the grid's resolution (a small bright panel lights its walls as a path tracer's
-next-event estimation does).
+``g = cos_x cos_y / d^2``, ``V`` the shadow ray's visibility and ``p`` the area density. It is
+exact wherever nothing occludes the emitters (the ratio is 1: a furnace box is exact) and
+wherever everything does (0), never negative, and biased only in penumbrae, where it
+is consistent. (An additive control variate, ``A + sum [V (Le - Lc) - (1 - V) Lc] g / (L p)``,
+is unbiased but goes negative in shadows; clamped at 0, it made the Cornell box's shadowed
+probes 4-6 % too bright against a path tracer: 6.0 % worst probe, 2.7 % with this estimator.)
+Where no sample sees the control (all on the point's own plane) the control variate's
+estimate is used. In a scene with more than :data:`MAX_ANALYTIC` emitting triangles ``A`` is
+left out: plain next-event estimation, ``sum V g Le / (L p)``. Unlike light that reaches hits
+through a probe grid, this does not depend on the grid's resolution (a small bright panel
+lights its walls as a path tracer's next-event estimation does).
 
 What a probe sees of the emitters (:meth:`Emitters.texel_view`)
 ---------------------------------------------------------------
@@ -38,7 +42,7 @@ and the texel's own rays supply the rest (the light reflected by the surfaces th
 References: J. Arvo, "Analytic Methods for Simulated Light Transport", 1995 (Lambert's edge
 formula); Van Oosterom & Strackee, IEEE Trans. Biomed. Eng. 30 (1983) (triangle solid angle);
 E. Heitz et al., "Combining Analytic Direct Illumination and Stochastic Shadows", 2018 (the
-same split of unoccluded light and shadows, here as an unbiased control variate).
+the ratio estimator of unoccluded light and stochastic shadows).
 """
 
 from __future__ import annotations
@@ -157,12 +161,25 @@ class Emitters:
             points, normals, np.ascontiguousarray(surf.position),
             np.ascontiguousarray(self.normals[e]), np.ascontiguousarray(surf.emission),
             np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps)
-        if len(which):
-            blocked = tracer.occluded(org, dirs, tmax, tmin=eps)
-            contrib = np.where(blocked[:, None], occ, vis)
-            for c in range(3):  # per channel: one bincount each
-                out[:, c] += np.bincount(which, weights=contrib[:, c], minlength=n)
-        return np.maximum(out, 0.0), len(which)
+        if not len(which):
+            return out, 0
+        blocked = tracer.occluded(org, dirs, tmax, tmin=eps)
+        seen = np.where(blocked[:, None], 0.0, vis - occ)  # Le g / (L p) where visible
+        plain = np.zeros((n, 3))
+        for c in range(3):  # per channel: one bincount each
+            plain[:, c] = np.bincount(which, weights=seen[:, c], minlength=n)
+        if not self.analytic:
+            return plain, len(which)
+        # the exact unoccluded integral scaled by the samples' visible share (ratio estimator);
+        # where no sample saw the control (all on the point's own plane, say), the control
+        # variate's estimate, A + sum of the contributions
+        whole = np.zeros((n, 3))
+        for c in range(3):
+            whole[:, c] = np.bincount(which, weights=-occ[:, c], minlength=n)  # Lc g / (L p)
+        ok = whole > 0.0
+        out = np.where(ok, out * np.divide(plain, whole, out=np.zeros_like(plain), where=ok),
+                       out + plain)
+        return out, len(which)
 
     # -- what a probe sees -----------------------------------------------------------------
     def texel_view(self, origin: NDArray[np.float64], n: int, tracer: RayTracer, eps: float
