@@ -15,6 +15,7 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
     GET  /v1/grids/{grid}
     GET  /v1/grids/{grid}/sh?x=&y=&z=[&nx=&ny=&nz=]
     GET  /v1/grids/{grid}/maps/{kind}?x=&y=&z=[&nx=&ny=&nz=][&level=][&format=][&layout=]
+                                    (one OpenAPI operation per kind: diffuse, specular, ...)
     POST /v1/grids/{grid}/shade
     POST /v1/lights/maps
     GET  /v1/grids/{grid}/probes    every probe (positions, SH, validity), for drawing the grid
@@ -25,10 +26,11 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
 
 from __future__ import annotations
 
+import copy
 import os
 import shutil
 import weakref
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, Final
@@ -40,13 +42,13 @@ from probegrid.store import read_manifest
 from service.deps import ServiceState
 from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
-from service.registry import GridRegistry, grid_name
+from service.registry import GridRegistry, ServedGrid, grid_name
 from service.routers import exports, grids, health, lights, maps, sh, shade, viewer, web
 from service.settings import Settings, load_settings, settings_environment
 from service.webassets import StaticAssets
 
-__all__ = ["NONZERO_VECTORS", "OPENAPI_TAGS", "app_from_environment", "create_app",
-           "example_usage", "openapi_document", "run"]
+__all__ = ["MAPS_ROUTE", "NONZERO_VECTORS", "OPENAPI_TAGS", "app_from_environment",
+           "create_app", "example_usage", "openapi_document", "run", "served_chains"]
 
 #: The route groups, in the order the docs list them.
 OPENAPI_TAGS: Final[tuple[dict[str, str], ...]] = (
@@ -120,11 +122,14 @@ def create_app(
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
 
+    built: list[Any] = [None]  # the served chains the cached document describes
+
     def openapi() -> dict[str, Any]:
-        if app.openapi_schema is None:
-            levels = [g.field.map_levels(k) - 1 for g in registry.values()
-                      for k in g.field.kinds]
-            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings, levels)
+        # rebuilt when a store replaced on disk changed the served kinds or chains
+        chains = served_chains(registry)
+        if app.openapi_schema is None or built[0] != chains:
+            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings, chains)
+            built[0] = chains
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -156,8 +161,73 @@ def _tuples_as_arrays(node: Any) -> None:
             _tuples_as_arrays(value)
 
 
+def served_chains(registry: Mapping[str, ServedGrid]) -> dict[str, dict[str, int]]:
+    """Grid name -> map kind -> number of levels, of every served grid."""
+    return {name: {kind: g.field.map_levels(kind) for kind in g.field.kinds}
+            for name, g in registry.items()}
+
+
+#: The templated map route; the OpenAPI document lists one operation per served kind instead.
+MAPS_ROUTE: Final = "/v1/grids/{grid}/maps/{kind}"
+
+
+def _map_operations(doc: dict[str, Any], chains: Mapping[str, Mapping[str, int]]) -> None:
+    """Replace the ``/maps/{kind}`` path item by one per map kind served
+    (``/v1/grids/{grid}/maps/diffuse`` ...): the same route and URLs, but each operation
+    states its own ``level`` range, which one templated operation cannot (``kind`` is a path
+    parameter, ``level`` a query parameter). ``level`` is left out where every grid has one
+    level (diffuse, incoming; ``level=0`` is still accepted), and its maximum is the last level
+    of the served chains; when the grids' chains differ, the description names each grid's
+    range (a longer ``level`` on a shorter chain stays a 422 naming it). A grid that does not
+    store a kind answers 404 for it, as for an unknown kind."""
+    item = doc["paths"].pop(MAPS_ROUTE, None)
+    if item is None:
+        return
+    op = item["get"]
+    kinds = [k for k in ("diffuse", "specular", "incoming")
+             if any(k in c for c in chains.values())]
+    paths: dict[str, Any] = {}
+    for kind in kinds:
+        levels = {name: c[kind] for name, c in chains.items() if kind in c}
+        new = copy.deepcopy(op)
+        new["operationId"] = f"{op['operationId']}_{kind}"
+        new["summary"] = f"Get {kind} map"
+        params = []
+        for param in new["parameters"]:
+            if param["name"] == "kind":
+                continue
+            if param["name"] == "level":
+                last = max(levels.values()) - 1
+                if last == 0:
+                    continue
+                param["schema"]["maximum"] = last
+                text = (f"Level of the {kind} chain: 0..{last}" + (
+                    " (perceptual roughness level / (levels - 1))" if kind == "specular"
+                    else ""))
+                if len(set(levels.values())) > 1:
+                    text += "; per grid: " + ", ".join(
+                        f"{name} 0..{n - 1}" for name, n in sorted(levels.items()))
+                param["description"] = param["schema"]["description"] = text + "."
+            if param["name"] == "grid" and len(levels) < len(chains):
+                param["description"] = param["schema"]["description"] = (
+                    f"Name of a served grid; {kind} maps are stored by "
+                    + ", ".join(sorted(levels)) + " (404 for the others).")
+            params.append(param)
+        new["parameters"] = params
+        paths[MAPS_ROUTE.replace("{kind}", kind)] = {"get": new}
+    # keep the document's order: the map operations where the templated one was
+    ordered = {}
+    for path, value in doc["paths"].items():
+        ordered[path] = value
+        if path == "/v1/grids/{grid}/sh":
+            ordered.update(paths)
+            paths = {}
+    ordered.update(paths)
+    doc["paths"] = ordered
+
+
 def openapi_document(doc: dict[str, Any], settings: Settings,
-                     served_levels: Sequence[int] = ()) -> dict[str, Any]:
+                     chains: Mapping[str, Mapping[str, int]] | None = None) -> dict[str, Any]:
     """FastAPI's OpenAPI 3.1 document, made to state what the server enforces.
 
     * homogeneous tuples as fixed-length arrays (:func:`_tuples_as_arrays`);
@@ -165,14 +235,14 @@ def openapi_document(doc: dict[str, Any], settings: Settings,
       (``contains: {not: {const: 0}}``);
     * the limits of ``settings``: at most ``max_lights`` lights and face sizes up to
       ``max_light_map_size`` in ``/v1/lights/maps``, at most ``max_batch`` points in ``/shade``;
-    * ``level`` at most the last level of the served grids' longest chain
-      (``served_levels``: the last level of each served map kind) in ``/maps/{kind}``, and of
-      that or of a light map of the largest face size in ``/v1/lights/maps``.
-
-    Not stated (they depend on the served data or on arithmetic of several fields, which
-    OpenAPI cannot express): a level beyond the chain of the kind asked for (a diffuse map has
-    one level; a specular chain's length depends on the face size or the grid); these stay
-    422s naming the valid range.
+    * one ``/maps/<kind>`` operation per served kind, each with its ``level`` range
+      (:func:`_map_operations`; ``chains``: :func:`served_chains`), and in
+      ``/v1/lights/maps`` a ``level`` at most the last level of the served chains or of a
+      light map of the largest face size;
+    * the spot light's cone as ``outer_cone_angle`` and ``penumbra``, which any two values
+      in range make a valid cone (:class:`service.schemas.SpotLightIn`; glTF's
+      ``inner_cone_angle``, whose rule ``inner < outer`` relates two fields, which a schema
+      cannot state, is still taken and documented in words).
 
     The normal of ``/sh`` and ``/maps`` (all three components or none, not all zero) is stated
     by :data:`service.deps.POINT_PARAMETERS`.
@@ -192,13 +262,14 @@ def openapi_document(doc: dict[str, Any], settings: Settings,
             + f" At most {settings.max_light_map_size} (PROBEGRID_MAX_LIGHT_MAP_SIZE).")
     maps["lights"]["maxItems"] = settings.max_lights
     # levels: no served grid and no light map of the largest face size has more
-    top = max([(settings.max_light_map_size).bit_length() - 1, *served_levels])
-    maps["level"]["maximum"] = top
-    maps_get = doc["paths"].get("/v1/grids/{grid}/maps/{kind}", {}).get("get", {})
-    for param in maps_get.get("parameters", []):
-        if param["name"] == "level":
-            param["schema"]["maximum"] = max(served_levels, default=0)
+    chains = {} if chains is None else chains
+    served_last = [n - 1 for c in chains.values() for n in c.values()]
+    maps["level"]["maximum"] = max([settings.max_light_map_size.bit_length() - 1, *served_last])
+    _map_operations(doc, chains)
     schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
+    # the spot cone as penumbra (any value in range is a cone); inner_cone_angle in words only
+    spot = schemas["SpotLightIn"]
+    spot["properties"].pop("inner_cone_angle", None)
     _tuples_as_arrays(doc)
     return doc
 

@@ -10,6 +10,7 @@ cross-field rules the server enforces. In-process apps (httpx's ASGI transport),
 from __future__ import annotations
 
 import asyncio
+import io
 import shutil
 from pathlib import Path
 
@@ -148,7 +149,8 @@ def test_openapi_is_valid_31_and_states_what_the_server_enforces(lin):
         prop = s[model]["properties"][field]
         arr = next((a for a in prop.get("anyOf", []) if a.get("type") == "array"), prop)
         assert arr["contains"] == {"not": {"const": 0}}, (model, field)
-    for route in ("/v1/grids/{grid}/sh", "/v1/grids/{grid}/maps/{kind}"):
+    for route in ("/v1/grids/{grid}/sh", "/v1/grids/{grid}/maps/diffuse",
+                  "/v1/grids/{grid}/maps/specular"):
         params = {p["name"]: p for p in doc["paths"][route]["get"]["parameters"]}
         assert {"nx", "ny", "nz"}.isdisjoint(params)  # one object: all three or none
         normal = params["normal"]
@@ -236,7 +238,108 @@ def test_maps_and_light_maps_have_the_same_default_format(lin):
     assert maps.status_code == lights.status_code == 200
     assert maps.headers["content-type"] == lights.headers["content-type"]
     (doc,) = _get(app, "/openapi.json")
-    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/maps/{kind}"]["get"]
+    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/maps/diffuse"]["get"]
               ["parameters"]}
     assert params["format"]["schema"]["default"] == doc.json()["components"]["schemas"][
         "LightMapsRequest"]["properties"]["format"]["default"] == "npy"
+
+
+# ------------------------------------------------------------------------------ issue 14, item 13
+def _params(doc: dict, path: str) -> dict[str, dict]:
+    return {p["name"]: p for p in doc["paths"][path]["get"]["parameters"]}
+
+
+def test_each_map_kind_states_its_own_level_range(lin, tmp_path):
+    """One OpenAPI operation per served kind (same URLs): specular's ``level`` maximum is the
+    store's last level, diffuse and incoming have no ``level``; the server agrees at the
+    bounds; with grids of different chains the description names each grid's range."""
+    from service.main import MAPS_ROUTE
+
+    levels = open_store(lin).manifest.arrays.keys()
+    last = max(int(k.split("_")[1]) for k in levels if k.startswith("specular_"))
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    doc = r.json()
+    assert MAPS_ROUTE not in doc["paths"]
+    spec = _params(doc, "/v1/grids/{grid}/maps/specular")
+    assert "kind" not in spec and spec["level"]["schema"]["maximum"] == last == 3
+    assert spec["level"]["schema"]["minimum"] == 0
+    for kind in ("diffuse", "incoming"):
+        assert "level" not in _params(doc, f"/v1/grids/{{grid}}/maps/{kind}")
+    ids = {doc["paths"][f"/v1/grids/{{grid}}/maps/{k}"]["get"]["operationId"]
+           for k in ("diffuse", "specular", "incoming")}
+    assert len(ids) == 3
+    q = "x=1&y=0.5&z=1"
+    ok, over, dif0, dif1, unknown = _get(
+        app, f"/v1/grids/lin/maps/specular?{q}&level={last}",
+        f"/v1/grids/lin/maps/specular?{q}&level={last + 1}",
+        f"/v1/grids/lin/maps/diffuse?{q}&level=0", f"/v1/grids/lin/maps/diffuse?{q}&level=1",
+        f"/v1/grids/lin/maps/glossy?{q}")
+    assert ok.status_code == dif0.status_code == 200
+    assert over.status_code == dif1.status_code == 422 and unknown.status_code == 404
+
+    # a second grid with a longer chain and no incoming maps
+    big = tmp_path / "big.probes"
+    write_store(big, GRID, linear_arrays(GRID, specular_size=32, incoming_size=None))
+    (r,) = _get(create_app([lin, big], LIMITS), "/openapi.json")
+    doc = r.json()
+    level = _params(doc, "/v1/grids/{grid}/maps/specular")["level"]
+    assert level["schema"]["maximum"] == 5
+    assert "big 0..5, lin 0..3" in level["description"]
+    grid = _params(doc, "/v1/grids/{grid}/maps/incoming")["grid"]
+    assert "stored by lin (404 for the others)" in grid["description"]
+
+
+def test_query_coordinates_have_the_bodies_bound(lin):
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    x = _params(r.json(), "/v1/grids/{grid}/sh")["x"]["schema"]
+    assert x["maximum"] == 1e12 == -x["minimum"]
+    edge, over = _get(app, "/v1/grids/lin/sh?x=1e12&y=0&z=0&nx=1&ny=0&nz=0",
+                      "/v1/grids/lin/sh?x=1.0000001e12&y=0&z=0&nx=1&ny=0&nz=0")
+    assert edge.status_code == 200 and over.status_code == 422
+
+
+def _light_maps(app, lights: list[dict]) -> httpx.Response:
+    async def post() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post("/v1/lights/maps", json={
+                "position": [1.0, 0.0, 0.0], "lights": lights, "kind": "diffuse",
+                "diffuse_size": 8})
+
+    return asyncio.run(post())
+
+
+def test_the_spot_cone_is_stated_as_outer_angle_and_penumbra(lin):
+    """Any in-range (outer_cone_angle, penumbra) is a cone; penumbra p is inner = outer (1-p),
+    0 a hard edge (the glTF formula's floor: the same map as any inner angle within it);
+    glTF's inner_cone_angle is still taken, must stay below the outer angle, and is not
+    listed in the document (a rule between two fields)."""
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    spot = r.json()["components"]["schemas"]["SpotLightIn"]
+    assert "inner_cone_angle" not in spot["properties"]
+    assert "inner_cone_angle" in spot["description"]
+    pen = next(a for a in spot["properties"]["penumbra"]["anyOf"] if a["type"] == "number")
+    assert pen["minimum"] == 0 and pen["maximum"] == 1
+
+    base = {"type": "spot", "position": [0.0, 1.0, 0.0], "direction": [0.0, -1.0, 0.0],
+            "intensity": 50.0, "outer_cone_angle": 1.2}
+
+    def diffuse(**cone) -> np.ndarray:
+        resp = _light_maps(app, [{**base, **cone}])
+        assert resp.status_code == 200, resp.text
+        return np.load(io.BytesIO(resp.content))
+
+    half = diffuse(penumbra=0.5)
+    np.testing.assert_array_equal(half, diffuse(inner_cone_angle=0.6))
+    assert not np.array_equal(half, diffuse(penumbra=1.0))
+    np.testing.assert_array_equal(diffuse(penumbra=1.0), diffuse())  # the default: inner 0
+    hard = diffuse(penumbra=0.0)  # the point is 45 degrees off the axis, inside the cone
+    np.testing.assert_array_equal(hard, diffuse(inner_cone_angle=1.2 - 1e-6))
+    assert hard.max() > half.max() > diffuse(penumbra=1.0).max() > 0
+    for cone in ({"inner_cone_angle": 1.2}, {"inner_cone_angle": 1.3},
+                 {"inner_cone_angle": 0.1, "penumbra": 0.5}, {"penumbra": 1.5},
+                 {"penumbra": -0.1}):
+        assert _light_maps(app, [{**base, **cone}]).status_code == 422, cone

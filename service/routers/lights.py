@@ -33,7 +33,7 @@ def to_light(spec: LightIn) -> Light:
     if isinstance(spec, SpotLightIn):
         return SpotLight(position=spec.position, direction=spec.direction, color=spec.color,
                          intensity=spec.intensity, range=spec.range,
-                         inner_cone_angle=spec.inner_cone_angle,
+                         inner_cone_angle=spec.inner_angle,
                          outer_cone_angle=spec.outer_cone_angle)
     return DirectionalLight(direction=spec.direction, color=spec.color, intensity=spec.intensity)
 
