@@ -27,6 +27,7 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
 from __future__ import annotations
 
 import copy
+import math
 import os
 import shutil
 import weakref
@@ -44,6 +45,7 @@ from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
 from service.registry import GridRegistry, ServedGrid, grid_name
 from service.routers import exports, grids, health, lights, maps, sh, shade, viewer, web
+from service.schemas import LightMapsRequest
 from service.settings import Settings, load_settings, settings_environment
 from service.webassets import StaticAssets
 
@@ -161,9 +163,10 @@ def _tuples_as_arrays(node: Any) -> None:
             _tuples_as_arrays(value)
 
 
-def served_chains(registry: Mapping[str, ServedGrid]) -> dict[str, dict[str, int]]:
-    """Grid name -> map kind -> number of levels, of every served grid."""
-    return {name: {kind: g.field.map_levels(kind) for kind in g.field.kinds}
+def served_chains(registry: Mapping[str, ServedGrid]) -> dict[str, dict[str, list[int]]]:
+    """Grid name -> map kind -> the face size of each level, of every served grid."""
+    return {name: {kind: [g.field.map_size(kind, k) for k in range(g.field.map_levels(kind))]
+                   for kind in g.field.kinds}
             for name, g in registry.items()}
 
 
@@ -171,7 +174,10 @@ def served_chains(registry: Mapping[str, ServedGrid]) -> dict[str, dict[str, int
 MAPS_ROUTE: Final = "/v1/grids/{grid}/maps/{kind}"
 
 
-def _map_operations(doc: dict[str, Any], chains: Mapping[str, Mapping[str, int]]) -> None:
+Chains = Mapping[str, Mapping[str, Sequence[int]]]
+
+
+def _map_operations(doc: dict[str, Any], chains: Chains) -> None:
     """Replace the ``/maps/{kind}`` path item by one per map kind served
     (``/v1/grids/{grid}/maps/diffuse`` ...): the same route and URLs, but each operation
     states its own ``level`` range, which one templated operation cannot (``kind`` is a path
@@ -188,7 +194,7 @@ def _map_operations(doc: dict[str, Any], chains: Mapping[str, Mapping[str, int]]
              if any(k in c for c in chains.values())]
     paths: dict[str, Any] = {}
     for kind in kinds:
-        levels = {name: c[kind] for name, c in chains.items() if kind in c}
+        levels = {name: len(c[kind]) for name, c in chains.items() if kind in c}
         new = copy.deepcopy(op)
         new["operationId"] = f"{op['operationId']}_{kind}"
         new["summary"] = f"Get {kind} map"
@@ -226,8 +232,112 @@ def _map_operations(doc: dict[str, Any], chains: Mapping[str, Mapping[str, int]]
     doc["paths"] = ordered
 
 
+def json_face_limit(settings: Settings) -> int:
+    """Largest face size a ``format=json`` cube may have (``6 n^2 3`` numbers at most
+    ``max_json_values``)."""
+    n = math.isqrt(settings.max_json_values // 18)
+    return n if 18 * (n + 1) ** 2 > settings.max_json_values else n + 1
+
+
+def _light_map_rules(settings: Settings, chains: Chains) -> list[dict[str, Any]]:
+    """The rules between ``/v1/lights/maps`` fields, as JSON Schema ``if``/``then`` clauses
+    (what :func:`service.routers.lights.post_light_maps` enforces):
+
+    * a diffuse map (the default kind) has one level;
+    * with ``grid``, the grid's chain of that kind (a grid without the kind: refused);
+    * without it, a specular chain of ``specular_levels`` levels needs a ``specular_size``
+      divisible by ``2^(levels-1)``, and a full chain (no ``specular_levels``) a power of two,
+      ``log2(size) + 1`` levels;
+    * ``format=json``: at most ``max_json_values`` numbers, i.e. the level's face size at most
+      :func:`json_face_limit`.
+    """
+    M = settings.max_light_map_size
+    N = json_face_limit(settings)
+
+    def when(*, kind: str | None = None, grid: Any = None, fmt: bool = False,
+             **props: Any) -> dict[str, Any]:
+        properties: dict[str, Any] = dict(props)
+        required: list[str] = [k for k in props if k != "specular_levels" or
+                               props[k] != {"type": "null"}]
+        if kind == "specular":  # the default kind is diffuse: absent means diffuse
+            properties["kind"] = {"const": "specular"}
+            required.append("kind")
+        elif kind == "diffuse":
+            properties["kind"] = {"const": "diffuse"}
+        if grid is None:  # absent or null
+            properties["grid"] = {"type": "null"}
+        else:
+            properties["grid"] = {"const": grid}
+            required.append("grid")
+        if fmt:
+            properties["format"] = {"const": "json"}
+            required.append("format")
+        cond: dict[str, Any] = {"properties": properties}
+        if required:
+            cond["required"] = sorted(set(required))
+        return cond
+
+    def rule(cond: dict[str, Any], then: Any) -> dict[str, Any]:
+        return {"if": cond, "then": then}
+
+    def level_max(n: int) -> dict[str, Any]:
+        return {"properties": {"level": {"maximum": n}}}
+
+    rules = [{"if": {"properties": {"kind": {"const": "diffuse"}}}, "then": level_max(0)}]
+    for name, c in sorted(chains.items()):
+        for kind in ("diffuse", "specular"):
+            cond = when(kind=kind, grid=name)
+            if kind not in c:
+                rules.append(rule(cond, False))
+                continue
+            sizes = list(c[kind])
+            if kind == "specular":
+                rules.append(rule(cond, level_max(len(sizes) - 1)))
+            ok = [k for k, n in enumerate(sizes) if n <= N]
+            if len(ok) < len(sizes):
+                rules.append(rule(when(kind=kind, grid=name, fmt=True),
+                                  {"properties": {"level": {"minimum": ok[0]}},
+                                   "required": ["level"]} if ok else False))
+    # no grid: the chain the sizes give
+    full = {"type": "null"}
+    powers = [1 << k for k in range(M.bit_length()) if 1 << k <= M]
+    rules.append(rule(when(kind="specular", specular_levels=full),
+                      {"properties": {"specular_size": {"enum": powers}}}))
+    for k, size in enumerate(powers):
+        rules.append(rule(when(kind="specular", specular_levels=full,
+                               specular_size={"const": size}), level_max(k)))
+    fields = LightMapsRequest.model_fields
+    default = int(fields["specular_size"].default)
+    default_diffuse = int(fields["diffuse_size"].default)
+    rules.append(rule({**when(kind="specular", specular_levels=full),
+                       "not": {"required": ["specular_size"]}},
+                      level_max(default.bit_length() - 1)))
+    for levels in range(1, 14):
+        step = 1 << (levels - 1)
+        then: dict[str, Any] = {"properties": {"level": {"maximum": levels - 1},
+                                               "specular_size": {"multipleOf": step}}}
+        if default % step:
+            then["required"] = ["specular_size"]
+        rules.append(rule(when(kind="specular", specular_levels={"const": levels}), then))
+    # format=json: the level's face size at most N
+    small: dict[str, Any] = {"properties": {"diffuse_size": {"maximum": N}}}
+    if default_diffuse > N:
+        small["required"] = ["diffuse_size"]
+    rules.append(rule(when(kind="diffuse", fmt=True), small))
+    level = 1
+    while (N + 1) << (level - 1) <= max(M, default):
+        at_least = {"properties": {"level": {"minimum": level}}, "required": ["level"]}
+        rules.append(rule(when(kind="specular", fmt=True,
+                               specular_size={"minimum": (N + 1) << (level - 1)}), at_least))
+        if default >= (N + 1) << (level - 1):  # the default size
+            rules.append(rule({**when(kind="specular", fmt=True),
+                               "not": {"required": ["specular_size"]}}, at_least))
+        level += 1
+    return rules
+
+
 def openapi_document(doc: dict[str, Any], settings: Settings,
-                     chains: Mapping[str, Mapping[str, int]] | None = None) -> dict[str, Any]:
+                     chains: Chains | None = None) -> dict[str, Any]:
     """FastAPI's OpenAPI 3.1 document, made to state what the server enforces.
 
     * homogeneous tuples as fixed-length arrays (:func:`_tuples_as_arrays`);
@@ -263,8 +373,9 @@ def openapi_document(doc: dict[str, Any], settings: Settings,
     maps["lights"]["maxItems"] = settings.max_lights
     # levels: no served grid and no light map of the largest face size has more
     chains = {} if chains is None else chains
-    served_last = [n - 1 for c in chains.values() for n in c.values()]
+    served_last = [len(n) - 1 for c in chains.values() for n in c.values()]
     maps["level"]["maximum"] = max([settings.max_light_map_size.bit_length() - 1, *served_last])
+    schemas["LightMapsRequest"]["allOf"] = _light_map_rules(settings, chains)
     _map_operations(doc, chains)
     schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
     # the spot cone as penumbra (any value in range is a cone); inner_cone_angle in words only

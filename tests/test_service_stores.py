@@ -343,3 +343,70 @@ def test_the_spot_cone_is_stated_as_outer_angle_and_penumbra(lin):
                  {"inner_cone_angle": 0.1, "penumbra": 0.5}, {"penumbra": 1.5},
                  {"penumbra": -0.1}):
         assert _light_maps(app, [{**base, **cone}]).status_code == 422, cone
+
+
+def test_a_ktx2_cross_is_the_cross_as_a_2d_texture(lin):
+    """format=ktx2 with layout=cross: the cross image in a 2D KTX2 (was a cross-parameter 422,
+    which the document cannot state)."""
+    from probegrid.export.ktx2 import read_ktx2
+
+    app = create_app([lin], LIMITS)
+    q = "x=1&y=0.5&z=1"
+    cross_npy, cross_ktx2, cube_ktx2 = _get(
+        app, f"/v1/grids/lin/maps/specular?{q}&level=1&layout=cross",
+        f"/v1/grids/lin/maps/specular?{q}&level=1&layout=cross&format=ktx2",
+        f"/v1/grids/lin/maps/specular?{q}&level=1&format=ktx2")
+    assert cross_ktx2.status_code == cube_ktx2.status_code == 200
+    tex = read_ktx2(cross_ktx2.content)
+    assert tex.kind == "2d" and read_ktx2(cube_ktx2.content).kind == "cube"
+    image = np.load(io.BytesIO(cross_npy.content))
+    np.testing.assert_array_equal(tex.levels[0][..., :3], image)
+    r = _light_maps(app, [{"type": "point", "position": [0.0, 3.0, 0.0], "intensity": 1.0}])
+    assert r.status_code == 200
+
+
+def test_the_light_map_rules_in_the_document_are_the_servers(lin, tmp_path):
+    """``/v1/lights/maps``: every combination of kind, level, sizes, specular_levels, grid and
+    format=json is valid for the document's schema (its if/then rules) exactly when the server
+    answers 200 (else 422 or, for an unknown grid, 404)."""
+    import itertools
+
+    import jsonschema_rs
+
+    nodiff = tmp_path / "nospec.probes"  # a grid without specular maps
+    arrays = linear_arrays(GRID)
+    for k in range(4):
+        del arrays[f"specular_{k}"]
+    write_store(nodiff, GRID, arrays)
+    limits = Settings(max_batch=64, max_lights=4, max_light_map_size=32, max_json_values=2000)
+    app = create_app([lin, nodiff], limits)
+    (r,) = _get(app, "/openapi.json")
+    doc = r.json()
+    schema = {"$ref": "#/components/schemas/LightMapsRequest", "components": doc["components"]}
+    validator = jsonschema_rs.Draft202012Validator(schema)
+    light = {"type": "point", "position": [0.0, 3.0, 0.0], "intensity": 1.0}
+    bodies = []
+    for kind, level, size, levels, grid, fmt in itertools.product(
+            [None, "diffuse", "specular"], [None, 0, 1, 3, 5, 6], [None, 8, 12, 32],
+            [None, 1, 3], [None, "lin", "nospec"], [None, "json"]):
+        body: dict = {"position": [0.5, 0.5, 0.5], "lights": [light]}
+        for key, value in (("kind", kind), ("level", level), ("specular_size", size),
+                           ("diffuse_size", size), ("specular_levels", levels),
+                           ("grid", grid), ("format", fmt)):
+            if value is not None:
+                body[key] = value
+        bodies.append(body)
+
+    async def post_all() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return [await c.post("/v1/lights/maps", json=b) for b in bodies]
+
+    answers = asyncio.run(post_all())
+    valid = 0
+    for body, resp in zip(bodies, answers, strict=True):
+        ok = validator.is_valid(body)
+        valid += ok
+        assert (resp.status_code == 200) == ok, (body, resp.status_code, resp.text[:200])
+        assert resp.status_code in (200, 422), (body, resp.text[:200])
+    assert 0 < valid < len(bodies)  # both kinds of answer were asked for

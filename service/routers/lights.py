@@ -59,6 +59,10 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
                                 f"{settings.max_light_map_size}.")
     served = None
     chain: int | None  # levels of the chain to make (None: full)
+    for name in ("diffuse_size", "specular_size"):  # both, as the OpenAPI document states
+        if getattr(body, name) > settings.max_light_map_size:
+            raise ApiError(422, f"{name} {getattr(body, name)} is over the limit of "
+                                f"{settings.max_light_map_size}.")
     if body.grid is not None:  # the grid's map sizes
         served = state.grids.get(body.grid)
         if served is None:
@@ -69,9 +73,6 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         chain = served.field.map_levels(body.kind)
     else:
         size0 = body.diffuse_size if body.kind == "diffuse" else body.specular_size
-        if size0 > settings.max_light_map_size:
-            raise ApiError(422, f"A face size of {size0} is over the limit of "
-                                f"{settings.max_light_map_size}.")
         chain = 1 if body.kind == "diffuse" else body.specular_levels
     try:  # the other kind is made at size 1 (light_maps makes both)
         levels = len(mip_sizes(size0, chain))
@@ -83,8 +84,6 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         raise ApiError(422, f"level {body.level} is out of range 0..{levels - 1} for "
                             f"{body.kind} maps.")
     size = size0 >> body.level
-    if body.format == "ktx2" and body.layout != "faces":
-        raise ApiError(422, "format=ktx2 is a cube map; use layout=faces.")
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
     try:
