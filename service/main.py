@@ -239,101 +239,122 @@ def json_face_limit(settings: Settings) -> int:
     return n if 18 * (n + 1) ** 2 > settings.max_json_values else n + 1
 
 
-def _light_map_rules(settings: Settings, chains: Chains) -> list[dict[str, Any]]:
-    """The rules between ``/v1/lights/maps`` fields, as JSON Schema ``if``/``then`` clauses
-    (what :func:`service.routers.lights.post_light_maps` enforces):
+def _light_map_cases(settings: Settings, chains: Chains,
+                     base: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The ``/v1/lights/maps`` requests the server takes, as complete object schemas (the
+    request schema becomes their ``anyOf``; what :func:`service.routers.lights.post_light_maps`
+    enforces between fields, stated where a generator can use it; ``if``/``then`` clauses say
+    the same but fuzzers cannot generate from them):
 
     * a diffuse map (the default kind) has one level;
-    * with ``grid``, the grid's chain of that kind (a grid without the kind: refused);
+    * with ``grid``, the grid's chain of that kind (a grid without the kind: no case);
     * without it, a specular chain of ``specular_levels`` levels needs a ``specular_size``
       divisible by ``2^(levels-1)``, and a full chain (no ``specular_levels``) a power of two,
       ``log2(size) + 1`` levels;
     * ``format=json``: at most ``max_json_values`` numbers, i.e. the level's face size at most
       :func:`json_face_limit`.
+
+    ``base`` is the request's object schema (its properties are copied and narrowed). A
+    property left out of a case (the default size) is absent: ``additionalProperties`` is false.
     """
     M = settings.max_light_map_size
     N = json_face_limit(settings)
-
-    def when(*, kind: str | None = None, grid: Any = None, fmt: bool = False,
-             **props: Any) -> dict[str, Any]:
-        properties: dict[str, Any] = dict(props)
-        required: list[str] = [k for k in props if k != "specular_levels" or
-                               props[k] != {"type": "null"}]
-        if kind == "specular":  # the default kind is diffuse: absent means diffuse
-            properties["kind"] = {"const": "specular"}
-            required.append("kind")
-        elif kind == "diffuse":
-            properties["kind"] = {"const": "diffuse"}
-        if grid is None:  # absent or null
-            properties["grid"] = {"type": "null"}
-        else:
-            properties["grid"] = {"const": grid}
-            required.append("grid")
-        if fmt:
-            properties["format"] = {"const": "json"}
-            required.append("format")
-        cond: dict[str, Any] = {"properties": properties}
-        if required:
-            cond["required"] = sorted(set(required))
-        return cond
-
-    def rule(cond: dict[str, Any], then: Any) -> dict[str, Any]:
-        return {"if": cond, "then": then}
-
-    def level_max(n: int) -> dict[str, Any]:
-        return {"properties": {"level": {"maximum": n}}}
-
-    rules = [{"if": {"properties": {"kind": {"const": "diffuse"}}}, "then": level_max(0)}]
-    for name, c in sorted(chains.items()):
-        for kind in ("diffuse", "specular"):
-            cond = when(kind=kind, grid=name)
-            if kind not in c:
-                rules.append(rule(cond, False))
-                continue
-            sizes = list(c[kind])
-            if kind == "specular":
-                rules.append(rule(cond, level_max(len(sizes) - 1)))
-            ok = [k for k, n in enumerate(sizes) if n <= N]
-            if len(ok) < len(sizes):
-                rules.append(rule(when(kind=kind, grid=name, fmt=True),
-                                  {"properties": {"level": {"minimum": ok[0]}},
-                                   "required": ["level"]} if ok else False))
-    # no grid: the chain the sizes give
-    full = {"type": "null"}
-    powers = [1 << k for k in range(M.bit_length()) if 1 << k <= M]
-    rules.append(rule(when(kind="specular", specular_levels=full),
-                      {"properties": {"specular_size": {"enum": powers}}}))
-    for k, size in enumerate(powers):
-        rules.append(rule(when(kind="specular", specular_levels=full,
-                               specular_size={"const": size}), level_max(k)))
     fields = LightMapsRequest.model_fields
-    default = int(fields["specular_size"].default)
+    default_specular = int(fields["specular_size"].default)
     default_diffuse = int(fields["diffuse_size"].default)
-    rules.append(rule({**when(kind="specular", specular_levels=full),
-                       "not": {"required": ["specular_size"]}},
-                      level_max(default.bit_length() - 1)))
+    formats = [f for f in base["properties"]["format"]["enum"] if f != "json"]
+    cases: list[dict[str, Any]] = []
+
+    def integer(lo: int, hi: int, **more: int) -> dict[str, Any]:
+        return {"type": "integer", "minimum": lo, "maximum": hi, **more}
+
+    def case(required: Sequence[str] = (), drop: Sequence[str] = (), **props: Any) -> None:
+        properties = copy.deepcopy(base["properties"])
+        for name, narrowed in props.items():  # keep the words (title, description, default)
+            words = {k: properties[name][k] for k in ("title", "description", "default")
+                     if k in properties[name]}
+            properties[name] = {**words, **narrowed}
+        for name in drop:
+            del properties[name]
+        cases.append({"type": "object", "properties": properties,
+                      "required": sorted({*base.get("required", []), *required}),
+                      "additionalProperties": False})
+
+    def with_format(levels: tuple[int, int], json_first: int | None, **props: Any) -> None:
+        """A case for the non-JSON formats (levels ``lo..hi``) and one for ``json`` from level
+        ``json_first`` (None: no JSON)."""
+        lo, hi = levels
+        required = list(props.pop("required", ()))
+        drop = props.pop("drop", ())
+        case(required, drop, format={"type": "string", "enum": formats},
+             level=integer(lo, hi), **props)
+        if json_first is not None and max(lo, json_first) <= hi:
+            case([*required, "format"] + (["level"] if json_first > 0 else []), drop,
+                 format={"type": "string", "const": "json"},
+                 level=integer(max(lo, json_first), hi), **props)
+
+    def first_json_level(size: int, levels: int) -> int | None:
+        ok = [k for k in range(levels) if size >> k <= N]
+        return ok[0] if ok else None
+
+    diffuse = {"type": "string", "const": "diffuse"}
+    specular = {"type": "string", "const": "specular"}
+    no_grid = {"type": "null"}
+    # a diffuse map: one level
+    case([], kind=diffuse, grid=no_grid, format={"type": "string", "enum": formats},
+         level=integer(0, 0))
+    case(["format"] + (["diffuse_size"] if default_diffuse > N else []), kind=diffuse,
+         grid=no_grid, format={"type": "string", "const": "json"}, level=integer(0, 0),
+         diffuse_size=integer(1, min(N, M)))
+    for name, chain in sorted(chains.items()):
+        grid = {"type": "string", "const": name}
+        if "diffuse" in chain:
+            with_format((0, 0), first_json_level(chain["diffuse"][0], 1), required=["grid"],
+                        kind=diffuse, grid=grid)
+        if "specular" in chain:
+            sizes = list(chain["specular"])
+            ok = [k for k, n in enumerate(sizes) if n <= N]
+            with_format((0, len(sizes) - 1), ok[0] if ok else None,
+                        required=["grid", "kind"], kind=specular, grid=grid)
+    # specular without a grid: the full chain of a power-of-two size
+    full = {"type": "null"}
+    for k in range(M.bit_length()):
+        size = 1 << k
+        if size <= M:
+            with_format((0, k), first_json_level(size, k + 1), required=["kind",
+                        "specular_size"], kind=specular, grid=no_grid, specular_levels=full,
+                        specular_size={"type": "integer", "const": size})
+    d = default_specular.bit_length() - 1
+    with_format((0, d), first_json_level(default_specular, d + 1), required=["kind"],
+                drop=["specular_size"], kind=specular, grid=no_grid, specular_levels=full)
+    # specular without a grid, specular_levels = L: a size divisible by 2^(L-1)
     for levels in range(1, 14):
         step = 1 << (levels - 1)
-        then: dict[str, Any] = {"properties": {"level": {"maximum": levels - 1},
-                                               "specular_size": {"multipleOf": step}}}
-        if default % step:
-            then["required"] = ["specular_size"]
-        rules.append(rule(when(kind="specular", specular_levels={"const": levels}), then))
-    # format=json: the level's face size at most N
-    small: dict[str, Any] = {"properties": {"diffuse_size": {"maximum": N}}}
-    if default_diffuse > N:
-        small["required"] = ["diffuse_size"]
-    rules.append(rule(when(kind="diffuse", fmt=True), small))
-    level = 1
-    while (N + 1) << (level - 1) <= max(M, default):
-        at_least = {"properties": {"level": {"minimum": level}}, "required": ["level"]}
-        rules.append(rule(when(kind="specular", fmt=True,
-                               specular_size={"minimum": (N + 1) << (level - 1)}), at_least))
-        if default >= (N + 1) << (level - 1):  # the default size
-            rules.append(rule({**when(kind="specular", fmt=True),
-                               "not": {"required": ["specular_size"]}}, at_least))
-        level += 1
-    return rules
+        if step > M:
+            break
+        sizes = integer(step, M, multipleOf=step)
+        need = ["kind", "specular_levels"]
+        case(need + ([] if default_specular % step == 0 else ["specular_size"]),
+             kind=specular, grid=no_grid, format={"type": "string", "enum": formats},
+             specular_levels={"type": "integer", "const": levels}, specular_size=sizes,
+             level=integer(0, levels - 1))
+        first = 0  # format=json: sizes (N+1) 2^(t-1) .. (N+1) 2^t - 1 from level t
+        while first < levels:
+            lo = 1 if first == 0 else (N + 1) << (first - 1)
+            hi = min(M, ((N + 1) << first) - 1)
+            if lo > M:
+                break
+            lo = -(-lo // step) * step  # the multiples of step in [lo, hi]
+            if lo <= hi:
+                default_in = lo <= default_specular <= hi and default_specular % step == 0
+                case(need + ["format"] + (["level"] if first else [])
+                     + ([] if default_in else ["specular_size"]),
+                     kind=specular, grid=no_grid, format={"type": "string", "const": "json"},
+                     specular_levels={"type": "integer", "const": levels},
+                     specular_size=integer(lo, hi, multipleOf=step),
+                     level=integer(first, levels - 1))
+            first += 1
+    return cases
 
 
 def openapi_document(doc: dict[str, Any], settings: Settings,
@@ -375,7 +396,11 @@ def openapi_document(doc: dict[str, Any], settings: Settings,
     chains = {} if chains is None else chains
     served_last = [len(n) - 1 for c in chains.values() for n in c.values()]
     maps["level"]["maximum"] = max([settings.max_light_map_size.bit_length() - 1, *served_last])
-    schemas["LightMapsRequest"]["allOf"] = _light_map_rules(settings, chains)
+    request = schemas["LightMapsRequest"]
+    cases = _light_map_cases(settings, chains, request)
+    for key in ("properties", "required", "additionalProperties", "type"):
+        request.pop(key, None)
+    request["anyOf"] = cases
     _map_operations(doc, chains)
     schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
     # the spot cone as penumbra (any value in range is a cone); inner_cone_angle in words only

@@ -25,17 +25,26 @@ router = APIRouter(prefix="/v1/lights", tags=["lights"],
                    dependencies=[Depends(require_json)])
 
 
+def _direction(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    """A non-zero vector scaled so its largest component is 1 (the same direction): any
+    length the schema allows, 5e-324 included, normalises without underflow."""
+    top = max(abs(c) for c in v)
+    return (v[0] / top, v[1] / top, v[2] / top)
+
+
 def to_light(spec: LightIn) -> Light:
     """The library light of a request's light."""
     if isinstance(spec, PointLightIn):
         return PointLight(position=spec.position, color=spec.color, intensity=spec.intensity,
                           range=spec.range)
     if isinstance(spec, SpotLightIn):
-        return SpotLight(position=spec.position, direction=spec.direction, color=spec.color,
+        return SpotLight(position=spec.position, direction=_direction(spec.direction),
+                         color=spec.color,
                          intensity=spec.intensity, range=spec.range,
                          inner_cone_angle=spec.inner_angle,
                          outer_cone_angle=spec.outer_cone_angle)
-    return DirectionalLight(direction=spec.direction, color=spec.color, intensity=spec.intensity)
+    return DirectionalLight(direction=_direction(spec.direction), color=spec.color,
+                            intensity=spec.intensity)
 
 
 @router.post(
