@@ -235,8 +235,7 @@ def _map_operations(doc: dict[str, Any], chains: Chains) -> None:
 def json_face_limit(settings: Settings) -> int:
     """Largest face size a ``format=json`` cube may have (``6 n^2 3`` numbers at most
     ``max_json_values``)."""
-    n = math.isqrt(settings.max_json_values // 18)
-    return n if 18 * (n + 1) ** 2 > settings.max_json_values else n + 1
+    return math.isqrt(settings.max_json_values // 18)
 
 
 def _light_map_cases(settings: Settings, chains: Chains,
@@ -286,6 +285,9 @@ def _light_map_cases(settings: Settings, chains: Chains,
         lo, hi = levels
         required = list(props.pop("required", ()))
         drop = props.pop("drop", ())
+        if json_first is not None and json_first <= lo:  # every format at every level
+            case(required, drop, level=integer(lo, hi), **props)
+            return
         case(required, drop, format={"type": "string", "enum": formats},
              level=integer(lo, hi), **props)
         if json_first is not None and max(lo, json_first) <= hi:
@@ -301,11 +303,14 @@ def _light_map_cases(settings: Settings, chains: Chains,
     specular = {"type": "string", "const": "specular"}
     no_grid = {"type": "null"}
     # a diffuse map: one level
-    case([], kind=diffuse, grid=no_grid, format={"type": "string", "enum": formats},
-         level=integer(0, 0))
-    case(["format"] + (["diffuse_size"] if default_diffuse > N else []), kind=diffuse,
-         grid=no_grid, format={"type": "string", "const": "json"}, level=integer(0, 0),
-         diffuse_size=integer(1, min(N, M)))
+    if M <= N:  # (with the default settings) every size as JSON too
+        case([], kind=diffuse, grid=no_grid, level=integer(0, 0))
+    else:
+        case([], kind=diffuse, grid=no_grid, format={"type": "string", "enum": formats},
+             level=integer(0, 0))
+        case(["format"] + (["diffuse_size"] if default_diffuse > N else []), kind=diffuse,
+             grid=no_grid, format={"type": "string", "const": "json"}, level=integer(0, 0),
+             diffuse_size=integer(1, min(N, M)))
     for name, chain in sorted(chains.items()):
         grid = {"type": "string", "const": name}
         if "diffuse" in chain:
@@ -334,10 +339,12 @@ def _light_map_cases(settings: Settings, chains: Chains,
             break
         sizes = integer(step, M, multipleOf=step)
         need = ["kind", "specular_levels"]
+        every = {} if M <= N else {"format": {"type": "string", "enum": formats}}
         case(need + ([] if default_specular % step == 0 else ["specular_size"]),
-             kind=specular, grid=no_grid, format={"type": "string", "enum": formats},
-             specular_levels={"type": "integer", "const": levels}, specular_size=sizes,
-             level=integer(0, levels - 1))
+             kind=specular, grid=no_grid, specular_levels={"type": "integer", "const": levels},
+             specular_size=sizes, level=integer(0, levels - 1), **every)
+        if M <= N:
+            continue
         first = 0  # format=json: sizes (N+1) 2^(t-1) .. (N+1) 2^t - 1 from level t
         while first < levels:
             lo = 1 if first == 0 else (N + 1) << (first - 1)
