@@ -337,12 +337,13 @@ def _light_map_cases(settings: Settings, chains: Chains,
         step = 1 << (levels - 1)
         if step > M:
             break
-        sizes = integer(step, M, multipleOf=step)
+        divisible = integer(step, M, multipleOf=step)
         need = ["kind", "specular_levels"]
-        every = {} if M <= N else {"format": {"type": "string", "enum": formats}}
+        every: dict[str, Any] = {} if M <= N else {"format": {"type": "string",
+                                                              "enum": formats}}
         case(need + ([] if default_specular % step == 0 else ["specular_size"]),
              kind=specular, grid=no_grid, specular_levels={"type": "integer", "const": levels},
-             specular_size=sizes, level=integer(0, levels - 1), **every)
+             specular_size=divisible, level=integer(0, levels - 1), **every)
         if M <= N:
             continue
         first = 0  # format=json: sizes (N+1) 2^(t-1) .. (N+1) 2^t - 1 from level t
