@@ -119,6 +119,7 @@ __all__ = [
     "count_nonfinite",
     "cube_exposure",
     "face_of",
+    "image_size",
     "linear_to_srgb",
     "order_face_files",
     "read_environment",
@@ -305,6 +306,17 @@ def read_image(path: str | os.PathLike[str]) -> NDArray[np.float32]:
     a = a.reshape(h, w, c)
     rgb = np.repeat(a[..., :1], 3, axis=-1) if c < 3 else a[..., :3]
     return srgb_to_linear(rgb) if integer else np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """``(width, height)`` of an image, read from its header only."""
+    p = _check_readable(path)
+    inp = _open(p)
+    try:
+        spec = inp.spec()
+        return int(spec.width), int(spec.height)
+    finally:
+        inp.close()
 
 
 def read_metadata(path: str | os.PathLike[str]) -> dict[str, str]:

@@ -40,6 +40,12 @@ PACKAGES: dict[str, tuple[str, tuple[str, ...]]] = {
         "examples/jsm/utils/SkeletonUtils.js",
         "examples/jsm/lighting/LightProbeGridWebGL.js",  # for the three.js export comparison
         "examples/jsm/lighting/LightProbeGridUtils.js",
+        # KTX2Loader and its imports: the browser test loads probegrid's .ktx2 files with it
+        "examples/jsm/loaders/KTX2Loader.js",
+        "examples/jsm/libs/ktx-parse.module.js",
+        "examples/jsm/libs/zstddec.module.js",
+        "examples/jsm/utils/WorkerPool.js",
+        "examples/jsm/math/ColorSpaces.js",
     )),
     "swagger-ui-dist": ("5.35.0", (
         "LICENSE",

@@ -4,8 +4,10 @@
 * :data:`GridDep` -- the :class:`service.registry.ServedGrid` named by the ``{grid}`` path
   parameter (404 ``not_found`` for a name that is not served).
 * :data:`ProbeQueryDep` -- the grid (as above) and the point of a probe query (``/sh``,
-  ``/maps``): the ``x``, ``y``, ``z`` query parameters (required, finite) and the optional
-  ``nx``, ``ny``, ``nz`` (all three or none, finite, not all zero; no parameter repeated), as a
+  ``/maps``): the ``x``, ``y``, ``z`` query parameters (required, finite, at most
+  :data:`~service.schemas.COORD_LIMIT` in magnitude as in request bodies) and the optional
+  ``nx``, ``ny``, ``nz`` (all three or none, the same bounds, not all zero; no parameter
+  repeated), as a
   :class:`ProbeQuery`.
 
 The same rules as plain functions of the request, for the routes' fast paths
@@ -30,6 +32,7 @@ from numpy.typing import NDArray
 from probegrid.usercache import dfg_lut
 from service.errors import ApiError
 from service.registry import GridRegistry, ServedGrid
+from service.schemas import COORD_LIMIT
 from service.settings import Settings
 
 __all__ = [
@@ -100,17 +103,21 @@ GridDep = Annotated[ServedGrid, Depends(get_grid)]
 #: it add these with ``openapi_extra={"parameters": POINT_PARAMETERS}``). The normal is one
 #: exploded form object (serialised ``nx=..&ny=..&nz=..``) so that the schema states what
 #: :func:`parse_point` enforces: all three components or none, not all zero.
+_COORD_SCHEMA: dict[str, object] = {"type": "number", "minimum": -COORD_LIMIT,
+                                    "maximum": COORD_LIMIT}
 POINT_PARAMETERS: list[dict[str, object]] = [
-    {"name": c, "in": "query", "required": True, "schema": {"type": "number"},
-     "description": f"World {c} coordinate (finite; each parameter at most once)."}
+    {"name": c, "in": "query", "required": True, "schema": dict(_COORD_SCHEMA),
+     "description": f"World {c} coordinate (at most {COORD_LIMIT:g} in magnitude; each "
+                    "parameter at most once)."}
     for c in "xyz"
 ] + [
     {"name": "normal", "in": "query", "required": False, "style": "form", "explode": True,
-     "description": "Surface normal nx, ny, nz (finite, any non-zero length): give all three "
-                    "for visibility-aware (DDGI) weights, or none.",
+     "description": "Surface normal nx, ny, nz (any non-zero length, components at most "
+                    f"{COORD_LIMIT:g} in magnitude): give all three for visibility-aware (DDGI) "
+                    "weights, or none.",
      "schema": {
          "type": "object",
-         "properties": {f"n{c}": {"type": "number"} for c in "xyz"},
+         "properties": {f"n{c}": dict(_COORD_SCHEMA) for c in "xyz"},
          "anyOf": [
              {"not": {"anyOf": [{"required": [f"n{c}"]} for c in "xyz"]}},
              {"required": ["nx", "ny", "nz"],
@@ -144,6 +151,9 @@ def _number(params: Mapping[str, str], name: str) -> float | None:
         raise ApiError(422, f"query {name}: expected a number, got {raw[:40]!r}") from None
     if not math.isfinite(value):
         raise ApiError(422, f"query {name}: expected a finite number, got {raw[:40]!r}")
+    if abs(value) > COORD_LIMIT:
+        raise ApiError(422, f"query {name}: {raw[:40]} is beyond the largest coordinate the "
+                            f"service takes ({COORD_LIMIT:g} in magnitude)")
     return value
 
 

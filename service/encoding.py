@@ -13,8 +13,8 @@ json      ``{"shape", "data"}``, data nested lists   the same for the cross imag
 exr       float32 RGB OpenEXR of the six faces       float32 RGB OpenEXR of the cross
           stacked top to bottom (``6n x n``)
 hdr       Radiance RGBE, same images                 Radiance RGBE of the cross
-ktx2      KTX 2.0 cube map, one level,               (refused: a cross is not a cube)
-          R32G32B32A32_SFLOAT (alpha 1)
+ktx2      KTX 2.0 cube map, one level,               KTX 2.0 2D texture of the cross, same
+          R32G32B32A32_SFLOAT (alpha 1)              format (row 0 at the top)
 png       8-bit sRGB (linear values clamped to       8-bit sRGB of the cross
           [0, 1], sRGB transfer curve), same images
 ========  =========================================  ===========================================
@@ -156,10 +156,10 @@ def encode_cube(
     arr = np.ascontiguousarray(cube_image(faces, layout), dtype=np.float32)
     if fmt == "npy":  # exactly np.save's bytes (tested), without its per-call header building
         return _npy_header(arr.shape) + arr.tobytes()
-    if fmt == "ktx2":  # a KTX2 cube (OpenGL/KTX2 face table), float32 like the EXR
-        if layout != "faces":
-            raise ValueError("format=ktx2 is a cube map; use layout=faces.")
-        return encode_ktx2([arr], kind="cube", vk_format=VK_FORMAT_R32G32B32A32_SFLOAT,
+    if fmt == "ktx2":  # a KTX2 cube (OpenGL/KTX2 face table), or the cross as a 2D texture,
+        # float32 like the EXR
+        return encode_ktx2([arr], kind="cube" if layout == "faces" else "2d",
+                           vk_format=VK_FORMAT_R32G32B32A32_SFLOAT,
                            key_values={"probegrid:meta": to_json(meta or {}).decode()})
     if fmt == "json":
         doc = dict(meta or {})

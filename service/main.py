@@ -15,6 +15,7 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
     GET  /v1/grids/{grid}
     GET  /v1/grids/{grid}/sh?x=&y=&z=[&nx=&ny=&nz=]
     GET  /v1/grids/{grid}/maps/{kind}?x=&y=&z=[&nx=&ny=&nz=][&level=][&format=][&layout=]
+                                    (one OpenAPI operation per kind: diffuse, specular, ...)
     POST /v1/grids/{grid}/shade
     POST /v1/lights/maps
     GET  /v1/grids/{grid}/probes    every probe (positions, SH, validity), for drawing the grid
@@ -25,10 +26,12 @@ Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
 
 from __future__ import annotations
 
+import copy
+import math
 import os
 import shutil
 import weakref
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, Final
@@ -40,13 +43,14 @@ from probegrid.store import read_manifest
 from service.deps import ServiceState
 from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
-from service.registry import GridRegistry, grid_name
+from service.registry import GridRegistry, ServedGrid, grid_name
 from service.routers import exports, grids, health, lights, maps, sh, shade, viewer, web
+from service.schemas import LightMapsRequest
 from service.settings import Settings, load_settings, settings_environment
 from service.webassets import StaticAssets
 
-__all__ = ["NONZERO_VECTORS", "OPENAPI_TAGS", "app_from_environment", "create_app",
-           "example_usage", "openapi_document", "run"]
+__all__ = ["MAPS_ROUTE", "NONZERO_VECTORS", "OPENAPI_TAGS", "app_from_environment",
+           "create_app", "example_usage", "openapi_document", "run", "served_chains"]
 
 #: The route groups, in the order the docs list them.
 OPENAPI_TAGS: Final[tuple[dict[str, str], ...]] = (
@@ -120,11 +124,14 @@ def create_app(
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(LastResortMiddleware)  # outermost: sees what every handler missed
 
+    built: list[Any] = [None]  # the served chains the cached document describes
+
     def openapi() -> dict[str, Any]:
-        if app.openapi_schema is None:
-            levels = [g.field.map_levels(k) - 1 for g in registry.values()
-                      for k in g.field.kinds]
-            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings, levels)
+        # rebuilt when a store replaced on disk changed the served kinds or chains
+        chains = served_chains(registry)
+        if app.openapi_schema is None or built[0] != chains:
+            app.openapi_schema = openapi_document(FastAPI.openapi(app), settings, chains)
+            built[0] = chains
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -156,8 +163,210 @@ def _tuples_as_arrays(node: Any) -> None:
             _tuples_as_arrays(value)
 
 
+def served_chains(registry: Mapping[str, ServedGrid]) -> dict[str, dict[str, list[int]]]:
+    """Grid name -> map kind -> the face size of each level, of every served grid."""
+    return {name: {kind: [g.field.map_size(kind, k) for k in range(g.field.map_levels(kind))]
+                   for kind in g.field.kinds}
+            for name, g in registry.items()}
+
+
+#: The templated map route; the OpenAPI document lists one operation per served kind instead.
+MAPS_ROUTE: Final = "/v1/grids/{grid}/maps/{kind}"
+
+
+Chains = Mapping[str, Mapping[str, Sequence[int]]]
+
+
+def _map_operations(doc: dict[str, Any], chains: Chains) -> None:
+    """Replace the ``/maps/{kind}`` path item by one per map kind served
+    (``/v1/grids/{grid}/maps/diffuse`` ...): the same route and URLs, but each operation
+    states its own ``level`` range, which one templated operation cannot (``kind`` is a path
+    parameter, ``level`` a query parameter). ``level`` is left out where every grid has one
+    level (diffuse, incoming; ``level=0`` is still accepted), and its maximum is the last level
+    of the served chains; when the grids' chains differ, the description names each grid's
+    range (a longer ``level`` on a shorter chain stays a 422 naming it). A grid that does not
+    store a kind answers 404 for it, as for an unknown kind."""
+    item = doc["paths"].pop(MAPS_ROUTE, None)
+    if item is None:
+        return
+    op = item["get"]
+    kinds = [k for k in ("diffuse", "specular", "incoming")
+             if any(k in c for c in chains.values())]
+    paths: dict[str, Any] = {}
+    for kind in kinds:
+        levels = {name: len(c[kind]) for name, c in chains.items() if kind in c}
+        new = copy.deepcopy(op)
+        new["operationId"] = f"{op['operationId']}_{kind}"
+        new["summary"] = f"Get {kind} map"
+        params = []
+        for param in new["parameters"]:
+            if param["name"] == "kind":
+                continue
+            if param["name"] == "level":
+                last = max(levels.values()) - 1
+                if last == 0:
+                    continue
+                param["schema"]["maximum"] = last
+                text = (f"Level of the {kind} chain: 0..{last}" + (
+                    " (perceptual roughness level / (levels - 1))" if kind == "specular"
+                    else ""))
+                if len(set(levels.values())) > 1:
+                    text += "; per grid: " + ", ".join(
+                        f"{name} 0..{n - 1}" for name, n in sorted(levels.items()))
+                param["description"] = param["schema"]["description"] = text + "."
+            if param["name"] == "grid" and len(levels) < len(chains):
+                param["description"] = param["schema"]["description"] = (
+                    f"Name of a served grid; {kind} maps are stored by "
+                    + ", ".join(sorted(levels)) + " (404 for the others).")
+            params.append(param)
+        new["parameters"] = params
+        paths[MAPS_ROUTE.replace("{kind}", kind)] = {"get": new}
+    # keep the document's order: the map operations where the templated one was
+    ordered = {}
+    for path, value in doc["paths"].items():
+        ordered[path] = value
+        if path == "/v1/grids/{grid}/sh":
+            ordered.update(paths)
+            paths = {}
+    ordered.update(paths)
+    doc["paths"] = ordered
+
+
+def json_face_limit(settings: Settings) -> int:
+    """Largest face size a ``format=json`` cube may have (``6 n^2 3`` numbers at most
+    ``max_json_values``)."""
+    return math.isqrt(settings.max_json_values // 18)
+
+
+def _light_map_cases(settings: Settings, chains: Chains,
+                     base: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The ``/v1/lights/maps`` requests the server takes, as complete object schemas (the
+    request schema becomes their ``anyOf``; what :func:`service.routers.lights.post_light_maps`
+    enforces between fields, stated where a generator can use it; ``if``/``then`` clauses say
+    the same but fuzzers cannot generate from them):
+
+    * a diffuse map (the default kind) has one level;
+    * with ``grid``, the grid's chain of that kind (a grid without the kind: no case);
+    * without it, a specular chain of ``specular_levels`` levels needs a ``specular_size``
+      divisible by ``2^(levels-1)``, and a full chain (no ``specular_levels``) a power of two,
+      ``log2(size) + 1`` levels;
+    * ``format=json``: at most ``max_json_values`` numbers, i.e. the level's face size at most
+      :func:`json_face_limit`.
+
+    ``base`` is the request's object schema (its properties are copied and narrowed). A
+    property left out of a case (the default size) is absent: ``additionalProperties`` is false.
+    """
+    M = settings.max_light_map_size
+    N = json_face_limit(settings)
+    fields = LightMapsRequest.model_fields
+    default_specular = int(fields["specular_size"].default)
+    default_diffuse = int(fields["diffuse_size"].default)
+    formats = [f for f in base["properties"]["format"]["enum"] if f != "json"]
+    cases: list[dict[str, Any]] = []
+
+    def integer(lo: int, hi: int, **more: int) -> dict[str, Any]:
+        return {"type": "integer", "minimum": lo, "maximum": hi, **more}
+
+    def case(required: Sequence[str] = (), drop: Sequence[str] = (), **props: Any) -> None:
+        properties = copy.deepcopy(base["properties"])
+        for name, narrowed in props.items():  # keep the words (title, description, default)
+            words = {k: properties[name][k] for k in ("title", "description", "default")
+                     if k in properties[name]}
+            properties[name] = {**words, **narrowed}
+        for name in drop:
+            del properties[name]
+        cases.append({"type": "object", "properties": properties,
+                      "required": sorted({*base.get("required", []), *required}),
+                      "additionalProperties": False})
+
+    def with_format(levels: tuple[int, int], json_first: int | None, **props: Any) -> None:
+        """A case for the non-JSON formats (levels ``lo..hi``) and one for ``json`` from level
+        ``json_first`` (None: no JSON)."""
+        lo, hi = levels
+        required = list(props.pop("required", ()))
+        drop = props.pop("drop", ())
+        if json_first is not None and json_first <= lo:  # every format at every level
+            case(required, drop, level=integer(lo, hi), **props)
+            return
+        case(required, drop, format={"type": "string", "enum": formats},
+             level=integer(lo, hi), **props)
+        if json_first is not None and max(lo, json_first) <= hi:
+            case([*required, "format"] + (["level"] if json_first > 0 else []), drop,
+                 format={"type": "string", "const": "json"},
+                 level=integer(max(lo, json_first), hi), **props)
+
+    def first_json_level(size: int, levels: int) -> int | None:
+        ok = [k for k in range(levels) if size >> k <= N]
+        return ok[0] if ok else None
+
+    diffuse = {"type": "string", "const": "diffuse"}
+    specular = {"type": "string", "const": "specular"}
+    no_grid = {"type": "null"}
+    # a diffuse map: one level
+    if M <= N:  # (with the default settings) every size as JSON too
+        case([], kind=diffuse, grid=no_grid, level=integer(0, 0))
+    else:
+        case([], kind=diffuse, grid=no_grid, format={"type": "string", "enum": formats},
+             level=integer(0, 0))
+        case(["format"] + (["diffuse_size"] if default_diffuse > N else []), kind=diffuse,
+             grid=no_grid, format={"type": "string", "const": "json"}, level=integer(0, 0),
+             diffuse_size=integer(1, min(N, M)))
+    for name, chain in sorted(chains.items()):
+        grid = {"type": "string", "const": name}
+        if "diffuse" in chain:
+            with_format((0, 0), first_json_level(chain["diffuse"][0], 1), required=["grid"],
+                        kind=diffuse, grid=grid)
+        if "specular" in chain:
+            sizes = list(chain["specular"])
+            ok = [k for k, n in enumerate(sizes) if n <= N]
+            with_format((0, len(sizes) - 1), ok[0] if ok else None,
+                        required=["grid", "kind"], kind=specular, grid=grid)
+    # specular without a grid: the full chain of a power-of-two size
+    full = {"type": "null"}
+    for k in range(M.bit_length()):
+        size = 1 << k
+        if size <= M:
+            with_format((0, k), first_json_level(size, k + 1), required=["kind",
+                        "specular_size"], kind=specular, grid=no_grid, specular_levels=full,
+                        specular_size={"type": "integer", "const": size})
+    d = default_specular.bit_length() - 1
+    with_format((0, d), first_json_level(default_specular, d + 1), required=["kind"],
+                drop=["specular_size"], kind=specular, grid=no_grid, specular_levels=full)
+    # specular without a grid, specular_levels = L: a size divisible by 2^(L-1)
+    for levels in range(1, 14):
+        step = 1 << (levels - 1)
+        if step > M:
+            break
+        divisible = integer(step, M, multipleOf=step)
+        need = ["kind", "specular_levels"]
+        every: dict[str, Any] = {} if M <= N else {"format": {"type": "string",
+                                                              "enum": formats}}
+        case(need + ([] if default_specular % step == 0 else ["specular_size"]),
+             kind=specular, grid=no_grid, specular_levels={"type": "integer", "const": levels},
+             specular_size=divisible, level=integer(0, levels - 1), **every)
+        if M <= N:
+            continue
+        first = 0  # format=json: sizes (N+1) 2^(t-1) .. (N+1) 2^t - 1 from level t
+        while first < levels:
+            lo = 1 if first == 0 else (N + 1) << (first - 1)
+            hi = min(M, ((N + 1) << first) - 1)
+            if lo > M:
+                break
+            lo = -(-lo // step) * step  # the multiples of step in [lo, hi]
+            if lo <= hi:
+                default_in = lo <= default_specular <= hi and default_specular % step == 0
+                case(need + ["format"] + (["level"] if first else [])
+                     + ([] if default_in else ["specular_size"]),
+                     kind=specular, grid=no_grid, format={"type": "string", "const": "json"},
+                     specular_levels={"type": "integer", "const": levels},
+                     specular_size=integer(lo, hi, multipleOf=step),
+                     level=integer(first, levels - 1))
+            first += 1
+    return cases
+
+
 def openapi_document(doc: dict[str, Any], settings: Settings,
-                     served_levels: Sequence[int] = ()) -> dict[str, Any]:
+                     chains: Chains | None = None) -> dict[str, Any]:
     """FastAPI's OpenAPI 3.1 document, made to state what the server enforces.
 
     * homogeneous tuples as fixed-length arrays (:func:`_tuples_as_arrays`);
@@ -165,14 +374,14 @@ def openapi_document(doc: dict[str, Any], settings: Settings,
       (``contains: {not: {const: 0}}``);
     * the limits of ``settings``: at most ``max_lights`` lights and face sizes up to
       ``max_light_map_size`` in ``/v1/lights/maps``, at most ``max_batch`` points in ``/shade``;
-    * ``level`` at most the last level of the served grids' longest chain
-      (``served_levels``: the last level of each served map kind) in ``/maps/{kind}``, and of
-      that or of a light map of the largest face size in ``/v1/lights/maps``.
-
-    Not stated (they depend on the served data or on arithmetic of several fields, which
-    OpenAPI cannot express): a level beyond the chain of the kind asked for (a diffuse map has
-    one level; a specular chain's length depends on the face size or the grid); these stay
-    422s naming the valid range.
+    * one ``/maps/<kind>`` operation per served kind, each with its ``level`` range
+      (:func:`_map_operations`; ``chains``: :func:`served_chains`), and in
+      ``/v1/lights/maps`` a ``level`` at most the last level of the served chains or of a
+      light map of the largest face size;
+    * the spot light's cone as ``outer_cone_angle`` and ``penumbra``, which any two values
+      in range make a valid cone (:class:`service.schemas.SpotLightIn`; glTF's
+      ``inner_cone_angle``, whose rule ``inner < outer`` relates two fields, which a schema
+      cannot state, is still taken and documented in words).
 
     The normal of ``/sh`` and ``/maps`` (all three components or none, not all zero) is stated
     by :data:`service.deps.POINT_PARAMETERS`.
@@ -192,13 +401,19 @@ def openapi_document(doc: dict[str, Any], settings: Settings,
             + f" At most {settings.max_light_map_size} (PROBEGRID_MAX_LIGHT_MAP_SIZE).")
     maps["lights"]["maxItems"] = settings.max_lights
     # levels: no served grid and no light map of the largest face size has more
-    top = max([(settings.max_light_map_size).bit_length() - 1, *served_levels])
-    maps["level"]["maximum"] = top
-    maps_get = doc["paths"].get("/v1/grids/{grid}/maps/{kind}", {}).get("get", {})
-    for param in maps_get.get("parameters", []):
-        if param["name"] == "level":
-            param["schema"]["maximum"] = max(served_levels, default=0)
+    chains = {} if chains is None else chains
+    served_last = [len(n) - 1 for c in chains.values() for n in c.values()]
+    maps["level"]["maximum"] = max([settings.max_light_map_size.bit_length() - 1, *served_last])
+    request = schemas["LightMapsRequest"]
+    cases = _light_map_cases(settings, chains, request)
+    for key in ("properties", "required", "additionalProperties", "type"):
+        request.pop(key, None)
+    request["anyOf"] = cases
+    _map_operations(doc, chains)
     schemas["ShadeRequest"]["properties"]["points"]["maxItems"] = settings.max_batch
+    # the spot cone as penumbra (any value in range is a cone); inner_cone_angle in words only
+    spot = schemas["SpotLightIn"]
+    spot["properties"].pop("inner_cone_angle", None)
     _tuples_as_arrays(doc)
     return doc
 

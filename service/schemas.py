@@ -65,8 +65,12 @@ Color = tuple[
     Annotated[float, Field(ge=0.0, le=1e6, strict=True)],
 ]
 Reflectance = tuple[Unit, Unit, Unit]
+#: Largest magnitude of a coordinate or vector component the service takes (bodies and the
+#: ``x, y, z, nx, ny, nz`` query parameters alike).
+COORD_LIMIT = 1e12
 #: A bounded coordinate: finite and small enough that squares and sums stay finite.
-Coord = Annotated[float, Field(ge=-1e12, le=1e12, allow_inf_nan=False, strict=True)]
+Coord = Annotated[float, Field(ge=-COORD_LIMIT, le=COORD_LIMIT, allow_inf_nan=False,
+                               strict=True)]
 Point = tuple[Coord, Coord, Coord]
 
 
@@ -216,22 +220,52 @@ class PointLightIn(_Model):
 
 
 class SpotLightIn(_Model):
+    """A spot light. Its cone: ``outer_cone_angle`` (radians from the axis, where the light
+    ends) and ``penumbra`` (three.js' ``SpotLight.penumbra``: the fraction of the outer cone
+    over which the light fades; the inner cone, at full intensity, is ``outer_cone_angle *
+    (1 - penumbra)``). ``penumbra`` 1 (the default) fades from the axis; 0 is a hard edge at the
+    outer cone (glTF's formula floors the falloff width ``cos(inner) - cos(outer)`` at 0.001, so
+    every inner angle that close to the outer one renders alike). glTF's ``inner_cone_angle``
+    (``KHR_lights_punctual``'s ``innerConeAngle``) is taken instead of ``penumbra`` too; it must
+    be smaller than ``outer_cone_angle`` (a rule between two fields, which the OpenAPI document
+    cannot state; so the document lists ``penumbra`` only)."""
+
     type: Literal["spot"]
     position: Point
     direction: Point = Field(description="Direction the spot points (world), non-zero.")
     color: Color = (1.0, 1.0, 1.0)
     intensity: Intensity = Field(description="Candela inside the inner cone.")
     range: Range | None = None
-    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2, strict=True)] = 0.0
-    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2, strict=True)] = math.pi / 4
+    outer_cone_angle: Annotated[float, Field(gt=0.0, le=math.pi / 2, strict=True)] = Field(
+        default=math.pi / 4, description="Radians from the axis to where the light ends.")
+    penumbra: Annotated[float, Field(ge=0.0, le=1.0, strict=True)] | None = Field(
+        default=None, description="Fraction of the outer cone over which the light fades "
+        "(the inner cone angle is outer_cone_angle * (1 - penumbra)); 0 is a hard edge. "
+        "Default 1 (an inner cone angle of 0).")
+    inner_cone_angle: Annotated[float, Field(ge=0.0, lt=math.pi / 2, strict=True)] | None = Field(
+        default=None, description="glTF's spelling of the cone, instead of penumbra: must be "
+        "smaller than outer_cone_angle.")
 
     @model_validator(mode="after")
     def _cone(self) -> SpotLightIn:
-        if not self.inner_cone_angle < self.outer_cone_angle:
-            raise ValueError("inner_cone_angle must be smaller than outer_cone_angle")
+        if self.inner_cone_angle is not None:
+            if self.penumbra is not None:
+                raise ValueError("give penumbra or inner_cone_angle, not both")
+            if not self.inner_cone_angle < self.outer_cone_angle:
+                raise ValueError("inner_cone_angle must be smaller than outer_cone_angle")
         if not any(self.direction):
             raise ValueError("direction is the zero vector")
         return self
+
+    @property
+    def inner_angle(self) -> float:
+        """The inner cone angle, always smaller than the outer one (a hard edge, ``penumbra``
+        0, is the largest float below it: the same light under glTF's formula)."""
+        if self.inner_cone_angle is not None:
+            return self.inner_cone_angle
+        outer = self.outer_cone_angle
+        inner = outer * (1.0 - (1.0 if self.penumbra is None else self.penumbra))
+        return inner if inner < outer else math.nextafter(outer, 0.0)
 
 
 class DirectionalLightIn(_Model):

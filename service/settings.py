@@ -40,6 +40,8 @@ class Settings(BaseSettings):
         Largest face size, in texels, a request may ask analytic light maps for (422 above it).
     max_json_values : int
         Most floats a ``format=json`` map response may hold (422 above it; use npy or exr).
+        The default holds a cube of the default ``max_light_map_size`` (``6 x 256^2 x 3``), so
+        that with the defaults every light map may be asked for as JSON.
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, extra="ignore")
@@ -49,7 +51,7 @@ class Settings(BaseSettings):
     max_batch: int = Field(default=4096, ge=1)
     max_lights: int = Field(default=16, ge=1)
     max_light_map_size: int = Field(default=256, ge=1)
-    max_json_values: int = Field(default=1 << 20, ge=1)
+    max_json_values: int = Field(default=6 * 256 * 256 * 3, ge=1)
 
 
 def settings_environment(settings: Settings) -> dict[str, str]:

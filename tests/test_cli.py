@@ -182,6 +182,7 @@ def test_bake_info_export_on_the_sample_room(tmp_path, cli_bake):
     assert (store / "scene.glb").read_bytes() == (REPO / "data" / "sample_room.glb").read_bytes()
     info = run_cli("info", store)
     assert info.returncode == 0 and "3x2x3 = 18 probes" in info.stdout
+    _check_inputs_as_given(store, info.stdout)
     assert "scene copy: scene.glb" in info.stdout and "from sample_room.glb" in info.stdout
     assert "irradiance / pi" in info.stdout and "specular_3" in info.stdout
     assert "specular filter: exact sum over every incoming texel" in info.stdout
@@ -197,6 +198,62 @@ def test_bake_info_export_on_the_sample_room(tmp_path, cli_bake):
     assert cross.shape == (12, 16, 3)
     assert "outside the grid" in _one_error_line(run_cli("export", store, "--probe", "3,0,0",
                                                          "--out", exp))
+
+
+def _glb_mesh_count(path: Path) -> int:
+    """The meshes of a .glb's JSON chunk, read here with struct (not probegrid's parser)."""
+    import struct
+
+    data = path.read_bytes()
+    length, kind = struct.unpack_from("<II", data, 12)
+    assert data[:4] == b"glTF" and kind == 0x4E4F534A
+    return len(json.loads(data[20:20 + length])["meshes"])
+
+
+def _check_inputs_as_given(store: Path, info: str) -> None:
+    """The manifest and ``info`` record the scene and environment as given (issue 14, item 10):
+    names without directories, sizes, the detected layout, the counts, each one's hash."""
+    import hashlib
+
+    from probegrid.scene import load_gltf
+
+    room = REPO / "data" / "sample_room.glb"
+    m = json.loads((store / "manifest.json").read_text())
+    scene, env = m["inputs"]["scene"], m["inputs"]["environment"]
+    loaded = load_gltf(room)
+    assert scene["name"] == "sample_room.glb" and scene["bytes"] == room.stat().st_size
+    assert scene["triangles"] == loaded.n_triangles and scene["materials"] == len(loaded.materials)
+    assert scene["meshes"] == _glb_mesh_count(room)
+    assert scene["punctual_lights"] == len(loaded.lights) == 1
+    assert scene["emissive_materials"] == 1  # the room's lamp panel
+    h, w = imageio.read_image(SKY).shape[:2]
+    assert env["layout"] == "equirect" and env["files"] == ["sample_sky.hdr"]
+    assert env["pixel_size"] == [w, h] and env["bytes"] == SKY.stat().st_size
+    assert env["color"] is None and env["intensity"] == 1.0
+    # the store's scene hash is made of the two hashes recorded beside it
+    both = hashlib.sha256((scene["content_hash"] + env["content_hash"]).encode()).hexdigest()
+    assert m["scene_hash"] == both
+    assert (f"scene as given: sample_room.glb ({room.stat().st_size:,} bytes): "
+            f"{loaded.n_triangles} triangles, {scene['meshes']} meshes, "
+            f"{len(loaded.materials)} materials, 1 emissive material, 1 punctual light; "
+            f"hash {scene['content_hash']}") in info
+    assert (f"environment as given: sample_sky.hdr (equirect {w}x{h}, "
+            f"{SKY.stat().st_size:,} bytes); hash {env['content_hash']}") in info
+    assert str(REPO) not in json.dumps(m["inputs"]) and str(REPO) not in info
+    # the service's /v1/grids/{grid} shows the same record
+    import asyncio
+
+    import httpx
+
+    from service.main import create_app
+
+    async def get() -> dict:
+        transport = httpx.ASGITransport(app=create_app([store]))
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return (await c.get("/v1/grids/room")).json()
+
+    doc = asyncio.run(get())
+    assert doc["manifest"]["inputs"] == m["inputs"]
 
 
 def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path, cli_bake):

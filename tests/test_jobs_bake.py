@@ -197,3 +197,53 @@ def test_the_job_refuses_a_dark_scene_from_python_too(tmp_path, monkeypatch):
     monkeypatch.setattr(scenes, "load_gltf", lambda path: _dark_room())
     with pytest.raises(ValueError, match="the scene has no light"):
         run_bake(BakeJob(scene=Path("x.glb"), out=tmp_path / "d.probes", grid="2x2x2"))
+
+
+def test_the_manifest_records_six_faces_in_face_order_and_a_colour(tmp_path, scene_file,
+                                                                    capsys):
+    """Issue 14, item 10: ``--environment-faces`` given in shell order is recorded in face
+    order (+X, -X, +Y, -Y, +Z, -Z) with its pixel size; ``--environment-color`` as a colour;
+    a format-2 store written before ``inputs`` existed still opens and prints."""
+    from probegrid.imageio import write_image
+    from probegrid.jobs.export import describe_store
+
+    names = ["sky_px.exr", "sky_nx.exr", "sky_py.exr", "sky_ny.exr", "sky_pz.exr", "sky_nz.exr"]
+    for f, name in enumerate(names):
+        write_image(tmp_path / name, np.full((4, 4, 3), 0.1 * (f + 1), np.float32))
+    shell = sorted(names)  # nx, ny, nz, px, py, pz: what `sky_*.exr` gives
+    b = SceneBuilder()  # a floor under the open sky
+    b.add_quad((-2, 0, 2), (4, 0, 0), (0, 0, -4), material=b.add_material(Material.diffuse(0.5)))
+    scene = scene_file(b.build())
+    box = ["--bounds", "-1,0.5,-1,1,1.5,1"]
+    out = tmp_path / "faces.probes"
+    assert main(["bake", scene, "--out", str(out), "--grid", "2x2x2", *FAST, *box,
+                 "--environment-faces", *(str(tmp_path / n) for n in shell)]) == 0
+    env = open_store(out).manifest.inputs.environment
+    assert env.layout == "faces" and list(env.files) == names
+    assert env.pixel_size == (4, 4)
+    assert env.bytes == sum((tmp_path / n).stat().st_size for n in names)
+    info = describe_store(out)
+    assert f"environment as given: faces {', '.join(names)} (+X, -X, +Y, -Y, +Z, -Z; 4x4 each" \
+        in info
+
+    col = tmp_path / "col.probes"
+    assert main(["bake", scene, "--out", str(col), "--grid", "2x2x2", *FAST, *box,
+                 "--environment-color", "0.25,0.5,1", "--environment-intensity", "2"]) == 0
+    m = open_store(col).manifest
+    env = m.inputs.environment
+    assert env.layout == "color" and env.color == (0.25, 0.5, 1.0) and env.files == ()
+    assert env.intensity == 2.0 and env.pixel_size is None
+    assert m.inputs.scene.name == "scene.gltf" and m.inputs.scene.meshes == 0
+    assert m.inputs.scene.triangles == 2 and m.inputs.scene.punctual_lights == 0
+    assert m.inputs.scene.materials == 1 and m.inputs.scene.emissive_materials == 0
+    assert "environment as given: color 0.25,0.5,1, intensity 2" in describe_store(col)
+
+    # a store of the same format without the record (written before it existed)
+    doc = json.loads((col / "manifest.json").read_text())
+    del doc["inputs"]
+    (col / "manifest.json").write_text(json.dumps(doc))
+    old = open_store(col)
+    assert old.manifest.format_version == 2 and old.manifest.inputs is None
+    text = describe_store(col)
+    assert "scene hash:" in text and "as given" not in text
+    capsys.readouterr()

@@ -10,6 +10,7 @@ cross-field rules the server enforces. In-process apps (httpx's ASGI transport),
 from __future__ import annotations
 
 import asyncio
+import io
 import shutil
 from pathlib import Path
 
@@ -140,15 +141,19 @@ def test_openapi_is_valid_31_and_states_what_the_server_enforces(lin):
     s = doc["components"]["schemas"]
     bmax = s["GridSummary"]["properties"]["bounds_max"]
     assert bmax["items"] == {"type": "number"} and bmax["minItems"] == bmax["maxItems"] == 3
-    maps = s["LightMapsRequest"]["properties"]
-    assert maps["diffuse_size"]["maximum"] == 32 == maps["specular_size"]["maximum"]
-    assert maps["lights"]["maxItems"] == 4
+    for case in s["LightMapsRequest"]["anyOf"]:  # the requests the server takes, case by case
+        maps = case["properties"]
+        assert maps["lights"]["maxItems"] == 4
+        for size in (maps[k] for k in ("diffuse_size", "specular_size") if k in maps):
+            assert size.get("maximum", size.get("const")) <= 32
     assert s["ShadeRequest"]["properties"]["points"]["maxItems"] == 64
     for model, field in NONZERO_VECTORS:
-        prop = s[model]["properties"][field]
-        arr = next((a for a in prop.get("anyOf", []) if a.get("type") == "array"), prop)
-        assert arr["contains"] == {"not": {"const": 0}}, (model, field)
-    for route in ("/v1/grids/{grid}/sh", "/v1/grids/{grid}/maps/{kind}"):
+        for obj in s[model].get("anyOf", [s[model]]):
+            prop = obj["properties"][field]
+            arr = next((a for a in prop.get("anyOf", []) if a.get("type") == "array"), prop)
+            assert arr["contains"] == {"not": {"const": 0}}, (model, field)
+    for route in ("/v1/grids/{grid}/sh", "/v1/grids/{grid}/maps/diffuse",
+                  "/v1/grids/{grid}/maps/specular"):
         params = {p["name"]: p for p in doc["paths"][route]["get"]["parameters"]}
         assert {"nx", "ny", "nz"}.isdisjoint(params)  # one object: all three or none
         normal = params["normal"]
@@ -236,7 +241,191 @@ def test_maps_and_light_maps_have_the_same_default_format(lin):
     assert maps.status_code == lights.status_code == 200
     assert maps.headers["content-type"] == lights.headers["content-type"]
     (doc,) = _get(app, "/openapi.json")
-    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/maps/{kind}"]["get"]
+    params = {p["name"]: p for p in doc.json()["paths"]["/v1/grids/{grid}/maps/diffuse"]["get"]
               ["parameters"]}
     assert params["format"]["schema"]["default"] == doc.json()["components"]["schemas"][
-        "LightMapsRequest"]["properties"]["format"]["default"] == "npy"
+        "LightMapsRequest"]["anyOf"][0]["properties"]["format"]["default"] == "npy"
+
+
+# ------------------------------------------------------------------------------ issue 14, item 13
+def _params(doc: dict, path: str) -> dict[str, dict]:
+    return {p["name"]: p for p in doc["paths"][path]["get"]["parameters"]}
+
+
+def test_each_map_kind_states_its_own_level_range(lin, tmp_path):
+    """One OpenAPI operation per served kind (same URLs): specular's ``level`` maximum is the
+    store's last level, diffuse and incoming have no ``level``; the server agrees at the
+    bounds; with grids of different chains the description names each grid's range."""
+    from service.main import MAPS_ROUTE
+
+    levels = open_store(lin).manifest.arrays.keys()
+    last = max(int(k.split("_")[1]) for k in levels if k.startswith("specular_"))
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    doc = r.json()
+    assert MAPS_ROUTE not in doc["paths"]
+    spec = _params(doc, "/v1/grids/{grid}/maps/specular")
+    assert "kind" not in spec and spec["level"]["schema"]["maximum"] == last == 3
+    assert spec["level"]["schema"]["minimum"] == 0
+    for kind in ("diffuse", "incoming"):
+        assert "level" not in _params(doc, f"/v1/grids/{{grid}}/maps/{kind}")
+    ids = {doc["paths"][f"/v1/grids/{{grid}}/maps/{k}"]["get"]["operationId"]
+           for k in ("diffuse", "specular", "incoming")}
+    assert len(ids) == 3
+    q = "x=1&y=0.5&z=1"
+    ok, over, dif0, dif1, unknown = _get(
+        app, f"/v1/grids/lin/maps/specular?{q}&level={last}",
+        f"/v1/grids/lin/maps/specular?{q}&level={last + 1}",
+        f"/v1/grids/lin/maps/diffuse?{q}&level=0", f"/v1/grids/lin/maps/diffuse?{q}&level=1",
+        f"/v1/grids/lin/maps/glossy?{q}")
+    assert ok.status_code == dif0.status_code == 200
+    assert over.status_code == dif1.status_code == 422 and unknown.status_code == 404
+
+    # a second grid with a longer chain and no incoming maps
+    big = tmp_path / "big.probes"
+    write_store(big, GRID, linear_arrays(GRID, specular_size=32, incoming_size=None))
+    (r,) = _get(create_app([lin, big], LIMITS), "/openapi.json")
+    doc = r.json()
+    level = _params(doc, "/v1/grids/{grid}/maps/specular")["level"]
+    assert level["schema"]["maximum"] == 5
+    assert "big 0..5, lin 0..3" in level["description"]
+    grid = _params(doc, "/v1/grids/{grid}/maps/incoming")["grid"]
+    assert "stored by lin (404 for the others)" in grid["description"]
+
+
+def test_query_coordinates_have_the_bodies_bound(lin):
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    x = _params(r.json(), "/v1/grids/{grid}/sh")["x"]["schema"]
+    assert x["maximum"] == 1e12 == -x["minimum"]
+    edge, over = _get(app, "/v1/grids/lin/sh?x=1e12&y=0&z=0&nx=1&ny=0&nz=0",
+                      "/v1/grids/lin/sh?x=1.0000001e12&y=0&z=0&nx=1&ny=0&nz=0")
+    assert edge.status_code == 200 and over.status_code == 422
+
+
+def _light_maps(app, lights: list[dict]) -> httpx.Response:
+    async def post() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post("/v1/lights/maps", json={
+                "position": [1.0, 0.0, 0.0], "lights": lights, "kind": "diffuse",
+                "diffuse_size": 8})
+
+    return asyncio.run(post())
+
+
+def test_the_spot_cone_is_stated_as_outer_angle_and_penumbra(lin):
+    """Any in-range (outer_cone_angle, penumbra) is a cone; penumbra p is inner = outer (1-p),
+    0 a hard edge (the glTF formula's floor: the same map as any inner angle within it);
+    glTF's inner_cone_angle is still taken, must stay below the outer angle, and is not
+    listed in the document (a rule between two fields)."""
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, "/openapi.json")
+    spot = r.json()["components"]["schemas"]["SpotLightIn"]
+    assert "inner_cone_angle" not in spot["properties"]
+    assert "inner_cone_angle" in spot["description"]
+    pen = next(a for a in spot["properties"]["penumbra"]["anyOf"] if a["type"] == "number")
+    assert pen["minimum"] == 0 and pen["maximum"] == 1
+
+    base = {"type": "spot", "position": [0.0, 1.0, 0.0], "direction": [0.0, -1.0, 0.0],
+            "intensity": 50.0, "outer_cone_angle": 1.2}
+
+    def diffuse(**cone) -> np.ndarray:
+        resp = _light_maps(app, [{**base, **cone}])
+        assert resp.status_code == 200, resp.text
+        return np.load(io.BytesIO(resp.content))
+
+    half = diffuse(penumbra=0.5)
+    np.testing.assert_array_equal(half, diffuse(inner_cone_angle=0.6))
+    assert not np.array_equal(half, diffuse(penumbra=1.0))
+    np.testing.assert_array_equal(diffuse(penumbra=1.0), diffuse())  # the default: inner 0
+    hard = diffuse(penumbra=0.0)  # the point is 45 degrees off the axis, inside the cone
+    np.testing.assert_array_equal(hard, diffuse(inner_cone_angle=1.2 - 1e-6))
+    assert hard.max() > half.max() > diffuse(penumbra=1.0).max() > 0
+    for cone in ({"inner_cone_angle": 1.2}, {"inner_cone_angle": 1.3},
+                 {"inner_cone_angle": 0.1, "penumbra": 0.5}, {"penumbra": 1.5},
+                 {"penumbra": -0.1}):
+        assert _light_maps(app, [{**base, **cone}]).status_code == 422, cone
+
+
+def test_a_ktx2_cross_is_the_cross_as_a_2d_texture(lin):
+    """format=ktx2 with layout=cross: the cross image in a 2D KTX2 (was a cross-parameter 422,
+    which the document cannot state)."""
+    from probegrid.export.ktx2 import read_ktx2
+
+    app = create_app([lin], LIMITS)
+    q = "x=1&y=0.5&z=1"
+    cross_npy, cross_ktx2, cube_ktx2 = _get(
+        app, f"/v1/grids/lin/maps/specular?{q}&level=1&layout=cross",
+        f"/v1/grids/lin/maps/specular?{q}&level=1&layout=cross&format=ktx2",
+        f"/v1/grids/lin/maps/specular?{q}&level=1&format=ktx2")
+    assert cross_ktx2.status_code == cube_ktx2.status_code == 200
+    tex = read_ktx2(cross_ktx2.content)
+    assert tex.kind == "2d" and read_ktx2(cube_ktx2.content).kind == "cube"
+    image = np.load(io.BytesIO(cross_npy.content))
+    np.testing.assert_array_equal(tex.levels[0][..., :3], image)
+    r = _light_maps(app, [{"type": "point", "position": [0.0, 3.0, 0.0], "intensity": 1.0}])
+    assert r.status_code == 200
+
+
+def test_the_light_map_rules_in_the_document_are_the_servers(lin, tmp_path):
+    """``/v1/lights/maps``: every combination of kind, level, sizes, specular_levels, grid and
+    format=json is valid for the document's schema (its cases) exactly when the server answers
+    200 (else 422)."""
+    import itertools
+
+    import jsonschema_rs
+
+    nodiff = tmp_path / "nospec.probes"  # a grid without specular maps
+    arrays = linear_arrays(GRID)
+    for k in range(4):
+        del arrays[f"specular_{k}"]
+    write_store(nodiff, GRID, arrays)
+    limits = Settings(max_batch=64, max_lights=4, max_light_map_size=32, max_json_values=2000)
+    app = create_app([lin, nodiff], limits)
+    (r,) = _get(app, "/openapi.json")
+    doc = r.json()
+    schema = {"$ref": "#/components/schemas/LightMapsRequest", "components": doc["components"]}
+    validator = jsonschema_rs.Draft202012Validator(schema)
+    light = {"type": "point", "position": [0.0, 3.0, 0.0], "intensity": 1.0}
+    bodies = []
+    kinds, levels_ = [None, "diffuse", "specular"], [None, 1, 3, 6]
+    combos = [(k, lv, size, n, None, fmt) for k, lv, size, n, fmt in itertools.product(
+        kinds, levels_, [None, 8, 12, 32], [None, 1, 3], [None, "json"])]
+    combos += [(k, lv, None, None, g, fmt) for k, lv, g, fmt in itertools.product(
+        kinds, levels_, ["lin", "nospec"], [None, "json"])]  # a grid's sizes: the store's
+    for kind, level, size, levels, grid, fmt in combos:
+        body: dict = {"position": [0.5, 0.5, 0.5], "lights": [light]}
+        for key, value in (("kind", kind), ("level", level), ("specular_size", size),
+                           ("diffuse_size", size), ("specular_levels", levels),
+                           ("grid", grid), ("format", fmt)):
+            if value is not None:
+                body[key] = value
+        bodies.append(body)
+
+    async def post_all() -> list[httpx.Response]:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return [await c.post("/v1/lights/maps", json=b) for b in bodies]
+
+    answers = asyncio.run(post_all())
+    valid = 0
+    for body, resp in zip(bodies, answers, strict=True):
+        ok = validator.is_valid(body)
+        valid += ok
+        assert (resp.status_code == 200) == ok, (body, resp.status_code, resp.text[:200])
+        assert resp.status_code in (200, 422), (body, resp.text[:200])
+    assert 0 < valid < len(bodies)  # both kinds of answer were asked for
+
+
+def test_light_directions_of_any_length_the_schema_allows(lin):
+    """A light direction of 5e-324 (schema-valid: not the zero vector) is the direction +X,
+    not a 422 from an underflowing normalisation (schemathesis found it)."""
+    app = create_app([lin], LIMITS)
+    for light in ({"type": "directional", "intensity": 2.0},
+                  {"type": "spot", "position": [-1.0, 0.0, 0.0], "intensity": 5.0,
+                   "outer_cone_angle": 1.0}):
+        unit, tiny = (_light_maps(app, [{**light, "direction": d}])
+                      for d in ([1.0, 0.0, 0.0], [5e-324, 0.0, 0.0]))
+        assert unit.status_code == tiny.status_code == 200, tiny.text
+        assert unit.content == tiny.content

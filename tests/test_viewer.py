@@ -21,6 +21,15 @@ about 1e-6 with SwiftShader).
   1e-3 relative (measured 3e-4: SwiftShader's filter weights); and three's blend at the object's
   centre equals the service's plain trilinear blend there to 2e-3 (half-float rounding).
 
+* KTX2 in three.js: three r187's own ``KTX2Loader`` (vendored with ktx-parse and zstddec) loads
+  the files probegrid writes, and the page reads their texels back twice, from the loader's
+  arrays and from the GPU (``texelFetch`` into float render targets): filter's RGBA16F cube maps
+  equal the same run's half EXRs bit for bit, the three.js atlas (RGBA16F, Zstandard) equals the
+  store's SH packed and rounded to half, and the Bevy volume (E5B9G9R9) is decoded by the GPU
+  exactly as probegrid decodes it, within the format's rounding of the store's values. three
+  builds a 2D ``DataTexture`` for an uncompressed cube KTX2 (the six faces in each level's data;
+  only face +X reaches the GPU): an application builds the cube from the arrays itself.
+
 Skipped, with the reason, when Chromium (``apt-get install chromium``) or the ``playwright``
 package is missing. ``PROBEGRID_VIEWER_SCREENSHOT=docs/viewer.png`` saves the screenshot the
 suite makes (the README's picture).
@@ -41,6 +50,7 @@ import pytest
 from live_server import serve
 from probe_stores import GRID, linear_arrays, write_store
 
+from probegrid import imageio
 from probegrid.core import sh as shlib
 from probegrid.core.grid import GridSpec
 from probegrid.core.shading import shade_split_sum
@@ -466,3 +476,190 @@ def test_docs_render_offline(browser, server, path, rendered):
     if path == "/docs":
         assert page.locator(".swagger-ui .opblock").count() >= 10
     context.close()
+
+
+# ------------------------------------------------------------------- KTX2 files in three.js
+#: The page of the KTX2 test: three.js and its own KTX2Loader from the vendored files (the
+#: viewer's import map), a renderer, and a function that loads a file and reads its texels
+#: back twice: the loader's arrays, and the texture the GPU holds (``texelFetch`` of every
+#: texel, drawn into a float render target).
+KTX2_PAGE = """<!doctype html><meta charset="utf-8"><title>KTX2</title>
+<script type="importmap">{"imports": {"three": "%(three)s", "three/addons/": "%(addons)s"}}
+</script>
+<script type="module">
+import * as THREE from 'three';
+import { KTX2Loader } from 'three/addons/loaders/KTX2Loader.js';
+const renderer = new THREE.WebGLRenderer();
+const loader = new KTX2Loader().detectSupport(renderer);
+const camera = new THREE.OrthographicCamera(-1, 1, 1, -1, 0, 1);
+
+function gpuRead(texture, w, h, { slice = -1, lod = 0 }) {
+  // every texel of one slice (3D) or one mip level (2D), as the GPU samples it
+  const fetch = slice >= 0 ? 'texelFetch(tex, ivec3(ivec2(gl_FragCoord.xy), slice), 0)'
+                           : 'texelFetch(tex, ivec2(gl_FragCoord.xy), lod)';
+  const material = new THREE.ShaderMaterial({
+    glslVersion: THREE.GLSL3,
+    uniforms: { tex: { value: texture }, slice: { value: slice }, lod: { value: lod } },
+    vertexShader: 'void main() { gl_Position = vec4(position.xy, 0.0, 1.0); }',
+    fragmentShader: `precision highp float; precision highp sampler3D;
+      uniform ${slice >= 0 ? 'sampler3D' : 'sampler2D'} tex; uniform int slice; uniform int lod;
+      out highp vec4 texel;
+      void main() { texel = ${fetch}; }`,
+  });
+  const scene = new THREE.Scene();
+  scene.add(new THREE.Mesh(new THREE.PlaneGeometry(2, 2), material));
+  const target = new THREE.WebGLRenderTarget(w, h, { type: THREE.FloatType, depthBuffer: false });
+  renderer.setRenderTarget(target);
+  renderer.render(scene, camera);
+  const out = new Float32Array(w * h * 4);  // row 0 = texel row 0
+  renderer.readRenderTargetPixels(target, 0, 0, w, h, out);
+  renderer.setRenderTarget(null);
+  target.dispose(); material.dispose();
+  return Array.from(out);
+}
+
+window.ktx2 = {
+  revision: THREE.REVISION,
+  async read(url) {
+    const t = await loader.loadAsync(url);
+    const info = {
+      class: t.isData3DTexture ? 'Data3DTexture' : t.isDataTexture ? 'DataTexture'
+        : t.isCompressedCubeTexture ? 'CompressedCubeTexture' : t.constructor.name,
+      type: t.type, format: t.format, colorSpace: t.colorSpace,
+      half: t.type === THREE.HalfFloatType, rgb9e5: t.type === THREE.UnsignedInt5999Type,
+      rgba: t.format === THREE.RGBAFormat, rgb: t.format === THREE.RGBFormat,
+      width: t.image.width, height: t.image.height, depth: t.image.depth || 0,
+      levels: t.mipmaps.map((m) => ({ width: m.width, height: m.height, depth: m.depth,
+                                      data: Array.from(m.data) })),
+      gpu: [],
+    };
+    if (t.isData3DTexture) {
+      for (let z = 0; z < info.depth; z++) info.gpu.push(gpuRead(t, info.width, info.height, { slice: z }));
+    } else {
+      info.levels.forEach((m, k) => info.gpu.push(gpuRead(t, m.width, m.height, { lod: k })));
+    }
+    t.dispose();
+    return info;
+  },
+};
+window.ktx2ready = true;
+</script>"""
+
+FACES = ("px", "nx", "py", "ny", "pz", "nz")
+
+
+@pytest.fixture(scope="module")
+def ktx2_files(stores, tmp_path_factory) -> dict[str, Path]:
+    """probegrid's KTX2 files: ``filter --format ktx2`` (and the same filter as half EXRs, to
+    compare with), and the room's grid exported for three.js (Zstandard-supercompressed) and
+    for Bevy."""
+    from probegrid.cli import main
+    from probegrid.jobs.engine_export import export_grid
+
+    root = tmp_path_factory.mktemp("ktx2")
+    sky = REPO / "data" / "sample_sky.hdr"
+    for fmt in ("ktx2", "exr"):
+        assert main(["filter", str(sky), "--out", str(root / fmt), "--format", fmt, "--size",
+                     "16", "--diffuse-size", "8"]) == 0
+    export_grid(stores["room"], root / "threejs", target="threejs", zstd=True)
+    export_grid(stores["room"], root / "bevy", target="bevy")
+    return {"specular": root / "ktx2" / "specular.ktx2", "diffuse": root / "ktx2" / "diffuse.ktx2",
+            "exr": root / "exr", "threejs": root / "threejs" / "lightprobegrid.ktx2",
+            "bevy": root / "bevy" / "irradiance_volume.ktx2"}
+
+
+@pytest.fixture(scope="module")
+def ktx2_page(browser, server, ktx2_files):
+    """A page of the server's origin (the vendored modules load as the viewer loads them) whose
+    ``window.ktx2.read(url)`` loads ``/ktx2-test/NAME`` with three's KTX2Loader."""
+    import re
+
+    html = httpx.get(server.url + "/").text
+    three = re.search(r'"three": "([^"]+/three\.module\.js)"', html).group(1)
+    addons = three.replace("build/three.module.js", "examples/jsm/")
+    page = browser.new_page()
+    watch = PageWatch(page)
+
+    def fulfil(route) -> None:
+        name = route.request.url.rsplit("/", 1)[-1]
+        if name == "index.html":
+            route.fulfill(status=200, content_type="text/html",
+                          body=KTX2_PAGE % {"three": three, "addons": addons})
+        else:
+            route.fulfill(status=200, content_type="image/ktx2",
+                          body=ktx2_files[name.removesuffix(".ktx2")].read_bytes())
+
+    page.route(server.url + "/ktx2-test/*", fulfil)
+    page.goto(server.url + "/ktx2-test/index.html")
+    page.wait_for_function("window.ktx2ready === true", timeout=20_000)
+    yield page, watch
+    page.close()
+
+
+def _half_bits(values: np.ndarray) -> np.ndarray:
+    return np.asarray(values, dtype=np.float32).astype(np.float16).view(np.uint16)
+
+
+@pytest.mark.parametrize("name", ["specular", "diffuse"])
+def test_three_ktx2loader_reads_the_filters_cube_maps(ktx2_page, ktx2_files, name):
+    """filter's RGBA16F cube KTX2 through three r187's KTX2Loader: every level's half floats, as
+    the loader holds them, are the filter's maps (the half EXRs of the same run), bit for bit,
+    and the GPU samples them. three builds a 2D DataTexture for an uncompressed cube: the six
+    faces are in each level's data, one after the other, but only face +X is uploaded."""
+    page, watch = ktx2_page
+    got = page.evaluate("(u) => window.ktx2.read(u)", f"/ktx2-test/{name}.ktx2")
+    assert got["class"] == "DataTexture" and got["half"] and got["rgba"]
+    assert got["colorSpace"] == "srgb-linear"
+    names = [f"{name}_m{k}" if name == "specular" else name for k in range(len(got["levels"]))]
+    assert len(got["levels"]) == (5 if name == "specular" else 1)  # 16^2 .. 1^2; 8^2
+    for k, (level, stem) in enumerate(zip(got["levels"], names, strict=True)):
+        n = level["width"]
+        assert n == level["height"] == (16 if name == "specular" else 8) >> k
+        faces = np.stack([imageio.read_image(ktx2_files["exr"] / f"{stem}_{f}.exr")
+                          for f in FACES])  # (6, n, n, 3) from half EXRs
+        bits = np.array(level["data"], dtype=np.uint16).reshape(6, n, n, 4)
+        np.testing.assert_array_equal(bits[..., :3], _half_bits(faces))
+        assert (bits[..., 3] == 0x3C00).all()  # alpha 1
+        gpu = np.array(got["gpu"][k], dtype=np.float32).reshape(n, n, 4)
+        np.testing.assert_array_equal(gpu[..., :3], faces[0])  # face +X, as uploaded
+    assert faces.max() > 0 and watch.problems == []
+
+
+def test_three_ktx2loader_reads_the_threejs_and_bevy_grid_exports(ktx2_page, stores):
+    """The grid exports' 3D KTX2 files through three's KTX2Loader, read back texel by texel
+    from the GPU: the three.js atlas (RGBA16F, Zstandard) equals the store's SH packed as
+    three's LightProbeGrid reads it, rounded to half; the Bevy volume (E5B9G9R9) equals the
+    store's irradiance/pi along the axes after the format's rounding, decoded by the GPU."""
+    from probegrid.export import ktx2
+    from probegrid.store import open_store
+
+    page, watch = ktx2_page
+    store = open_store(stores["room"])
+    nx, ny, nz = store.grid.counts
+    valid = store.valid_mask().reshape(nx, ny, nz)
+
+    atlas = engines.threejs_atlas(engines.fill_invalid(
+        np.asarray(store["sh"], np.float32).reshape(nx, ny, nz, 9, 3), valid)[0])
+    got = page.evaluate("(u) => window.ktx2.read(u)", "/ktx2-test/threejs.ktx2")
+    assert got["class"] == "Data3DTexture" and got["half"] and got["rgba"]
+    assert (got["width"], got["height"], got["depth"]) == (nx, ny, 7 * (nz + 2))
+    bits = np.array(got["levels"][0]["data"], dtype=np.uint16).reshape(atlas.shape)
+    np.testing.assert_array_equal(bits, _half_bits(atlas))
+    gpu = np.array(got["gpu"], dtype=np.float32).reshape(atlas.shape)
+    np.testing.assert_array_equal(gpu, atlas.astype(np.float16).astype(np.float32))
+
+    diffuse = np.asarray(store["diffuse"], np.float32)
+    volume = engines.bevy_volume(engines.fill_invalid(
+        engines.ambient_cube(diffuse.reshape(nx, ny, nz, *diffuse.shape[1:])), valid)[0])
+    got = page.evaluate("(u) => window.ktx2.read(u)", "/ktx2-test/bevy.ktx2")
+    assert got["class"] == "Data3DTexture" and got["rgb9e5"] and got["rgb"]
+    assert (got["width"], got["height"], got["depth"]) == (nx, 2 * ny, 3 * nz)
+    packed = np.array(got["levels"][0]["data"], dtype=np.uint32).reshape(volume.shape[:3])
+    np.testing.assert_array_equal(packed, ktx2.encode_rgb9e5(volume))
+    gpu = np.array(got["gpu"], dtype=np.float32).reshape(*volume.shape[:3], 4)[..., :3]
+    np.testing.assert_array_equal(gpu, ktx2.decode_rgb9e5(packed))  # the GPU's decoding
+    err = np.abs(gpu - volume).max(axis=-1) / np.maximum(volume.max(axis=-1), 1e-30)
+    print(f"\nBevy volume through the GPU: worst error {err.max():.2e} of the texel's largest "
+          f"channel (E5B9G9R9); three.js atlas: half floats, bit-exact")
+    assert volume.max() > 0 and err.max() <= 2.0**-8
+    assert watch.problems == []

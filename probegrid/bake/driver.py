@@ -97,6 +97,7 @@ from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 from probegrid.store import (
     ArraySpec,
+    BakeInputs,
     ProbeStore,
     StoreWriter,
     create_npy,
@@ -557,6 +558,7 @@ def bake(
     overwrite: bool = False,
     scene_file: str | Path | None = None,
     allow_black: bool = True,
+    inputs: BakeInputs | None = None,  # (manifest ``inputs``: the scene/environment as given)
 ) -> BakeReport:
     """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
 
@@ -767,7 +769,7 @@ def bake(
         }
         quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
         write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
-        store = w.finish(quality=quality, scene_file=scene_file)
+        store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
         shutil.rmtree(work, ignore_errors=True)
         if not files:  # (this machine's Dask workers' record directory, emptied block by block)
             shutil.rmtree(resolve_directory(records), ignore_errors=True)

@@ -29,8 +29,8 @@ from probegrid.bake.environment import Environment
 from probegrid.errors import ProbegridError
 from probegrid.scene import Scene
 
-__all__ = ["NO_LIGHT", "NoLightError", "light_quality", "light_sources", "printable",
-           "require_light"]
+__all__ = ["NO_LIGHT", "NoLightError", "emissive_materials", "light_quality", "light_sources",
+           "printable", "require_light"]
 
 #: What a quality figure reads when there is no light to measure it on.
 NO_LIGHT: Final[str] = "no light"
@@ -40,15 +40,21 @@ class NoLightError(ProbegridError, ValueError):
     """A bake that can only be, or came out, black (one-line message)."""
 
 
-def light_sources(scene: Scene, environment: Environment) -> list[str]:
-    """The scene's sources of light, in words (empty: the bake can only be black)."""
-    out = []
+def emissive_materials(scene: Scene) -> int:
+    """Number of the materials the scene's triangles use that emit light."""
     used = np.unique(np.asarray(scene.material))
     emissive = 0
     for i in used:  # loop over materials, not triangles
         m = scene.materials[int(i)]
         tex = 1.0 if m.emissive_texture is None else float(np.max(m.emissive_texture))
         emissive += bool(np.max(m.emissive) * tex > 0)
+    return emissive
+
+
+def light_sources(scene: Scene, environment: Environment) -> list[str]:
+    """The scene's sources of light, in words (empty: the bake can only be black)."""
+    out = []
+    emissive = emissive_materials(scene)
     if emissive:
         out.append(f"{emissive} emissive material{'s' if emissive > 1 else ''}")
     lights = sum(1 for li in scene.lights if li.intensity > 0 and max(li.color) > 0)

@@ -35,7 +35,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,8 +51,9 @@ if TYPE_CHECKING:  # the heavy modules (Embree, numba, trimesh) load when a bake
     from probegrid.bake.driver import BakeReport
     from probegrid.bake.environment import Environment
     from probegrid.scene import Scene
+    from probegrid.store import BakeInputs
 
-__all__ = ["BakeEstimate", "BakeJob", "default_grid", "estimate", "grid_for",
+__all__ = ["BakeEstimate", "BakeJob", "bake_inputs", "default_grid", "estimate", "grid_for",
            "load_environment", "run_bake"]
 
 
@@ -425,6 +426,45 @@ def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
     return Environment(faces=faces, intensity=intensity, rotation=rotation)
 
 
+def bake_inputs(job: BakeJob, scene: Scene, env: Environment) -> BakeInputs:
+    """The scene and environment of ``job`` as given, for the store's manifest (``inputs``):
+    file names without their directories, sizes, the environment's layout (``auto`` resolved
+    as the reader resolves it; six face files named in face order), the scene's counts and each
+    one's own content hash (the store's ``scene_hash`` is the SHA-256 of the two)."""
+    from probegrid.bake.driver import environment_hash
+    from probegrid.bake.nolight import emissive_materials
+    from probegrid.core.layouts import detect_layout
+    from probegrid.imageio import image_size, order_face_files
+    from probegrid.scene.gltf import gltf_mesh_count
+    from probegrid.store import BakeInputs, EnvironmentInput, SceneInput
+    from probegrid.store.manifest import EnvironmentSource
+
+    scene_in = SceneInput(
+        name=job.scene.name, bytes=job.scene.stat().st_size, triangles=scene.n_triangles,
+        meshes=gltf_mesh_count(job.scene), materials=len(scene.materials),
+        emissive_materials=emissive_materials(scene), punctual_lights=len(scene.lights),
+        content_hash=scene.content_hash())
+    def env_input(layout: EnvironmentSource, **given: Any) -> EnvironmentInput:
+        return EnvironmentInput(layout=layout, intensity=job.environment_intensity,
+                                rotation_deg=job.environment_rotation,
+                                content_hash=environment_hash(env), **given)
+
+    if job.environment:
+        files = (order_face_files(job.environment) if len(job.environment) == 6
+                 else list(job.environment))
+        w, h = image_size(files[0])
+        layout: EnvironmentSource = (
+            "faces" if len(files) == 6 else job.environment_layout
+            if job.environment_layout != "auto" else detect_layout(h, w))
+        env_in = env_input(layout, files=tuple(f.name for f in files), pixel_size=(w, h),
+                           bytes=sum(f.stat().st_size for f in files))
+    elif job.environment_color is not None:
+        env_in = env_input("color", color=tuple(env.color.tolist()))
+    else:
+        env_in = env_input("none")
+    return BakeInputs(scene=scene_in, environment=env_in)
+
+
 def run_bake(job: BakeJob) -> BakeReport:
     """Run ``probegrid bake``: every option was checked when ``job`` was built; then the scene
     and environment (refused when they hold no light, unless ``allow_black``), the grid (the
@@ -462,7 +502,8 @@ def run_bake(job: BakeJob) -> BakeReport:
     try:
         return bake(scene, grid, job.out, settings=job.settings, environment=env,
                     executor=executor, progress=bar, overwrite=job.overwrite,
-                    scene_file=job.scene, allow_black=job.allow_black)
+                    scene_file=job.scene, allow_black=job.allow_black,
+                    inputs=bake_inputs(job, scene, env))
     finally:
         bar.close()
         executor.close()

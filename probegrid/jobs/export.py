@@ -29,7 +29,14 @@ from probegrid._fs import atomic_write_json
 from probegrid._types import CubeLayout, ImageFormat
 from probegrid._version import __version__
 from probegrid.jobs.filter import prepare_output_dir
-from probegrid.store import ProbeStore, StoreError, open_store, partial_path, partial_progress
+from probegrid.store import (
+    BakeInputs,
+    ProbeStore,
+    StoreError,
+    open_store,
+    partial_path,
+    partial_progress,
+)
 from probegrid.store.check import map_arrays as _map_arrays
 from probegrid.store.check import specular_levels as _specular_levels
 
@@ -110,6 +117,8 @@ def describe_store(path: str | os.PathLike[str]) -> str:
     if env:
         lines.append(f"  environment: {json.dumps(env)}")
     lines.append(f"  scene hash: {m.scene_hash}")
+    if m.inputs is not None:
+        lines.extend(_input_lines(m.inputs))
     if m.scene_file is not None:
         lines.append(f"  scene copy: {m.scene_file.file} ({m.scene_file.bytes} bytes, from "
                      f"{m.scene_file.source}; served at /v1/grids/NAME/scene)")
@@ -127,6 +136,41 @@ def describe_store(path: str | os.PathLike[str]) -> str:
         for k, v in q.items():
             lines.append(f"    {k}: {v}")
     return "\n".join(lines)
+
+
+def _input_lines(inputs: BakeInputs) -> list[str]:
+    """``info``'s lines for the scene and environment as given (manifest ``inputs``)."""
+    sc, env = inputs.scene, inputs.environment
+
+    def count(n: int, what: str) -> str:
+        return f"{n:,} {what}" if n == 1 else f"{n:,} {what}{'es' if what == 'mesh' else 's'}"
+
+    parts = [count(sc.triangles, "triangle")]
+    if sc.meshes is not None:
+        parts.append(count(sc.meshes, "mesh"))
+    parts += [count(sc.materials, "material"),
+              count(sc.emissive_materials, "emissive material"),
+              count(sc.punctual_lights, "punctual light")]
+    lines = [(f"  scene as given: {sc.name} ({sc.bytes:,} bytes): {', '.join(parts)}; "
+              f"hash {sc.content_hash}")]
+    if env.layout == "none":
+        what = "none (black)"
+    elif env.layout == "color":
+        assert env.color is not None
+        what = "color " + ",".join(f"{c:g}" for c in env.color)
+    else:
+        assert env.pixel_size is not None
+        w, h = env.pixel_size
+        if env.layout == "faces":
+            what = (f"faces {', '.join(env.files)} (+X, -X, +Y, -Y, +Z, -Z; {w}x{h} each, "
+                    f"{env.bytes:,} bytes)")
+        else:
+            what = f"{env.files[0]} ({env.layout} {w}x{h}, {env.bytes:,} bytes)"
+    extra = ""
+    if env.layout != "none" and (env.intensity != 1.0 or env.rotation_deg != 0.0):
+        extra = f", intensity {env.intensity:g}, rotated {env.rotation_deg:g} deg about +Y"
+    lines.append(f"  environment as given: {what}{extra}; hash {env.content_hash}")
+    return lines
 
 
 def parse_probe(text: str, store: ProbeStore) -> tuple[int, int, int]:

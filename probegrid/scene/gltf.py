@@ -60,7 +60,7 @@ from probegrid.core.color import srgb_to_linear
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.scene.model import Material, Scene, SceneError
 
-__all__ = ['load_gltf']
+__all__ = ['gltf_mesh_count', 'load_gltf']
 
 
 #: glTF sampler wrap codes (OpenGL enums) -> our names.
@@ -400,6 +400,19 @@ def load_gltf(path: str | Path) -> Scene:
         # JSON of the wrong shape ("asset": "2.0", "materials": [5], a node cycle, ...)
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise SceneError(f"{label} is not a well-formed glTF 2.0 scene ({msg}).") from None
+
+
+def gltf_mesh_count(path: str | Path) -> int | None:
+    """Number of meshes a glTF file's document declares (None when it cannot be read)."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+        doc = (_parse_glb(data, p.name)[0] if data[:4] == _GLB_MAGIC
+               else json.loads(data.decode("utf-8")))
+    except (OSError, SceneError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    meshes = doc.get("meshes") if isinstance(doc, dict) else None
+    return len(meshes) if isinstance(meshes, list) else 0
 
 
 def _load_gltf_data(p: Path, data: bytes) -> Scene:

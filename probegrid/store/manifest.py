@@ -29,7 +29,9 @@ part of the bake plan (a resumed bake does not compare them) and are mapped like
 
 The manifest also carries the conventions record (built by :mod:`probegrid.core.conventions`; the store
 treats it as opaque JSON), the grid (:class:`probegrid.core.grid.GridSpec`), the bake settings, the
-scene's content hash, per-bake quality figures, the creation time and the probegrid version.
+scene's content hash, per-bake quality figures, the creation time and the probegrid version, and
+(``inputs``, optional within format 2) the scene and environment *as given*: file names without
+their directories, sizes, the environment's layout, the scene's counts and each one's own hash.
 
 Writing (:mod:`probegrid.store.writer`) is atomic and resumable; reading
 (:mod:`probegrid.store.reader`) memory-maps the arrays. This module holds the format: the
@@ -49,7 +51,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any, Final, Literal
+from typing import Annotated, Any, Final, Literal, get_args
 
 import numpy as np
 from numpy.typing import DTypeLike
@@ -71,7 +73,9 @@ from probegrid.errors import StoreError
 GridField = Annotated[GridSpec, PlainValidator(GridSpec.from_dict),
                       PlainSerializer(GridSpec.as_dict)]
 
-__all__ = ['FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS', 'ArrayInfo', 'ArraySpec', 'SceneFile', 'StoreError', 'StoreManifest', 'partial_path']
+__all__ = ['ENVIRONMENT_SOURCES', 'FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS',
+           'ArrayInfo', 'ArraySpec', 'BakeInputs', 'EnvironmentInput', 'EnvironmentSource',
+           'SceneFile', 'SceneInput', 'StoreError', 'StoreManifest', 'partial_path']
 
 
 FORMAT_NAME: Final = "probegrid.store"
@@ -241,6 +245,95 @@ class SceneFile(BaseModel):
     source: str
 
 
+def _basename(v: str) -> str:
+    if not v or "/" in v or "\\" in v or v in (".", ".."):
+        raise ValueError(f"a file name without its directory is expected, got {v!r}")
+    return v
+
+
+class SceneInput(BaseModel):
+    """The scene file a store was baked from, as given (manifest ``inputs.scene``).
+
+    ``name`` is the file's name without its directory (no machine path is recorded); ``bytes``
+    its size; the counts are those of the loaded scene (``meshes``: the glTF document's meshes;
+    ``emissive_materials``: materials in use with a non-zero emission; ``punctual_lights``:
+    ``KHR_lights_punctual`` lights). ``content_hash`` is the scene's own hash
+    (:meth:`probegrid.scene.Scene.content_hash`): the store's ``scene_hash`` is the SHA-256 of
+    it followed by the environment's ``content_hash``.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    bytes: int
+    triangles: int
+    meshes: int | None = None
+    materials: int
+    emissive_materials: int
+    punctual_lights: int
+    content_hash: str
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        return _basename(v)
+
+
+#: What a bake's environment was given as: the image layouts of the CLI's
+#: ``--environment-layout`` (after ``auto`` was resolved), ``faces`` for ``--environment-faces``,
+#: ``color`` for ``--environment-color`` and ``none`` for no environment (black).
+EnvironmentSource = Literal["equirect", "angular", "hcross", "vcross", "faces", "color", "none"]
+ENVIRONMENT_SOURCES: Final = get_args(EnvironmentSource)
+
+
+class EnvironmentInput(BaseModel):
+    """The environment a store was baked from, as given (manifest ``inputs.environment``).
+
+    ``layout`` is one of :data:`ENVIRONMENT_SOURCES`. For images: ``files`` the file names (no
+    directory; for ``faces`` in face order +X, -X, +Y, -Y, +Z, -Z, whatever order they were
+    given in), ``bytes`` their total size and ``pixel_size`` the (width, height) of the image
+    (of one face for ``faces``). For ``color``: ``color``, the constant radiance. ``intensity``
+    and ``rotation_deg`` as given. ``content_hash``: see :class:`SceneInput`.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    layout: EnvironmentSource
+    files: tuple[str, ...] = ()
+    bytes: int = 0
+    pixel_size: tuple[int, int] | None = None
+    color: tuple[float, float, float] | None = None
+    intensity: float = 1.0
+    rotation_deg: float = 0.0
+    content_hash: str
+
+    @field_validator("files")
+    @classmethod
+    def _files(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(_basename(f) for f in v)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> EnvironmentInput:
+        images = {"faces": 6, "color": 0, "none": 0}.get(self.layout, 1)
+        if len(self.files) != images:
+            raise ValueError(f"a {self.layout!r} environment has {images} file(s), "
+                             f"got {len(self.files)}")
+        if (self.pixel_size is not None) != (images > 0):
+            raise ValueError("pixel_size is given for an image environment and only for one")
+        if (self.color is not None) != (self.layout == "color"):
+            raise ValueError("color is given for a 'color' environment and only for one")
+        return self
+
+
+class BakeInputs(BaseModel):
+    """The scene and environment a store was baked from, as given (manifest ``inputs``)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    scene: SceneInput
+    environment: EnvironmentInput
+
+
 class StoreManifest(_Plan):
     """The ``manifest.json`` of a finished store.
 
@@ -266,12 +359,17 @@ class StoreManifest(_Plan):
     extras : dict of str -> ArrayInfo
         Arrays added after the probes (format 2; see the module docstring), possibly not per
         probe.
+    inputs : BakeInputs or None
+        The scene and environment as given (file names, sizes, layout, counts, each one's
+        content hash); None in stores written before it was recorded (still format 2: the
+        field is optional) and in stores not written by a bake.
     """
 
     created: datetime
     quality: dict[str, Any]
     scene_file: SceneFile | None = None
     extras: dict[str, ArrayInfo] = {}
+    inputs: BakeInputs | None = None
 
     @model_validator(mode="after")
     def _extras_apart(self) -> StoreManifest:

@@ -66,6 +66,7 @@ from probegrid.store.manifest import (
     PLAN_FILE,
     ArrayInfo,
     ArraySpec,
+    BakeInputs,
     SceneFile,
     StoreError,
     StoreManifest,
@@ -620,6 +621,7 @@ class StoreWriter:
         *,
         quality: Mapping[str, Any] | BaseModel | None = None,
         scene_file: str | os.PathLike[str] | None = None,
+        inputs: BakeInputs | Mapping[str, Any] | None = None,
     ) -> ProbeStore:
         """Publish the finished store atomically and return it opened for reading.
 
@@ -631,6 +633,9 @@ class StoreWriter:
         scene_file : path, optional
             The glTF file that was baked: a copy is kept in the store and recorded in the
             manifest (``scene_file``) when :func:`keepable_scene` allows it.
+        inputs : BakeInputs, optional
+            The scene and environment as given (manifest ``inputs``); when resuming a bake
+            killed during a previous ``finish``, ``None`` keeps the recorded ones.
         """
         self._require_open()
         left = self.n_probes - self.n_done
@@ -651,11 +656,15 @@ class StoreWriter:
             kept = _keep_scene(Path(scene_file), self._partial)
         elif self._finished_manifest is not None:
             kept = self._finished_manifest.scene_file
+        if inputs is None and self._finished_manifest is not None:
+            inputs = self._finished_manifest.inputs
+        elif inputs is not None and not isinstance(inputs, BakeInputs):
+            inputs = BakeInputs.model_validate(inputs)
         plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
         if self._extras:  # a version-1 plan (a bake resumed across versions) gains extras
             plan_fields["format_version"] = FORMAT_VERSION
         manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q,
-                                 scene_file=kept, extras=self._extras)
+                                 scene_file=kept, extras=self._extras, inputs=inputs)
         atomic_write_text(self._partial / MANIFEST_FILE, manifest.model_dump_json(indent=2))
         self._done = np.ones(self.n_probes, dtype=bool)
         self._done_map = None

@@ -25,17 +25,26 @@ router = APIRouter(prefix="/v1/lights", tags=["lights"],
                    dependencies=[Depends(require_json)])
 
 
+def _direction(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    """A non-zero vector scaled so its largest component is 1 (the same direction): any
+    length the schema allows, 5e-324 included, normalises without underflow."""
+    top = max(abs(c) for c in v)
+    return (v[0] / top, v[1] / top, v[2] / top)
+
+
 def to_light(spec: LightIn) -> Light:
     """The library light of a request's light."""
     if isinstance(spec, PointLightIn):
         return PointLight(position=spec.position, color=spec.color, intensity=spec.intensity,
                           range=spec.range)
     if isinstance(spec, SpotLightIn):
-        return SpotLight(position=spec.position, direction=spec.direction, color=spec.color,
+        return SpotLight(position=spec.position, direction=_direction(spec.direction),
+                         color=spec.color,
                          intensity=spec.intensity, range=spec.range,
-                         inner_cone_angle=spec.inner_cone_angle,
+                         inner_cone_angle=spec.inner_angle,
                          outer_cone_angle=spec.outer_cone_angle)
-    return DirectionalLight(direction=spec.direction, color=spec.color, intensity=spec.intensity)
+    return DirectionalLight(direction=_direction(spec.direction), color=spec.color,
+                            intensity=spec.intensity)
 
 
 @router.post(
@@ -59,6 +68,10 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
                                 f"{settings.max_light_map_size}.")
     served = None
     chain: int | None  # levels of the chain to make (None: full)
+    for name in ("diffuse_size", "specular_size"):  # both, as the OpenAPI document states
+        if getattr(body, name) > settings.max_light_map_size:
+            raise ApiError(422, f"{name} {getattr(body, name)} is over the limit of "
+                                f"{settings.max_light_map_size}.")
     if body.grid is not None:  # the grid's map sizes
         served = state.grids.get(body.grid)
         if served is None:
@@ -69,9 +82,6 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         chain = served.field.map_levels(body.kind)
     else:
         size0 = body.diffuse_size if body.kind == "diffuse" else body.specular_size
-        if size0 > settings.max_light_map_size:
-            raise ApiError(422, f"A face size of {size0} is over the limit of "
-                                f"{settings.max_light_map_size}.")
         chain = 1 if body.kind == "diffuse" else body.specular_levels
     try:  # the other kind is made at size 1 (light_maps makes both)
         levels = len(mip_sizes(size0, chain))
@@ -83,8 +93,6 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
         raise ApiError(422, f"level {body.level} is out of range 0..{levels - 1} for "
                             f"{body.kind} maps.")
     size = size0 >> body.level
-    if body.format == "ktx2" and body.layout != "faces":
-        raise ApiError(422, "format=ktx2 is a cube map; use layout=faces.")
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
     try:

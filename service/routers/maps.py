@@ -100,8 +100,6 @@ async def get_map(
     if level >= levels:
         raise ApiError(422, f"level {level} is out of range 0..{levels - 1} for {kind} maps.")
     n = field.map_size(map_kind, level)
-    if fmt == "ktx2" and layout != "faces":
-        raise ApiError(422, "format=ktx2 is a cube map; use layout=faces.")
     if fmt == "json":
         check_json_size(6 * n * n * 3, state.settings.max_json_values)
 
