@@ -61,7 +61,6 @@ from probegrid._types import (
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import mip_sizes, solid_angle_integral
-from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
 
 __all__ = [
     "FILTER_FORMAT",
@@ -76,8 +75,6 @@ __all__ = [
 
 #: ``format`` of the manifest of a filter output directory.
 FILTER_FORMAT = "probegrid.filter"
-#: Files only an unfinished bake holds (see probegrid.store).
-_BAKE_STATE_FILES = (PLAN_FILE, DONE_FILE)
 
 Progress = Callable[[str], None]
 
@@ -178,12 +175,15 @@ def prepare_output_dir(
     Path
         ``out_dir`` as a Path.
     """
+    # (the store's names, imported here: the filter command needs nothing else of the store)
+    from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
+
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"output directory {out} exists and is not a directory")
     names = {Path(os.path.abspath(out)).name, out.resolve().name}
     if any(n.endswith(STORE_DIR_SUFFIXES) for n in names) or any(
-        (out / f).exists() for f in _BAKE_STATE_FILES
+        (out / f).exists() for f in (PLAN_FILE, DONE_FILE)  # an unfinished bake's state
     ):
         raise ValueError(
             f"output directory {out} is a probe grid store or bake directory (NAME.probes, "
@@ -402,7 +402,7 @@ def _filter_into(
     """Compute everything, then write it into the (staging) directory ``out``; returns the
     manifest and its file list."""
     from probegrid import imageio, usercache
-    from probegrid.core import diffuse, seams, sh, shbands, specular
+    from probegrid.core import diffuse, lobes, seams, sh, shbands, specular
     from probegrid.export.shforms import sh_forms
 
     say: Progress = progress or (lambda _m: None)
@@ -450,19 +450,23 @@ def _filter_into(
     spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
     if settings.samples is not None:
         spec_kwargs["samples"] = settings.samples
-    # the diffuse sum runs in a second thread beside the GGX chain (both spend their time in
-    # numpy calls that release the GIL; the chain limits BLAS to one thread), for cubes up to
-    # 128^2: the chain of a larger cube needs the memory (peak RSS 530 vs 480 MB at 256^2)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
+    if (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0 and settings.format != "gltf"
+            and settings.specular_method == "tiered" and settings.diffuse_method == "exact"
+            and diffuse_source == n):
+        # one pass of dense sums over every input texel: the diffuse map and every GGX level
+        # (exact), the cube's symmetries shared, the blocks split between two threads
         t = time.perf_counter()
-        spec = (specular.ggx_prefilter(cube, **spec_kwargs) if settings.format != "gltf"
-                else gltf_ibl.specular_chain(cube))  # Babylon's mip -> alpha mapping
+        sizes = mip_sizes(n, levels)
+        outs = [specular.ZonalOutput(settings.diffuse_size, "cosine")] + [
+            specular.ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
+                lobes.level_roughness(k, levels)))) for k, s in enumerate(sizes) if k]
+        diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
+        spec = [cube.copy(), *rest]
+        info = None
         timings["specular"] = time.perf_counter() - t
-        if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
-            specular.clear_caches()
-        diff, info, timings["diffuse"] = (diffuse_future.result() if diffuse_future is not None
-                                          else diffuse_stage())
+        timings["diffuse"] = 0.0  # (in the specular figure: one pass computed both)
+    else:
+        diff, info, spec = _separate_stages(cube, settings, spec_kwargs, diffuse_stage, timings)
     if info is not None:
         sh_window = {
             "window": info.window,
@@ -605,6 +609,34 @@ def _filter_into(
     }
     atomic_write_json(manifest_path, manifest)
     return manifest, files
+
+
+def _separate_stages(cube: NDArray[np.float32], settings: FilterSettings,
+                     spec_kwargs: dict[str, Any], diffuse_stage: Callable[[], Any],
+                     timings: dict[str, float]) -> tuple[NDArray[np.float32], Any, list[Any]]:
+    """The diffuse map and the specular chain by their own functions (every case but the
+    default one of :func:`_filter_into`); returns (diffuse, SH window info or None, chain)."""
+    from probegrid.core import specular
+
+    n = cube.shape[1]
+    # the diffuse sum runs in a second thread beside the GGX chain (both spend their time in
+    # numpy calls that release the GIL; the chain limits BLAS to one thread), for cubes up to
+    # 128^2: the chain of a larger cube needs the memory (peak RSS 530 vs 480 MB at 256^2)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
+        t = time.perf_counter()
+        if settings.format != "gltf":
+            spec = specular.ggx_prefilter(cube, **spec_kwargs)
+        else:
+            from probegrid.export import gltf_ibl
+
+            spec = gltf_ibl.specular_chain(cube)  # Babylon's mip -> alpha mapping
+        timings["specular"] = time.perf_counter() - t
+        if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
+            specular.clear_caches()
+        diff, info, timings["diffuse"] = (diffuse_future.result() if diffuse_future is not None
+                                          else diffuse_stage())
+    return diff, info, spec
 
 
 def _specular_sheet(levels: Sequence[NDArray[np.float32]]) -> NDArray[np.float32]:
