@@ -19,3 +19,28 @@ def test_padded_lookup_equals_the_wrapping_bilinear_lookup():
     got = L._EquirectLookup(img)(d)
     np.testing.assert_allclose(got, ref, atol=2e-4)  # float32 angles: ~1e-5 pixel here
 
+
+
+def test_equirect_to_cube_against_a_dense_supersampled_reference():
+    """to_cube's equirect path (side faces by exact line integrals along meridians, polar faces
+    by k x k lookups) against the same box filter of the bilinear reconstruction supersampled
+    4 times more densely per axis: the side faces are closer to it than the k x k lookups
+    (measured mean 1.7e-3 / 3.2e-3 vs 2.5e-3 / 4.6e-3 at n = 16 / 24 on white noise with a
+    500 x brighter 'sun'), the polar faces are those lookups (equal up to float32 sums and pixel coordinates)."""
+    rng = np.random.default_rng(5)
+    img = rng.exponential(1.0, (128, 256, 3)).astype(np.float32)
+    img[30:33, 100:104] *= 500.0
+    side = [0, 1, 4, 5]
+    for n, bound in ((16, 2.2e-3), (24, 4e-3)):
+        k = L._supersampling(2.0 / n, np.pi / 128)
+        ref = L._integrate_cube(L._EquirectLookup(img), n, 4 * k, 3)
+        lookups = L._integrate_cube(L._EquirectLookup(img), n, k, 3)
+        got = L.to_cube(img, "equirect", n)
+        e_new = np.abs(got - ref) / ref
+        e_old = np.abs(lookups - ref) / ref
+        assert e_new[side].mean() < bound < e_old[side].mean()
+        assert e_new[side].max() <= e_old[side].max()
+        np.testing.assert_allclose(got[2:4], lookups[2:4], rtol=2e-4)  # float32 sums
+        # a constant stays constant, exactly enough, on every face
+        np.testing.assert_allclose(L.to_cube(np.full_like(img, 2.5), "equirect", n), 2.5,
+                                   rtol=1e-6)
