@@ -506,6 +506,7 @@ def _filter_into(
         written = imageio.write_cube(
             out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
             metadata={**attrs, "probegrid:kind": meta["kind"]},
+            durable=False,  # staged_output flushes every staged file before publishing them
         )
         rel = [str(Path(p).relative_to(out)) for p in written]
         files.append({
@@ -558,7 +559,7 @@ def _filter_into(
 
     lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
     imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
-                        metadata={**attrs, "probegrid:kind": "lut"})
+                        metadata={**attrs, "probegrid:kind": "lut"}, durable=False)
     files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
                   "layout": "x = N.V (columns), y = perceptual roughness (rows)",
                   "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
@@ -568,12 +569,14 @@ def _filter_into(
         say("writing previews")
         exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
         for name, faces in (("input", cube), ("diffuse", diff)):
-            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure)
+            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
+                                      durable=False)
             files.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
                           "level": None, "roughness": None, "layout": "hcross",
                           "format": "png"})
         sheet = _specular_sheet(spec)
-        imageio.write_preview_png(out / "preview_specular.png", sheet, exposure=exposure)
+        imageio.write_preview_png(out / "preview_specular.png", sheet, exposure=exposure,
+                                  durable=False)
         files.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
                       "level": None, "roughness": None,
                       "layout": "hcross per level, level 0 at the top", "format": "png"})
