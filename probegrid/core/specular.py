@@ -934,8 +934,9 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     kernel is evaluated only for the fundamental-domain outputs (:func:`_fundamental_domain`,
     1/48 of them) against every input texel (float64 cosines, float32 kernel values), and one
     matrix product per tile (float32 BLAS, sums accumulated in float32) applies it to the 48 permuted copies of ``L dOmega`` side by side, plus ``dOmega`` for the
-    normaliser. Cost: ``6 n^2 (48 C + 1)`` floats for the permuted input and ``2 F 6 n^2 (48 C
-    + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows) and a 32^2 diffuse
+    normaliser; a block of rows reads only the input texels within 90 degrees of its cone (both
+    kernels vanish beyond). Cost: ``6 n^2 (48 C + 1)`` floats for the permuted input and at
+    most ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows) and a 32^2 diffuse
     map (136 rows) take ~0.9 s CPU here. The results equal :func:`reference_convolution` and
     :func:`probegrid.core.diffuse.diffuse_exact` to float32 rounding of the weights and sums.
 
@@ -975,10 +976,16 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
         i, rows = job
         o = outputs[i]
         od = texel_directions(o.size)[0].reshape(-1, 3)[rows]
+        # both kernels vanish for R . w <= 0: only the input texels within 90 degrees of some
+        # row (of the cone holding the block's rows) take part
+        axis = od.sum(axis=0)
+        axis /= np.linalg.norm(axis)
+        spread = float(np.arccos(np.clip((od @ axis).min(), -1.0, 1.0)))
+        near = np.flatnonzero(sd @ axis > -np.sin(min(spread, 0.5 * np.pi)) - 1e-12)
         y = np.zeros((len(rows), x.shape[1]), dtype=np.float32)   # (r, 48 C + 1)
-        for q0 in range(0, sd.shape[0], _ZONAL_COLUMNS):
-            q = slice(q0, q0 + _ZONAL_COLUMNS)
-            y += _zonal_kernel(od @ sd[q].T, o) @ x[q]
+        for q0 in range(0, len(near), _ZONAL_COLUMNS):
+            q = near[q0:q0 + _ZONAL_COLUMNS]
+            y += _zonal_kernel(od @ sd[q].T, o) @ np.take(x, q, axis=0)
         vals = y[:, :48 * c].reshape(-1, 48, c)
         if o.kind == "ggx":
             vals /= y[:, 48 * c, None, None]
