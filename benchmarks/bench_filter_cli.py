@@ -49,7 +49,7 @@ from probegrid.core import lobes, shbands
 from probegrid.core.cubemap import texel_directions, texel_solid_angles
 from probegrid.core.diffuse import diffuse_exact, diffuse_sh
 from probegrid.core.layouts import to_cube
-from probegrid.core.specular import _group_permutations, ggx_prefilter
+from probegrid.core.specular import ZonalOutput, _group_permutations, symmetric_zonal_sums
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "hdr"
@@ -151,7 +151,12 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
     key = hashlib.sha1(img.tobytes()).hexdigest()
     diff_ref = cached(cache, f"diffuse512 {key}",
                       lambda: diffuse_exact(to_cube(img, "equirect", 512), 32))
-    ours_d = diffuse_exact(cube, 32)
+    # what the command computes for a 128^2 cube: one pass of dense sums for the diffuse map
+    # and every GGX level (probegrid.jobs.filter)
+    ours_d, *chain_rest = symmetric_zonal_sums(
+        cube, [ZonalOutput(32, "cosine")] + [ZonalOutput(128 >> k, "ggx", (k / 7) ** 2)
+                                            for k in range(1, 8)], workers=2)
+    chain = [cube, *chain_rest]
     cm_levels = sorted(int(m.group(1)) for p in (work / "ld" / hdr.stem).glob("m*_px.psd")
                        if (m := re.match(r"m(\d+)_px", p.stem)))
     theirs0 = np.stack([read_rgb(work / "ld" / hdr.stem / f"m0_{f}.psd") for f in FACES])
@@ -167,7 +172,6 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
           f"{e_c[0]:.2e} max {e_c[1]:.2e} (its median ratio to the reference {scale:.3f})")
 
     # GGX
-    chain = ggx_prefilter(cube)
     levels = len(chain)
     cube256 = cached(cache, f"cube256 {key}", lambda: to_cube(img, "equirect", 256))
     rng = np.random.default_rng(0)
@@ -180,7 +184,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
           "(rms / max relative); floor = the dense sum over probegrid's own 128^2 cube")
     print(f"{'lvl':>3} {'size':>4} {'r':>6} | {'floor':>17} | {'probegrid':>17} {'x floor':>8} | "
           f"{'cmgen r':>7} {'cmgen':>17} {'floor at its r':>17}")
-    worst = 0.0
+    worst = worst_all = 0.0
     for k in range(1, levels):
         s = 128 >> k
         dirs_all = texel_directions(s).reshape(-1, 3)
@@ -194,6 +198,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
         ours = errors(chain[k].reshape(-1, 3)[pick], ref)
         x = max(ours[0] / floor[0], ours[1] / floor[1])
         worst = max(worst, x) if 0.17 <= r <= 0.43 else worst
+        worst_all = max(worst_all, x)
         line = (f"{k:>3} {s:>4} {r:6.3f} | {floor[0]:8.2e} {floor[1]:8.2e} | {ours[0]:8.2e} "
                 f"{ours[1]:8.2e} {x:8.2f} |")
         if k in cm_levels and k in cm_r:
@@ -206,8 +211,8 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
             fc = errors(dense_ggx_at(cube, dirs, rc * rc), ref_c)
             line += f" {rc:7.3f} {ec[0]:8.2e} {ec[1]:8.2e} {fc[0]:8.2e} {fc[1]:8.2e}"
         print(line)
-    print(f"mid roughness (0.17-0.42): worst probegrid / floor = {worst:.2f} (target <= 2: "
-          f"{'MET' if worst <= 2 else 'NOT MET'})")
+    print(f"mid roughness (0.17-0.42): worst probegrid / floor = {worst:.2f}; every level: "
+          f"{worst_all:.2f} (target <= 2: {'MET' if worst_all <= 2 else 'NOT MET'})")
 
     # SH
     print("SH diffuse vs the converged diffuse (mean / max relative), beside the best each band "

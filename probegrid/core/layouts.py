@@ -90,6 +90,7 @@ pieces' closed form), and the sub-columns are weighted by their longitude widths
 rule in longitude only). Against a 4 x denser supersampling this is closer than the ``k x k``
 lookups (``tests/test_layouts_fast.py``). The polar faces keep the ``k x k`` lookups, with their
 angles computed once for both (mirror images) and each channel gathered from a padded plane.
+Angular maps take the ``k x k`` lookups with planar gathers too (:func:`_angular_to_cube`).
 Near the poles a pixel is narrower than ``pi / H`` in longitude (by ``cos(theta)``), so there
 the lookups resolve the pixels' tents less well than elsewhere.
 Cube -> cube (crosses and ``faces``) is :func:`probegrid.core.sampling.resample`: the exact
@@ -764,6 +765,60 @@ def _equirect_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.fl
     return out
 
 
+def _angular_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.float32]:
+    """:func:`_integrate_cube` of :func:`_angular_bilinear`, faster: the lookups gather each
+    channel from a zero-padded plane of ``L inside`` and one of ``inside`` (float32), a value is
+    their bilinear ratio (the in-disk taps renormalised, as :func:`_angular_bilinear`), and the
+    weighted block sums are float32 against float64 weights. Images with non-finite pixels in
+    the disk take :func:`_integrate_cube` (a weight-0 tap must not turn inf into NaN there)."""
+    s, _, c = img.shape
+    centres = (np.arange(s) + 0.5) * (2.0 / s) - 1.0
+    inside = centres[None, :] ** 2 + centres[:, None] ** 2 <= 1.0
+    if not np.isfinite(img[inside]).all():
+        return _integrate_cube(lambda d: _angular_bilinear(img, d), n, k, c)
+    planes = np.zeros((c + 1, s + 2, s + 2), dtype=np.float32)
+    planes[:c, 1:-1, 1:-1] = np.where(inside[..., None], img, 0.0).transpose(2, 0, 1)
+    planes[c, 1:-1, 1:-1] = inside
+    planes = planes.reshape(c + 1, -1)
+    fine = n * k
+    edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
+    cen = 0.5 * (edges[:-1] + edges[1:])
+    wgt = (_corner(edges[None, 1:], edges[1:, None]) - _corner(edges[None, :-1], edges[1:, None])
+           - _corner(edges[None, 1:], edges[:-1, None]) + _corner(edges[None, :-1], edges[:-1, None]))
+    den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
+    w32 = wgt.astype(np.float32)
+    rmax = max(1.0 - math.sqrt(2.0) / s, 0.0)
+    out = np.empty((6, n, n, c), dtype=np.float32)
+    for f in range(6):
+        d = FACE_NORMALS[f] + cen[None, :, None] * FACE_U[f] + cen[:, None, None] * FACE_V[f]
+        u, v = _direction_to_angular_uv(d)
+        rho = np.hypot(u, v)
+        scale = np.where(rho > rmax, rmax / np.where(rho > 0, rho, 1.0), 1.0)
+        x = (u * scale + 1.0) * (0.5 * s) - 0.5
+        y = (1.0 - v * scale) * (0.5 * s) - 0.5
+        x0 = np.floor(x)
+        y0 = np.floor(y)
+        tx = (x - x0).astype(np.float32)
+        ty = (y - y0).astype(np.float32)
+        i00 = (y0.astype(np.intp) + 1) * (s + 2) + x0.astype(np.intp) + 1
+
+        def bilinear(plane: NDArray[np.float32]) -> NDArray[np.float32]:
+            top = np.take(plane, i00)
+            top += (np.take(plane, i00 + 1) - top) * tx
+            bot = np.take(plane, i00 + (s + 2))
+            bot += (np.take(plane, i00 + (s + 3)) - bot) * tx
+            top += (bot - top) * ty
+            return top
+
+        wsum = bilinear(planes[c])
+        wsum = w32 / wsum                                          # > 0: rho <= rmax
+        for ch in range(c):
+            val = bilinear(planes[ch])
+            val *= wsum
+            out[f, ..., ch] = val.reshape(n, k, n, k).sum(axis=(1, 3), dtype=np.float64) / den
+    return out
+
+
 def _supersampling(texel_angle: float, pixel_angle: float) -> int:
     # sub-samples at most half a source pixel apart
     return max(1, math.ceil(2.0 * texel_angle / pixel_angle - 1e-9))
@@ -804,7 +859,7 @@ def to_cube(image: ArrayLike, layout: Layout, size: int) -> NDArray[np.float32]:
     if h != w:
         raise ValueError(f"an angular map must be square, got {w}x{h}.")
     k = _supersampling(2.0 / n, 2.0 * np.pi / h)
-    return _integrate_cube(lambda d: _angular_bilinear(img, d), n, k, c)
+    return _angular_to_cube(img, n, k)
 
 
 def _from_cube_equirect(faces: NDArray[np.float32], height: int) -> NDArray[np.float32]:
