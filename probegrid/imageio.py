@@ -74,7 +74,6 @@ from __future__ import annotations
 
 import os
 import re
-import secrets
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -537,7 +536,7 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
         raise ImageError(f"{p}: the directory {directory} does not exist.")
     if p.is_dir():
         raise ImageError(f"{p}: is a directory, cannot write an image over it.")
-    tmp = directory / f".{p.stem}.{secrets.token_hex(6)}.tmp{p.suffix}"
+    tmp = directory / f".{p.stem}.{os.urandom(6).hex()}.tmp{p.suffix}"
     try:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:

@@ -402,7 +402,7 @@ def _filter_into(
     """Compute everything, then write it into the (staging) directory ``out``; returns the
     manifest and its file list."""
     from probegrid import imageio, usercache
-    from probegrid.core import diffuse, lobes, seams, sh, shbands, specular
+    from probegrid.core import lobes, seams, sh, shbands, specular
     from probegrid.export.shforms import sh_forms
 
     say: Progress = progress or (lambda _m: None)
@@ -438,6 +438,8 @@ def _filter_into(
     sh_window: dict[str, Any] = {"window": "none"}
 
     def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
+        from probegrid.core import diffuse
+
         t = time.perf_counter()
         if settings.diffuse_method == "exact":
             return diffuse.diffuse_exact(cube, settings.diffuse_size,
