@@ -118,6 +118,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Final, get_args
 
 import numpy as np
@@ -760,8 +761,12 @@ def _equirect_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.fl
     if h < 8 or not np.isfinite(img).all():
         return _integrate_cube(_EquirectLookup(img), n, k, c)
     out = np.empty((6, n, n, c), dtype=np.float32)
-    _equirect_side_faces(img, n, k, out)
-    _equirect_polar_faces(img, n, k, out)
+    # the two parts write different faces and spend their time in numpy calls that release
+    # the GIL: the polar faces go to a second thread
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        polar = pool.submit(_equirect_polar_faces, img, n, k, out)
+        _equirect_side_faces(img, n, k, out)
+        polar.result()
     return out
 
 

@@ -18,8 +18,15 @@ Level ``k`` of ``levels`` has face size ``n >> k`` (or ``size >> k``) and percep
 (the split-sum ``n = v = r`` prefilter of Karis 2013). Level 0 is the input unchanged (a copy; a
 box/solid-angle resample when ``size`` differs from the input).
 
-``method="tiered"`` (default) is a deterministic, *sparse multi-resolution* evaluation of that
-sum (no random or quasi-random samples). Why not importance sampling with filtered lookups
+``method="tiered"`` (default): for input cubes up to :data:`DENSE_CHAIN_MAX` (128^2) every level
+is the dense sum over every input texel, computed through the cube's 48 symmetries
+(:func:`symmetric_zonal_sums`: the kernel is evaluated for 1/48 of the outputs, float32 BLAS
+applies it to the 48 permuted copies of the input at once, and a block of outputs reads only
+the input texels within 90 degrees of it). That is the reference itself (to float32 rounding:
+relative 2e-6) at ~0.3 s CPU for a 128^2 chain; ``probegrid filter`` computes its diffuse map in
+the same pass. Larger cubes, whose dense sums would cost ``(n / 128)^4`` times more, take a
+deterministic, *sparse multi-resolution* evaluation of that sum (no random or quasi-random
+samples), described below. Why not importance sampling with filtered lookups
 (Krivanek & Colbert 2008, Filament's ``roughnessFilter``)? It is kept as ``method="fis"`` and
 measured (128^2 chains, ``benchmarks/bench_filter.py``): at 256 Hammersley samples it takes
 ~1.1 s for 2-8 % RMS relative error on venice and 45-130 % on studio (64 samples: 0.3 s, 6-28 %
@@ -43,10 +50,9 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   stage over the finest mip ``m <= 128`` (no coarser than ``s_0``) whose ``36 g^2 m^2`` pairs fit
   ``level_pairs`` (7e8, scaled by ``(128 / n)^2`` above 128^2): exact over the input texels, or
   first-order over a mip's moments. For a 128^2 chain that makes levels 2-7 exact dense sums
-  (levels 3-7 of a 256^2 chain dense over mips), so their error is the source's own: measured
-  against the dense sum over a 256^2 cube of the input, levels 2-6 are at 1.00 x the error of
-  the dense sum over the 128^2 cube itself (venice and studio, ``benchmarks/bench_filter_cli.py``);
-  level 1 (r = 1/7, still tiered) is at 3.4 x (venice) and 9.7 x (studio). The dense stages are
+  (levels 3-7 of a 256^2 chain dense over mips), so their error is the source's own (chains of
+  128^2 and smaller cubes are now wholly dense, above); level 1 of the tiered sum is at 3.4 x
+  (venice) and 9.7 x (studio) the 128^2 source's floor. The dense stages are
   built in float32 row chunks (:func:`_dense_level_stage`; a 128^2 chain peaks at ~240 MB).
 * First-order moments. A coarse texel stands for the input texels it covers, whose exact
   positions matter when one is much brighter (a sun). Each mip texel carries ``P = sum L dOmega``
@@ -74,15 +80,15 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   made runs on the shared 2-core machine 2-10 x slower); ``workers`` threads can filter
   levels concurrently.
 
-Accuracy against :func:`reference_convolution` (every input texel, float64) on the real HDRs at
-128^2 (``benchmarks/bench_filter.py``): level 1 (the only tiered level of a 128^2 chain) RMS
-relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 % next to
-the brightest sources; levels 2+ are whole-level dense sums (exact over the input texels, float32
-weights). Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one
-thread, cold, CPU): ~0.85 s for a 128^2 chain, ~1.8 s for 256^2. Memory: the cached plans and
-symmetry table (:func:`_chain_permutations`, 25 MB at 128^2, 100 MB at 256^2) plus chunked
-temporaries: peak ~240 MB for a 128^2 chain, ~380 MB for 256^2 (whole process);
-:func:`clear_caches` drops the cached geometry.
+Accuracy of the tiered sum against :func:`reference_convolution` (every input texel, float64)
+on the real HDRs, measured on a 128^2 chain forced through it (``benchmarks/bench_filter.py``):
+level 1 RMS relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 %
+next to the brightest sources; whole-level dense stages are exact over their source texels.
+Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one thread,
+cold, CPU): ~1.9 s for a 256^2 chain. Memory: the cached plans and symmetry table
+(:func:`_chain_permutations`, 100 MB at 256^2) plus chunked temporaries: peak ~380 MB for 256^2
+(whole process); :func:`clear_caches` drops the cached geometry. The dense chain of a 128^2
+cube holds the 48 permuted copies of the input (57 MB) while it runs.
 Tests: constant, linear (analytic lobe mean), near-delta and real-HDR inputs against the
 reference, symmetry.
 
@@ -1079,15 +1085,17 @@ def ggx_prefilter(
     size : int, optional
         Face size of level 0 (default ``n``); level ``k`` has ``size >> k``.
     method : {"tiered", "fis", "exact"}
-        ``"tiered"``: sparse multi-resolution sum (module docstring); ``"fis"``: filtered
+        ``"tiered"``: the dense sum through the cube's symmetries for ``n <=``
+        :data:`DENSE_CHAIN_MAX`, else the sparse multi-resolution sum (module docstring); ``"fis"``: filtered
         importance sampling with ``samples`` Hammersley samples (for comparison: noisier and
         slower at equal accuracy, see the module docstring); ``"exact"``: dense float64 sum over
         every input texel (:func:`reference_convolution`; slow).
     beta, gamma : float
         Accuracy parameters of ``"tiered"`` (see :func:`ggx_tier_plan`).
     workers : int
-        Threads filtering levels concurrently (``"tiered"``); level 1 is about half the work,
-        so 2 is the useful maximum. Default 1 (a probe grid is parallel at a higher level).
+        Threads (``"tiered"``): sharing the dense sums' blocks of rows, or filtering levels of
+        the sparse sum concurrently (level 1 is about half the work, so 2 is the useful
+        maximum). Default 1 (a probe grid is parallel at a higher level).
     samples : int, optional
         ``"fis"`` only (default 256): samples per texel (a level gets the same set).
     lod_bias : float

@@ -7,7 +7,9 @@ resample it to a cube without aliasing, and compute
 * the diffuse map (irradiance / pi) by the exact clamped-cosine integral or through 9 SH
   coefficients (:mod:`probegrid.core.diffuse`),
 * the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
-  (:mod:`probegrid.core.specular`),
+  (:mod:`probegrid.core.specular`); by default, for cubes up to 128^2, the exact diffuse map
+  and every GGX level are one pass of dense sums over every input texel shared between two
+  threads (:func:`probegrid.core.specular.symmetric_zonal_sums`),
 * the radiance SH coefficients (9 by default, ``bands^2`` with ``sh_bands``;
   :mod:`probegrid.core.sh`, :mod:`probegrid.core.shbands`) and the minimum irradiance they imply,
 * the split-sum DFG lookup table (:mod:`probegrid.core.dfg`, cached per machine by
