@@ -593,6 +593,15 @@ def _corner(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float6
     return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
 
 
+def _cell_solid_angles(u_edges: NDArray[np.float64], v_edges: NDArray[np.float64]
+                       ) -> NDArray[np.float64]:
+    """Exact solid angles of the face cells between consecutive ``u`` and ``v`` edges:
+    ``(len(v_edges) - 1, len(u_edges) - 1)``, rows along ``v``."""
+    u, v = u_edges[None, :], v_edges[:, None]
+    return (_corner(u[:, 1:], v[1:]) - _corner(u[:, :-1], v[1:])
+            - _corner(u[:, 1:], v[:-1]) + _corner(u[:, :-1], v[:-1]))
+
+
 def _rows_per_chunk(row_samples: int) -> int:
     return max(1, _CHUNK_SAMPLES // max(row_samples, 1))
 
@@ -620,12 +629,7 @@ def _integrate_cube(sample: Sampler, size: int, k: int, channels: int) -> NDArra
         r1 = min(size, r0 + step)
         ve = edges[r0 * k:r1 * k + 1]
         vc = centres[r0 * k:r1 * k]
-        w = (
-            _corner(edges[None, 1:], ve[1:, None])
-            - _corner(edges[None, :-1], ve[1:, None])
-            - _corner(edges[None, 1:], ve[:-1, None])
-            + _corner(edges[None, :-1], ve[:-1, None])
-        )
+        w = _cell_solid_angles(edges, ve)
         for f in range(6):
             d = (
                 FACE_NORMALS[f]
@@ -702,6 +706,18 @@ def _equirect_side_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray[
         out[f] = (num / den[..., None]).transpose(1, 0, 2)
 
 
+def _plane_bilinear(plane: NDArray[np.float32], i00: NDArray[np.intp], stride: int,
+                    tx: NDArray[np.float32], ty: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Bilinear lookups in a flattened padded plane (rows of ``stride``): ``i00`` is the flat
+    index of each lookup's top-left tap, ``tx, ty`` its weights toward the right and bottom."""
+    top = np.take(plane, i00)
+    top += (np.take(plane, i00 + 1) - top) * tx
+    bot = np.take(plane, i00 + stride)
+    bot += (np.take(plane, i00 + (stride + 1)) - bot) * tx
+    top += (bot - top) * ty
+    return top
+
+
 def _equirect_polar_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray[np.float32]
                           ) -> None:
     """The faces +Y and -Y of :func:`_equirect_to_cube`: ``k x k`` bilinear lookups per texel
@@ -715,8 +731,7 @@ def _equirect_polar_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray
     fine = n * k
     edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
     cen = 0.5 * (edges[:-1] + edges[1:])
-    wgt = (_corner(edges[None, 1:], edges[1:, None]) - _corner(edges[None, :-1], edges[1:, None])
-           - _corner(edges[None, 1:], edges[:-1, None]) + _corner(edges[None, :-1], edges[:-1, None]))
+    wgt = _cell_solid_angles(edges, edges)
     den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
     w32 = wgt.astype(np.float32)
     uu, vv = cen[None, :], cen[:, None]
@@ -740,12 +755,8 @@ def _equirect_polar_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray
             i00, ax, ay = (y0 * (w + 2) + x0)[::-1], tx[::-1], ty[::-1]
         acc = np.zeros((n, n, c))
         for ch in range(c):
-            plane = np.ascontiguousarray(pad[..., ch]).reshape(-1)
-            top = np.take(plane, i00)
-            top += (np.take(plane, i00 + 1) - top) * ax
-            bot = np.take(plane, i00 + (w + 2))
-            bot += (np.take(plane, i00 + (w + 3)) - bot) * ax
-            top += (bot - top) * ay
+            top = _plane_bilinear(np.ascontiguousarray(pad[..., ch]).reshape(-1), i00, w + 2,
+                                  ax, ay)
             top *= w32
             acc[..., ch] = top.reshape(n, k, n, k).sum(axis=(1, 3), dtype=np.float64)
         out[f] = acc / den[..., None]
@@ -757,7 +768,7 @@ def _equirect_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.fl
     (:func:`_equirect_side_faces`), the polar faces by ``k x k`` lookups
     (:func:`_equirect_polar_faces`). Images with non-finite pixels (whose running sums would
     carry them down a whole meridian) and tiny ones take :func:`_integrate_cube`."""
-    h, w, c = img.shape
+    h, _, c = img.shape
     if h < 8 or not np.isfinite(img).all():
         return _integrate_cube(_EquirectLookup(img), n, k, c)
     out = np.empty((6, n, n, c), dtype=np.float32)
@@ -788,8 +799,7 @@ def _angular_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.flo
     fine = n * k
     edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
     cen = 0.5 * (edges[:-1] + edges[1:])
-    wgt = (_corner(edges[None, 1:], edges[1:, None]) - _corner(edges[None, :-1], edges[1:, None])
-           - _corner(edges[None, 1:], edges[:-1, None]) + _corner(edges[None, :-1], edges[:-1, None]))
+    wgt = _cell_solid_angles(edges, edges)
     den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
     w32 = wgt.astype(np.float32)
     rmax = max(1.0 - math.sqrt(2.0) / s, 0.0)
@@ -806,19 +816,10 @@ def _angular_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.flo
         tx = (x - x0).astype(np.float32)
         ty = (y - y0).astype(np.float32)
         i00 = (y0.astype(np.intp) + 1) * (s + 2) + x0.astype(np.intp) + 1
-
-        def bilinear(plane: NDArray[np.float32]) -> NDArray[np.float32]:
-            top = np.take(plane, i00)
-            top += (np.take(plane, i00 + 1) - top) * tx
-            bot = np.take(plane, i00 + (s + 2))
-            bot += (np.take(plane, i00 + (s + 3)) - bot) * tx
-            top += (bot - top) * ty
-            return top
-
-        wsum = bilinear(planes[c])
+        wsum = _plane_bilinear(planes[c], i00, s + 2, tx, ty)
         wsum = w32 / wsum                                          # > 0: rho <= rmax
         for ch in range(c):
-            val = bilinear(planes[ch])
+            val = _plane_bilinear(planes[ch], i00, s + 2, tx, ty)
             val *= wsum
             out[f, ..., ch] = val.reshape(n, k, n, k).sum(axis=(1, 3), dtype=np.float64) / den
     return out
@@ -855,7 +856,7 @@ def to_cube(image: ArrayLike, layout: Layout, size: int) -> NDArray[np.float32]:
     img = _check_image(image)
     if layout in ("hcross", "vcross"):
         return resample(cross_to_faces(img, layout), n)
-    h, w, c = img.shape
+    h, w, _ = img.shape
     if layout == "equirect":
         if w != 2 * h:
             raise ValueError(f"an equirect image must be 2:1 (W = 2 H), got {w}x{h}.")

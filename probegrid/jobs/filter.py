@@ -506,84 +506,98 @@ def _filter_into(
     ext = settings.format
     write_layout = settings.output_layout
 
-    def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
-        written = imageio.write_cube(
-            out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
-            metadata={**attrs, "probegrid:kind": meta["kind"]},
-            durable=False,  # staged_output flushes every staged file before publishing them
-        )
-        rel = [str(Path(p).relative_to(out)) for p in written]
-        files.append({
-            "path": rel[0] if len(rel) == 1 else rel,
-            "layout": write_layout,
-            "face_size": int(faces.shape[1]),
-            "format": ext,
-            "dtype": written.pixel_type,  # half, or float where a value exceeds half's range
-            "seam": settings.seam,
-            **meta,
-        })
-
-    say("writing maps")
-    if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
-        from probegrid.export.environment import write_environment_ktx2
-
-        files += write_environment_ktx2(out, diff_out, spec_out,
-                                        vk_format=97 if settings.half else 109,
-                                        cube_convention=settings.cube_convention,
-                                        key_values={"probegrid:conventions": json.dumps(conv)})
-    elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
-        files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
-    else:
-        write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
-                   content="irradiance / pi", method=settings.diffuse_method,
-                   sh_window=sh_window["window"])
-    for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
-        r = k / (levels - 1) if levels > 1 else 0.0
-        write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
-
-    band_factors = shbands.clamped_cosine_factors(bands)
-    sh_doc = {
-        "coefficients": [[float(x) for x in row] for row in coeffs],
-        "bands": bands,
-        "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
-        "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
-        "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm Y_lm(n), "
-                   + ("A = (pi, 2pi/3, pi/4)" if bands == 3 else
-                      "A_l = band_factors (A_0 = pi, A_1 = 2pi/3, 0 for odd l > 1, "
-                      "Ramamoorthi & Hanrahan 2001 eq. 8 for even l)"),
-        "band_factors": [float(a) for a in band_factors],
-        "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
-        "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
-        "diffuse_map": {"method": settings.diffuse_method, **sh_window},
-        "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
-    }
-    atomic_write_json(out / "sh.json", sh_doc)
-    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
-                  "layout": None, "format": "json"})
-
-    lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
-    imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
-                        metadata={**attrs, "probegrid:kind": "lut"}, durable=False)
-    files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
-                  "layout": "x = N.V (columns), y = perceptual roughness (rows)",
-                  "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
-                  "size": settings.lut_size})
-
-    if settings.previews:
-        say("writing previews")
+    def previews() -> list[dict[str, Any]]:
+        entries: list[dict[str, Any]] = []
         exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
         for name, faces in (("input", cube), ("diffuse", diff)):
             imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
                                       durable=False)
-            files.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
-                          "level": None, "roughness": None, "layout": "hcross",
-                          "format": "png"})
-        sheet = _specular_sheet(spec)
-        imageio.write_preview_png(out / "preview_specular.png", sheet, exposure=exposure,
-                                  durable=False)
-        files.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
-                      "level": None, "roughness": None,
-                      "layout": "hcross per level, level 0 at the top", "format": "png"})
+            entries.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
+                            "level": None, "roughness": None, "layout": "hcross",
+                            "format": "png"})
+        imageio.write_preview_png(out / "preview_specular.png", _specular_sheet(spec),
+                                  exposure=exposure, durable=False)
+        entries.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
+                        "level": None, "roughness": None,
+                        "layout": "hcross per level, level 0 at the top", "format": "png"})
+        return entries
+
+    # the previews (tone mapping, PNG encoding) are made in a second thread meanwhile
+    writer = ThreadPoolExecutor(max_workers=1)
+    try:
+        preview_entries = writer.submit(previews) if settings.previews else None
+        if settings.previews:
+            say("writing maps and previews")
+
+        def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
+            written = imageio.write_cube(
+                out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
+                metadata={**attrs, "probegrid:kind": meta["kind"]},
+                durable=False,  # staged_output flushes every staged file before publishing
+            )
+            rel = [str(Path(p).relative_to(out)) for p in written]
+            files.append({
+                "path": rel[0] if len(rel) == 1 else rel,
+                "layout": write_layout,
+                "face_size": int(faces.shape[1]),
+                "format": ext,
+                "dtype": written.pixel_type,  # half, or float where a value exceeds half
+                "seam": settings.seam,
+                **meta,
+            })
+
+        if not settings.previews:
+            say("writing maps")
+        if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
+            from probegrid.export.environment import write_environment_ktx2
+
+            files += write_environment_ktx2(out, diff_out, spec_out,
+                                            vk_format=97 if settings.half else 109,
+                                            cube_convention=settings.cube_convention,
+                                            key_values={"probegrid:conventions":
+                                                        json.dumps(conv)})
+        elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
+            files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
+        else:
+            write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
+                       content="irradiance / pi", method=settings.diffuse_method,
+                       sh_window=sh_window["window"])
+        for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
+            r = k / (levels - 1) if levels > 1 else 0.0
+            write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
+
+        band_factors = shbands.clamped_cosine_factors(bands)
+        sh_doc = {
+            "coefficients": [[float(x) for x in row] for row in coeffs],
+            "bands": bands,
+            "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
+            "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
+            "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm "
+                       "Y_lm(n), "
+                       + ("A = (pi, 2pi/3, pi/4)" if bands == 3 else
+                          "A_l = band_factors (A_0 = pi, A_1 = 2pi/3, 0 for odd l > 1, "
+                          "Ramamoorthi & Hanrahan 2001 eq. 8 for even l)"),
+            "band_factors": [float(a) for a in band_factors],
+            "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+            "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
+            "diffuse_map": {"method": settings.diffuse_method, **sh_window},
+            "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
+        }
+        atomic_write_json(out / "sh.json", sh_doc)
+        files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                      "layout": None, "format": "json"})
+
+        lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
+        imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                            metadata={**attrs, "probegrid:kind": "lut"}, durable=False)
+        files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
+                      "layout": "x = N.V (columns), y = perceptual roughness (rows)",
+                      "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
+                      "size": settings.lut_size})
+    finally:  # (on an error too: the staging folder is removed after this)
+        writer.shutdown(wait=True)
+    if preview_entries is not None:
+        files += preview_entries.result()
     timings["write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
