@@ -330,31 +330,40 @@ def _octahedral_group() -> NDArray[np.float64]:
     return out
 
 
-@lru_cache(maxsize=16)
-def _group_permutations(n: int) -> NDArray[np.int32]:
-    """``perm[k, q]``: flat index (face-major) of the texel whose centre is ``S_k w_q``, for the
-    48 cube symmetries ``S_k`` of :func:`_octahedral_group`. (48, 6 n^2) int32, read-only.
-
-    Computed by index arithmetic: ``S`` maps face ``g`` onto the face ``g'`` with normal
-    ``S N_g`` and ``(u, v)`` onto ``(+-u or +-v, +-v or +-u)``; ``-u`` of column ``j`` is column
-    ``n - 1 - j``.
-    """
-    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")  # row (v), column (u)
+@lru_cache(maxsize=1)
+def _group_face_table() -> NDArray[np.intp]:
+    """How each cube symmetry moves each face: ``(48, 6, 3)`` rows ``[g', column source,
+    row source]``, a source 0-3 meaning ``j, i, n - 1 - j, n - 1 - i`` of texel ``(i, j)`` (row,
+    column). ``S`` maps face ``g`` onto the face ``g'`` with normal ``S N_g`` and ``(u, v)`` onto
+    ``(+-u or +-v, +-v or +-u)``; ``-u`` of column ``j`` is column ``n - 1 - j``."""
     group = _octahedral_group()
-    perm = np.empty((48, 6, n, n), dtype=np.int32)
+    table = np.empty((48, 6, 3), dtype=np.intp)
     for k in range(48):
         m = group[k]
         for g in range(6):
             ng, ug, vg = m @ FACE_NORMALS[g], m @ FACE_U[g], m @ FACE_V[g]
             g2 = int(np.argmax(FACE_NORMALS @ ng))
-            coords = []
-            for axis in (FACE_U[g2], FACE_V[g2]):  # u' = (S U_g).U_g' u + (S V_g).U_g' v, ...
+            table[k, g, 0] = g2
+            for t, axis in ((1, FACE_U[g2]), (2, FACE_V[g2])):  # u' = (S U_g).U_g' u + ...
                 a, c = float(ug @ axis), float(vg @ axis)
-                src = j if a != 0 else i
-                sign = a if a != 0 else c
-                coords.append(src if sign > 0 else n - 1 - src)
-            col2, row2 = coords
-            perm[k, g] = (g2 * n + row2) * n + col2
+                table[k, g, t] = (0 if a != 0 else 1) + (0 if (a if a != 0 else c) > 0 else 2)
+    table.setflags(write=False)
+    return table
+
+
+@lru_cache(maxsize=16)
+def _group_permutations(n: int) -> NDArray[np.int32]:
+    """``perm[k, q]``: flat index (face-major) of the texel whose centre is ``S_k w_q``, for the
+    48 cube symmetries ``S_k`` of :func:`_octahedral_group`. (48, 6 n^2) int32, read-only.
+
+    Computed by index arithmetic from :func:`_group_face_table`.
+    """
+    i, j = np.meshgrid(np.arange(n, dtype=np.int32), np.arange(n, dtype=np.int32),
+                       indexing="ij")                               # row (v), column (u)
+    sources = np.stack([j, i, n - 1 - j, n - 1 - i])              # (4, n, n)
+    table = _group_face_table()
+    perm = ((table[..., 0, None, None].astype(np.int32) * n + sources[table[..., 2]]) * n
+            + sources[table[..., 1]])                               # (48, 6, n, n)
     perm = perm.reshape(48, -1)
     perm.setflags(write=False)
     return perm
@@ -941,8 +950,8 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     1/48 of them) against every input texel (float64 cosines, float32 kernel values), and one
     matrix product per tile (float32 BLAS, sums accumulated in float32) applies it to the 48 permuted copies of ``L dOmega`` side by side, plus ``dOmega`` for the
     normaliser; a block of rows reads only the input texels within 90 degrees of its cone (both
-    kernels vanish beyond). Cost: ``6 n^2 (48 C + 1)`` floats for the permuted input and at
-    most ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows) and a 32^2 diffuse
+    kernels vanish beyond). Cost: ``6 n^2 48 C`` floats for the permuted input and at most
+    ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows) and a 32^2 diffuse
     map (136 rows) take ~0.9 s CPU here. The results equal :func:`reference_convolution` and
     :func:`probegrid.core.diffuse.diffuse_exact` to float32 rounding of the weights and sums.
 
@@ -961,13 +970,10 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     n, c = src.shape[1], src.shape[3]
     perm = _group_permutations(n)                                  # (48, 6 n^2)
     om = texel_solid_angles(n).reshape(-1)
-    lw = np.empty((6 * n * n, c + 1), dtype=np.float32)
-    lw[:, :c] = src.reshape(-1, c) * om[:, None]
-    lw[:, c] = om
-    # column block k holds L dOmega at S_k(q) for row q; the last column is dOmega (symmetric)
-    x = np.empty((6 * n * n, 48 * c + 1), dtype=np.float32)
-    x[:, :48 * c].reshape(-1, 48, c)[:] = np.take(lw[:, :c], perm.T, axis=0)
-    x[:, 48 * c] = om
+    lw = src.reshape(-1, c) * om[:, None].astype(np.float32)
+    # column block k of row q holds L dOmega at S_k(q)
+    x = np.take(lw, perm.T, axis=0).reshape(6 * n * n, 48 * c)
+    om32 = om.astype(np.float32)
     sd = texel_directions(n).reshape(-1, 3)
     results = [np.empty((6 * o.size * o.size, c), dtype=np.float32) for o in outputs]
     jobs = []
@@ -988,13 +994,16 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
         axis /= np.linalg.norm(axis)
         spread = float(np.arccos(np.clip((od @ axis).min(), -1.0, 1.0)))
         near = np.flatnonzero(sd @ axis > -np.sin(min(spread, 0.5 * np.pi)) - 1e-12)
-        y = np.zeros((len(rows), x.shape[1]), dtype=np.float32)   # (r, 48 C + 1)
+        y = np.zeros((len(rows), 48 * c), dtype=np.float32)       # (r, 48 C)
+        norm = np.zeros(len(rows), dtype=np.float32)
         for q0 in range(0, len(near), _ZONAL_COLUMNS):
             q = near[q0:q0 + _ZONAL_COLUMNS]
-            y += _zonal_kernel(od @ sd[q].T, o) @ np.take(x, q, axis=0)
-        vals = y[:, :48 * c].reshape(-1, 48, c)
+            k = _zonal_kernel(od @ sd[q].T, o)
+            y += k @ np.take(x, q, axis=0)
+            norm += k @ om32[q]
+        vals = y.reshape(-1, 48, c)
         if o.kind == "ggx":
-            vals /= y[:, 48 * c, None, None]
+            vals /= norm[:, None, None]
         targets = _group_permutations(o.size)[:, rows].T           # (r, 48)
         results[i][targets] = vals                                 # (texels on mirror planes
         # are written by several symmetries, with the same value)
