@@ -49,7 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from probegrid._fs import atomic_write_json
+from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._types import (
     CubeConvention,
     CubeLayout,
@@ -522,8 +522,16 @@ def _filter_into(
                         "layout": "hcross per level, level 0 at the top", "format": "png"})
         return entries
 
-    # the previews (tone mapping, PNG encoding) are made in a second thread meanwhile
+    # the previews (tone mapping, PNG encoding) are made in a second thread meanwhile, and
+    # written files are flushed to disk by two more while the next ones are encoded (the
+    # staging folder's commit then finds them on disk)
     writer = ThreadPoolExecutor(max_workers=1)
+    flusher = ThreadPoolExecutor(max_workers=2)
+
+    def flush(paths: Sequence[str | os.PathLike[str]]) -> None:
+        for p in paths:
+            flusher.submit(fsync_file, p)
+
     try:
         preview_entries = writer.submit(previews) if settings.previews else None
         if settings.previews:
@@ -533,8 +541,9 @@ def _filter_into(
             written = imageio.write_cube(
                 out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
                 metadata={**attrs, "probegrid:kind": meta["kind"]},
-                durable=False,  # staged_output flushes every staged file before publishing
+                durable=False,  # flushed below, and by staged_output before publishing
             )
+            flush(written)
             rel = [str(Path(p).relative_to(out)) for p in written]
             files.append({
                 "path": rel[0] if len(rel) == 1 else rel,
@@ -588,16 +597,18 @@ def _filter_into(
                       "layout": None, "format": "json"})
 
         lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
-        imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
-                            metadata={**attrs, "probegrid:kind": "lut"}, durable=False)
+        flush([imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                                   metadata={**attrs, "probegrid:kind": "lut"}, durable=False)])
         files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
                       "layout": "x = N.V (columns), y = perceptual roughness (rows)",
                       "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
                       "size": settings.lut_size})
+        if preview_entries is not None:
+            files += preview_entries.result()
+            flush([out / f["path"] for f in files if f["kind"] == "preview"])
     finally:  # (on an error too: the staging folder is removed after this)
         writer.shutdown(wait=True)
-    if preview_entries is not None:
-        files += preview_entries.result()
+        flusher.shutdown(wait=True)
     timings["write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
