@@ -150,6 +150,9 @@ __all__ = [
 LAYOUTS: Final[tuple[str, ...]] = get_args(Layout)
 
 
+#: Largest cube face size whose equirect resampling runs its two parts in two threads.
+_THREADED_MAX: Final[int] = 128
+
 #: Upper bound on the number of sub-samples looked up at once.
 _CHUNK_SAMPLES: Final[int] = 1 << 18
 
@@ -772,6 +775,10 @@ def _equirect_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.fl
     if h < 8 or not np.isfinite(img).all():
         return _integrate_cube(_EquirectLookup(img), n, k, c)
     out = np.empty((6, n, n, c), dtype=np.float32)
+    if n > _THREADED_MAX:  # one part at a time: their temporaries would add up
+        _equirect_side_faces(img, n, k, out)
+        _equirect_polar_faces(img, n, k, out)
+        return out
     # the two parts write different faces and spend their time in numpy calls that release
     # the GIL: the polar faces go to a second thread
     with ThreadPoolExecutor(max_workers=1) as pool:

@@ -62,7 +62,7 @@ from probegrid._types import (
 )
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
-from probegrid.core.cubemap import mip_sizes, solid_angle_integral
+from probegrid.core.cubemap import downsample, mip_sizes, solid_angle_integral
 
 __all__ = [
     "FILTER_FORMAT",
@@ -444,9 +444,16 @@ def _filter_into(
 
         t = time.perf_counter()
         if settings.diffuse_method == "exact":
-            return diffuse.diffuse_exact(cube, settings.diffuse_size,
-                                         source_size=diffuse_source), None, \
-                time.perf_counter() - t
+            src = cube
+            while src.shape[1] > diffuse_source:  # the box mip it reads
+                src = downsample(src)
+            if src.shape[1] > specular.DENSE_CHAIN_MAX:
+                d = diffuse.diffuse_exact(src, settings.diffuse_size)
+            else:  # the same sum through the cube's symmetries; beside the chain up to 128^2
+                d = specular.symmetric_zonal_sums(
+                    src, [specular.ZonalOutput(settings.diffuse_size, "cosine")],
+                    workers=1 if n <= 128 else 2)[0]
+            return d, None, time.perf_counter() - t
         d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
                                     width=settings.sh_window_width, bands=bands)
         return d, inf, time.perf_counter() - t
