@@ -128,6 +128,13 @@ def test_symmetric_sums_cosine_is_the_exact_diffuse(venice64: np.ndarray) -> Non
     ref = diffuse_exact(cube, 7)
     np.testing.assert_allclose(d, ref, rtol=2e-5)
     np.testing.assert_allclose(g, reference_convolution(cube, 0.3, 5), rtol=2e-5)
+    rng = np.random.default_rng(3)
+    for n in (1, 3, 9):  # odd input sizes: texel centres on the mirror planes
+        cube = rng.exponential(1.0, (6, n, n, 2)).astype(np.float32)
+        d, g = specular.symmetric_zonal_sums(cube, [specular.ZonalOutput(4, "cosine"),
+                                                    specular.ZonalOutput(3, "ggx", 0.2)])
+        np.testing.assert_allclose(d, diffuse_exact(cube, 4), rtol=2e-6)
+        np.testing.assert_allclose(g, reference_convolution(cube, 0.2, 3), rtol=2e-6)
 
 
 def test_tiered_matches_reference_on_real_hdr(venice64: np.ndarray,
