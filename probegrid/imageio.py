@@ -30,7 +30,9 @@ Every writer is *atomic*: the image is written to a hidden temporary file in the
 directory (``.<name>.<random>.tmp<ext>``, same extension so OpenImageIO picks the same
 format), flushed to disk, and only then renamed over the destination with :func:`os.replace`.
 An interrupted or failed run leaves either the old file or the complete new one, never half a
-file; :func:`write_cube` writes all its files before renaming any of them. Formats:
+file; :func:`write_cube` writes all its files (three encoders at once) before renaming any of
+them. ``durable=False`` skips the flushes, for a caller that flushes a whole staging folder
+before publishing it (:mod:`probegrid.jobs.staging`). Formats:
 
 * ``.exr``: half (default) or float32, ZIP compression; carries string metadata.
 * ``.tif`` / ``.tiff``: float32 (no metadata). OpenImageIO's TIFF writer stores half data as

@@ -21,7 +21,8 @@ output location that cannot be written are refused before any work (:func:`check
 :func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
 beside the output directory and moved into place only when complete, so a failed or
 interrupted run leaves the output directory as it was (an earlier output whole) and no
-temporary file: a directory with a manifest holds a finished job. An all-black input is
+temporary file: a directory with a manifest holds a finished job. The maps are flushed to disk
+by two threads while the next ones are encoded, and the previews are made in another. An all-black input is
 legitimate: its maps are black and its quality figures finite (energy ratios 1).
 
 Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
