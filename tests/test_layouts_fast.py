@@ -1,4 +1,5 @@
-"""The padded equirect lookup of to_cube equals the reference bilinear lookup (probegrid.core.layouts)."""
+"""The fast paths of to_cube (probegrid.core.layouts) against the reference lookups and a dense
+supersampled reference."""
 
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ def test_equirect_to_cube_against_a_dense_supersampled_reference():
     by k x k lookups) against the same box filter of the bilinear reconstruction supersampled
     4 times more densely per axis: the side faces are closer to it than the k x k lookups
     (measured mean 1.7e-3 / 3.2e-3 vs 2.5e-3 / 4.6e-3 at n = 16 / 24 on white noise with a
-    500 x brighter 'sun'), the polar faces are those lookups (equal up to float32 sums and pixel coordinates)."""
+    500 x brighter 'sun'), the polar faces are those lookups (equal up to float32 sums and
+    pixel coordinates)."""
     rng = np.random.default_rng(5)
     img = rng.exponential(1.0, (128, 256, 3)).astype(np.float32)
     img[30:33, 100:104] *= 500.0

@@ -271,6 +271,15 @@ def test_bad_arguments() -> None:
         reference_convolution(cube, 0.0, 4)
     with pytest.raises(ValueError, match="exponent"):
         phong_filter(cube, -1.0, 4)
+    Z = specular.ZonalOutput
+    for outputs, match in (([Z(0)], "output size"), ([Z(4, "ggx", 0.0)], "alpha"),
+                           ([Z(4, "phong", 1.0)], "kind")):  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match=match):
+            specular.symmetric_zonal_sums(cube, outputs)
+    with pytest.raises(ValueError, match="finite"):
+        specular.symmetric_zonal_sums(bad, [Z(4, "cosine")])
+    with pytest.raises(ValueError, match="workers"):
+        specular.symmetric_zonal_sums(cube, [Z(4, "cosine")], workers=0)
 
 
 # --------------------------------------------------------------------------------------------

@@ -106,7 +106,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import get_args
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -913,7 +913,7 @@ class ZonalOutput:
     """
 
     size: int
-    kind: str = "ggx"
+    kind: Literal["ggx", "cosine"] = "ggx"
     alpha: float = 0.0
 
 
@@ -948,12 +948,14 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     :func:`_group_permutations`) equals the sum at ``R`` over the input permuted by ``S``. So the
     kernel is evaluated only for the fundamental-domain outputs (:func:`_fundamental_domain`,
     1/48 of them) against every input texel (float64 cosines, float32 kernel values), and one
-    matrix product per tile (float32 BLAS, sums accumulated in float32) applies it to the 48 permuted copies of ``L dOmega`` side by side, plus ``dOmega`` for the
-    normaliser; a block of rows reads only the input texels within 90 degrees of its cone (both
-    kernels vanish beyond). Cost: ``6 n^2 48 C`` floats for the permuted input and at most
-    ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows) and a 32^2 diffuse
-    map (136 rows) take ~0.9 s CPU here. The results equal :func:`reference_convolution` and
-    :func:`probegrid.core.diffuse.diffuse_exact` to float32 rounding of the weights and sums.
+    matrix product per tile (float32 BLAS, sums accumulated in float32) applies it to the 48
+    permuted copies of ``L dOmega`` side by side (one more to ``dOmega``: the normaliser). A
+    block of rows reads only the input texels within 90 degrees of its cone (both kernels
+    vanish beyond). Cost: ``6 n^2 48 C`` floats for the permuted input and at most
+    ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows)
+    and a 32^2 diffuse map (136 rows) take ~0.4 s CPU here. The results equal
+    :func:`reference_convolution` and :func:`probegrid.core.diffuse.diffuse_exact` to float32
+    rounding of the weights and sums (relative 2e-6).
 
     Parameters
     ----------
@@ -967,6 +969,16 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     list of (6, size, size, C) float32, one per output.
     """
     src = check_cube(faces, name="faces")
+    if not np.all(np.isfinite(src)):
+        raise ValueError("faces must be finite (no nan or inf radiance).")
+    for o in outputs:
+        _check_size(o.size, "output size")
+        if o.kind not in ("ggx", "cosine"):
+            raise ValueError(f"output kind must be 'ggx' or 'cosine', got {o.kind!r}.")
+        if o.kind == "ggx" and not (np.isfinite(o.alpha) and o.alpha > 0):
+            raise ValueError(f"alpha must be a finite number > 0, got {o.alpha!r}.")
+    if not isinstance(workers, (int, np.integer)) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}.")
     n, c = src.shape[1], src.shape[3]
     perm = _group_permutations(n)                                  # (48, 6 n^2)
     om = texel_solid_angles(n).reshape(-1)
@@ -1009,7 +1021,7 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
         # are written by several symmetries, with the same value)
 
     with threadpool_limits(limits=1, user_api="blas"):
-        if workers <= 1:
+        if workers == 1:
             for job in jobs:
                 run(job)
         else:
@@ -1095,7 +1107,8 @@ def ggx_prefilter(
         Face size of level 0 (default ``n``); level ``k`` has ``size >> k``.
     method : {"tiered", "fis", "exact"}
         ``"tiered"``: the dense sum through the cube's symmetries for ``n <=``
-        :data:`DENSE_CHAIN_MAX`, else the sparse multi-resolution sum (module docstring); ``"fis"``: filtered
+        :data:`DENSE_CHAIN_MAX`, else the sparse multi-resolution sum (module docstring);
+        ``"fis"``: filtered
         importance sampling with ``samples`` Hammersley samples (for comparison: noisier and
         slower at equal accuracy, see the module docstring); ``"exact"``: dense float64 sum over
         every input texel (:func:`reference_convolution`; slow).

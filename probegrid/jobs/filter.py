@@ -22,8 +22,8 @@ output location that cannot be written are refused before any work (:func:`check
 beside the output directory and moved into place only when complete, so a failed or
 interrupted run leaves the output directory as it was (an earlier output whole) and no
 temporary file: a directory with a manifest holds a finished job. The maps are flushed to disk
-by two threads while the next ones are encoded, and the previews are made in another. An all-black input is
-legitimate: its maps are black and its quality figures finite (energy ratios 1).
+by two threads while the next ones are encoded, and the previews are made in another. An
+all-black input is legitimate: its maps are black and its quality figures finite (energy ratios 1).
 
 Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
 depends only on its size and is cached per machine (:mod:`probegrid.usercache`).
