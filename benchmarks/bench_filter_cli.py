@@ -26,7 +26,7 @@ For each HDR in ``../shared/data/hdr`` it prints, in one run:
 
 References are cached on disk (``--cache``). Usage::
 
-    .venv/bin/python benchmarks/bench_filter_cli.py [--repeat 3] [--hdr venice studio]
+    .venv/bin/python benchmarks/bench_filter_cli.py [--repeat 3] [--hdr venice studio] [--bytecode]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from probegrid.core import lobes, shbands
 from probegrid.core.cubemap import texel_directions, texel_solid_angles
 from probegrid.core.diffuse import diffuse_exact, diffuse_sh
 from probegrid.core.layouts import to_cube
-from probegrid.core.specular import _group_permutations, ggx_prefilter
+from probegrid.core.specular import ZonalOutput, _group_permutations, symmetric_zonal_sums
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "hdr"
@@ -65,11 +65,11 @@ def read_rgb(path: Path) -> np.ndarray:
     return np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)[..., :3]
 
 
-def timed(cmd: list[str]) -> tuple[float, float, float]:
+def timed(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, float, float]:
     """Wall seconds, peak RSS (MB) and CPU seconds (user + system) of a command, from
     /usr/bin/time (CPU time is the figure to trust on a loaded machine)."""
     res = subprocess.run(["/usr/bin/time", "-f", "%e %M %U %S", *cmd], capture_output=True,
-                         text=True, check=True)
+                         text=True, check=True, env=env)
     wall, rss, user, system = res.stderr.strip().splitlines()[-1].split()
     return float(wall), float(rss) / 1024, float(user) + float(system)
 
@@ -117,12 +117,15 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
     out = work / "pg"
     runs: dict[str, list] = {"pg": [], "ld": [], "irr": [], "sh": []}
     stages: list[dict] = []
+    env = None
+    if args.bytecode:  # probegrid's modules from cached bytecode, as a normal install has them
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     subprocess.run([PROBEGRID, "filter", str(hdr), "--out", str(out), "--size", "128"],
-                   check=True, capture_output=True)  # fills the user cache (DFG) once
+                   check=True, capture_output=True, env=env)  # fills the user cache (DFG) once
     for _ in range(args.repeat):
         shutil.rmtree(out, ignore_errors=True)
         runs["pg"].append(timed([PROBEGRID, "filter", str(hdr), "--out", str(out), "--size",
-                                 "128"]))
+                                 "128"], env))
         stages.append(json.loads((out / "manifest.json").read_text())["timings_s"])
         for tag, extra in (("ld", ["-s", "128", f"--ibl-ld={work / 'ld'}"]),
                            ("irr", ["-s", "32", f"--ibl-irradiance={work / 'irr'}"]),
@@ -151,7 +154,12 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
     key = hashlib.sha1(img.tobytes()).hexdigest()
     diff_ref = cached(cache, f"diffuse512 {key}",
                       lambda: diffuse_exact(to_cube(img, "equirect", 512), 32))
-    ours_d = diffuse_exact(cube, 32)
+    # what the command computes for a 128^2 cube: one pass of dense sums for the diffuse map
+    # and every GGX level (probegrid.jobs.filter)
+    ours_d, *chain_rest = symmetric_zonal_sums(
+        cube, [ZonalOutput(32, "cosine")] + [ZonalOutput(128 >> k, "ggx", (k / 7) ** 2)
+                                            for k in range(1, 8)], workers=2)
+    chain = [cube, *chain_rest]
     cm_levels = sorted(int(m.group(1)) for p in (work / "ld" / hdr.stem).glob("m*_px.psd")
                        if (m := re.match(r"m(\d+)_px", p.stem)))
     theirs0 = np.stack([read_rgb(work / "ld" / hdr.stem / f"m0_{f}.psd") for f in FACES])
@@ -167,7 +175,6 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
           f"{e_c[0]:.2e} max {e_c[1]:.2e} (its median ratio to the reference {scale:.3f})")
 
     # GGX
-    chain = ggx_prefilter(cube)
     levels = len(chain)
     cube256 = cached(cache, f"cube256 {key}", lambda: to_cube(img, "equirect", 256))
     rng = np.random.default_rng(0)
@@ -180,7 +187,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
           "(rms / max relative); floor = the dense sum over probegrid's own 128^2 cube")
     print(f"{'lvl':>3} {'size':>4} {'r':>6} | {'floor':>17} | {'probegrid':>17} {'x floor':>8} | "
           f"{'cmgen r':>7} {'cmgen':>17} {'floor at its r':>17}")
-    worst = 0.0
+    worst = worst_all = 0.0
     for k in range(1, levels):
         s = 128 >> k
         dirs_all = texel_directions(s).reshape(-1, 3)
@@ -194,6 +201,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
         ours = errors(chain[k].reshape(-1, 3)[pick], ref)
         x = max(ours[0] / floor[0], ours[1] / floor[1])
         worst = max(worst, x) if 0.17 <= r <= 0.43 else worst
+        worst_all = max(worst_all, x)
         line = (f"{k:>3} {s:>4} {r:6.3f} | {floor[0]:8.2e} {floor[1]:8.2e} | {ours[0]:8.2e} "
                 f"{ours[1]:8.2e} {x:8.2f} |")
         if k in cm_levels and k in cm_r:
@@ -206,8 +214,8 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
             fc = errors(dense_ggx_at(cube, dirs, rc * rc), ref_c)
             line += f" {rc:7.3f} {ec[0]:8.2e} {ec[1]:8.2e} {fc[0]:8.2e} {fc[1]:8.2e}"
         print(line)
-    print(f"mid roughness (0.17-0.42): worst probegrid / floor = {worst:.2f} (target <= 2: "
-          f"{'MET' if worst <= 2 else 'NOT MET'})")
+    print(f"mid roughness (0.17-0.42): worst probegrid / floor = {worst:.2f}; every level: "
+          f"{worst_all:.2f} (target <= 2: {'MET' if worst_all <= 2 else 'NOT MET'})")
 
     # SH
     print("SH diffuse vs the converged diffuse (mean / max relative), beside the best each band "
@@ -231,6 +239,9 @@ def main() -> None:
     ap.add_argument("--cache", type=Path,
                     default=Path(tempfile.gettempdir()) / "probegrid-bench-cli")
     ap.add_argument("--hdr", nargs="*", default=None, help="stems of files in ../shared/data/hdr")
+    ap.add_argument("--bytecode", action="store_true",
+                    help="run probegrid without PYTHONDONTWRITEBYTECODE (if the environment sets "
+                         "it, every run compiles probegrid's modules from source, ~0.1 s CPU)")
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     files = sorted(DATA.glob("*.hdr"))

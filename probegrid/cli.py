@@ -23,9 +23,7 @@ from typing import Any, Literal, NoReturn, get_args, get_origin
 from pydantic import BaseModel
 
 from probegrid._types import CubeConvention, CubeLayout, EngineTarget, ImageFormat, choices
-from probegrid.bake import BakeSettings
 from probegrid.imageio import FACE_ORDER_HELP
-from probegrid.jobs.bake import BakeJob
 from probegrid.jobs.filter import FilterSettings
 
 __all__ = ["build_parser", "main"]
@@ -221,6 +219,9 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("scene", type=Path, help="glTF 2.0 scene (.gltf or .glb)")
     p.add_argument("--out", required=True, type=Path, help="store directory NAME.probes")
+    from probegrid.bake import BakeSettings  # (imported by the bake command only: heavy)
+    from probegrid.jobs.bake import BakeJob
+
     J, S = BakeJob, BakeSettings
     g = p.add_mutually_exclusive_group()
     _option(g, J, "grid", help="probe counts NXxNYxNZ (default: a spacing of the longest "
@@ -272,7 +273,8 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_bake(args: argparse.Namespace) -> int:
-    from probegrid.jobs.bake import run_bake
+    from probegrid.bake import BakeSettings
+    from probegrid.jobs.bake import BakeJob, run_bake
     from probegrid.jobs.staging import check_writable_location
 
     settings = BakeSettings(**_given(args, BakeSettings))
@@ -442,8 +444,9 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"probegrid: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``probegrid`` command."""
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser of the ``probegrid`` command; with ``only`` (a command's name), the
+    parser of that command alone (the others' options import modules it does not need)."""
     parser = _Parser(
         prog="probegrid",
         description="Light-probe grids, cube-map environment filtering and a probe map service.",
@@ -452,15 +455,24 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 parser_class=_Parser)
     for add in _SUBCOMMANDS:
-        add(sub)
+        if only is None or add.__name__ == f"_add_{only}":
+            add(sub)
     return parser
+
+
+def _command_name(argv: Sequence[str]) -> str | None:
+    """The command a command line runs (its first word that is not an option), when it is one
+    of the commands; None otherwise (the full parser then reports the error or the help)."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if any(add.__name__ == f"_add_{word}" for add in _SUBCOMMANDS) else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
-    from probegrid.bake.executors import ExecutorError
+    from probegrid.errors import ExecutorError
 
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_name(argv))
     args = parser.parse_args(argv)
     # SIGTERM stops a command like Ctrl-C does: its cleanup runs (worker processes stopped,
     # temporary files removed; a bake stays resumable)

@@ -30,7 +30,9 @@ Every writer is *atomic*: the image is written to a hidden temporary file in the
 directory (``.<name>.<random>.tmp<ext>``, same extension so OpenImageIO picks the same
 format), flushed to disk, and only then renamed over the destination with :func:`os.replace`.
 An interrupted or failed run leaves either the old file or the complete new one, never half a
-file; :func:`write_cube` writes all its files before renaming any of them. Formats:
+file; :func:`write_cube` writes all its files (three encoders at once) before renaming any of
+them. ``durable=False`` skips the flushes, for a caller that flushes a whole staging folder
+before publishing it (:mod:`probegrid.jobs.staging`). Formats:
 
 * ``.exr``: half (default) or float32, ZIP compression; carries string metadata.
 * ``.tif`` / ``.tiff``: float32 (no metadata). OpenImageIO's TIFF writer stores half data as
@@ -74,8 +76,8 @@ from __future__ import annotations
 
 import os
 import re
-import secrets
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Final, Literal, get_args
 
@@ -535,15 +537,20 @@ def _prepare(p: Path, image: ArrayLike, half: bool) -> tuple[NDArray, PixelType]
     return a, "float"
 
 
+#: Files of one cube encoded at once.
+_WRITERS: Final[int] = 3
+
+
 def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
-               metadata: Mapping[str, str]) -> Path:
-    """Write ``data`` to a temporary sibling of ``p`` and flush it; return the temporary path."""
+               metadata: Mapping[str, str], durable: bool = True) -> Path:
+    """Write ``data`` to a temporary sibling of ``p`` and (``durable``) flush it; return the
+    temporary path."""
     directory = p.parent
     if not directory.is_dir():
         raise ImageError(f"{p}: the directory {directory} does not exist.")
     if p.is_dir():
         raise ImageError(f"{p}: is a directory, cannot write an image over it.")
-    tmp = directory / f".{p.stem}.{secrets.token_hex(6)}.tmp{p.suffix}"
+    tmp = directory / f".{p.stem}.{os.urandom(6).hex()}.tmp{p.suffix}"
     try:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
@@ -562,7 +569,8 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
         ok = out.close() and ok
         if not ok or out.has_error:
             raise ImageError(f"{p}: cannot write image ({_one_line(out.geterror())}).")
-        fsync_file(tmp)
+        if durable:
+            fsync_file(tmp)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -570,26 +578,39 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
 
 
 def _write_all(items: Sequence[tuple[Path, NDArray, PixelType]],
-               metadata: Mapping[str, str]) -> None:
-    """Write every item to a temporary file, then rename them all into place."""
-    tmps: list[Path] = []
+               metadata: Mapping[str, str], durable: bool = True) -> None:
+    """Write every item to a temporary file (several at once: the encoders release the GIL),
+    then rename them all into place; ``durable``: each file and the directory are flushed to
+    disk first."""
+    tmps: list[Path | None] = [None] * len(items)
     try:
-        for p, data, pixel_type in items:
-            tmps.append(_write_tmp(p, data, pixel_type, metadata))
+        def one(i: int) -> None:
+            p, data, pixel_type = items[i]
+            tmps[i] = _write_tmp(p, data, pixel_type, metadata, durable)
+
+        if len(items) > 1:
+            with ThreadPoolExecutor(max_workers=min(len(items), _WRITERS)) as pool:
+                list(pool.map(one, range(len(items))))
+        else:
+            for i in range(len(items)):
+                one(i)
     except BaseException:
         for t in tmps:
-            t.unlink(missing_ok=True)
+            if t is not None:
+                t.unlink(missing_ok=True)
         raise
     done = 0
     try:
         for t, (p, _, _) in zip(tmps, items, strict=True):
+            assert t is not None
             os.replace(t, p)
             done += 1
-        if items:
+        if items and durable:
             fsync_dir(items[0][0].parent)
     except OSError as exc:
         for t in tmps[done:]:
-            t.unlink(missing_ok=True)
+            if t is not None:
+                t.unlink(missing_ok=True)
         raise ImageError(f"{items[done][0]}: cannot replace the file ({exc.strerror}).") from None
 
 
@@ -609,6 +630,7 @@ def write_image(
     *,
     half: bool = True,
     metadata: Mapping[str, str] | None = None,
+    durable: bool = True,
 ) -> Path:
     """Write one image atomically.
 
@@ -626,6 +648,9 @@ def write_image(
     metadata : mapping of str to str, optional
         String attributes stored in an EXR header (other formats have no place for them and
         ignore them).
+    durable : bool
+        Flush the file and its directory entry to disk before returning (default). A caller
+        that flushes a whole staging folder before publishing it passes False.
 
     Returns
     -------
@@ -634,7 +659,7 @@ def write_image(
     """
     p = Path(path)
     data, pixel_type = _prepare(p, image, half)
-    _write_all([(p, data, pixel_type)], _check_metadata(metadata))
+    _write_all([(p, data, pixel_type)], _check_metadata(metadata), durable)
     return p
 
 
@@ -646,6 +671,7 @@ def write_cube(
     fmt: ImageFormat = "exr",
     half: bool = True,
     metadata: Mapping[str, str] | None = None,
+    durable: bool = True,
 ) -> WrittenFiles:
     """Write a cube map atomically as six face files, a cross or an equirect image.
 
@@ -664,6 +690,8 @@ def write_cube(
         the cube is written as float32 instead, so the maps never hold inf for a bright sun.
     metadata : mapping of str to str, optional
         EXR header attributes (ignored for ``"hdr"``).
+    durable : bool
+        As :func:`write_image`.
 
     Returns
     -------
@@ -694,7 +722,7 @@ def write_cube(
     types = {t for _, _, t in items}
     if types == {"half", "float"}:  # some face overflows half: one pixel type per cube
         items = [(p, data, "float") for p, data, _ in items]
-    _write_all(items, _check_metadata(metadata))
+    _write_all(items, _check_metadata(metadata), durable)
     return WrittenFiles([p for p, _ in images], items[0][2])
 
 
@@ -748,6 +776,7 @@ def write_preview_png(
     *,
     layout: Literal["hcross", "vcross", "equirect", "angular"] = "hcross",
     exposure: float | None = None,
+    durable: bool = True,
 ) -> Path:
     """Write a tone-mapped 8-bit PNG preview of an image or a cube map (atomically).
 
@@ -762,6 +791,8 @@ def write_preview_png(
         Layout of a cube's preview (ignored for an image).
     exposure : float, optional
         Stops, as in :func:`tonemap_preview`; default automatic.
+    durable : bool
+        As :func:`write_image`.
 
     Returns
     -------
@@ -787,4 +818,4 @@ def write_preview_png(
         raise ValueError(
             f"a preview needs an (H, W, 3) image or a (6, n, n, 3) cube, got {a.shape}."
         )
-    return write_image(p, tonemap_preview(a, exposure=exposure))
+    return write_image(p, tonemap_preview(a, exposure=exposure), durable=durable)

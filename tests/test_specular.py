@@ -55,6 +55,24 @@ def venice_chain(venice64: np.ndarray) -> list[np.ndarray]:
     return ggx_prefilter(venice64)
 
 
+def _tiered(cube: np.ndarray, **kwargs: object) -> list[np.ndarray]:
+    """The chain through the tiered sum (what cubes above DENSE_CHAIN_MAX get)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(specular, "DENSE_CHAIN_MAX", 0)
+        return ggx_prefilter(cube, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def venice_chain_tiered(venice64: np.ndarray) -> list[np.ndarray]:
+    return _tiered(venice64)
+
+
+@pytest.fixture(scope="module")
+def venice_refs(venice64: np.ndarray) -> dict[int, np.ndarray]:
+    """The brute-force float64 sum of every level k >= 1 of venice64's 7-level chain."""
+    return {k: reference_convolution(venice64, (k / 6) ** 2, 64 >> k) for k in range(1, 7)}
+
+
 # --------------------------------------------------------------------------------------------
 # GGX chain
 
@@ -71,8 +89,8 @@ def test_chain_shapes_and_level0_is_bit_exact_copy(venice64: np.ndarray,
 def test_constant_environment_every_level(channels: int) -> None:
     value = np.linspace(0.5, 3.0, channels).astype(np.float32)
     cube = np.broadcast_to(value, (6, 32, 32, channels)).copy()
-    for method in ("tiered", "exact"):
-        chain = ggx_prefilter(cube, levels=4 if method == "exact" else None, method=method)
+    for chain in (ggx_prefilter(cube), _tiered(cube),
+                  ggx_prefilter(cube, levels=4, method="exact")):
         for level in chain:
             np.testing.assert_allclose(level, np.broadcast_to(value, level.shape), rtol=1e-4)
 
@@ -89,8 +107,39 @@ def test_linear_environment_matches_analytic_lobe_mean() -> None:
         np.testing.assert_allclose(chain[k], expect, rtol=2e-3 if k == 1 else 5e-4)
 
 
+def test_dense_chain_matches_reference_on_real_hdr(venice_chain: list[np.ndarray],
+                                                   venice_refs: dict[int, np.ndarray]) -> None:
+    """Chains of cubes up to DENSE_CHAIN_MAX are dense sums over every input texel (through
+    the cube's symmetries): the float64 reference to float32 rounding, at every level."""
+    assert 64 <= specular.DENSE_CHAIN_MAX and len(venice_chain) == 7
+    for k in range(1, len(venice_chain)):
+        e = _rel(venice_chain[k], venice_refs[k])
+        assert float(np.sqrt(np.mean(e**2))) < 2e-6 and e.max() < 2e-5, (k, e.max())
+
+
+def test_symmetric_sums_cosine_is_the_exact_diffuse(venice64: np.ndarray) -> None:
+    """The clamped-cosine output equals probegrid.core.diffuse.diffuse_exact (itself tested
+    against the dense float64 sum), and odd sizes and many channels are handled."""
+    from probegrid.core.diffuse import diffuse_exact
+
+    cube = np.concatenate([venice64, venice64[..., :1] * 2.0], axis=-1)  # 4 channels
+    d, g = specular.symmetric_zonal_sums(cube, [specular.ZonalOutput(7, "cosine"),
+                                                specular.ZonalOutput(5, "ggx", 0.3)], workers=2)
+    ref = diffuse_exact(cube, 7)
+    np.testing.assert_allclose(d, ref, rtol=2e-5)
+    np.testing.assert_allclose(g, reference_convolution(cube, 0.3, 5), rtol=2e-5)
+    rng = np.random.default_rng(3)
+    for n in (1, 3, 9):  # odd input sizes: texel centres on the mirror planes
+        cube = rng.exponential(1.0, (6, n, n, 2)).astype(np.float32)
+        d, g = specular.symmetric_zonal_sums(cube, [specular.ZonalOutput(4, "cosine"),
+                                                    specular.ZonalOutput(3, "ggx", 0.2)])
+        np.testing.assert_allclose(d, diffuse_exact(cube, 4), rtol=2e-6)
+        np.testing.assert_allclose(g, reference_convolution(cube, 0.2, 3), rtol=2e-6)
+
+
 def test_tiered_matches_reference_on_real_hdr(venice64: np.ndarray,
-                                              venice_chain: list[np.ndarray]) -> None:
+                                              venice_chain_tiered: list[np.ndarray],
+                                              venice_refs: dict[int, np.ndarray]) -> None:
     """The tiered sum against the brute-force float64 sum over every input texel, and energy.
 
     Energy: a normalised zonal filter keeps the solid-angle integral exactly in the continuum;
@@ -98,12 +147,12 @@ def test_tiered_matches_reference_on_real_hdr(venice64: np.ndarray,
     1 x 1 level, whose six texel centres are a crude quadrature of the result (1.6 % for the
     reference as well).
     """
+    venice_chain = venice_chain_tiered
     levels = len(venice_chain)
     total = _integral(venice64)
     worst = []
     for k in range(1, levels):
-        alpha = (k / (levels - 1)) ** 2
-        ref = reference_convolution(venice64, alpha, 64 >> k)
+        ref = venice_refs[k]
         e = _rel(venice_chain[k], ref)
         worst.append((k, float(np.sqrt(np.mean(e**2))), float(e.max())))
         np.testing.assert_allclose(_integral(venice_chain[k]), _integral(ref), rtol=2e-4)
@@ -127,9 +176,11 @@ def test_bright_texels_match_reference() -> None:
     cube = np.full((6, 64, 64, 1), 0.01, dtype=np.float32)
     cube[4, 27, 40] = 1000.0
     cube[0, 0, 5] = 300.0
-    chain = ggx_prefilter(cube)
+    chain = _tiered(cube)
+    dense = ggx_prefilter(cube)  # the default for this size: exact
     for k in (1, 2):  # the sparse levels at this size
         ref = reference_convolution(cube, (k / 6) ** 2, 64 >> k)
+        assert _rel(dense[k], ref).max() < 2e-5
         e = _rel(chain[k], ref)
         near = ref > 0.05 * ref.max()
         assert np.max(e[near]) < 0.15          # measured 8.6 %, 12.8 %
@@ -185,9 +236,12 @@ def test_levels_and_size_options() -> None:
 
 
 def test_workers_give_identical_results(venice64: np.ndarray,
-                                       venice_chain: list[np.ndarray]) -> None:
+                                       venice_chain: list[np.ndarray],
+                                       venice_chain_tiered: list[np.ndarray]) -> None:
     two = ggx_prefilter(venice64, workers=2)
     for a, b in zip(venice_chain, two):
+        assert np.array_equal(a, b)
+    for a, b in zip(venice_chain_tiered, _tiered(venice64, workers=2)):
         assert np.array_equal(a, b)
     with pytest.raises(ValueError, match="workers"):
         ggx_prefilter(venice64, workers=0)
@@ -217,6 +271,15 @@ def test_bad_arguments() -> None:
         reference_convolution(cube, 0.0, 4)
     with pytest.raises(ValueError, match="exponent"):
         phong_filter(cube, -1.0, 4)
+    Z = specular.ZonalOutput
+    for outputs, match in (([Z(0)], "output size"), ([Z(4, "ggx", 0.0)], "alpha"),
+                           ([Z(4, "phong", 1.0)], "kind")):  # type: ignore[arg-type]
+        with pytest.raises(ValueError, match=match):
+            specular.symmetric_zonal_sums(cube, outputs)
+    with pytest.raises(ValueError, match="finite"):
+        specular.symmetric_zonal_sums(bad, [Z(4, "cosine")])
+    with pytest.raises(ValueError, match="workers"):
+        specular.symmetric_zonal_sums(cube, [Z(4, "cosine")], workers=0)
 
 
 # --------------------------------------------------------------------------------------------

@@ -80,6 +80,19 @@ by 0.24 %; with half a pixel by < 0.09 %. The cost is about ``6 (4 H / pi)^2``, 
 the source pixel count, whatever ``n``. Magnification (``k = 1``) is plain bilinear
 interpolation at texel centres. Equirect lookups wrap in longitude and, across a
 pole, interpolate with the row on the other side of the pole (column ``x + W / 2``).
+
+Equirect inputs take a faster route to the same quantity (:func:`_equirect_to_cube`, ~0.18 s
+CPU instead of ~0.5 s for 1024 x 512 -> 128^2): on the four side faces the longitude depends
+on ``u`` alone, so each of the ``k`` sub-columns of a texel is a meridian segment along which
+the bilinear reconstruction is linear in latitude between pixel-row centres; its integral
+against ``cos(theta) d theta`` between the texel's edges is exact (running sums plus the partial
+pieces' closed form), and the sub-columns are weighted by their longitude widths (the midpoint
+rule in longitude only). Against a 4 x denser supersampling this is closer than the ``k x k``
+lookups (``tests/test_layouts_fast.py``). The polar faces keep the ``k x k`` lookups, with their
+angles computed once for both (mirror images) and each channel gathered from a padded plane.
+Angular maps take the ``k x k`` lookups with planar gathers too (:func:`_angular_to_cube`).
+Near the poles a pixel is narrower than ``pi / H`` in longitude (by ``cos(theta)``), so there
+the lookups resolve the pixels' tents less well than elsewhere.
 Cube -> cube (crosses and ``faces``) is :func:`probegrid.core.sampling.resample`: the exact
 box-filtered mip when the size halves, otherwise the same supersampling with seamless cube
 lookups.
@@ -105,6 +118,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Final, get_args
 
 import numpy as np
@@ -135,6 +149,9 @@ __all__ = [
 #: The allowed layout names.
 LAYOUTS: Final[tuple[str, ...]] = get_args(Layout)
 
+
+#: Largest cube face size whose equirect resampling runs its two parts in two threads.
+_THREADED_MAX: Final[int] = 128
 
 #: Upper bound on the number of sub-samples looked up at once.
 _CHUNK_SAMPLES: Final[int] = 1 << 18
@@ -579,6 +596,15 @@ def _corner(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float6
     return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
 
 
+def _cell_solid_angles(u_edges: NDArray[np.float64], v_edges: NDArray[np.float64]
+                       ) -> NDArray[np.float64]:
+    """Exact solid angles of the face cells between consecutive ``u`` and ``v`` edges:
+    ``(len(v_edges) - 1, len(u_edges) - 1)``, rows along ``v``."""
+    u, v = u_edges[None, :], v_edges[:, None]
+    return (_corner(u[:, 1:], v[1:]) - _corner(u[:, :-1], v[1:])
+            - _corner(u[:, 1:], v[:-1]) + _corner(u[:, :-1], v[:-1]))
+
+
 def _rows_per_chunk(row_samples: int) -> int:
     return max(1, _CHUNK_SAMPLES // max(row_samples, 1))
 
@@ -606,12 +632,7 @@ def _integrate_cube(sample: Sampler, size: int, k: int, channels: int) -> NDArra
         r1 = min(size, r0 + step)
         ve = edges[r0 * k:r1 * k + 1]
         vc = centres[r0 * k:r1 * k]
-        w = (
-            _corner(edges[None, 1:], ve[1:, None])
-            - _corner(edges[None, :-1], ve[1:, None])
-            - _corner(edges[None, 1:], ve[:-1, None])
-            + _corner(edges[None, :-1], ve[:-1, None])
-        )
+        w = _cell_solid_angles(edges, ve)
         for f in range(6):
             d = (
                 FACE_NORMALS[f]
@@ -620,6 +641,194 @@ def _integrate_cube(sample: Sampler, size: int, k: int, channels: int) -> NDArra
             )
             vals = np.asarray(sample(d), dtype=np.float64)
             out[f, r0:r1] = _block_mean(vals, w, k)
+    return out
+
+
+def _hat_cos_integrals(t0: NDArray[np.float64], t1: NDArray[np.float64], t: NDArray[np.float64]
+                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``int_{t0}^{t} h0 cos`` and ``int_{t0}^{t} h1 cos`` for the linear hats ``h0`` (1 at
+    ``t0``, 0 at ``t1``) and ``h1 = 1 - h0``: with ``s = (x - t0) / (t1 - t0)``,
+    ``int (1 - s) cos = [(1 - s) sin x - cos x / (t1 - t0)]`` and ``int s cos = [s sin x +
+    cos x / (t1 - t0)]``."""
+    inv = 1.0 / (t1 - t0)
+    s = (t - t0) * inv
+    st, ct, s0, c0 = np.sin(t), np.cos(t), np.sin(t0), np.cos(t0)
+    h1 = (s * st + ct * inv) - c0 * inv
+    h0 = (st - s0) - h1
+    return h0, h1
+
+
+def _equirect_side_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray[np.float32]
+                         ) -> None:
+    """The four side faces (+X, -X, +Z, -Z) of :func:`_equirect_to_cube`, by line integrals.
+
+    On a side face (``V = -Y``) the longitude depends on ``u`` alone, so each of the ``k n``
+    sub-columns ``u_i`` of a face is a meridian segment: along it the bilinear reconstruction
+    is the image interpolated horizontally at that longitude (``C_i``), linear in ``theta``
+    between pixel-row centres, and ``int C_i cos(theta) d theta`` between the texel's top and
+    bottom edges (``theta = atan2(-v, sqrt(1 + u^2))``, the same on the four faces) is exact:
+    running sums of each piece's integral (float64) plus the partial piece at each edge, whose
+    weights on the two nodes are geometry (:func:`_hat_cos_integrals`). A texel is the sum
+    over its ``k`` sub-columns weighted by their longitude widths, over the same sum for 1 (its
+    solid angle in this quadrature): exact in latitude, the midpoint rule in longitude.
+    """
+    h, w, c = img.shape
+    fine = n * k
+    theta_p = np.pi * (0.5 - (np.arange(h) + 0.5) / h)             # node p: pixel row centre
+    u_edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
+    u = 0.5 * (u_edges[:-1] + u_edges[1:])
+    v_edges = np.arange(n + 1) * (2.0 / n) - 1.0
+    th = np.arctan2(-v_edges[None, :], np.sqrt(1.0 + u[:, None] ** 2))  # (fine, n + 1)
+    y = (0.5 - th / np.pi) * h - 0.5                               # pixel-row coordinate
+    # the rows a side face reaches (|theta| <= 45 degrees) and one more on each side
+    lo = max(0, int(np.floor(y.min())) - 1)
+    hi = min(h - 1, int(np.ceil(y.max())) + 1)
+    seg = np.clip(np.floor(y).astype(np.intp), lo, hi - 1)         # piece [seg, seg + 1]
+    h0, h1 = _hat_cos_integrals(theta_p[seg], theta_p[seg + 1], th)
+    tp = theta_p[lo:hi + 1]
+    p0, p1 = _hat_cos_integrals(tp[:-1], tp[1:], tp[1:])           # whole pieces
+    ii = np.arange(fine)[:, None]
+    den_e = -(np.sin(th[:, 1:]) - np.sin(th[:, :-1]))              # int cos over texel rows
+    for f in (0, 1, 4, 5):
+        nf, uf = FACE_NORMALS[f], FACE_U[f]
+        phi_e = np.arctan2(nf[2] + u_edges * uf[2], nf[0] + u_edges * uf[0])
+        dphi = np.abs(np.diff(np.unwrap(phi_e)))                   # sub-column widths
+        x = (np.arctan2(nf[2] + u * uf[2], nf[0] + u * uf[0]) / (2.0 * np.pi) + 0.5) * w - 0.5
+        x0 = np.floor(x)
+        tx = (x - x0)[None, :, None]
+        x0 = x0.astype(np.intp)
+        rows = img[lo:hi + 1]
+        col = rows[:, x0 % w] * (1.0 - tx) + rows[:, (x0 + 1) % w] * tx  # (rows, fine, c) f64
+        g = np.zeros_like(col)  # running integral from node lo down to each node
+        np.cumsum(col[:-1] * p0[:, None, None] + col[1:] * p1[:, None, None], axis=0,
+                  out=g[1:])
+        s = seg - lo
+        gq = g[s, ii] + col[s, ii] * h0[..., None] + col[s + 1, ii] * h1[..., None]
+        num = ((gq[:, :-1] - gq[:, 1:]) * dphi[:, None, None]).reshape(n, k, n, c).sum(axis=1)
+        den = (den_e * dphi[:, None]).reshape(n, k, n).sum(axis=1)
+        out[f] = (num / den[..., None]).transpose(1, 0, 2)
+
+
+def _plane_bilinear(plane: NDArray[np.float32], i00: NDArray[np.intp], stride: int,
+                    tx: NDArray[np.float32], ty: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Bilinear lookups in a flattened padded plane (rows of ``stride``): ``i00`` is the flat
+    index of each lookup's top-left tap, ``tx, ty`` its weights toward the right and bottom."""
+    top = np.take(plane, i00)
+    top += (np.take(plane, i00 + 1) - top) * tx
+    bot = np.take(plane, i00 + stride)
+    bot += (np.take(plane, i00 + (stride + 1)) - bot) * tx
+    top += (bot - top) * ty
+    return top
+
+
+def _equirect_polar_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray[np.float32]
+                          ) -> None:
+    """The faces +Y and -Y of :func:`_equirect_to_cube`: ``k x k`` bilinear lookups per texel
+    averaged with the sub-texels' exact solid angles (as :func:`_integrate_cube` with
+    :class:`_EquirectLookup`). -Y is the mirror image of +Y (row ``j`` of -Y looks up the
+    pixel coordinates of row ``k n - 1 - j`` of +Y, with the image row mirrored), so the angles
+    are computed once; a lookup gathers each channel from a padded plane of the rows the face
+    reaches."""
+    h, w, c = img.shape
+    half = w // 2
+    fine = n * k
+    edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
+    cen = 0.5 * (edges[:-1] + edges[1:])
+    wgt = _cell_solid_angles(edges, edges)
+    den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
+    w32 = wgt.astype(np.float32)
+    uu, vv = cen[None, :], cen[:, None]
+    x = (np.arctan2(vv, uu) / (2.0 * np.pi) + 0.5) * w - 0.5       # +Y: d = (u, 1, v)
+    y = (0.5 - np.arctan2(1.0, np.hypot(uu, vv)) / np.pi) * h - 0.5
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    tx = (x - x0).astype(np.float32)
+    ty = (y - y0).astype(np.float32)
+    x0 = x0.astype(np.intp) + 1                                    # padded column
+    y0 = y0.astype(np.intp) + 1                                    # padded row, >= 0
+    rows = int(y0.max()) + 2                                       # padded rows +Y reaches
+    for f in (2, 3):
+        src = img if f == 2 else img[::-1]                         # -Y: the mirrored image
+        # padded as _EquirectLookup: row -1 is row 0 at the opposite meridian, columns wrap
+        part = np.concatenate([np.roll(src[:1], -half, axis=1), src[:rows - 1]])
+        pad = np.concatenate([part[:, -1:], part, part[:, :1]], axis=1)   # (rows, w + 2, c)
+        if f == 2:
+            i00, ax, ay = y0 * (w + 2) + x0, tx, ty
+        else:  # row j of -Y = row fine - 1 - j of +Y, its v negated: x from atan2(-v, u)
+            i00, ax, ay = (y0 * (w + 2) + x0)[::-1], tx[::-1], ty[::-1]
+        acc = np.zeros((n, n, c))
+        for ch in range(c):
+            top = _plane_bilinear(np.ascontiguousarray(pad[..., ch]).reshape(-1), i00, w + 2,
+                                  ax, ay)
+            top *= w32
+            acc[..., ch] = top.reshape(n, k, n, k).sum(axis=(1, 3), dtype=np.float64)
+        out[f] = acc / den[..., None]
+
+
+def _equirect_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.float32]:
+    """Equirect -> cube, each texel the solid-angle mean of the bilinear reconstruction (see
+    the module docstring): the side faces by exact line integrals along meridians
+    (:func:`_equirect_side_faces`), the polar faces by ``k x k`` lookups
+    (:func:`_equirect_polar_faces`). Images with non-finite pixels (whose running sums would
+    carry them down a whole meridian) and tiny ones take :func:`_integrate_cube`."""
+    h, _, c = img.shape
+    if h < 8 or not np.isfinite(img).all():
+        return _integrate_cube(_EquirectLookup(img), n, k, c)
+    out = np.empty((6, n, n, c), dtype=np.float32)
+    if n > _THREADED_MAX:  # one part at a time: their temporaries would add up
+        _equirect_side_faces(img, n, k, out)
+        _equirect_polar_faces(img, n, k, out)
+        return out
+    # the two parts write different faces and spend their time in numpy calls that release
+    # the GIL: the polar faces go to a second thread
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        polar = pool.submit(_equirect_polar_faces, img, n, k, out)
+        _equirect_side_faces(img, n, k, out)
+        polar.result()
+    return out
+
+
+def _angular_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.float32]:
+    """:func:`_integrate_cube` of :func:`_angular_bilinear`, faster: the lookups gather each
+    channel from a zero-padded plane of ``L inside`` and one of ``inside`` (float32), a value is
+    their bilinear ratio (the in-disk taps renormalised, as :func:`_angular_bilinear`), and the
+    weighted block sums are float32 against float64 weights. Images with non-finite pixels in
+    the disk take :func:`_integrate_cube` (a weight-0 tap must not turn inf into NaN there)."""
+    s, _, c = img.shape
+    centres = (np.arange(s) + 0.5) * (2.0 / s) - 1.0
+    inside = centres[None, :] ** 2 + centres[:, None] ** 2 <= 1.0
+    if not np.isfinite(img[inside]).all():
+        return _integrate_cube(lambda d: _angular_bilinear(img, d), n, k, c)
+    planes = np.zeros((c + 1, s + 2, s + 2), dtype=np.float32)
+    planes[:c, 1:-1, 1:-1] = np.where(inside[..., None], img, 0.0).transpose(2, 0, 1)
+    planes[c, 1:-1, 1:-1] = inside
+    planes = planes.reshape(c + 1, -1)
+    fine = n * k
+    edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
+    cen = 0.5 * (edges[:-1] + edges[1:])
+    wgt = _cell_solid_angles(edges, edges)
+    den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
+    w32 = wgt.astype(np.float32)
+    rmax = max(1.0 - math.sqrt(2.0) / s, 0.0)
+    out = np.empty((6, n, n, c), dtype=np.float32)
+    for f in range(6):
+        d = FACE_NORMALS[f] + cen[None, :, None] * FACE_U[f] + cen[:, None, None] * FACE_V[f]
+        u, v = _direction_to_angular_uv(d)
+        rho = np.hypot(u, v)
+        scale = np.where(rho > rmax, rmax / np.where(rho > 0, rho, 1.0), 1.0)
+        x = (u * scale + 1.0) * (0.5 * s) - 0.5
+        y = (1.0 - v * scale) * (0.5 * s) - 0.5
+        x0 = np.floor(x)
+        y0 = np.floor(y)
+        tx = (x - x0).astype(np.float32)
+        ty = (y - y0).astype(np.float32)
+        i00 = (y0.astype(np.intp) + 1) * (s + 2) + x0.astype(np.intp) + 1
+        wsum = _plane_bilinear(planes[c], i00, s + 2, tx, ty)
+        wsum = w32 / wsum                                          # > 0: rho <= rmax
+        for ch in range(c):
+            val = _plane_bilinear(planes[ch], i00, s + 2, tx, ty)
+            val *= wsum
+            out[f, ..., ch] = val.reshape(n, k, n, k).sum(axis=(1, 3), dtype=np.float64) / den
     return out
 
 
@@ -654,16 +863,16 @@ def to_cube(image: ArrayLike, layout: Layout, size: int) -> NDArray[np.float32]:
     img = _check_image(image)
     if layout in ("hcross", "vcross"):
         return resample(cross_to_faces(img, layout), n)
-    h, w, c = img.shape
+    h, w, _ = img.shape
     if layout == "equirect":
         if w != 2 * h:
             raise ValueError(f"an equirect image must be 2:1 (W = 2 H), got {w}x{h}.")
         k = _supersampling(2.0 / n, min(np.pi / h, 2.0 * np.pi / w))
-        return _integrate_cube(_EquirectLookup(img), n, k, c)
+        return _equirect_to_cube(img, n, k)
     if h != w:
         raise ValueError(f"an angular map must be square, got {w}x{h}.")
     k = _supersampling(2.0 / n, 2.0 * np.pi / h)
-    return _integrate_cube(lambda d: _angular_bilinear(img, d), n, k, c)
+    return _angular_to_cube(img, n, k)
 
 
 def _from_cube_equirect(faces: NDArray[np.float32], height: int) -> NDArray[np.float32]:

@@ -18,8 +18,15 @@ Level ``k`` of ``levels`` has face size ``n >> k`` (or ``size >> k``) and percep
 (the split-sum ``n = v = r`` prefilter of Karis 2013). Level 0 is the input unchanged (a copy; a
 box/solid-angle resample when ``size`` differs from the input).
 
-``method="tiered"`` (default) is a deterministic, *sparse multi-resolution* evaluation of that
-sum (no random or quasi-random samples). Why not importance sampling with filtered lookups
+``method="tiered"`` (default): for input cubes up to :data:`DENSE_CHAIN_MAX` (128^2) every level
+is the dense sum over every input texel, computed through the cube's 48 symmetries
+(:func:`symmetric_zonal_sums`: the kernel is evaluated for 1/48 of the outputs, float32 BLAS
+applies it to the 48 permuted copies of the input at once, and a block of outputs reads only
+the input texels within 90 degrees of it). That is the reference itself (to float32 rounding:
+relative 2e-6) at ~0.3 s CPU for a 128^2 chain; ``probegrid filter`` computes its diffuse map in
+the same pass. Larger cubes, whose dense sums would cost ``(n / 128)^4`` times more, take a
+deterministic, *sparse multi-resolution* evaluation of that sum (no random or quasi-random
+samples), described below. Why not importance sampling with filtered lookups
 (Krivanek & Colbert 2008, Filament's ``roughnessFilter``)? It is kept as ``method="fis"`` and
 measured (128^2 chains, ``benchmarks/bench_filter.py``): at 256 Hammersley samples it takes
 ~1.1 s for 2-8 % RMS relative error on venice and 45-130 % on studio (64 samples: 0.3 s, 6-28 %
@@ -43,10 +50,9 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   stage over the finest mip ``m <= 128`` (no coarser than ``s_0``) whose ``36 g^2 m^2`` pairs fit
   ``level_pairs`` (7e8, scaled by ``(128 / n)^2`` above 128^2): exact over the input texels, or
   first-order over a mip's moments. For a 128^2 chain that makes levels 2-7 exact dense sums
-  (levels 3-7 of a 256^2 chain dense over mips), so their error is the source's own: measured
-  against the dense sum over a 256^2 cube of the input, levels 2-6 are at 1.00 x the error of
-  the dense sum over the 128^2 cube itself (venice and studio, ``benchmarks/bench_filter_cli.py``);
-  level 1 (r = 1/7, still tiered) is at 3.4 x (venice) and 9.7 x (studio). The dense stages are
+  (levels 3-7 of a 256^2 chain dense over mips), so their error is the source's own (chains of
+  128^2 and smaller cubes are now wholly dense, above); level 1 of the tiered sum is at 3.4 x
+  (venice) and 9.7 x (studio) the 128^2 source's floor. The dense stages are
   built in float32 row chunks (:func:`_dense_level_stage`; a 128^2 chain peaks at ~240 MB).
 * First-order moments. A coarse texel stands for the input texels it covers, whose exact
   positions matter when one is much brighter (a sun). Each mip texel carries ``P = sum L dOmega``
@@ -74,15 +80,15 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
   made runs on the shared 2-core machine 2-10 x slower); ``workers`` threads can filter
   levels concurrently.
 
-Accuracy against :func:`reference_convolution` (every input texel, float64) on the real HDRs at
-128^2 (``benchmarks/bench_filter.py``): level 1 (the only tiered level of a 128^2 chain) RMS
-relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 % next to
-the brightest sources; levels 2+ are whole-level dense sums (exact over the input texels, float32
-weights). Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one
-thread, cold, CPU): ~0.85 s for a 128^2 chain, ~1.8 s for 256^2. Memory: the cached plans and
-symmetry table (:func:`_chain_permutations`, 25 MB at 128^2, 100 MB at 256^2) plus chunked
-temporaries: peak ~240 MB for a 128^2 chain, ~380 MB for 256^2 (whole process);
-:func:`clear_caches` drops the cached geometry.
+Accuracy of the tiered sum against :func:`reference_convolution` (every input texel, float64)
+on the real HDRs, measured on a 128^2 chain forced through it (``benchmarks/bench_filter.py``):
+level 1 RMS relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 %
+next to the brightest sources; whole-level dense stages are exact over their source texels.
+Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one thread,
+cold, CPU): ~1.9 s for a 256^2 chain. Memory: the cached plans and symmetry table
+(:func:`_chain_permutations`, 100 MB at 256^2) plus chunked temporaries: peak ~380 MB for 256^2
+(whole process); :func:`clear_caches` drops the cached geometry. The dense chain of a 128^2
+cube holds the 48 permuted copies of the input (57 MB) while it runs.
 Tests: constant, linear (analytic lobe mean), near-delta and real-HDR inputs against the
 reference, symmetry.
 
@@ -100,7 +106,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import get_args
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -324,31 +330,40 @@ def _octahedral_group() -> NDArray[np.float64]:
     return out
 
 
-@lru_cache(maxsize=16)
-def _group_permutations(n: int) -> NDArray[np.int32]:
-    """``perm[k, q]``: flat index (face-major) of the texel whose centre is ``S_k w_q``, for the
-    48 cube symmetries ``S_k`` of :func:`_octahedral_group`. (48, 6 n^2) int32, read-only.
-
-    Computed by index arithmetic: ``S`` maps face ``g`` onto the face ``g'`` with normal
-    ``S N_g`` and ``(u, v)`` onto ``(+-u or +-v, +-v or +-u)``; ``-u`` of column ``j`` is column
-    ``n - 1 - j``.
-    """
-    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")  # row (v), column (u)
+@lru_cache(maxsize=1)
+def _group_face_table() -> NDArray[np.intp]:
+    """How each cube symmetry moves each face: ``(48, 6, 3)`` rows ``[g', column source,
+    row source]``, a source 0-3 meaning ``j, i, n - 1 - j, n - 1 - i`` of texel ``(i, j)`` (row,
+    column). ``S`` maps face ``g`` onto the face ``g'`` with normal ``S N_g`` and ``(u, v)`` onto
+    ``(+-u or +-v, +-v or +-u)``; ``-u`` of column ``j`` is column ``n - 1 - j``."""
     group = _octahedral_group()
-    perm = np.empty((48, 6, n, n), dtype=np.int32)
+    table = np.empty((48, 6, 3), dtype=np.intp)
     for k in range(48):
         m = group[k]
         for g in range(6):
             ng, ug, vg = m @ FACE_NORMALS[g], m @ FACE_U[g], m @ FACE_V[g]
             g2 = int(np.argmax(FACE_NORMALS @ ng))
-            coords = []
-            for axis in (FACE_U[g2], FACE_V[g2]):  # u' = (S U_g).U_g' u + (S V_g).U_g' v, ...
+            table[k, g, 0] = g2
+            for t, axis in ((1, FACE_U[g2]), (2, FACE_V[g2])):  # u' = (S U_g).U_g' u + ...
                 a, c = float(ug @ axis), float(vg @ axis)
-                src = j if a != 0 else i
-                sign = a if a != 0 else c
-                coords.append(src if sign > 0 else n - 1 - src)
-            col2, row2 = coords
-            perm[k, g] = (g2 * n + row2) * n + col2
+                table[k, g, t] = (0 if a != 0 else 1) + (0 if (a if a != 0 else c) > 0 else 2)
+    table.setflags(write=False)
+    return table
+
+
+@lru_cache(maxsize=16)
+def _group_permutations(n: int) -> NDArray[np.int32]:
+    """``perm[k, q]``: flat index (face-major) of the texel whose centre is ``S_k w_q``, for the
+    48 cube symmetries ``S_k`` of :func:`_octahedral_group`. (48, 6 n^2) int32, read-only.
+
+    Computed by index arithmetic from :func:`_group_face_table`.
+    """
+    i, j = np.meshgrid(np.arange(n, dtype=np.int32), np.arange(n, dtype=np.int32),
+                       indexing="ij")                               # row (v), column (u)
+    sources = np.stack([j, i, n - 1 - j, n - 1 - i])              # (4, n, n)
+    table = _group_face_table()
+    perm = ((table[..., 0, None, None].astype(np.int32) * n + sources[table[..., 2]]) * n
+            + sources[table[..., 1]])                               # (48, 6, n, n)
     perm = perm.reshape(48, -1)
     perm.setflags(write=False)
     return perm
@@ -868,6 +883,153 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
     return (acc[..., :c] / acc[..., c:]).astype(np.float32)
 
 
+# --------------------------------------------------------------------------------------------
+# Dense sums over every input texel, through the cube's symmetries
+
+
+#: Largest input face size whose whole chain :func:`ggx_prefilter` sums densely (every level
+#: exact over every input texel, :func:`symmetric_zonal_sums`).
+DENSE_CHAIN_MAX = 128
+#: Output rows (fundamental-domain texels) per block of :func:`symmetric_zonal_sums`, and
+#: input texels per kernel tile (a tile's temporaries stay in cache: ~6 MB).
+_ZONAL_ROWS = 128
+_ZONAL_COLUMNS = 4096
+
+
+@dataclass(frozen=True)
+class ZonalOutput:
+    """One output of :func:`symmetric_zonal_sums`.
+
+    Attributes
+    ----------
+    size : int
+        Output face size.
+    kind : {"ggx", "cosine"}
+        ``"ggx"``: the normalised GGX prefilter at ``alpha`` (:func:`reference_convolution`);
+        ``"cosine"``: ``sum_q max(0, n . w_q) / pi L_q dOmega_q``, irradiance / pi
+        (:func:`probegrid.core.diffuse.diffuse_exact`), not normalised.
+    alpha : float
+        GGX alpha (``"ggx"`` only).
+    """
+
+    size: int
+    kind: Literal["ggx", "cosine"] = "ggx"
+    alpha: float = 0.0
+
+
+def _zonal_kernel(c: NDArray[np.float64], out: ZonalOutput) -> NDArray[np.float32]:
+    """Kernel values (float32) of a block of float64 cosines (overwritten)."""
+    if out.kind == "cosine":
+        k = c.astype(np.float32)
+        np.maximum(k, 0.0, out=k)
+        k *= np.float32(1.0 / np.pi)
+        return k
+    # K = alpha^2 / (4 pi) c / t^2, t = ((1 - c) + alpha^2 (1 + c)) / 2 (lobes.ggx_kernel):
+    # 1 - c is formed in float64, so the peak (1 - c ~ alpha^2) keeps float32 precision
+    a2 = out.alpha * out.alpha
+    np.clip(c, 0.0, 1.0, out=c)
+    k = c.astype(np.float32)
+    np.subtract(1.0, c, out=c)
+    t = c.astype(np.float32)
+    t *= np.float32(0.5 * (1.0 - a2))
+    t += np.float32(a2)                                   # (1 - c)/2 (1 - a^2) + a^2 = t
+    t *= t
+    k /= t
+    k *= np.float32(a2 / (4.0 * np.pi))
+    return k
+
+
+def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
+                         workers: int = 1) -> list[NDArray[np.float32]]:
+    """Zonal sums over every input texel (the midpoint rule on the input, as
+    :func:`zonal_convolution`), computed once per cube symmetry class.
+
+    A zonal sum at output direction ``S R`` (``S`` one of the 48 cube symmetries,
+    :func:`_group_permutations`) equals the sum at ``R`` over the input permuted by ``S``. So the
+    kernel is evaluated only for the fundamental-domain outputs (:func:`_fundamental_domain`,
+    1/48 of them) against every input texel (float64 cosines, float32 kernel values), and one
+    matrix product per tile (float32 BLAS, sums accumulated in float32) applies it to the 48
+    permuted copies of ``L dOmega`` side by side (one more to ``dOmega``: the normaliser). A
+    block of rows reads only the input texels within 90 degrees of its cone (both kernels
+    vanish beyond). Cost: ``6 n^2 48 C`` floats for the permuted input and at most
+    ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows)
+    and a 32^2 diffuse map (136 rows) take ~0.4 s CPU here. The results equal
+    :func:`reference_convolution` and :func:`probegrid.core.diffuse.diffuse_exact` to float32
+    rounding of the weights and sums (relative 2e-6).
+
+    Parameters
+    ----------
+    faces : (6, n, n, C) float, finite
+    outputs : sequence of ZonalOutput
+    workers : int
+        Threads sharing the row blocks (BLAS is limited to one thread meanwhile).
+
+    Returns
+    -------
+    list of (6, size, size, C) float32, one per output.
+    """
+    src = check_cube(faces, name="faces")
+    if not np.all(np.isfinite(src)):
+        raise ValueError("faces must be finite (no nan or inf radiance).")
+    for o in outputs:
+        _check_size(o.size, "output size")
+        if o.kind not in ("ggx", "cosine"):
+            raise ValueError(f"output kind must be 'ggx' or 'cosine', got {o.kind!r}.")
+        if o.kind == "ggx" and not (np.isfinite(o.alpha) and o.alpha > 0):
+            raise ValueError(f"alpha must be a finite number > 0, got {o.alpha!r}.")
+    if not isinstance(workers, (int, np.integer)) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}.")
+    n, c = src.shape[1], src.shape[3]
+    perm = _group_permutations(n)                                  # (48, 6 n^2)
+    om = texel_solid_angles(n).reshape(-1)
+    lw = src.reshape(-1, c) * om[:, None].astype(np.float32)
+    # column block k of row q holds L dOmega at S_k(q)
+    x = np.take(lw, perm.T, axis=0).reshape(6 * n * n, 48 * c)
+    om32 = om.astype(np.float32)
+    sd = texel_directions(n).reshape(-1, 3)
+    results = [np.empty((6 * o.size * o.size, c), dtype=np.float32) for o in outputs]
+    jobs = []
+    for i, o in enumerate(outputs):
+        fund = _fundamental_domain(o.size)[0]
+        for r0 in range(0, len(fund), _ZONAL_ROWS):
+            jobs.append((i, fund[r0:r0 + _ZONAL_ROWS]))
+    # the biggest blocks first, so that the threads finish together
+    jobs.sort(key=lambda job: -len(job[1]))
+
+    def run(job: tuple[int, NDArray[np.intp]]) -> None:
+        i, rows = job
+        o = outputs[i]
+        od = texel_directions(o.size)[0].reshape(-1, 3)[rows]
+        # both kernels vanish for R . w <= 0: only the input texels within 90 degrees of some
+        # row (of the cone holding the block's rows) take part
+        axis = od.sum(axis=0)
+        axis /= np.linalg.norm(axis)
+        spread = float(np.arccos(np.clip((od @ axis).min(), -1.0, 1.0)))
+        near = np.flatnonzero(sd @ axis > -np.sin(min(spread, 0.5 * np.pi)) - 1e-12)
+        y = np.zeros((len(rows), 48 * c), dtype=np.float32)       # (r, 48 C)
+        norm = np.zeros(len(rows), dtype=np.float32)
+        for q0 in range(0, len(near), _ZONAL_COLUMNS):
+            q = near[q0:q0 + _ZONAL_COLUMNS]
+            k = _zonal_kernel(od @ sd[q].T, o)
+            y += k @ np.take(x, q, axis=0)
+            norm += k @ om32[q]
+        vals = y.reshape(-1, 48, c)
+        if o.kind == "ggx":
+            vals /= norm[:, None, None]
+        targets = _group_permutations(o.size)[:, rows].T           # (r, 48)
+        results[i][targets] = vals                                 # (texels on mirror planes
+        # are written by several symmetries, with the same value)
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        if workers == 1:
+            for job in jobs:
+                run(job)
+        else:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                list(pool.map(run, jobs))
+    return [r.reshape(6, o.size, o.size, c) for r, o in zip(results, outputs)]
+
+
 def hammersley(count: int) -> NDArray[np.float64]:
     """The Hammersley point set ``(i / N, radical_inverse_2(i))``: (N, 2) float64 in [0, 1)."""
     i = np.arange(count, dtype=np.uint64)
@@ -944,15 +1106,18 @@ def ggx_prefilter(
     size : int, optional
         Face size of level 0 (default ``n``); level ``k`` has ``size >> k``.
     method : {"tiered", "fis", "exact"}
-        ``"tiered"``: sparse multi-resolution sum (module docstring); ``"fis"``: filtered
+        ``"tiered"``: the dense sum through the cube's symmetries for ``n <=``
+        :data:`DENSE_CHAIN_MAX`, else the sparse multi-resolution sum (module docstring);
+        ``"fis"``: filtered
         importance sampling with ``samples`` Hammersley samples (for comparison: noisier and
         slower at equal accuracy, see the module docstring); ``"exact"``: dense float64 sum over
         every input texel (:func:`reference_convolution`; slow).
     beta, gamma : float
         Accuracy parameters of ``"tiered"`` (see :func:`ggx_tier_plan`).
     workers : int
-        Threads filtering levels concurrently (``"tiered"``); level 1 is about half the work,
-        so 2 is the useful maximum. Default 1 (a probe grid is parallel at a higher level).
+        Threads (``"tiered"``): sharing the dense sums' blocks of rows, or filtering levels of
+        the sparse sum concurrently (level 1 is about half the work, so 2 is the useful
+        maximum). Default 1 (a probe grid is parallel at a higher level).
     samples : int, optional
         ``"fis"`` only (default 256): samples per texel (a level gets the same set).
     lod_bias : float
@@ -997,6 +1162,12 @@ def ggx_prefilter(
                 out.append(reference_convolution(src, alpha, s).astype(np.float32))
             else:
                 out.append(_ggx_fis(sampler, n, alpha, s, samples or 256, float(lod_bias)))
+        return out
+    if n <= DENSE_CHAIN_MAX:  # every level exact, through the cube's symmetries
+        out += symmetric_zonal_sums(
+            src, [ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
+                lobes.level_roughness(k, len(sizes))))) for k, s in enumerate(sizes) if k],
+            workers=int(workers))
         return out
     # The tiered path makes many small and medium BLAS calls; a second BLAS thread buys nothing
     # there and, on a loaded machine, its spin-waiting made runs 2-10x slower (measured), so

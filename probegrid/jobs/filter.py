@@ -7,7 +7,9 @@ resample it to a cube without aliasing, and compute
 * the diffuse map (irradiance / pi) by the exact clamped-cosine integral or through 9 SH
   coefficients (:mod:`probegrid.core.diffuse`),
 * the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
-  (:mod:`probegrid.core.specular`),
+  (:mod:`probegrid.core.specular`); by default, for cubes up to 128^2, the exact diffuse map
+  and every GGX level are one pass of dense sums over every input texel shared between two
+  threads (:func:`probegrid.core.specular.symmetric_zonal_sums`),
 * the radiance SH coefficients (9 by default, ``bands^2`` with ``sh_bands``;
   :mod:`probegrid.core.sh`, :mod:`probegrid.core.shbands`) and the minimum irradiance they imply,
 * the split-sum DFG lookup table (:mod:`probegrid.core.dfg`, cached per machine by
@@ -19,8 +21,9 @@ output location that cannot be written are refused before any work (:func:`check
 :func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
 beside the output directory and moved into place only when complete, so a failed or
 interrupted run leaves the output directory as it was (an earlier output whole) and no
-temporary file: a directory with a manifest holds a finished job. An all-black input is
-legitimate: its maps are black and its quality figures finite (energy ratios 1).
+temporary file: a directory with a manifest holds a finished job. The maps are flushed to disk
+by two threads while the next ones are encoded, and the previews are made in another. An
+all-black input is legitimate: its maps are black and its quality figures finite (energy ratios 1).
 
 Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
 depends only on its size and is cached per machine (:mod:`probegrid.usercache`).
@@ -47,7 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from probegrid._fs import atomic_write_json
+from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._types import (
     CubeConvention,
     CubeLayout,
@@ -60,8 +63,7 @@ from probegrid._types import (
 )
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
-from probegrid.core.cubemap import mip_sizes, solid_angle_integral
-from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
+from probegrid.core.cubemap import downsample, mip_sizes, solid_angle_integral
 
 __all__ = [
     "FILTER_FORMAT",
@@ -76,8 +78,6 @@ __all__ = [
 
 #: ``format`` of the manifest of a filter output directory.
 FILTER_FORMAT = "probegrid.filter"
-#: Files only an unfinished bake holds (see probegrid.store).
-_BAKE_STATE_FILES = (PLAN_FILE, DONE_FILE)
 
 Progress = Callable[[str], None]
 
@@ -178,12 +178,15 @@ def prepare_output_dir(
     Path
         ``out_dir`` as a Path.
     """
+    # (the store's names, imported here: the filter command needs nothing else of the store)
+    from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
+
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"output directory {out} exists and is not a directory")
     names = {Path(os.path.abspath(out)).name, out.resolve().name}
     if any(n.endswith(STORE_DIR_SUFFIXES) for n in names) or any(
-        (out / f).exists() for f in _BAKE_STATE_FILES
+        (out / f).exists() for f in (PLAN_FILE, DONE_FILE)  # an unfinished bake's state
     ):
         raise ValueError(
             f"output directory {out} is a probe grid store or bake directory (NAME.probes, "
@@ -402,7 +405,7 @@ def _filter_into(
     """Compute everything, then write it into the (staging) directory ``out``; returns the
     manifest and its file list."""
     from probegrid import imageio, usercache
-    from probegrid.core import diffuse, seams, sh, shbands, specular
+    from probegrid.core import lobes, seams, sh, shbands, specular
     from probegrid.export.shforms import sh_forms
 
     say: Progress = progress or (lambda _m: None)
@@ -438,11 +441,20 @@ def _filter_into(
     sh_window: dict[str, Any] = {"window": "none"}
 
     def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
+        from probegrid.core import diffuse
+
         t = time.perf_counter()
         if settings.diffuse_method == "exact":
-            return diffuse.diffuse_exact(cube, settings.diffuse_size,
-                                         source_size=diffuse_source), None, \
-                time.perf_counter() - t
+            src = cube
+            while src.shape[1] > diffuse_source:  # the box mip it reads
+                src = downsample(src)
+            if src.shape[1] > specular.DENSE_CHAIN_MAX:
+                d = diffuse.diffuse_exact(src, settings.diffuse_size)
+            else:  # the same sum through the cube's symmetries; beside the chain up to 128^2
+                d = specular.symmetric_zonal_sums(
+                    src, [specular.ZonalOutput(settings.diffuse_size, "cosine")],
+                    workers=1 if n <= 128 else 2)[0]
+            return d, None, time.perf_counter() - t
         d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
                                     width=settings.sh_window_width, bands=bands)
         return d, inf, time.perf_counter() - t
@@ -450,19 +462,23 @@ def _filter_into(
     spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
     if settings.samples is not None:
         spec_kwargs["samples"] = settings.samples
-    # the diffuse sum runs in a second thread beside the GGX chain (both spend their time in
-    # numpy calls that release the GIL; the chain limits BLAS to one thread), for cubes up to
-    # 128^2: the chain of a larger cube needs the memory (peak RSS 530 vs 480 MB at 256^2)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
+    if (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0 and settings.format != "gltf"
+            and settings.specular_method == "tiered" and settings.diffuse_method == "exact"
+            and diffuse_source == n):
+        # one pass of dense sums over every input texel: the diffuse map and every GGX level
+        # (exact), the cube's symmetries shared, the blocks split between two threads
         t = time.perf_counter()
-        spec = (specular.ggx_prefilter(cube, **spec_kwargs) if settings.format != "gltf"
-                else gltf_ibl.specular_chain(cube))  # Babylon's mip -> alpha mapping
+        sizes = mip_sizes(n, levels)
+        outs = [specular.ZonalOutput(settings.diffuse_size, "cosine")] + [
+            specular.ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
+                lobes.level_roughness(k, levels)))) for k, s in enumerate(sizes) if k]
+        diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
+        spec = [cube.copy(), *rest]
+        info = None
         timings["specular"] = time.perf_counter() - t
-        if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
-            specular.clear_caches()
-        diff, info, timings["diffuse"] = (diffuse_future.result() if diffuse_future is not None
-                                          else diffuse_stage())
+        timings["diffuse"] = 0.0  # (in the specular figure: one pass computed both)
+    else:
+        diff, info, spec = _separate_stages(cube, settings, spec_kwargs, diffuse_stage, timings)
     if info is not None:
         sh_window = {
             "window": info.window,
@@ -498,81 +514,109 @@ def _filter_into(
     ext = settings.format
     write_layout = settings.output_layout
 
-    def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
-        written = imageio.write_cube(
-            out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
-            metadata={**attrs, "probegrid:kind": meta["kind"]},
-        )
-        rel = [str(Path(p).relative_to(out)) for p in written]
-        files.append({
-            "path": rel[0] if len(rel) == 1 else rel,
-            "layout": write_layout,
-            "face_size": int(faces.shape[1]),
-            "format": ext,
-            "dtype": written.pixel_type,  # half, or float where a value exceeds half's range
-            "seam": settings.seam,
-            **meta,
-        })
-
-    say("writing maps")
-    if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
-        from probegrid.export.environment import write_environment_ktx2
-
-        files += write_environment_ktx2(out, diff_out, spec_out,
-                                        vk_format=97 if settings.half else 109,
-                                        cube_convention=settings.cube_convention,
-                                        key_values={"probegrid:conventions": json.dumps(conv)})
-    elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
-        files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
-    else:
-        write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
-                   content="irradiance / pi", method=settings.diffuse_method,
-                   sh_window=sh_window["window"])
-    for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
-        r = k / (levels - 1) if levels > 1 else 0.0
-        write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
-
-    band_factors = shbands.clamped_cosine_factors(bands)
-    sh_doc = {
-        "coefficients": [[float(x) for x in row] for row in coeffs],
-        "bands": bands,
-        "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
-        "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
-        "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm Y_lm(n), "
-                   + ("A = (pi, 2pi/3, pi/4)" if bands == 3 else
-                      "A_l = band_factors (A_0 = pi, A_1 = 2pi/3, 0 for odd l > 1, "
-                      "Ramamoorthi & Hanrahan 2001 eq. 8 for even l)"),
-        "band_factors": [float(a) for a in band_factors],
-        "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
-        "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
-        "diffuse_map": {"method": settings.diffuse_method, **sh_window},
-        "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
-    }
-    atomic_write_json(out / "sh.json", sh_doc)
-    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
-                  "layout": None, "format": "json"})
-
-    lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
-    imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
-                        metadata={**attrs, "probegrid:kind": "lut"})
-    files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
-                  "layout": "x = N.V (columns), y = perceptual roughness (rows)",
-                  "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
-                  "size": settings.lut_size})
-
-    if settings.previews:
-        say("writing previews")
+    def previews() -> list[dict[str, Any]]:
+        entries: list[dict[str, Any]] = []
         exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
         for name, faces in (("input", cube), ("diffuse", diff)):
-            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure)
-            files.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
-                          "level": None, "roughness": None, "layout": "hcross",
-                          "format": "png"})
-        sheet = _specular_sheet(spec)
-        imageio.write_preview_png(out / "preview_specular.png", sheet, exposure=exposure)
-        files.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
-                      "level": None, "roughness": None,
-                      "layout": "hcross per level, level 0 at the top", "format": "png"})
+            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
+                                      durable=False)
+            entries.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
+                            "level": None, "roughness": None, "layout": "hcross",
+                            "format": "png"})
+        imageio.write_preview_png(out / "preview_specular.png", _specular_sheet(spec),
+                                  exposure=exposure, durable=False)
+        entries.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
+                        "level": None, "roughness": None,
+                        "layout": "hcross per level, level 0 at the top", "format": "png"})
+        return entries
+
+    # the previews (tone mapping, PNG encoding) are made in a second thread meanwhile, and
+    # written files are flushed to disk by two more while the next ones are encoded (the
+    # staging folder's commit then finds them on disk)
+    writer = ThreadPoolExecutor(max_workers=1)
+    flusher = ThreadPoolExecutor(max_workers=2)
+
+    def flush(paths: Sequence[str | os.PathLike[str]]) -> None:
+        for p in paths:
+            flusher.submit(fsync_file, p)
+
+    try:
+        preview_entries = writer.submit(previews) if settings.previews else None
+        if settings.previews:
+            say("writing maps and previews")
+
+        def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
+            written = imageio.write_cube(
+                out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
+                metadata={**attrs, "probegrid:kind": meta["kind"]},
+                durable=False,  # flushed below, and by staged_output before publishing
+            )
+            flush(written)
+            rel = [str(Path(p).relative_to(out)) for p in written]
+            files.append({
+                "path": rel[0] if len(rel) == 1 else rel,
+                "layout": write_layout,
+                "face_size": int(faces.shape[1]),
+                "format": ext,
+                "dtype": written.pixel_type,  # half, or float where a value exceeds half
+                "seam": settings.seam,
+                **meta,
+            })
+
+        if not settings.previews:
+            say("writing maps")
+        if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
+            from probegrid.export.environment import write_environment_ktx2
+
+            files += write_environment_ktx2(out, diff_out, spec_out,
+                                            vk_format=97 if settings.half else 109,
+                                            cube_convention=settings.cube_convention,
+                                            key_values={"probegrid:conventions":
+                                                        json.dumps(conv)})
+        elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
+            files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
+        else:
+            write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
+                       content="irradiance / pi", method=settings.diffuse_method,
+                       sh_window=sh_window["window"])
+        for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
+            r = k / (levels - 1) if levels > 1 else 0.0
+            write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
+
+        band_factors = shbands.clamped_cosine_factors(bands)
+        sh_doc = {
+            "coefficients": [[float(x) for x in row] for row in coeffs],
+            "bands": bands,
+            "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
+            "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
+            "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm "
+                       "Y_lm(n), "
+                       + ("A = (pi, 2pi/3, pi/4)" if bands == 3 else
+                          "A_l = band_factors (A_0 = pi, A_1 = 2pi/3, 0 for odd l > 1, "
+                          "Ramamoorthi & Hanrahan 2001 eq. 8 for even l)"),
+            "band_factors": [float(a) for a in band_factors],
+            "min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
+            "min_irradiance_direction": [[float(x) for x in d] for d in irr_min_dir],
+            "diffuse_map": {"method": settings.diffuse_method, **sh_window},
+            "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
+        }
+        atomic_write_json(out / "sh.json", sh_doc)
+        files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                      "layout": None, "format": "json"})
+
+        lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
+        flush([imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                                   metadata={**attrs, "probegrid:kind": "lut"}, durable=False)])
+        files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
+                      "layout": "x = N.V (columns), y = perceptual roughness (rows)",
+                      "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
+                      "size": settings.lut_size})
+        if preview_entries is not None:
+            files += preview_entries.result()
+            flush([out / f["path"] for f in files if f["kind"] == "preview"])
+    finally:  # (on an error too: the staging folder is removed after this)
+        writer.shutdown(wait=True)
+        flusher.shutdown(wait=True)
     timings["write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
@@ -605,6 +649,34 @@ def _filter_into(
     }
     atomic_write_json(manifest_path, manifest)
     return manifest, files
+
+
+def _separate_stages(cube: NDArray[np.float32], settings: FilterSettings,
+                     spec_kwargs: dict[str, Any], diffuse_stage: Callable[[], Any],
+                     timings: dict[str, float]) -> tuple[NDArray[np.float32], Any, list[Any]]:
+    """The diffuse map and the specular chain by their own functions (every case but the
+    default one of :func:`_filter_into`); returns (diffuse, SH window info or None, chain)."""
+    from probegrid.core import specular
+
+    n = cube.shape[1]
+    # the diffuse sum runs in a second thread beside the GGX chain (both spend their time in
+    # numpy calls that release the GIL; the chain limits BLAS to one thread), for cubes up to
+    # 128^2: the chain of a larger cube needs the memory (peak RSS 530 vs 480 MB at 256^2)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        diffuse_future = pool.submit(diffuse_stage) if n <= 128 else None
+        t = time.perf_counter()
+        if settings.format != "gltf":
+            spec = specular.ggx_prefilter(cube, **spec_kwargs)
+        else:
+            from probegrid.export import gltf_ibl
+
+            spec = gltf_ibl.specular_chain(cube)  # Babylon's mip -> alpha mapping
+        timings["specular"] = time.perf_counter() - t
+        if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
+            specular.clear_caches()
+        diff, info, timings["diffuse"] = (diffuse_future.result() if diffuse_future is not None
+                                          else diffuse_stage())
+    return diff, info, spec
 
 
 def _specular_sheet(levels: Sequence[NDArray[np.float32]]) -> NDArray[np.float32]:
