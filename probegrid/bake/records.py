@@ -105,6 +105,7 @@ from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
 __all__ = [
+    "RECORDS_MEMORY",
     "irradiance_size",
     "RecordTracer",
     "irradiance_cubes",
@@ -196,45 +197,54 @@ def _atomic_npy(path: Path, array: NDArray[Any]) -> None:
 #: the files stay the reference: a block it does not hold is read back).
 RECORDS_MEMORY = 256 << 20
 
-_held: OrderedDict[tuple[str, int, int], dict[str, NDArray[Any]]] = OrderedDict()
+_held: OrderedDict[tuple[str, str], tuple[dict[str, NDArray[Any]], int]] = OrderedDict()
 _held_bytes = [0]
 _held_lock = threading.Lock()
 
 
-def _mark(path: Path) -> tuple[str, int, int] | None:
-    """A block's identity: its directory and its ``complete`` mark's inode and time (a later
-    bake of the same store writes a new mark, so what a process holds of an earlier one is
-    never taken for it)."""
+def _mark(path: Path) -> tuple[str, str] | None:
+    """A block's identity: its directory and the random token its ``complete`` mark holds (a
+    later bake of the same store writes a new token, so what a process holds of an earlier
+    one is never taken for it)."""
     try:
-        st = (path / "complete").stat()
+        return (str(path), (path / "complete").read_text())
     except OSError:
         return None
-    return (str(path), st.st_ino, st.st_mtime_ns)
 
 
 def _nbytes(records: dict[str, NDArray[Any]]) -> int:
     return sum(np.asarray(v).nbytes for v in records.values())
 
 
-def _hold(key: tuple[str, int, int], records: dict[str, NDArray[Any]]) -> None:
+def _held_get(key: tuple[str, str]) -> dict[str, NDArray[Any]] | None:
+    with _held_lock:
+        item = _held.get(key)
+        if item is None:
+            return None
+        _held.move_to_end(key)
+        return item[0]
+
+
+def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
+    """Keep ``records`` (its size as it is now) as the most recently used block."""
     with _held_lock:
         old = _held.pop(key, None)
         if old is not None:
-            _held_bytes[0] -= _nbytes(old)
+            _held_bytes[0] -= old[1]
         size = _nbytes(records)
         if size > RECORDS_MEMORY:
             return
-        _held[key] = records
+        _held[key] = (records, size)
         _held_bytes[0] += size
         while _held_bytes[0] > RECORDS_MEMORY:  # the least recently used go first
-            _, gone = _held.popitem(last=False)
-            _held_bytes[0] -= _nbytes(gone)
+            _, (_, gone) = _held.popitem(last=False)
+            _held_bytes[0] -= gone
 
 
 def _drop(path: Path) -> None:
     with _held_lock:
         for key in [k for k in _held if k[0] == str(path)]:
-            _held_bytes[0] -= _nbytes(_held.pop(key))
+            _held_bytes[0] -= _held.pop(key)[1]
 
 
 def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
@@ -249,18 +259,18 @@ def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
         if not (done and f.is_file()):
             _atomic_npy(f, np.asarray(v))
     if not done:
-        (path / "complete").touch()
+        (path / "complete").write_text(os.urandom(8).hex())
     key = _mark(path)
     if key is None:
         return
-    with _held_lock:
-        held = _held.get(key)
+    if not done:  # a new block
+        _hold(key, records)
+        return
+    held = _held_get(key)
     if held is not None:  # arrays added to a block this process holds
         if held is not records:
             held.update(records)
         _hold(key, held)
-    elif not done:
-        _hold(key, records)
 
 
 def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
@@ -269,11 +279,9 @@ def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
     key = _mark(path)
     if key is None:
         return None
-    with _held_lock:
-        held = _held.get(key)
-        if held is not None:
-            _held.move_to_end(key)
-            return held
+    held = _held_get(key)
+    if held is not None:
+        return held
     try:
         out = {f.stem: np.load(f, allow_pickle=False)
                for f in path.glob("*.npy") if not f.name.startswith(".")}

@@ -301,7 +301,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     from probegrid.bake.driver import CLASSIFY_FACE_SIZE, FILTER_GROUP
     from probegrid.bake.inside import DIRECTIONS
     from probegrid.bake.nolight import light_sources
-    from probegrid.bake.records import irradiance_size
+    from probegrid.bake.records import RECORDS_MEMORY, irradiance_size
     from probegrid.bake.render import SHADE_CHUNK
     from probegrid.bake.settings import store_arrays
     from probegrid.core import probefilter
@@ -353,7 +353,9 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
         filt = 16 * FILTER_GROUP * cube
     worker = (WORKER_BASE_BYTES + scene_bytes + env_bytes + filt
               + batch_rays * BATCH_RAY_BYTES + min(batch_rays, SHADE_CHUNK) * CHUNK_RAY_BYTES
-              + 3 * min(st.batch_size, p) * cube)
+              + 3 * min(st.batch_size, p) * cube
+              # the records a worker keeps between passes (probegrid.bake.records)
+              + min(RECORDS_MEMORY, (primary + gather) * RECORD_BYTES_PER_RAY))
     if not shares_files:  # positions, validity, the previous bounce's SH, coefficients, moments
         worker += p * (24 + 1 + 2 * 216 + 6 * (m + 2) ** 2 * 8)
     return BakeEstimate(p, classify, primary, gather, shadow, store, work, worker)
