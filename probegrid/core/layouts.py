@@ -605,6 +605,19 @@ def _cell_solid_angles(u_edges: NDArray[np.float64], v_edges: NDArray[np.float64
             - _corner(u[:, 1:], v[:-1]) + _corner(u[:, :-1], v[:-1]))
 
 
+
+def _sub_texel_grid(n: int, k: int) -> tuple[int, NDArray[np.float64], NDArray[np.float64],
+                                              NDArray[np.float64], NDArray[np.float32]]:
+    """A face of ``n`` texels cut into ``k x k`` sub-texels: their count per side, edges and
+    centres (face coordinates), each texel's solid angle (the sum of its sub-texels') and the
+    sub-texels' solid angles as float32 weights."""
+    fine = n * k
+    edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
+    cen = 0.5 * (edges[:-1] + edges[1:])
+    wgt = _cell_solid_angles(edges, edges)
+    den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
+    return fine, edges, cen, den, wgt.astype(np.float32)
+
 def _rows_per_chunk(row_samples: int) -> int:
     return max(1, _CHUNK_SAMPLES // max(row_samples, 1))
 
@@ -731,12 +744,7 @@ def _equirect_polar_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray
     reaches."""
     h, w, c = img.shape
     half = w // 2
-    fine = n * k
-    edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
-    cen = 0.5 * (edges[:-1] + edges[1:])
-    wgt = _cell_solid_angles(edges, edges)
-    den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
-    w32 = wgt.astype(np.float32)
+    fine, edges, cen, den, w32 = _sub_texel_grid(n, k)
     uu, vv = cen[None, :], cen[:, None]
     x = (np.arctan2(vv, uu) / (2.0 * np.pi) + 0.5) * w - 0.5       # +Y: d = (u, 1, v)
     y = (0.5 - np.arctan2(1.0, np.hypot(uu, vv)) / np.pi) * h - 0.5
@@ -803,12 +811,7 @@ def _angular_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.flo
     planes[:c, 1:-1, 1:-1] = np.where(inside[..., None], img, 0.0).transpose(2, 0, 1)
     planes[c, 1:-1, 1:-1] = inside
     planes = planes.reshape(c + 1, -1)
-    fine = n * k
-    edges = np.arange(fine + 1) * (2.0 / fine) - 1.0
-    cen = 0.5 * (edges[:-1] + edges[1:])
-    wgt = _cell_solid_angles(edges, edges)
-    den = wgt.reshape(n, k, n, k).sum(axis=(1, 3))
-    w32 = wgt.astype(np.float32)
+    fine, edges, cen, den, w32 = _sub_texel_grid(n, k)
     rmax = max(1.0 - math.sqrt(2.0) / s, 0.0)
     out = np.empty((6, n, n, c), dtype=np.float32)
     for f in range(6):
