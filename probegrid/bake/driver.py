@@ -761,12 +761,13 @@ def bake(
             "bounces": level,
             "bounce_residual": residual,
             "bounce_passes": k,
-            "bounce_extrapolation": state.factor,
-            "bounce_energy_limit": state.limit,
             "bounce_energy": energies,
             "rays": stages.rays,
             "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
         }
+        if state.factor is not None:  # converged by extrapolation (probegrid.bake.converge)
+            quality["bounce_extrapolation"] = state.factor
+            quality["bounce_energy_limit"] = state.limit
         quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
         write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
         store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
