@@ -458,6 +458,45 @@ def test_one_bounce_off_a_floor_is_gathered_not_read_from_the_probe(tmp_path):
     np.testing.assert_allclose(got.mean(axis=0), exact.mean(), rtol=0.015)
 
 
+def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold(
+        tmp_path, monkeypatch):
+    """What a probe sees of its hits' gathered light keeps the grid read at each hit and the
+    blocks' mean gather correction: two seeds differ by 1.8 % per texel (9 % with the raw
+    gather), and each probe's solid-angle integral is what the raw gather gives."""
+    from probegrid.bake import records as rc
+    from probegrid.core.cubemap import texel_solid_angles
+
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.7))
+    b.add_box((-2, 0, -2), (2, 3, 2), material=m, inward=True)
+    b.add_light(PointLight((0.5, 2.5, 0.3), (1.0, 1.0, 1.0), 20.0))
+    scene = b.build()
+    grid = GridSpec.from_counts((-1, 0.75, -1), (1, 2.25, 1), (2, 2, 2))
+    original = rc._smooth_gathered
+    integrals = []
+
+    def checked(records, settings, rad, *args):
+        out = original(records, settings, rad, *args)
+        n = settings.face_size
+        sa = np.tile(texel_solid_angles(n).reshape(-1), len(records["probes"]))
+        integrals.append((np.einsum("i,ic->c", sa, rad.astype(np.float64)),
+                          np.einsum("i,ic->c", sa, out.astype(np.float64))))
+        return out
+
+    monkeypatch.setattr(rc, "_smooth_gathered", checked)
+    incoming = []
+    for seed in (0, 1):
+        st = BakeSettings(face_size=16, diffuse_size=4, moments_size=4, bounces=2, seed=seed,
+                          store_incoming=True)
+        s = bake(scene, grid, tmp_path / f"s{seed}.probes", settings=st).store
+        incoming.append(np.asarray(s["incoming"], np.float64))
+    assert integrals
+    for before, after in integrals:
+        np.testing.assert_allclose(after, before, rtol=1e-5)
+    a, c = incoming
+    assert np.abs(a - c).sum() / (a + c).sum() < 0.03
+
+
 def test_environment_rotation_rotates_the_probes(tmp_path):
     from probegrid.core.sh import rotate_y
 

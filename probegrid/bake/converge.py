@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["Convergence", "MIN_PASSES", "convergence"]
+__all__ = ["MIN_PASSES", "Convergence", "convergence"]
 
 #: Passes before the pair extrapolation can be compared with the previous one (E_0 .. E_5).
 MIN_PASSES = 5

@@ -61,6 +61,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid import usercache
 from probegrid.bake.converge import Convergence, convergence
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
@@ -74,9 +75,10 @@ from probegrid.bake.records import (
     RecordTracer,
     all_hit_weights,
     grid_level_read,
-    irradiance_size,
     has_hit_weights,
+    hit_weights,
     irradiance_cubes,
+    irradiance_size,
     load_records,
     records_file,
     remove_records,
@@ -86,7 +88,6 @@ from probegrid.bake.records import (
     select_probes,
 )
 from probegrid.bake.render import ProbeRenderer, RenderSettings
-from probegrid import usercache
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.core import probefilter, sh
 from probegrid.core.conventions import conventions
@@ -330,6 +331,11 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     if ctx.level > 0:
         rec, path, rays = _weighted_records(state, batch, keep=False)
         cubes = None if state.data is None else state.data.cubes
+        if "gather_primary" in rec and ctx.level >= 2 and state.data is not None:
+            # the rays' own probe weights: the final view spreads the gather's noise over
+            # blocks around the grid read at each hit (records._smooth_gathered)
+            rec = dict(rec)
+            rec["weight_index"], rec["weight"] = hit_weights(rec, state.data)
     else:
         rec, path, rays = _block_records(state, batch)
         cubes = None

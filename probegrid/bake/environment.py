@@ -225,4 +225,4 @@ class EnvironmentLight:
         contrib[blocked] = 0.0
         for c in range(3):  # per channel: one bincount each
             out[:, c] = np.bincount(which, weights=contrib[:, c], minlength=n)
-        return out, int(len(which))
+        return out, len(which)

@@ -106,9 +106,9 @@ from probegrid.scene import Scene
 
 __all__ = [
     "RECORDS_MEMORY",
-    "irradiance_size",
     "RecordTracer",
     "irradiance_cubes",
+    "irradiance_size",
     "records_file",
     "replay",
 ]
@@ -615,6 +615,53 @@ def hit_weights(records: dict[str, NDArray[Any]], data: GridData
     return idx, w
 
 
+#: Side, in texels, of the blocks of a probe's faces over which :func:`_smooth_gathered`
+#: spreads the gather rays' noise.
+GATHER_BLOCK = 8
+
+
+def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
+                     rad: NDArray[np.float32], gathered: NDArray[np.float32],
+                     cubes: NDArray[np.float32], g: int) -> NDArray[np.float32]:
+    """What a probe sees of its hits' gathered light, with the gather rays' noise spread over
+    blocks of :data:`GATHER_BLOCK` texels: each front hit's ``albedo * gathered`` becomes
+    ``albedo * G`` (the grid read at the hit itself: smooth, but biased) plus the block's
+    solid-angle-weighted mean of ``albedo * (gathered - G)``. A block's integral is unchanged
+    (so is every diffuse map and SH, up to rounding); within a block the gather's mean
+    correction replaces its per-texel noise (two bakes of the sample room with other seeds:
+    10 % per texel apart in level 0 without it). Needs the rays' own probe weights."""
+    n, s = settings.face_size, settings.samples
+    nr = int(records["rays_per_probe"])
+    kind = records["kind"]
+    total = len(kind)
+    zeros = np.zeros((total, 3), np.float32)
+    _, at_hit = replay_radiance(kind, zeros, zeros, zeros, records["albedo"], records["normal"],
+                                records["weight_index"], records["weight"], cubes, g, FACE_U,
+                                FACE_V, 1, np.zeros((0, 3), np.float32))  # albedo * G
+    front = kind == 1
+    corr = np.where(front[:, None], records["albedo"].astype(np.float64) * gathered
+                    - at_hit.astype(np.float64), 0.0)
+    ray = np.arange(total)
+    probe, local = np.divmod(ray, nr)
+    texel = local // s
+    face, rest = np.divmod(texel, n * n)
+    row, col = np.divmod(rest, n)
+    bs = min(GATHER_BLOCK, n)
+    nb = -(-n // bs)
+    block = ((probe * 6 + face) * nb + row // bs) * nb + col // bs
+    w = texel_solid_angles(n).reshape(-1)[texel] * front
+    if s > 1:
+        w = w * np.concatenate([sample_pattern(settings, int(i))[1].reshape(-1)
+                                for i in records["probes"]])
+    den = np.bincount(block, weights=w, minlength=int(block.max()) + 1)
+    out = rad.astype(np.float64) - corr
+    for c in range(3):  # per channel: one bincount each
+        num = np.bincount(block, weights=w * corr[:, c], minlength=len(den))
+        mean = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
+        out[:, c] += np.where(front, mean[block], 0.0)
+    return np.maximum(out, 0.0).astype(np.float32)
+
+
 def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,
            cubes: NDArray[np.float32] | None, *, final: bool
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -641,6 +688,7 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
         return np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
 
     indirect = empty
+    grid_at_hits = empty
     if "gather_primary" in records:
         # final gather: the rays' hits read the light their gather rays bring back, the light
         # those rays' hits reflect at level - 1 (read from the grid of level - 2 at their hits)
@@ -656,11 +704,15 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
             for c in range(3):  # cosine-weighted rays: irradiance / pi is their mean radiance
                 indirect[:, c] = np.bincount(records["gather_primary"], weights=g_bnc[:, c],
                                              minlength=len(indirect)) * inv
+        grid_at_hits = cube_arr
         cube_arr = empty
     wi, ww = weights("")
     rad, bnc = replay_radiance(records["kind"], records["emission"], records["light_punctual"],
                                records["light_emitters"], records["albedo"], records["normal"],
                                wi, ww, cube_arr, g, FACE_U, FACE_V, level, indirect)
+    if (final and "gather_primary" in records and level >= 2 and grid_at_hits.shape[0]
+            and "weight_index" in records):
+        rad = _smooth_gathered(records, settings, rad, indirect, grid_at_hits, g)
     if not final and bool(records.get("sky_sampled", False)):
         # the environment reaches hits by sampling (light_emitters): the grid carries only
         # light reflected at least once, not what the probe's misses see of the sky

@@ -744,7 +744,7 @@ def _equirect_polar_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray
     reaches."""
     h, w, c = img.shape
     half = w // 2
-    fine, edges, cen, den, w32 = _sub_texel_grid(n, k)
+    _, _, cen, den, w32 = _sub_texel_grid(n, k)
     uu, vv = cen[None, :], cen[:, None]
     x = (np.arctan2(vv, uu) / (2.0 * np.pi) + 0.5) * w - 0.5       # +Y: d = (u, 1, v)
     y = (0.5 - np.arctan2(1.0, np.hypot(uu, vv)) / np.pi) * h - 0.5
@@ -811,7 +811,7 @@ def _angular_to_cube(img: NDArray[np.float32], n: int, k: int) -> NDArray[np.flo
     planes[:c, 1:-1, 1:-1] = np.where(inside[..., None], img, 0.0).transpose(2, 0, 1)
     planes[c, 1:-1, 1:-1] = inside
     planes = planes.reshape(c + 1, -1)
-    fine, edges, cen, den, w32 = _sub_texel_grid(n, k)
+    _, _, cen, den, w32 = _sub_texel_grid(n, k)
     rmax = max(1.0 - math.sqrt(2.0) / s, 0.0)
     out = np.empty((6, n, n, c), dtype=np.float32)
     for f in range(6):
