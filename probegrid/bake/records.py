@@ -35,7 +35,10 @@ at the gather rays' hits, for the light they reflect at level ``k - 1`` (the gri
 The probes' irradiance interpolated between them is then one reflection further from what is
 seen: read at the hit itself, it is the irradiance where the probes stand, not where the hit
 is (a ceiling above a floor's hot spot read a probe nearer the spot: 1.97x too bright;
-``tests/test_bake.py``). ``gather_samples = 0`` reads the grid at the hit.
+``tests/test_bake.py``). ``gather_samples = 0`` reads the grid at the hit. What the probe
+itself finally sees of that light is the grid read at each hit plus the gather's mean
+correction over blocks of texels (:func:`_smooth_gathered`): the integrals are the gather's,
+the per-texel noise a quarter of it.
 
 What the grid carries
 ---------------------
