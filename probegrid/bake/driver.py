@@ -19,8 +19,9 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    worker) and returns only the probe's small data: distance moments and the irradiance cube of
    its bounced light at level 0.
 3. **bounce 1 .. B-1** -- a pass over the records per bounce, no ray cast
-   (:func:`probegrid.bake.records.replay`): each hit reads the previous level's irradiance cubes
-   of its 8 probes (DDGI weights computed once, in the first pass, and kept with the records);
+   (:func:`probegrid.bake.records.replay`): each gather ray's hit (each hit, without gather
+   rays) reads a lower level's irradiance cubes of its 8 probes (DDGI weights computed once, in
+   the first pass, and kept with the records);
    only the grid's per-probe irradiance cubes move between the driver and the workers. With
    ``bounces="converge"`` the passes go on until the estimated limit of the grid's total energy
    (over valid probes; :mod:`probegrid.bake.converge`) changes by less than ``tolerance``
