@@ -365,6 +365,25 @@ def test_one_point_scalar_path_equals_the_vectorised_one(grid):
             assert i1 == idx[k].tolist() and w1 == w[k].tolist() and o1 == out[k]
 
 
+@pytest.mark.parametrize("grid", SCALAR_GRIDS, ids=[g.label for g in SCALAR_GRIDS])
+def test_one_point_with_a_normal_scalar_path_equals_the_vectorised_one(grid):
+    """With a normal (and no moments: the exact segment test replaces them), the single-point
+    path gives the vectorised path's indices and flags exactly and its weights to rounding,
+    with moved probes and invalid ones."""
+    pts = _edge_points(grid, 300, seed=grid.n_probes + 1)[:80]
+    pts = np.clip(pts, -1e6, 1e6)
+    rng = np.random.default_rng(2)
+    normals = rng.normal(size=(len(pts), 3))
+    moved = grid.positions() + rng.normal(scale=0.1, size=(grid.n_probes, 3))
+    for valid, pos in ((None, None), (rng.random(grid.n_probes) < 0.6, moved)):
+        many = probe_weights(grid, pts, valid=valid, normals=normals, probe_positions=pos)
+        for k, p in enumerate(pts):
+            one = probe_weights(grid, p, valid=valid, normals=normals[k], probe_positions=pos)
+            np.testing.assert_array_equal(one.indices[0], many.indices[k])
+            np.testing.assert_array_equal(one.unlit[0], many.unlit[k])
+            np.testing.assert_allclose(one.weights[0], many.weights[k], rtol=1e-12, atol=1e-300)
+
+
 def test_blend_of_a_batch_equals_the_blend_of_each_point(field):
     pts = _edge_points(GRID, 100, seed=3)
     w = field.weights(pts)

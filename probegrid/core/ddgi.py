@@ -180,6 +180,14 @@ def _points(points: ArrayLike, name: str) -> NDArray[np.float64]:
 
 def _unit_rows(v: NDArray[np.float64], name: str) -> NDArray[np.float64]:
     """Rows scaled to unit length, robust to huge or tiny components; zero rows are an error."""
+    if v.shape[0] == 1:  # one row: :func:`unit_vectors`' operations on Python floats
+        x, y, z = v[0].tolist()
+        scale = max(abs(x), abs(y), abs(z))
+        if scale == 0:
+            raise ValueError(f"{name} must be non-zero vectors.")
+        x, y, z = x / scale, y / scale, z / scale
+        norm = math.sqrt(x * x + y * y + z * z)
+        return np.array([[x / norm, y / norm, z / norm]])
     if not np.all(np.any(v != 0, axis=-1)):
         raise ValueError(f"{name} must be non-zero vectors.")
     return unit_vectors(v)
@@ -249,8 +257,8 @@ def probe_weights(
     v = None if valid is None else np.asarray(valid, dtype=bool)
     if occluded is not None:
         moments = None  # the exact test replaces the Chebyshev estimate
-    if n is None and p.shape[0] == 1:
-        w = _weights_one(grid, p, v)
+    if p.shape[0] == 1 and (n is None or moments is None):
+        w = _weights_one(grid, p, v, None if n is None else n[0], probe_positions)
     else:
         parts = [
             _weights(grid, p[i:i + _POINT_CHUNK], v, None if n is None else n[i:i + _POINT_CHUNK],
@@ -272,8 +280,14 @@ def probe_weights(
 
 def _test_point_offset(grid: GridSpec, normal_bias: float) -> float:
     """``normal_bias`` in world units: times the smallest cell size (0 for a single probe)."""
+    return normal_bias * _smallest_cell(grid)
+
+
+@lru_cache(maxsize=64)
+def _smallest_cell(grid: GridSpec) -> float:
+    """The smallest cell size over axes with more than one probe (0 for a single probe)."""
     cells = grid.cell_size[np.array(grid.counts) > 1]
-    return normal_bias * (float(cells.min()) if cells.size else 0.0)
+    return float(cells.min()) if cells.size else 0.0
 
 
 def _probe_xyz(grid: GridSpec, indices: NDArray[np.int64],
@@ -375,28 +389,43 @@ def _hide_occluded_one(
 
 
 def _weights_one(
-    grid: GridSpec, p: NDArray[np.float64], valid: NDArray[np.bool_] | None
+    grid: GridSpec, p: NDArray[np.float64], valid: NDArray[np.bool_] | None,
+    normal: NDArray[np.float64] | None = None, probe_positions: ArrayLike | None = None,
 ) -> ProbeWeights:
-    """:func:`_weights` of a single point ``p (1, 3)`` without normals, in Python floats.
+    """:func:`_weights` of a single point ``p (1, 3)``, in Python floats, without moments
+    (with or without a unit ``normal``).
 
     numpy's per-call overhead is most of the cost of one point, so this scalar path repeats
     :func:`_weights`' operations on Python floats (:meth:`GridSpec.point_corners`, then the
-    validity mask, numpy's pairwise order for the sum of 8 weights, and the division); the
-    result equals :func:`_weights`' bit for bit (tested; a zero weight may differ in sign,
-    which no consumer sees: only weights > 0 are used).
+    validity mask, :func:`_shading_factor`'s normal-facing term, floor and crush when there is
+    a normal, numpy's pairwise order for the sum of 8 weights, and the division). Without a
+    normal the result equals :func:`_weights`' bit for bit; with one, to rounding (numpy may
+    add the dot product's three terms in another order) (tested; a zero weight may differ in
+    sign, which no consumer sees: only weights > 0 are used).
     """
     x, y, z = p[0].tolist()
     indices, tri, outside = grid.point_corners(x, y, z)
     if valid is not None:  # ``trilinear * valid[indices]``: t * 1.0 or t * 0.0
         tri = [t if valid[i] else t * 0.0 for i, t in zip(indices, tri, strict=True)]
+    (lx, ly, lz), (hx, hy, hz) = grid.bounds_min, grid.bounds_max
+    # np.minimum(np.maximum(p, lo), hi)
+    clamped = [min(hx, max(lx, x)), min(hy, max(ly, y)), min(hz, max(lz, z))]
+    if normal is not None:
+        nx, ny, nz = normal.tolist()
+        cx, cy, cz = clamped
+        corners = _probe_xyz(grid, np.array(indices), probe_positions).tolist()
+        crush2 = CRUSH_THRESHOLD * CRUSH_THRESHOLD
+        for c, (px, py, pz) in enumerate(corners):
+            dx, dy, dz = px - cx, py - cy, pz - cz
+            norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dot = (dx * nx + dy * ny + dz * nz) / norm if norm > 1e-300 else 0.0
+            f = max(((dot + 1.0) * 0.5) ** 2 + NORMAL_TERM_FLOOR, MIN_WEIGHT)
+            tri[c] = tri[c] * (f * f * f / crush2 if f < CRUSH_THRESHOLD else f)
     w0, w1, w2, w3, w4, w5, w6, w7 = tri
     total = ((w0 + w1) + (w2 + w3)) + ((w4 + w5) + (w6 + w7))  # np.sum's order for 8 values
     unlit = total <= 0
     if unlit:
         total = 1.0  # and the weights are all 0
-    (lx, ly, lz), (hx, hy, hz) = grid.bounds_min, grid.bounds_max
-    # np.minimum(np.maximum(p, lo), hi)
-    clamped = [min(hx, max(lx, x)), min(hy, max(ly, y)), min(hz, max(lz, z))]
     return ProbeWeights(
         indices=np.array([indices], dtype=np.int64),
         weights=np.array([[t / total for t in tri]], dtype=np.float64),
