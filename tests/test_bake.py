@@ -486,8 +486,8 @@ def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold
     monkeypatch.setattr(rc, "_smooth_gathered", checked)
     incoming = []
     for seed in (0, 1):
-        st = BakeSettings(face_size=16, diffuse_size=4, moments_size=4, bounces=2, seed=seed,
-                          store_incoming=True)
+        st = BakeSettings(face_size=16, diffuse_size=4, moments_size=4, bounces=3, seed=seed,
+                          store_incoming=True)  # (bounce 3 reads the grid of bounce 0)
         s = bake(scene, grid, tmp_path / f"s{seed}.probes", settings=st).store
         incoming.append(np.asarray(s["incoming"], np.float64))
     assert integrals
@@ -602,8 +602,8 @@ def test_converged_bounces_match_the_furnace_series(tmp_path):
     limit = le / (1 - rho)
     np.testing.assert_allclose(report.store["diffuse"], limit, rtol=1e-3)  # the quadrature
     np.testing.assert_allclose(report.store["sh"][:, 0], 2 * np.sqrt(np.pi) * limit, rtol=1e-4)
-    np.testing.assert_allclose(q["bounce_extrapolation"], rho**2 / (1 - rho**2), rtol=1e-3)
-    assert q["bounce_passes"] == q["bounces"] - 2 and 5 <= q["bounce_passes"] < st.max_bounces
+    np.testing.assert_allclose(q["bounce_extrapolation"], rho**3 / (1 - rho**3), rtol=1e-3)
+    assert q["bounce_passes"] == q["bounces"] - 3 and 7 <= q["bounce_passes"] < st.max_bounces
     assert 0 <= q["bounce_residual"] < st.tolerance
     assert q["bounce_energy_limit"] > q["bounce_energy"][-1]
     fixed = bake(scene, grid, tmp_path / "g.probes",
@@ -624,7 +624,12 @@ def test_progress_names_the_bounces(tmp_path):
 
     bake(scene, grid, tmp_path / "a.probes", settings=BakeSettings(bounces=3, **FAST),
          progress=note)
-    # (with gather rays, the final pass at bounce 3 reads the grid of bounce 1: no pass 2)
+    # (two gather levels: the final pass at bounce 3 reads the grid of bounce 0; one level:
+    # the grid of bounce 1, no pass 2)
+    assert stages == ["classify", "bounce 0 of 3 (tracing)", "bounce 3 of 3 (final)"]
+    stages.clear()
+    bake(scene, grid, tmp_path / "d.probes", settings=BakeSettings(bounces=3, gather_depth=1,
+                                                                     **FAST), progress=note)
     assert stages == ["classify", "bounce 0 of 3 (tracing)", "bounce 1 of 3",
                       "bounce 3 of 3 (final)"]
     stages.clear()

@@ -17,13 +17,15 @@ def _series(ratios, n, e0=1.0, d1=1.0):
     return e
 
 
-@pytest.mark.parametrize("ratios", [(0.6,), (0.58, 0.63), (0.3, 0.9)])
-def test_a_geometric_series_of_pairs_is_extrapolated_to_its_limit(ratios):
-    """Increments alternating between two ratios (gather rays) have pairs shrinking by their
-    product: the estimate is the exact limit, and the run stops at the first comparison."""
-    e = _series(ratios, MIN_PASSES)
-    c = convergence(e, 1e-3)
-    q = np.prod(ratios) if len(ratios) == 2 else ratios[0] ** 2
+@pytest.mark.parametrize("ratios", [(0.6,), (0.58, 0.63), (0.3, 0.9), (0.5, 0.7, 0.6)])
+def test_a_geometric_series_of_groups_is_extrapolated_to_its_limit(ratios):
+    """Increments cycling through p ratios (a pass reads the grid p levels down) have groups of
+    p shrinking by their product: the estimate is the exact limit, and the run stops at the
+    first comparison."""
+    p = max(len(ratios), 2)
+    e = _series(ratios, 2 * p + 1)
+    c = convergence(e, 1e-3, p)
+    q = np.prod(ratios) if len(ratios) == p else ratios[0] ** p
     # the limit of the series: E_0 + d1 * (1 + r1 + r1 r2 + ...) summed in closed form
     long = _series(ratios, 400)
     assert c.done and c.limit == pytest.approx(long[-1], rel=1e-12)

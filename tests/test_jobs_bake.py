@@ -170,7 +170,7 @@ def test_the_estimate_matches_the_store_and_is_printed(tmp_path, scene_file, cap
     assert abs(est.store_bytes - real) <= 0.05 * real, (est.store_bytes, real)
     assert "estimate: 27 probes" in err and "store " in err and "peak worker memory" in err
     assert est.primary_rays == 27 * 6 * 16 * 16  # cast once: the bounces replay the records
-    assert est.gather_rays == 2 * est.primary_rays  # two from every hit at most
+    assert est.gather_rays == 4 * est.primary_rays  # two from every hit, one from each of theirs
     # one light: a shadow ray per hit (the gather rays' hits too) at most, and one per probe
     assert est.shadow_rays == est.primary_rays + est.gather_rays + 27
 

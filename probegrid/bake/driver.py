@@ -179,6 +179,7 @@ class _Context:
         tracer = RecordTracer(self.scene, self.environment, self.render,
                               light_samples=self.settings.light_samples,
                               gather_samples=self.settings.gather_samples,
+                              gather_depth=self.settings.gather_depth,
                               tracer=RayTracer.shared(self.scene))
         data = None
         if self.moments_bordered is not None:
@@ -681,21 +682,21 @@ def bake(
         def grid_energy(store: StoreWriter | ProbeStore) -> float:
             return float(np.sum(np.asarray(store["energy"])[valid]))
 
-        gather = st.gather_samples > 0
+        depth = st.gather_depth if st.gather_samples > 0 else 0  # gather levels
         cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
 
         def cubes_for(k: int) -> NDArray[np.float32] | str | None:
             """The grid a pass at bounce k reads (records.grid_level_read)."""
-            return cubes_at.get(grid_level_read(k, gather))
+            return cubes_at.get(grid_level_read(k, depth))
 
         energies = [grid_energy(tstore)]
         irradiance_at = {0: tstore["irradiance"]}
         residual: float | None = None
         state = Convergence(False, None)
-        step = 2 if gather else 1  # the final pass at level L reads the grid of level L - step
+        step = 1 + depth  # the final pass at level L reads the grid of level L - step
         k = 0
         while True:  # bounce k: a pass over the records that makes the grid of level k
-            if not converge and k >= grid_level_read(cap, gather):
+            if not converge and k >= grid_level_read(cap, depth):
                 level = cap
                 break
             if converge and k + step >= cap:
@@ -712,16 +713,17 @@ def bake(
             irradiance_at[k] = bstore["irradiance"]
             energies.append(grid_energy(bstore))
             if converge:
-                state = convergence(energies, st.tolerance)
+                state = convergence(energies, st.tolerance, max(step, 2))
                 residual = state.residual
                 if state.done:
                     level = k + step
                     break
         final_cubes = cubes_for(level) if level > 0 else None
-        if state.factor is not None and k >= 2:
+        period = max(step, 2)
+        if state.factor is not None and k >= period:
             # the final pass reads the extrapolated limit of the grid (bake.converge)
             g_k = np.asarray(irradiance_at[k], dtype=np.float64)
-            limit = g_k + (g_k - np.asarray(irradiance_at[k - 2], np.float64)) * state.factor
+            limit = g_k + (g_k - np.asarray(irradiance_at[k - period], np.float64)) * state.factor
             cubes = bordered_cubes(limit.astype(np.float32))
             final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
                            else cubes)

@@ -236,9 +236,9 @@ class BakeEstimate:
     classify_rays, primary_rays, gather_rays, shadow_rays : int
         Rays of the classification (without relocation's extra points), the probes' own rays
         (each cast once: the bounces replay their records), at most the gather rays (``K`` from
-        every hit) and at most the shadow rays of all their hits (one per punctual light, and
-        ``--light-samples`` toward the emitters and the environment each; one each at a gather
-        ray's hit).
+        every hit, and with ``gather_depth = 2`` one more from each of theirs) and at most the
+        shadow rays of all their hits (one per punctual light, and ``--light-samples`` toward
+        the emitters and the environment each; one each at a gather ray's hit).
     store_bytes : int
         Size of the finished store: every array's ``.npy`` file and the manifest.
     work_bytes : int
@@ -320,7 +320,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     sky = "the environment" in sources  # sampled as a light at every hit
     # (at most: samples below a hit's horizon cast no ray)
     per_hit = lights + st.light_samples * (int(emitters) + int(sky))
-    gather = primary * st.gather_samples
+    gather = primary * st.gather_samples * st.gather_depth  # (one more per hit per level)
     shadow = (primary * per_hit + gather * (lights + int(emitters) + int(sky))
               + (p * lights if st.direct else 0))
     classify = p * (6 * CLASSIFY_FACE_SIZE**2 + DIRECTIONS)
