@@ -170,7 +170,12 @@ def test_the_estimate_matches_the_store_and_is_printed(tmp_path, scene_file, cap
     assert abs(est.store_bytes - real) <= 0.05 * real, (est.store_bytes, real)
     assert "estimate: 27 probes" in err and "store " in err and "peak worker memory" in err
     assert est.primary_rays == 27 * 6 * 16 * 16  # cast once: the bounces replay the records
-    assert est.gather_rays == 4 * est.primary_rays  # two from every hit, one from each of theirs
+    # two from every hit; at --bounces 1 a second level would carry no light and is not cast
+    assert st.gather_levels() == 1 and est.gather_rays == 2 * est.primary_rays
+    deep = estimate(BakeSettings(face_size=16, diffuse_size=4), store.grid, scene)
+    assert deep.gather_rays == 4 * deep.primary_rays  # converging: one more from each of theirs
+    assert [BakeSettings(bounces=b).gather_levels() for b in (0, 1, 2, 5)] == [0, 1, 2, 2]
+    assert BakeSettings(gather_samples=0).gather_levels() == 0
     # one light: a shadow ray per hit (the gather rays' hits too) at most, and one per probe
     assert est.shadow_rays == est.primary_rays + est.gather_rays + 27
 

@@ -178,8 +178,9 @@ class _Context:
         positions, valid = _array(self.positions), _array(self.valid)
         tracer = RecordTracer(self.scene, self.environment, self.render,
                               light_samples=self.settings.light_samples,
-                              gather_samples=self.settings.gather_samples,
-                              gather_depth=self.settings.gather_depth,
+                              gather_samples=(self.settings.gather_samples
+                                              if self.settings.gather_levels() else 0),
+                              gather_depth=max(self.settings.gather_levels(), 1),
                               tracer=RayTracer.shared(self.scene))
         data = None
         if self.moments_bordered is not None:
@@ -645,7 +646,7 @@ def bake(
                    else "probegrid-records-" + hashlib.sha256(
                        (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
         m = render.moments_size
-        g = irradiance_size(st.gather_samples > 0)
+        g = irradiance_size(st.gather_levels() > 0)
         grid_arrays = {
             "irradiance": ArraySpec((6, g, g, 3), "float32", "irradiance / pi of bounced light"),
             "energy": ArraySpec((), "float64", "solid-angle integral of the bounced light"),
@@ -682,7 +683,7 @@ def bake(
         def grid_energy(store: StoreWriter | ProbeStore) -> float:
             return float(np.sum(np.asarray(store["energy"])[valid]))
 
-        depth = st.gather_depth if st.gather_samples > 0 else 0  # gather levels
+        depth = st.gather_levels()
         cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
 
         def cubes_for(k: int) -> NDArray[np.float32] | str | None:

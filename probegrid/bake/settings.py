@@ -63,6 +63,14 @@ class BakeSettings(BaseModel):
             raise ValueError(f"bounces must be 0..64 or 'converge', got {v!r}")
         return v
 
+    def gather_levels(self) -> int:
+        """Gather levels the bake traces: ``gather_depth`` (0 without gather rays), at most the
+        fixed bounce count (a level deeper than the bounces would carry no light)."""
+        if self.gather_samples == 0:
+            return 0
+        return self.gather_depth if self.bounces == "converge" else min(self.gather_depth,
+                                                                        int(self.bounces))
+
     def levels(self) -> int:
         """Specular mip levels (the full chain of ``face_size`` by default)."""
         return len(mip_sizes(self.face_size, self.specular_levels))

@@ -320,7 +320,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     sky = "the environment" in sources  # sampled as a light at every hit
     # (at most: samples below a hit's horizon cast no ray)
     per_hit = lights + st.light_samples * (int(emitters) + int(sky))
-    gather = primary * st.gather_samples * st.gather_depth  # (one more per hit per level)
+    gather = primary * st.gather_samples * st.gather_levels()  # (one more per hit per level)
     shadow = (primary * per_hit + gather * (lights + int(emitters) + int(sky))
               + (p * lights if st.direct else 0))
     classify = p * (6 * CLASSIFY_FACE_SIZE**2 + DIRECTIONS)
@@ -332,7 +332,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     # work files: the classification, the per-hit records of every traced ray (kept until the
     # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
     # moments, the done masks
-    g = irradiance_size(st.gather_samples > 0)
+    g = irradiance_size(st.gather_levels() > 0)
     work = npy((3,), "float64") + npy((), "bool") + npy((), "float64") + npy((), "bool")
     work += (primary + gather) * RECORD_BYTES_PER_RAY
     work += 2 * npy((6, g, g, 3), "float32") + npy((6, m, m, 2), "float32") + npy((), "bool")
@@ -344,7 +344,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     env_bytes = 0
     if environment is not None and environment.faces is not None:
         env_bytes = 3 * environment.faces.nbytes
-    batch_rays = min(st.batch_size, p) * per_probe_rays * (1 + st.gather_samples)
+    batch_rays = min(st.batch_size, p) * per_probe_rays * (1 + gather // max(primary, 1))
     cube = 6 * n * n * 3 * 4
     if probefilter.supported(n, st.diffuse_size):
         sizes = (st.diffuse_size, *mip_sizes(n, st.specular_levels)[1:])
