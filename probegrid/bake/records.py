@@ -739,38 +739,38 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
             return records[prefix + "weight_index"], records[prefix + "weight"]
         return np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
 
+    def gathered(prefix: str, parents: int, at: int, grid: NDArray[np.float32],
+                 below: NDArray[np.float32]) -> NDArray[np.float32]:
+        """What the ``prefix`` rays bring back to each of ``parents`` hits at bounce ``at`` (the
+        light their own hits reflect, ``below`` gathered there): their mean radiance, the
+        parent's irradiance / pi (cosine-weighted rays)."""
+        out = np.zeros((parents, 3), np.float32)
+        if at < 0:
+            return out
+        wi_, ww_ = weights(prefix)
+        _, radiance = replay_radiance(
+            records[prefix + "kind"], records[prefix + "emission"],
+            records[prefix + "light_punctual"], records[prefix + "light_emitters"],
+            records[prefix + "albedo"], records[prefix + "normal"], wi_, ww_, grid, g, FACE_U,
+            FACE_V, at, below)
+        parent = records[prefix + "primary"]
+        rays = np.bincount(parent, minlength=parents).astype(np.float64)
+        for c in range(3):  # per channel: one bincount each
+            total = np.bincount(parent, weights=radiance[:, c], minlength=parents)
+            out[:, c] = np.divide(total, rays, out=np.zeros(parents), where=rays > 0)
+        return out
+
     indirect = empty
     grid_at_hits = empty
     if "gather_primary" in records:
         # final gather: the rays' hits read the light their gather rays bring back, the light
-        # those rays' hits reflect at level - 1 (read from the grid of level - 2 at their hits)
-        gi, gw = weights("gather_")
-        indirect = np.zeros((len(records["kind"]), 3), np.float32)
-        ind1, g1_cubes = empty, cube_arr
+        # those rays' hits reflect at level - 1; the deepest level's hits read the grid
+        deeper = empty
+        grid = cube_arr
         if "gather2_primary" in records:
-            g2i, g2w = weights("gather2_")
-            ind1 = np.zeros((len(records["gather_kind"]), 3), np.float32)
-            if level > 1:
-                _, g2_bnc = replay_radiance(
-                    records["gather2_kind"], records["gather2_emission"],
-                    records["gather2_light_punctual"], records["gather2_light_emitters"],
-                    records["gather2_albedo"], records["gather2_normal"], g2i, g2w, cube_arr, g,
-                    FACE_U, FACE_V, level - 2, empty)
-                inv2 = 1.0  # one ray from every gather hit
-                for c in range(3):
-                    ind1[:, c] = np.bincount(records["gather2_primary"], weights=g2_bnc[:, c],
-                                             minlength=len(ind1)) * inv2
-            g1_cubes = empty
-        if level > 0:
-            _, g_bnc = replay_radiance(
-                records["gather_kind"], records["gather_emission"],
-                records["gather_light_punctual"], records["gather_light_emitters"],
-                records["gather_albedo"], records["gather_normal"], gi, gw, g1_cubes, g,
-                FACE_U, FACE_V, level - 1, ind1)
-            inv = 1.0 / int(records["gather_samples"])
-            for c in range(3):  # cosine-weighted rays: irradiance / pi is their mean radiance
-                indirect[:, c] = np.bincount(records["gather_primary"], weights=g_bnc[:, c],
-                                             minlength=len(indirect)) * inv
+            deeper = gathered("gather2_", len(records["gather_kind"]), level - 2, grid, empty)
+            grid = empty
+        indirect = gathered("gather_", len(records["kind"]), level - 1, grid, deeper)
         grid_at_hits = cube_arr
         cube_arr = empty
     wi, ww = weights("")
