@@ -112,8 +112,7 @@ class ProbeField:
         if {"scene_vertices", "scene_triangles"} <= extras:
             self.tracer = RayTracer(store.arrays["scene_vertices"],
                                     store.arrays["scene_triangles"])
-            cells = self.grid.cell_size[np.array(self.grid.counts) > 1]
-            margin = SEGMENT_MARGIN * (float(cells.min()) if cells.size else 1.0)
+            margin = SEGMENT_MARGIN * self.grid.smallest_cell(default=1.0)
             self._occluded = partial(self.tracer.segments_occluded, margin=margin)
         self._stored_deringed = "sh_deringed" in extras and "sh" in names
         if self._stored_deringed:

@@ -110,8 +110,7 @@ def probe_filter_matrix(n: int, diffuse_size: int, levels: int) -> NDArray[np.fl
     bits; about 1 s saved per bake worker at faces 32), kept per process (read-only)."""
     from probegrid.core import probefilter
 
-    sizes = probefilter.filter_sizes(n, diffuse_size, levels)
-    shape = (sum(6 * s * s for s in sizes), 6 * int(n) * int(n))
+    shape = probefilter.filter_matrix_shape(n, diffuse_size, levels)
     return cached_array("probe_filter", {"n": int(n), "diffuse_size": int(diffuse_size),
                                          "levels": int(levels),
                                          "version": probefilter.MATRIX_VERSION},

@@ -75,6 +75,7 @@ from probegrid.bake.records import (
     GridData,
     RecordTracer,
     all_hit_weights,
+    gather_depth,
     grid_level_read,
     has_hit_weights,
     hit_weights,
@@ -230,10 +231,9 @@ def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
 def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     ctx = state.ctx
     lattice = ctx.grid.positions()[batch]
-    cells = ctx.grid.cell_size[np.array(ctx.grid.counts) > 1]
     # enclosed: every ray hits within this distance (inside a double-sided solid or a cavity
     # smaller than the grid resolves); 0 (no cell, or the setting 0) disables the test
-    reach = ctx.settings.enclosure * (float(cells.min()) if cells.size else 0.0)
+    reach = ctx.settings.enclosure * ctx.grid.smallest_cell()
 
     def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
         frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
@@ -283,7 +283,7 @@ def _bounced_outputs(rec: dict[str, Any], settings: RenderSettings, level: int,
                      cubes: NDArray[np.float32] | None) -> dict[str, Any]:
     """A bounce's per-probe outputs: the irradiance cube of the bounced light and its energy."""
     cube, _ = replay(rec, settings, level, cubes, final=False)
-    irr = irradiance_cubes(cube, irradiance_size("gather_primary" in rec))
+    irr = irradiance_cubes(cube, irradiance_size(gather_depth(rec) > 0))
     energy = np.array([float(solid_angle_integral(c).sum()) for c in cube])
     return {"irradiance": irr, "energy": energy}
 
@@ -334,7 +334,7 @@ def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     if ctx.level > 0:
         rec, path, rays = _weighted_records(state, batch, keep=False)
         cubes = None if state.data is None else state.data.cubes
-        if "gather_primary" in rec and ctx.level >= 2 and state.data is not None:
+        if gather_depth(rec) and ctx.level >= 2 and state.data is not None:
             # the rays' own probe weights: the final view spreads the gather's noise over
             # blocks around the grid read at each hit (records._smooth_gathered)
             rec = dict(rec)
@@ -695,6 +695,7 @@ def bake(
         residual: float | None = None
         state = Convergence(False, None)
         step = 1 + depth  # the final pass at level L reads the grid of level L - step
+        period = max(step, 2)  # increments that cycle together (probegrid.bake.converge)
         k = 0
         while True:  # bounce k: a pass over the records that makes the grid of level k
             if not converge and k >= grid_level_read(cap, depth):
@@ -714,13 +715,12 @@ def bake(
             irradiance_at[k] = bstore["irradiance"]
             energies.append(grid_energy(bstore))
             if converge:
-                state = convergence(energies, st.tolerance, max(step, 2))
+                state = convergence(energies, st.tolerance, period)
                 residual = state.residual
                 if state.done:
                     level = k + step
                     break
         final_cubes = cubes_for(level) if level > 0 else None
-        period = max(step, 2)
         if state.factor is not None and k >= period:
             # the final pass reads the extrapolated limit of the grid (bake.converge)
             g_k = np.asarray(irradiance_at[k], dtype=np.float64)

@@ -53,6 +53,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid.core.arrays import sum_rows
 from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, texel_solid_angles
 from probegrid.kernels import emitter_irradiance, emitter_shadow_rays, texel_emitter_coverage
 from probegrid.raytrace import RayTracer
@@ -165,17 +166,13 @@ class Emitters:
             return out, 0
         blocked = tracer.occluded(org, dirs, tmax, tmin=eps)
         seen = np.where(blocked[:, None], 0.0, vis - occ)  # Le g / (L p) where visible
-        plain = np.zeros((n, 3))
-        for c in range(3):  # per channel: one bincount each
-            plain[:, c] = np.bincount(which, weights=seen[:, c], minlength=n)
+        plain = sum_rows(which, seen, n)
         if not self.analytic:
             return plain, len(which)
         # the exact unoccluded integral scaled by the samples' visible share (ratio estimator);
         # where no sample saw the control (all on the point's own plane, say), the control
         # variate's estimate, A + sum of the contributions
-        whole = np.zeros((n, 3))
-        for c in range(3):
-            whole[:, c] = np.bincount(which, weights=-occ[:, c], minlength=n)  # Lc g / (L p)
+        whole = sum_rows(which, -occ, n)  # Lc g / (L p)
         ok = whole > 0.0
         out = np.where(ok, out * np.divide(plain, whole, out=np.zeros_like(plain), where=ok),
                        out + plain)
@@ -230,10 +227,7 @@ class Emitters:
         sa = texel_solid_angles(n).reshape(-1)
         value = radiance * (omega * visible / sa[tex])[:, None]
         uniq, inv = np.unique(tex, return_inverse=True)
-        out = np.zeros((len(uniq), 3))
-        for c in range(3):
-            out[:, c] = np.bincount(inv, weights=value[:, c], minlength=len(uniq))
-        return uniq, out, int(ok.sum())
+        return uniq, sum_rows(inv, value, len(uniq)), int(ok.sum())
 
     def _radiance_at(self, e: NDArray[np.int64], points: NDArray[np.float64]
                      ) -> NDArray[np.float64]:

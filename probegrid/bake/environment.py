@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid.core.arrays import sum_rows
 from probegrid.core.color import luminance
 from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, check_cube, texel_solid_angles
 from probegrid.core.sampling import CubeSampler, resample
@@ -223,6 +224,4 @@ class EnvironmentLight:
         blocked = tracer.occluded(np.asarray(points, dtype=np.float64)[which], dirs,
                                   np.full(len(which), np.inf), tmin=eps)
         contrib[blocked] = 0.0
-        for c in range(3):  # per channel: one bincount each
-            out[:, c] = np.bincount(which, weights=contrib[:, c], minlength=n)
-        return out, len(which)
+        return sum_rows(which, contrib, n), len(which)

@@ -84,6 +84,7 @@ from threadpoolctl import threadpool_limits
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment, EnvironmentLight
 from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
+from probegrid.core.arrays import sum_rows
 from probegrid.core.cubemap import (
     FACE_U,
     FACE_V,
@@ -128,6 +129,28 @@ def irradiance_size(gather: bool) -> int:
 
 _RECORD_KEYS = ("kind", "emission", "light_punctual", "light_emitters", "albedo", "position",
                 "normal")
+
+#: Key prefix of each level's records: the probes' rays, then each gather level (the rays of
+#: level ``d`` name their parent hit of level ``d - 1`` in ``PREFIX + "primary"``).
+_LEVELS = ("", "gather_", "gather2_")
+
+
+def gather_depth(records: dict[str, NDArray[Any]]) -> int:
+    """Gather levels the records hold: 0 (none), 1 (``gather_*``) or 2 (``gather2_*`` too)."""
+    return sum(1 for prefix in _LEVELS[1:] if prefix + "primary" in records)
+
+
+def _new_records(k: int) -> dict[str, NDArray[Any]]:
+    """Empty records (:data:`_RECORD_KEYS`) of ``k`` rays: misses."""
+    return {
+        "kind": np.zeros(k, np.uint8),
+        "emission": np.zeros((k, 3), np.float32),
+        "light_punctual": np.zeros((k, 3), np.float32),
+        "light_emitters": np.zeros((k, 3), np.float32),
+        "albedo": np.zeros((k, 3), np.float32),
+        "position": np.zeros((k, 3), np.float64),
+        "normal": np.zeros((k, 3), np.float32),
+    }
 
 
 def _stream(seed: int, index: int, purpose: int) -> np.random.Generator:
@@ -323,25 +346,17 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
     for k in (*_RECORD_KEYS, "weight_index", "weight"):
         if k in records:
             out[k] = records[k][ray_rows]
-    if "gather_primary" in records:  # the gather rays of the kept rays, renumbered
-        new_row = np.full(len(records["kind"]), -1, np.int64)
-        new_row[ray_rows] = np.arange(len(ray_rows))
-        g_new = new_row[records["gather_primary"]]
-        g_rows = np.flatnonzero(g_new >= 0)
+    kept, parents = ray_rows, len(records["kind"])
+    for prefix in _LEVELS[1:gather_depth(records) + 1]:  # each level's rays of kept parents
+        new_row = np.full(parents, -1, np.int64)
+        new_row[kept] = np.arange(len(kept))
+        mapped = new_row[records[prefix + "primary"]]
+        rows_k = np.flatnonzero(mapped >= 0)
         for k in records:
-            if k.startswith("gather_") and k not in ("gather_primary", "gather_samples"):
-                out[k] = records[k][g_rows]
-        out["gather_primary"] = g_new[g_rows]
-        out["gather_samples"] = records["gather_samples"]
-        if "gather2_primary" in records:  # the second level's rays of the kept gather rays
-            new_g = np.full(len(records["gather_kind"]), -1, np.int64)
-            new_g[g_rows] = np.arange(len(g_rows))
-            g2_new = new_g[records["gather2_primary"]]
-            g2_rows = np.flatnonzero(g2_new >= 0)
-            for k in records:
-                if k.startswith("gather2_") and k != "gather2_primary":
-                    out[k] = records[k][g2_rows]
-            out["gather2_primary"] = g2_new[g2_rows]
+            if k.startswith(prefix) and k != prefix + "primary":
+                out[k] = records[k][rows_k]
+        out[prefix + "primary"] = mapped[rows_k]
+        kept, parents = rows_k, len(records[prefix + "kind"])
     for k in ("backface_fraction",):
         out[k] = records[k][rows]
     for k, off in (("view", "view_offsets"), ("lights", "lights_offsets")):
@@ -401,15 +416,7 @@ class RecordTracer:
         rd = self.renderer
         eps = st.ray_offset
         k = len(dirs)
-        rec = {
-            "kind": np.zeros(k, np.uint8),
-            "emission": np.zeros((k, 3), np.float32),
-            "light_punctual": np.zeros((k, 3), np.float32),
-            "light_emitters": np.zeros((k, 3), np.float32),
-            "albedo": np.zeros((k, 3), np.float32),
-            "position": np.zeros((k, 3), np.float64),
-            "normal": np.zeros((k, 3), np.float32),
-        }
+        rec = _new_records(k)
         hits = self.tracer.intersect(origins, dirs)
         rays = k
         miss = hits.prim_id < 0
@@ -434,9 +441,7 @@ class RecordTracer:
         if len(which):
             occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
             rays += len(which)
-            for c in range(3):
-                e_p[:, c] = np.bincount(which, weights=np.where(occluded, 0.0, s_irr[:, c]),
-                                        minlength=len(fh))
+            e_p = sum_rows(which, np.where(occluded[:, None], 0.0, s_irr), len(fh))
         rec["light_punctual"][rows] = e_p / np.pi
         # lit a ray offset short of the hit: a hit exactly on an edge of a closed room (texel
         # centres find them) would see the adjacent wall edge-on
@@ -454,6 +459,48 @@ class RecordTracer:
         rec["position"][rows] = p
         rec["normal"][rows] = nrm
         return rec, t, rays
+
+    def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
+                   rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None, *,
+                   sky_at_misses: bool
+                   ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
+        """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time."""
+        parts, t_parts, rays = [], [], 0
+        for c0 in range(0, len(dirs), SHADE_CHUNK):  # loop over chunks of rays, not rays
+            sl = slice(c0, min(c0 + SHADE_CHUNK, len(dirs)))
+            r, t, cast = self._shade(origins[sl], dirs[sl],
+                                     None if rnd_e is None else rnd_e[sl],
+                                     None if rnd_s is None else rnd_s[sl],
+                                     sky_at_misses=sky_at_misses)
+            parts.append(r)
+            t_parts.append(t)
+            rays += cast
+        if not parts:
+            return _new_records(0), np.zeros(0), 0
+        return ({k: np.concatenate([p[k] for p in parts]) for k in _RECORD_KEYS},
+                np.concatenate(t_parts), rays)
+
+    def _gather_level(self, draw: Any, purposes: tuple[int, int, int], rows: NDArray[np.int64],
+                      positions: NDArray[np.float64], arriving: NDArray[np.float64],
+                      normals: NDArray[np.float32], emitters: bool, sky: bool
+                      ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
+        """One gather level: a cosine-weighted ray from each hit at ``positions`` (reached along
+        ``arriving``, ``normals`` facing that side), lit as a probe's rays are (one emitter and
+        one environment sample; misses and emission count 0). Its random numbers are row
+        ``rows`` of the per-primary-ray draws ``draw(purpose, (K, ...))`` of ``purposes``
+        (directions, emitters, environment). Returns the records, the directions and the rays
+        cast."""
+        eps = self.settings.ray_offset
+        kg = self.gather_samples
+        nrm = normals.astype(np.float64)
+        # off the surface and back along the ray that found the hit: a hit on an edge of a
+        # closed room (texel centres find them) would start its rays in the next wall
+        org = positions - eps * arriving + eps * nrm
+        dirs = cosine_directions(nrm, draw(purposes[0], (kg, 2)).reshape(-1, 2)[rows])
+        rnd_e = draw(purposes[1], (kg, 1, 3)).reshape(-1, 1, 3)[rows] if emitters else None
+        rnd_s = draw(purposes[2], (kg, 1, 3)).reshape(-1, 1, 3)[rows] if sky else None
+        rec, _, rays = self._shade_all(org, dirs, rnd_e, rnd_s, sky_at_misses=False)
+        return rec, dirs, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
               ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float32], int]:
@@ -473,7 +520,6 @@ class RecordTracer:
         nr = dirs.shape[1]
         flat = dirs.reshape(-1, 3)
         origins = np.repeat(pos, nr, axis=0)
-        total = len(flat)
         eps = st.ray_offset
         ls = self.light_samples if len(self.emitters) else 0
         ks = 0 if self.sky.is_black else self.light_samples
@@ -486,69 +532,28 @@ class RecordTracer:
 
         rnd_e = draw(1, (ls, 3)) if ls else None
         rnd_s = draw(2, (ks, 3)) if ks else None
-        parts, t_parts, rays = [], [], 0
-        for c0 in range(0, total, SHADE_CHUNK):  # loop over chunks of rays, not rays
-            sl = slice(c0, min(c0 + SHADE_CHUNK, total))
-            r, t_c, cast = self._shade(origins[sl], flat[sl],
-                                       None if rnd_e is None else rnd_e[sl],
-                                       None if rnd_s is None else rnd_s[sl], sky_at_misses=True)
-            parts.append(r)
-            t_parts.append(t_c)
-            rays += cast
-        rec = {k: np.concatenate([p[k] for p in parts]) for k in _RECORD_KEYS}
-        t = np.concatenate(t_parts)
+        rec, t, rays = self._shade_all(origins, flat, rnd_e, rnd_s, sky_at_misses=True)
         if kg:
-            # final gather: kg cosine-weighted rays from every front hit, each lit as a probe's
-            # ray is (one emitter and one environment sample); a bounce reads the grid at their
-            # hits instead of at the hit itself (replay)
+            # final gather (module docstring): kg rays from every front hit, one more from each
+            # of their hits at depth 2; a bounce reads the grid at the deepest level's hits
             front = np.flatnonzero(rec["kind"] == 1)
-            g_dirs_rnd = draw(3, (kg, 2))[front].reshape(-1, 2)
-            g_e = draw(4, (kg, 1, 3))[front].reshape(-1, 1, 3) if ls else None
-            g_s = draw(5, (kg, 1, 3))[front].reshape(-1, 1, 3) if ks else None
-            g_nrm = np.repeat(rec["normal"][front].astype(np.float64), kg, axis=0)
-            # off the surface and back along the ray that found the hit: a hit on an edge of a
-            # closed room (texel centres find them) would start its rays in the next wall
-            g_org = np.repeat(rec["position"][front] - eps * flat[front], kg, axis=0) \
-                + eps * g_nrm
-            g_dir = cosine_directions(g_nrm, g_dirs_rnd)
-            gparts = []
-            for c0 in range(0, len(g_dir), SHADE_CHUNK):  # chunks of gather rays
-                sl = slice(c0, min(c0 + SHADE_CHUNK, len(g_dir)))
-                r, _, cast = self._shade(g_org[sl], g_dir[sl],
-                                         None if g_e is None else g_e[sl],
-                                         None if g_s is None else g_s[sl], sky_at_misses=False)
-                gparts.append(r)
+            rows = np.repeat(front, kg) * kg + np.tile(np.arange(kg), len(front))
+            parent = {"position": np.repeat(rec["position"][front], kg, axis=0),
+                      "normal": np.repeat(rec["normal"][front], kg, axis=0)}
+            arriving = np.repeat(flat[front], kg, axis=0)
+            parent_row = np.repeat(front, kg)  # each ray's parent in the level above
+            for depth in range(1, self.gather_depth + 1):
+                prefix = _LEVELS[depth]
+                level, g_dir, cast = self._gather_level(
+                    draw, (3 * depth, 3 * depth + 1, 3 * depth + 2), rows, parent["position"],
+                    arriving, parent["normal"], bool(ls), bool(ks))
                 rays += cast
-            for k in _RECORD_KEYS:
-                rec["gather_" + k] = (np.concatenate([p[k] for p in gparts]) if gparts
-                                      else np.zeros((0, *rec[k].shape[1:]), rec[k].dtype))
-            rec["gather_primary"] = np.repeat(front, kg).astype(np.int64)
-            rec["gather_samples"] = np.array(kg)
-            if self.gather_depth > 1:
-                # a second level: one cosine-weighted ray from every gather ray's hit, so that
-                # the grid is read two reflections away from what the probe sees
-                gfront = np.flatnonzero(rec["gather_kind"] == 1)
-                g2_rnd = draw(6, (kg, 2)).reshape(-1, 2)
-                g2_e = draw(7, (kg, 1, 3)).reshape(-1, 1, 3) if ls else None
-                g2_s = draw(8, (kg, 1, 3)).reshape(-1, 1, 3) if ks else None
-                # rows of the per-primary draws that belong to each gather ray
-                grow = (np.repeat(front, kg) * kg + np.tile(np.arange(kg), len(front)))[gfront]
-                n2 = rec["gather_normal"][gfront].astype(np.float64)
-                o2 = rec["gather_position"][gfront] - eps * g_dir[gfront] + eps * n2
-                d2 = cosine_directions(n2, g2_rnd[grow])
-                g2parts = []
-                for c0 in range(0, len(d2), SHADE_CHUNK):
-                    sl = slice(c0, min(c0 + SHADE_CHUNK, len(d2)))
-                    r, _, cast = self._shade(o2[sl], d2[sl],
-                                             None if g2_e is None else g2_e[grow][sl],
-                                             None if g2_s is None else g2_s[grow][sl],
-                                             sky_at_misses=False)
-                    g2parts.append(r)
-                    rays += cast
                 for k in _RECORD_KEYS:
-                    rec["gather2_" + k] = (np.concatenate([p[k] for p in g2parts]) if g2parts
-                                           else np.zeros((0, *rec[k].shape[1:]), rec[k].dtype))
-                rec["gather2_primary"] = gfront.astype(np.int64)
+                    rec[prefix + k] = level[k]
+                rec[prefix + "primary"] = parent_row.astype(np.int64)
+                hit = np.flatnonzero(level["kind"] == 1)  # the next level's parents, one ray each
+                rows, arriving, parent_row = rows[hit], g_dir[hit], hit
+                parent = {k: level[k][hit] for k in parent}
         back = rec["kind"].reshape(b, nr) == 2
         moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
         sa = rd._texel_sa * wts
@@ -608,11 +613,6 @@ class GridData:
     cubes: NDArray[np.float32] | None
 
 
-def gather_depth(records: dict[str, NDArray[Any]]) -> int:
-    """Gather levels the records hold: 0 (none), 1 (``gather_*``) or 2 (``gather2_*`` too)."""
-    return 2 if "gather2_primary" in records else 1 if "gather_primary" in records else 0
-
-
 def grid_level_read(level: int, depth: int) -> int:
     """The grid level a pass at bounce ``level`` reads (negative: none) with ``depth`` gather
     levels: ``level - 1 - depth`` (each gather level's hits reflect light of the level below)."""
@@ -621,26 +621,17 @@ def grid_level_read(level: int, depth: int) -> int:
 
 def all_hit_weights(records: dict[str, NDArray[Any]], data: GridData
                     ) -> dict[str, NDArray[Any]]:
-    """The probe weights of every hit a bounce reads the grid at: the gather rays' hits when
-    the records have them (the rays' own hits read the gathered light instead), else the rays'
-    hits. Returns the arrays to add to the records."""
-    if "gather2_primary" in records:
-        sub = {k: records["gather2_" + k] for k in ("kind", "position", "normal")}
-        gi, gw = hit_weights(sub, data)
-        return {"gather2_weight_index": gi, "gather2_weight": gw}
-    if "gather_primary" in records:
-        sub = {k: records["gather_" + k] for k in ("kind", "position", "normal")}
-        gi, gw = hit_weights(sub, data)
-        return {"gather_weight_index": gi, "gather_weight": gw}
-    wi, ww = hit_weights(records, data)
-    return {"weight_index": wi, "weight": ww}
+    """The probe weights of every hit a bounce reads the grid at: the deepest gather level's
+    hits when the records have gather rays (the hits above read the light gathered below),
+    else the rays' own hits. Returns the arrays to add to the records."""
+    prefix = _LEVELS[gather_depth(records)]
+    wi, ww = hit_weights({k: records[prefix + k] for k in ("kind", "position", "normal")}, data)
+    return {prefix + "weight_index": wi, prefix + "weight": ww}
 
 
 def has_hit_weights(records: dict[str, NDArray[Any]]) -> bool:
     """Whether :func:`all_hit_weights` was already added to ``records``."""
-    if "gather2_primary" in records:
-        return "gather2_weight_index" in records
-    return ("gather_weight_index" if "gather_primary" in records else "weight_index") in records
+    return _LEVELS[gather_depth(records)] + "weight_index" in records
 
 
 def hit_weights(records: dict[str, NDArray[Any]], data: GridData
@@ -648,8 +639,7 @@ def hit_weights(records: dict[str, NDArray[Any]], data: GridData
     """Each front hit's 8 probes and normalised DDGI weights (0 for misses and back hits)."""
     g = data.grid
     counts = np.array(g.counts, dtype=np.int64)
-    cells = g.cell_size[counts > 1]
-    bias = DEFAULT_NORMAL_BIAS * (float(cells.min()) if cells.size else 0.0)
+    bias = DEFAULT_NORMAL_BIAS * g.smallest_cell()
     total = len(records["kind"])
     idx = np.zeros((total, 8), np.int32)
     w = np.zeros((total, 8), np.float32)
@@ -674,14 +664,16 @@ GATHER_BLOCK = 8
 
 def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
                      rad: NDArray[np.float32], gathered: NDArray[np.float32],
-                     cubes: NDArray[np.float32], g: int) -> NDArray[np.float32]:
+                     cubes: NDArray[np.float32], g: int,
+                     sample_weights: NDArray[np.float64] | None) -> NDArray[np.float32]:
     """What a probe sees of its hits' gathered light, with the gather rays' noise spread over
     blocks of :data:`GATHER_BLOCK` texels: each front hit's ``albedo * gathered`` becomes
     ``albedo * G`` (the grid read at the hit itself: smooth, but biased) plus the block's
     solid-angle-weighted mean of ``albedo * (gathered - G)``. A block's integral is unchanged
     (so is every diffuse map and SH, up to rounding); within a block the gather's mean
     correction replaces its per-texel noise (two bakes of the sample room with other seeds:
-    10 % per texel apart in level 0 without it). Needs the rays' own probe weights."""
+    10 % per texel apart in level 0 without it). Needs the rays' own probe weights, and the
+    rays' sample weights with several rays per texel."""
     n, s = settings.face_size, settings.samples
     nr = int(records["rays_per_probe"])
     kind = records["kind"]
@@ -689,7 +681,7 @@ def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
     zeros = np.zeros((total, 3), np.float32)
     _, at_hit = replay_radiance(kind, zeros, zeros, zeros, records["albedo"], records["normal"],
                                 records["weight_index"], records["weight"], cubes, g, FACE_U,
-                                FACE_V, 1, np.zeros((0, 3), np.float32))  # albedo * G
+                                FACE_V, 1, np.zeros((0, 3), np.float32))  # albedo * G alone
     front = kind == 1
     corr = np.where(front[:, None], records["albedo"].astype(np.float64) * gathered
                     - at_hit.astype(np.float64), 0.0)
@@ -702,24 +694,47 @@ def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
     nb = -(-n // bs)
     block = ((probe * 6 + face) * nb + row // bs) * nb + col // bs
     w = texel_solid_angles(n).reshape(-1)[texel] * front
-    if s > 1:
-        w = w * np.concatenate([sample_pattern(settings, int(i))[1].reshape(-1)
-                                for i in records["probes"]])
+    if sample_weights is not None:
+        w = w * sample_weights
     den = np.bincount(block, weights=w, minlength=int(block.max()) + 1)
-    out = rad.astype(np.float64) - corr
-    for c in range(3):  # per channel: one bincount each
-        num = np.bincount(block, weights=w * corr[:, c], minlength=len(den))
-        mean = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
-        out[:, c] += np.where(front, mean[block], 0.0)
+    num = sum_rows(block, w[:, None] * corr, len(den))
+    mean = np.divide(num, den[:, None], out=np.zeros_like(num), where=den[:, None] > 0)
+    out = rad.astype(np.float64) - corr + np.where(front[:, None], mean[block], 0.0)
     return np.maximum(out, 0.0).astype(np.float32)
+
+
+def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
+                  grid: NDArray[np.float32], gathered: NDArray[np.float32], g: int
+                  ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """:func:`probegrid.kernels.replay_radiance` of one level's records (``prefix``, with its
+    probe weights where it has them): the ``grid`` read at its hits, or the light ``gathered``
+    below them."""
+    rows = len(records[prefix + "kind"])
+    wi, ww = records.get(prefix + "weight_index"), records.get(prefix + "weight")
+    if wi is None or ww is None:
+        wi, ww = np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
+    return replay_radiance(records[prefix + "kind"], records[prefix + "emission"],
+                           records[prefix + "light_punctual"], records[prefix + "light_emitters"],
+                           records[prefix + "albedo"], records[prefix + "normal"], wi, ww, grid,
+                           g, FACE_U, FACE_V, level, gathered)
+
+
+def _mean_per_parent(parent: NDArray[np.int64], radiance: NDArray[np.float32], parents: int
+                     ) -> NDArray[np.float32]:
+    """The mean ``radiance (k, 3)`` of the rays of each of ``parents`` hits (``parent (k,)``
+    their parent's row): the parent's irradiance / pi, for cosine-weighted rays (0 for hits
+    with none)."""
+    count = np.bincount(parent, minlength=parents).astype(np.float64)[:, None]
+    total = sum_rows(parent, radiance, parents)
+    return np.divide(total, count, out=np.zeros_like(total), where=count > 0).astype(np.float32)
 
 
 def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,
            cubes: NDArray[np.float32] | None, *, final: bool
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """A pass over a batch's records at bounce ``level`` with the bordered irradiance ``cubes``
-    (None: a black grid) of the grid level the hits read: ``level - 1``, or ``level - 2`` when
-    the records have gather rays (:func:`grid_level_read`).
+    (None: a black grid) of the grid level the hits read: ``level - 1 - depth`` with ``depth``
+    gather levels (:func:`grid_level_read`).
 
     Returns the probes' incoming cubes ``(B, 6, n, n, 3)`` float32 -- ``final``: what the probe
     sees (emission, its exact direct view of the emitters and the punctual lights included);
@@ -730,64 +745,33 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
     probes = records["probes"]
     b = len(probes)
     empty = np.zeros((0, 3), np.float32)
-    cube_arr = empty if cubes is None else cubes
-    g = irradiance_size("gather_primary" in records)
+    depth = gather_depth(records)
+    g = irradiance_size(depth > 0)
+    grid = empty if cubes is None else cubes
 
-    def weights(prefix: str) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
-        rows = len(records[prefix + "kind"])
-        if prefix + "weight_index" in records:
-            return records[prefix + "weight_index"], records[prefix + "weight"]
-        return np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
-
-    def gathered(prefix: str, parents: int, at: int, grid: NDArray[np.float32],
-                 below: NDArray[np.float32]) -> NDArray[np.float32]:
-        """What the ``prefix`` rays bring back to each of ``parents`` hits at bounce ``at`` (the
-        light their own hits reflect, ``below`` gathered there): their mean radiance, the
-        parent's irradiance / pi (cosine-weighted rays)."""
-        out = np.zeros((parents, 3), np.float32)
-        if at < 0:
-            return out
-        wi_, ww_ = weights(prefix)
-        _, radiance = replay_radiance(
-            records[prefix + "kind"], records[prefix + "emission"],
-            records[prefix + "light_punctual"], records[prefix + "light_emitters"],
-            records[prefix + "albedo"], records[prefix + "normal"], wi_, ww_, grid, g, FACE_U,
-            FACE_V, at, below)
-        parent = records[prefix + "primary"]
-        rays = np.bincount(parent, minlength=parents).astype(np.float64)
-        for c in range(3):  # per channel: one bincount each
-            total = np.bincount(parent, weights=radiance[:, c], minlength=parents)
-            out[:, c] = np.divide(total, rays, out=np.zeros(parents), where=rays > 0)
-        return out
-
-    indirect = empty
-    grid_at_hits = empty
-    if "gather_primary" in records:
-        # final gather: the rays' hits read the light their gather rays bring back, the light
-        # those rays' hits reflect at level - 1; the deepest level's hits read the grid
-        deeper = empty
-        grid = cube_arr
-        if "gather2_primary" in records:
-            deeper = gathered("gather2_", len(records["gather_kind"]), level - 2, grid, empty)
-            grid = empty
-        indirect = gathered("gather_", len(records["kind"]), level - 1, grid, deeper)
-        grid_at_hits = cube_arr
-        cube_arr = empty
-    wi, ww = weights("")
-    rad, bnc = replay_radiance(records["kind"], records["emission"], records["light_punctual"],
-                               records["light_emitters"], records["albedo"], records["normal"],
-                               wi, ww, cube_arr, g, FACE_U, FACE_V, level, indirect)
-    if (final and "gather_primary" in records and level >= 2 and grid_at_hits.shape[0]
-            and "weight_index" in records):
-        rad = _smooth_gathered(records, settings, rad, indirect, grid_at_hits, g)
+    # gather levels, deepest first: its hits read the grid; each level above reads the light
+    # the level below brings back (the rays' hits reflect at level - 1, theirs at level - 2)
+    below = empty
+    for d in range(depth, 0, -1):
+        parents = len(records[_LEVELS[d - 1] + "kind"])
+        if level - d < 0:
+            below = np.zeros((parents, 3), np.float32)
+            continue
+        _, reflected = _replay_level(records, _LEVELS[d], level - d,
+                                     grid if d == depth else empty, below, g)
+        below = _mean_per_parent(records[_LEVELS[d] + "primary"], reflected, parents)
+    rad, bnc = _replay_level(records, "", level, empty if depth else grid, below, g)
+    wts = (np.stack([sample_pattern(settings, int(i))[1].reshape(-1) for i in probes])
+           if s > 1 else None)
+    if (final and depth and level >= 2 and grid.shape[0] and "weight_index" in records):
+        rad = _smooth_gathered(records, settings, rad, below, grid, g,
+                               None if wts is None else wts.reshape(-1))
     if not final and bool(records.get("sky_sampled", False)):
         # the environment reaches hits by sampling (light_emitters): the grid carries only
         # light reflected at least once, not what the probe's misses see of the sky
         bnc[records["kind"] == 0] = 0.0
     use = rad if final else bnc
-    nr = int(records["rays_per_probe"])
-    if s > 1:
-        wts = np.stack([sample_pattern(settings, int(i))[1].reshape(-1) for i in probes])
+    if wts is not None:
         cube = texel_means(use, wts.reshape(-1), s)
     else:
         cube = use
@@ -803,5 +787,4 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
             if lo[j + 1] > lo[j]:
                 cube[j] = splat_delta(cube[j], records["lights_direction"][lo[j]:lo[j + 1]],
                                       records["lights_irradiance"][lo[j]:lo[j + 1]])
-    del nr
     return cube, use

@@ -285,9 +285,8 @@ def _test_point_offset(grid: GridSpec, normal_bias: float) -> float:
 
 @lru_cache(maxsize=64)
 def _smallest_cell(grid: GridSpec) -> float:
-    """The smallest cell size over axes with more than one probe (0 for a single probe)."""
-    cells = grid.cell_size[np.array(grid.counts) > 1]
-    return float(cells.min()) if cells.size else 0.0
+    """:meth:`GridSpec.smallest_cell`, kept per grid (one point's query is microseconds)."""
+    return grid.smallest_cell()
 
 
 def _probe_xyz(grid: GridSpec, indices: NDArray[np.int64],
@@ -454,8 +453,7 @@ def _shading_factor(
     facing = ((np.einsum("nci,ni->nc", to_probe, normals) + 1.0) * 0.5) ** 2 + NORMAL_TERM_FLOOR
     s = facing
     if moments is not None:
-        cells = grid.cell_size[np.array(grid.counts) > 1]
-        bias = normal_bias * (float(cells.min()) if cells.size else 0.0)
+        bias = normal_bias * _smallest_cell(grid)
         q = points + bias * normals
         offset = q[:, None, :] - xc  # probe -> biased point
         r = np.linalg.norm(offset, axis=-1)

@@ -241,6 +241,12 @@ class GridSpec:
         n = np.array(self.counts)
         return np.where(n > 1, self.spacing, self.hi - self.lo)
 
+    def smallest_cell(self, default: float = 0.0) -> float:
+        """The smallest :attr:`cell_size` over the axes with more than one probe (the length
+        biases and margins are counted in), or ``default`` for a single probe."""
+        cells = self.cell_size[np.array(self.counts) > 1]
+        return float(cells.min()) if cells.size else default
+
     # ------------------------------------------------------------------ positions and indices
     def axis_coordinates(self, axis: int) -> NDArray[np.float64]:
         """``(counts[axis],)`` float64 coordinates of the probe planes along one axis (0, 1, 2)."""

@@ -37,8 +37,8 @@ from threadpoolctl import threadpool_limits
 from probegrid.core import lobes
 from probegrid.core.cubemap import check_cube, mip_sizes, texel_directions, texel_solid_angles
 
-__all__ = ["MATRIX_VERSION", "MAX_FACE", "describe", "filter_cube", "filter_matrix", "filter_sizes",
-           "supported"]
+__all__ = ["MATRIX_VERSION", "MAX_FACE", "describe", "filter_cube", "filter_matrix",
+           "filter_matrix_shape", "filter_sizes", "supported"]
 
 #: Largest input face size filtered through the cached matrix.
 MAX_FACE = 32
@@ -70,6 +70,12 @@ def filter_sizes(n: int, diffuse_size: int, levels: int) -> tuple[int, ...]:
     return (int(diffuse_size), *mip_sizes(n, levels)[1:])
 
 
+def filter_matrix_shape(n: int, diffuse_size: int, levels: int) -> tuple[int, int]:
+    """Shape of :func:`filter_matrix`'s matrix: its rows (every output texel, face-major) and
+    columns (the ``n``-cube's texels)."""
+    return (sum(6 * s * s for s in filter_sizes(n, diffuse_size, levels)), 6 * int(n) * int(n))
+
+
 @lru_cache(maxsize=2)
 def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.float32],
                                                                      tuple[int, ...]]:
@@ -91,7 +97,7 @@ def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.fl
     sizes = filter_sizes(n, diffuse_size, levels)
     w = texel_directions(n).reshape(-1, 3)
     om = texel_solid_angles(n).reshape(-1)
-    rows = sum(6 * s * s for s in sizes)
+    rows = filter_matrix_shape(n, diffuse_size, levels)[0]
     out = np.empty((rows, w.shape[0]), dtype=np.float32)
     r0 = 0
     for k, s in enumerate(sizes):
@@ -139,9 +145,8 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
     sizes = filter_sizes(n, int(diffuse_size), int(levels))
     if matrix is None:
         matrix = filter_matrix(n, int(diffuse_size), int(levels))[0]
-    elif matrix.shape != (sum(6 * s * s for s in sizes), 6 * n * n):
-        raise ValueError(f"the filter matrix has shape {matrix.shape}, expected "
-                         f"{(sum(6 * s * s for s in sizes), 6 * n * n)}")
+    elif matrix.shape != (shape := filter_matrix_shape(n, int(diffuse_size), int(levels))):
+        raise ValueError(f"the filter matrix has shape {matrix.shape}, expected {shape}")
     with threadpool_limits(limits=1, user_api="blas"):  # workers are processes (cf. specular)
         y = matrix @ np.ascontiguousarray(src.reshape(-1, c), dtype=np.float32)
     parts = []

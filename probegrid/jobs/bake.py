@@ -305,7 +305,6 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     from probegrid.bake.render import SHADE_CHUNK
     from probegrid.bake.settings import store_arrays
     from probegrid.core import probefilter
-    from probegrid.core.cubemap import mip_sizes
 
     p = grid.n_probes
     st = settings
@@ -347,8 +346,8 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     batch_rays = min(st.batch_size, p) * per_probe_rays * (1 + gather // max(primary, 1))
     cube = 6 * n * n * 3 * 4
     if probefilter.supported(n, st.diffuse_size):
-        sizes = (st.diffuse_size, *mip_sizes(n, st.specular_levels)[1:])
-        filt = sum(6 * k * k for k in sizes) * 6 * n * n * 4
+        rows, cols = probefilter.filter_matrix_shape(n, st.diffuse_size, st.levels())
+        filt = rows * cols * 4  # float32
     else:
         filt = 16 * FILTER_GROUP * cube
     worker = (WORKER_BASE_BYTES + scene_bytes + env_bytes + filt
