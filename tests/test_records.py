@@ -44,3 +44,29 @@ def test_memory_held_is_bounded(tmp_path, monkeypatch):
     held = [k for k in rc._held if k[0].startswith(str(tmp_path))]
     assert len(held) == 3 and rc._held_bytes[0] <= 3000
     assert rc.load_records(rc.records_file(tmp_path, 0))["a"].nbytes == 1000  # from its files
+
+
+def test_a_subset_of_a_blocks_records_is_what_tracing_the_subset_gives():
+    """A resumed or re-partitioned batch reads part of a block: every record (both gather
+    levels, the probes' direct views of the emitters and lights, and their offsets) equals a
+    trace of those probes alone."""
+    from pathlib import Path
+
+    from probegrid.bake.render import RenderSettings
+    from probegrid.jobs.bake import load_environment
+    from probegrid.scene import load_gltf
+
+    data = Path(__file__).resolve().parents[1] / "data"
+    scene = load_gltf(data / "sample_room.glb")
+    env = load_environment(data / "sample_sky.hdr")
+    tracer = rc.RecordTracer(scene, env, RenderSettings(face_size=4, moments_size=4), gather_samples=2,
+                             gather_depth=2)
+    pos = np.array([[0.0, 1.0, 0.0], [0.5, 2.5, 0.2], [-1.0, 0.8, 1.0]])
+    idx = np.array([3, 5, 9])
+    block, _, _ = tracer.trace(pos, idx)
+    alone, _, _ = tracer.trace(pos[[0, 2]], idx[[0, 2]])
+    picked = rc.select_probes(block, idx[[0, 2]])
+    assert picked is not None and set(picked) == set(alone)
+    assert rc.gather_depth(picked) == 2 and len(picked["lights_direction"]) > 0
+    for k in alone:
+        np.testing.assert_array_equal(np.asarray(picked[k]), np.asarray(alone[k]), err_msg=k)

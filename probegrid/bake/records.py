@@ -366,7 +366,7 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
         counts = np.array([len(p) for p in parts], np.int64)
         out[off] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         for name in records:
-            if name.startswith(k + "_"):
+            if name.startswith(k + "_") and name != off:  # (the offsets are the new ones)
                 out[name] = records[name][sel]
     return out
 
