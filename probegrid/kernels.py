@@ -45,15 +45,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "cosine_directions",
     "cube_sample_directions",
     "distance_moments",
     "embree_hits",
     "embree_rays",
+    "emitter_estimate",
+    "emitter_samples",
+    "environment_samples",
+    "guide_table",
     "hit_surfaces",
     "light_rays",
     "multiply_texture",
     "orient_hits",
     "segment_rays",
+    "sum_unblocked",
     "texel_means",
 ]
 
@@ -839,6 +845,59 @@ def emitter_irradiance(
 
 
 @numba.njit(**_JIT)
+def _shadow_ray_arrays(cap: int) -> tuple[NDArray[np.int64], NDArray[np.float64],
+                                          NDArray[np.float64], NDArray[np.float64],
+                                          NDArray[np.float64], NDArray[np.float64]]:
+    """Room for ``cap`` of :func:`emitter_shadow_rays`' rays."""
+    return (np.empty(cap, np.int64), np.empty((cap, 3)), np.empty((cap, 3)), np.empty(cap),
+            np.empty((cap, 3)), np.empty((cap, 3)))
+
+
+@numba.njit(**_JIT)
+def _emitter_shadow_ray(points: NDArray[np.float64], normals: NDArray[np.float64], i: int,
+                        qx: float, qy: float, qz: float, qnx: float, qny: float, qnz: float,
+                        radiance: NDArray[np.float64], control: NDArray[np.float64], row: int,
+                        inverse_pdf: float, inv_l: float, eps: float, k: int,
+                        which: NDArray[np.int64], org: NDArray[np.float64],
+                        dirs: NDArray[np.float64], tmax: NDArray[np.float64],
+                        vis: NDArray[np.float64], occ: NDArray[np.float64]) -> int:
+    """One sample of :func:`emitter_shadow_rays` (point ``i``, the sample at ``(qx, qy, qz)``
+    with normal ``qn``, radiance and control in row ``row`` of ``radiance`` and ``control``,
+    ``inv_l`` = 1 / L), stored as ray ``k`` when it counts; returns the next free ray."""
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+    dx, dy, dz = qx - px, qy - py, qz - pz
+    d2 = dx * dx + dy * dy + dz * dz
+    if not d2 > 0:
+        return k
+    dist = math.sqrt(d2)
+    wx, wy, wz = dx / dist, dy / dist, dz / dist
+    cx = wx * nx + wy * ny + wz * nz
+    cy = -(wx * qnx + wy * qny + wz * qnz)
+    if not (cx > 0 and cy > 0):
+        return k
+    g = cx * cy / d2 * inverse_pdf * inv_l
+    r0, r1, r2 = radiance[row, 0], radiance[row, 1], radiance[row, 2]
+    c0, c1, c2 = control[row, 0], control[row, 1], control[row, 2]
+    if max(r0, r1, r2, c0, c1, c2) <= 0:
+        return k
+    which[k] = i
+    # the shadow ray runs between the two points each lifted eps off its surface (a ray
+    # grazing the emitter's plane would hit it early in float32) and stops eps short
+    ox, oy, oz = px + eps * nx, py + eps * ny, pz + eps * nz
+    sx = qx + eps * qnx - ox
+    sy = qy + eps * qny - oy
+    sz = qz + eps * qnz - oz
+    sl = math.sqrt(sx * sx + sy * sy + sz * sz)
+    org[k, 0], org[k, 1], org[k, 2] = ox, oy, oz
+    dirs[k, 0], dirs[k, 1], dirs[k, 2] = sx / sl, sy / sl, sz / sl
+    tmax[k] = sl - eps
+    vis[k, 0], vis[k, 1], vis[k, 2] = g * (r0 - c0), g * (r1 - c1), g * (r2 - c2)
+    occ[k, 0], occ[k, 1], occ[k, 2] = -g * c0, -g * c1, -g * c2
+    return k + 1
+
+
+@numba.njit(**_JIT)
 def emitter_shadow_rays(
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
@@ -870,53 +929,19 @@ def emitter_shadow_rays(
     visible, occluded : (k, 3) contributions (lux) for the two outcomes.
     """
     n, ns = sample_points.shape[0], sample_points.shape[1]
-    cap = n * ns
-    which = np.empty(cap, np.int64)
-    org = np.empty((cap, 3))
-    dirs = np.empty((cap, 3))
-    tmax = np.empty(cap)
-    vis = np.empty((cap, 3))
-    occ = np.empty((cap, 3))
+    out = _shadow_ray_arrays(n * ns)
     k = 0
     inv_l = 1.0 / ns
+    rad = sample_radiance.reshape(n * ns, 3)
+    ctl = sample_control.reshape(n * ns, 3)
     for i in range(n):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         for s in range(ns):
-            dx = sample_points[i, s, 0] - px
-            dy = sample_points[i, s, 1] - py
-            dz = sample_points[i, s, 2] - pz
-            d2 = dx * dx + dy * dy + dz * dz
-            if not d2 > 0:
-                continue
-            dist = math.sqrt(d2)
-            wx, wy, wz = dx / dist, dy / dist, dz / dist
-            cx = wx * nx + wy * ny + wz * nz
-            cy = -(wx * sample_normals[i, s, 0] + wy * sample_normals[i, s, 1]
-                   + wz * sample_normals[i, s, 2])
-            if not (cx > 0 and cy > 0):
-                continue
-            g = cx * cy / d2 * inverse_pdf[i, s] * inv_l
-            r0, r1, r2 = sample_radiance[i, s, 0], sample_radiance[i, s, 1], \
-                sample_radiance[i, s, 2]
-            c0, c1, c2 = sample_control[i, s, 0], sample_control[i, s, 1], \
-                sample_control[i, s, 2]
-            if max(r0, r1, r2, c0, c1, c2) <= 0:
-                continue
-            which[k] = i
-            # the shadow ray runs between the two points each lifted eps off its surface (a ray
-            # grazing the emitter's plane would hit it early in float32) and stops eps short
-            ox, oy, oz = px + eps * nx, py + eps * ny, pz + eps * nz
-            sx = sample_points[i, s, 0] + eps * sample_normals[i, s, 0] - ox
-            sy = sample_points[i, s, 1] + eps * sample_normals[i, s, 1] - oy
-            sz = sample_points[i, s, 2] + eps * sample_normals[i, s, 2] - oz
-            sl = math.sqrt(sx * sx + sy * sy + sz * sz)
-            org[k, 0], org[k, 1], org[k, 2] = ox, oy, oz
-            dirs[k, 0], dirs[k, 1], dirs[k, 2] = sx / sl, sy / sl, sz / sl
-            tmax[k] = sl - eps
-            vis[k, 0], vis[k, 1], vis[k, 2] = g * (r0 - c0), g * (r1 - c1), g * (r2 - c2)
-            occ[k, 0], occ[k, 1], occ[k, 2] = -g * c0, -g * c1, -g * c2
-            k += 1
+            k = _emitter_shadow_ray(
+                points, normals, i, sample_points[i, s, 0], sample_points[i, s, 1],
+                sample_points[i, s, 2], sample_normals[i, s, 0], sample_normals[i, s, 1],
+                sample_normals[i, s, 2], rad, ctl, i * ns + s, inverse_pdf[i, s], inv_l, eps,
+                k, *out)
+    which, org, dirs, tmax, vis, occ = out
     return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
 
 
@@ -1110,3 +1135,225 @@ def texel_emitter_coverage(
                         dist[count] = plane / den if den > 0 else math.inf
                     count += 1
     return count, tex, tri, omega, dirs, dist
+
+
+def guide_table(cdf: NDArray[np.float64]) -> NDArray[np.int64]:
+    """The cut-point table of a cumulative distribution ``cdf (N,)`` (Chen & Asau, 1974):
+    ``guide[j] = searchsorted(cdf, j / N, "right")`` for ``j = 0 .. N``, so that the first
+    index whose cumulative probability exceeds ``x`` lies in ``[guide[j], guide[j + 1]]`` for
+    ``j = floor(x N)``, a range of about one entry (:func:`_search_right`)."""
+    c = np.asarray(cdf, dtype=np.float64)
+    return np.searchsorted(c, np.arange(len(c) + 1) / max(len(c), 1), side="right").astype(
+        np.int64)
+
+
+@numba.njit(**_JIT)
+def _bisect_right(cdf: NDArray[np.float64], x: float, lo: int, hi: int) -> int:
+    """The first index in ``[lo, hi)`` whose value exceeds ``x`` (``hi`` when none does)."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if cdf[mid] <= x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@numba.njit(**_JIT)
+def _search_right(cdf: NDArray[np.float64], guide: NDArray[np.int64], x: float) -> int:
+    """``min(searchsorted(cdf, x, side="right"), len(cdf) - 1)`` for ``x`` in [0, 1): the
+    first index whose cumulative probability exceeds ``x``, by bisection within the range
+    :func:`guide_table` gives (a step or two), checked, and over the whole table when the
+    check fails (``x N`` rounded across a cut point): always searchsorted's index."""
+    n = cdf.shape[0]
+    j = min(max(int(x * n), 0), n - 1)
+    i = _bisect_right(cdf, x, guide[j], guide[j + 1])
+    if not ((i == 0 or cdf[i - 1] <= x) and (i == n or cdf[i] > x)):
+        i = _bisect_right(cdf, x, 0, n)
+    return min(i, n - 1)
+
+
+@numba.njit(**_JIT)
+def emitter_samples(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    random: NDArray[np.float64],
+    cdf: NDArray[np.float64],
+    guide: NDArray[np.int64],
+    inverse_pdf: NDArray[np.float64],
+    tri_vertices: NDArray[np.float64],
+    tri_normals: NDArray[np.float64],
+    tri_radiance: NDArray[np.float64],
+    tri_control: NDArray[np.float64],
+    eps: float,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+           NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`emitter_shadow_rays` of points sampled on untextured emitters, from uniform
+    numbers: :meth:`probegrid.bake.emitters.Emitters.irradiance`'s choice of a triangle
+    (``searchsorted(cdf, random[..., 0], "right")``), its uniform point
+    (``sqrt(r1) (1 - r2), sqrt(r1) r2`` as barycentrics ``u, v``; position
+    ``(1 - u - v) a + u b + v c``) and radiance ``tri_radiance[e]``, in one pass.
+
+    ``random (n, L, 3)``; ``guide`` the cdf's :func:`guide_table`; ``inverse_pdf (E,)`` area over the selection probability;
+    ``tri_vertices (E, 3, 3)``, ``tri_normals``, ``tri_radiance``, ``tri_control (E, 3)``.
+    Returns what :func:`emitter_shadow_rays` returns.
+    """
+    n, ns = random.shape[0], random.shape[1]
+    out = _shadow_ray_arrays(n * ns)
+    k = 0
+    inv_l = 1.0 / ns
+    for i in range(n):
+        for s in range(ns):
+            e = _search_right(cdf, guide, random[i, s, 0])
+            r1 = math.sqrt(random[i, s, 1])
+            w1 = r1 * (1.0 - random[i, s, 2])
+            w2 = r1 * random[i, s, 2]
+            w0 = 1.0 - w1 - w2
+            q = tri_vertices
+            k = _emitter_shadow_ray(
+                points, normals, i, w0 * q[e, 0, 0] + w1 * q[e, 1, 0] + w2 * q[e, 2, 0],
+                w0 * q[e, 0, 1] + w1 * q[e, 1, 1] + w2 * q[e, 2, 1],
+                w0 * q[e, 0, 2] + w1 * q[e, 1, 2] + w2 * q[e, 2, 2], tri_normals[e, 0],
+                tri_normals[e, 1], tri_normals[e, 2], tri_radiance, tri_control, e,
+                inverse_pdf[e], inv_l, eps, k, *out)
+    which, org, dirs, tmax, vis, occ = out
+    return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
+
+
+@numba.njit(**_JIT)
+def emitter_estimate(n: int, which: NDArray[np.int64], blocked: NDArray[np.bool_],
+                     visible: NDArray[np.float64], occluded: NDArray[np.float64],
+                     analytic: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The emitters' irradiance at ``n`` points from their shadow rays' outcomes
+    (:func:`emitter_shadow_rays`; ray ``k`` belongs to point ``which[k]``): the plain estimate
+    ``sum V g Le / (L p)`` when ``analytic`` is empty ``(0, 3)``; else the ratio estimator
+    ``A * plain / sum g Lc / (L p)`` with ``A = analytic (n, 3)``, per channel, or
+    ``A + plain`` where no sample saw the control (:class:`probegrid.bake.emitters.Emitters`).
+    Returns ``(n, 3)`` lux."""
+    plain = np.zeros((n, 3))
+    whole = np.zeros((n, 3))
+    for k in range(which.shape[0]):
+        i = which[k]
+        for c in range(3):
+            if not blocked[k]:
+                plain[i, c] += visible[k, c] - occluded[k, c]
+            whole[i, c] += -occluded[k, c]
+    if analytic.shape[0] == 0:
+        return plain
+    out = np.empty((n, 3))
+    for i in range(n):
+        for c in range(3):
+            if whole[i, c] > 0.0:
+                out[i, c] = analytic[i, c] * (plain[i, c] / whole[i, c])
+            else:
+                out[i, c] = analytic[i, c] + plain[i, c]
+    return out
+
+
+@numba.njit(**_JIT)
+def environment_samples(
+    normals: NDArray[np.float64],
+    random: NDArray[np.float64],
+    cdf: NDArray[np.float64],
+    guide: NDArray[np.int64],
+    prob: NDArray[np.float64],
+    radiance: NDArray[np.float64],
+    size: int,
+    rotation: NDArray[np.float64],
+    face_normals: NDArray[np.float64],
+    face_u: NDArray[np.float64],
+    face_v: NDArray[np.float64],
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Directions drawn from a piecewise-constant environment cube and their contributions
+    (:class:`probegrid.bake.environment.EnvironmentLight`: ``sample`` and the estimator of
+    ``irradiance`` before the shadow rays).
+
+    A texel ``t = searchsorted(cdf, r0, "right")`` of the ``size``-cube (flat
+    ``(face, row, col)`` order), the point ``u = -1 + (col + r1) 2 / size``,
+    ``v = -1 + (row + r2) 2 / size`` of its face square, the direction normalised and turned by
+    ``rotation (3, 3)`` (environment frame to world), density
+    ``p = prob[t] (size^2 / 4) (1 + u^2 + v^2)^(3/2)``. A sample with ``cos = n . w > 0`` and
+    ``p > 0`` gives a shadow ray toward ``w`` and contributes ``radiance[t] cos / (p L)``.
+
+    ``normals (n, 3)``, ``random (n, L, 3)``, ``guide`` the cdf's :func:`guide_table`. Returns ``point (k,)``, ``directions (k, 3)`` and
+    ``contribution (k, 3)`` of the samples that count.
+    """
+    n, ns = random.shape[0], random.shape[1]
+    cap = n * ns
+    which = np.empty(cap, np.int64)
+    dirs = np.empty((cap, 3))
+    contrib = np.empty((cap, 3))
+    m = size
+    step = 2.0 / m
+    area = 0.25 * m * m
+    k = 0
+    d = np.empty(3)
+    for i in range(n):
+        for s in range(ns):
+            t = _search_right(cdf, guide, random[i, s, 0])
+            face = t // (m * m)
+            rest = t - face * m * m
+            row = rest // m
+            col = rest - row * m
+            u = -1.0 + (col + random[i, s, 1]) * step
+            v = -1.0 + (row + random[i, s, 2]) * step
+            q = 1.0 + u * u + v * v
+            inv = 1.0 / math.sqrt(q)
+            for a in range(3):
+                d[a] = (face_normals[face, a] + u * face_u[face, a] + v * face_v[face, a]) * inv
+            wx = rotation[0, 0] * d[0] + rotation[0, 1] * d[1] + rotation[0, 2] * d[2]
+            wy = rotation[1, 0] * d[0] + rotation[1, 1] * d[1] + rotation[1, 2] * d[2]
+            wz = rotation[2, 0] * d[0] + rotation[2, 1] * d[1] + rotation[2, 2] * d[2]
+            pdf = prob[t] * area * q * math.sqrt(q)
+            cos = wx * normals[i, 0] + wy * normals[i, 1] + wz * normals[i, 2]
+            if not (cos > 0.0 and pdf > 0.0):
+                continue
+            w = cos / (pdf * ns)
+            which[k] = i
+            dirs[k, 0], dirs[k, 1], dirs[k, 2] = wx, wy, wz
+            contrib[k, 0] = radiance[t, 0] * w
+            contrib[k, 1] = radiance[t, 1] * w
+            contrib[k, 2] = radiance[t, 2] * w
+            k += 1
+    return which[:k], dirs[:k], contrib[:k]
+
+
+@numba.njit(**_JIT)
+def sum_unblocked(n: int, which: NDArray[np.int64], blocked: NDArray[np.bool_],
+                  values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``out[i] = sum of values[k] over k with which[k] == i and not blocked[k]``; ``(n, C)``."""
+    out = np.zeros((n, values.shape[1]))
+    for k in range(which.shape[0]):
+        if not blocked[k]:
+            i = which[k]
+            for c in range(values.shape[1]):
+                out[i, c] += values[k, c]
+    return out
+
+
+@numba.njit(**_JIT)
+def cosine_directions(normals: NDArray[np.float64], random: NDArray[np.float64]
+                      ) -> NDArray[np.float64]:
+    """Cosine-weighted unit directions about unit ``normals (n, 3)`` from uniform
+    ``random (n, 2)`` (density ``cos / pi``): ``sqrt(r0)`` the sine of the polar angle,
+    ``2 pi r1`` the azimuth, in the orthonormal basis of Duff et al., "Building an Orthonormal
+    Basis, Revisited", JCGT 6(1), 2017. Returns ``(n, 3)``."""
+    n = normals.shape[0]
+    out = np.empty((n, 3))
+    for i in range(n):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        sign = 1.0 if nz >= 0.0 else -1.0
+        a = -1.0 / (sign + nz)
+        bb = nx * ny * a
+        t1x, t1y, t1z = 1.0 + sign * nx * nx * a, sign * bb, -sign * nx
+        t2x, t2y, t2z = bb, sign + ny * ny * a, -ny
+        r = math.sqrt(random[i, 0])
+        phi = 2.0 * math.pi * random[i, 1]
+        z = math.sqrt(max(1.0 - random[i, 0], 0.0))
+        c, s = r * math.cos(phi), r * math.sin(phi)
+        dx = c * t1x + s * t2x + z * nx
+        dy = c * t1y + s * t2y + z * ny
+        dz = c * t1z + s * t2z + z * nz
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        out[i, 0], out[i, 1], out[i, 2] = dx / norm, dy / norm, dz / norm
+    return out

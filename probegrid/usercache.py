@@ -53,7 +53,8 @@ def cache_dir() -> Path:
 
 
 def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArray],
-                 *, dtype: np.dtype | type, shape: tuple[int, ...]) -> NDArray:
+                 *, dtype: np.dtype | type, shape: tuple[int, ...],
+                 mapped: bool = False) -> NDArray:
     """The array ``compute()`` returns, read from the cache when an equal key was stored.
 
     Parameters
@@ -66,6 +67,9 @@ def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArra
         Returns the array (of ``dtype`` and ``shape``).
     dtype, shape
         What a valid cached file must hold.
+    mapped : bool
+        Memory-map the cached file instead of reading it (large arrays: no copy, and the
+        processes of one machine share its pages).
 
     Returns
     -------
@@ -76,7 +80,8 @@ def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArra
     digest = hashlib.sha256(json.dumps(full, sort_keys=True).encode()).hexdigest()[:20]
     path = cache_dir() / f"{name}-{digest}.npy"
     try:
-        arr = np.load(path, allow_pickle=False)
+        arr = np.load(path, allow_pickle=False, mmap_mode="r" if mapped else None)
+        arr = arr.view(np.ndarray)  # (a memmap's pages, as a plain array)
         if arr.dtype == np.dtype(dtype) and arr.shape == shape and np.all(np.isfinite(arr)):
             arr.setflags(write=False)
             return arr
@@ -107,7 +112,8 @@ def dfg_lut(size: int = 128, *, samples: int = 64) -> NDArray[np.float32]:
 @lru_cache(maxsize=2)
 def probe_filter_matrix(n: int, diffuse_size: int, levels: int) -> NDArray[np.float32]:
     """:func:`probegrid.core.probefilter.filter_matrix`'s matrix through the cache (the same
-    bits; about 1 s saved per bake worker at faces 32), kept per process (read-only)."""
+    bits; about 1 s saved per bake worker at faces 32), memory-mapped (read-only; the workers of
+    a machine share its pages) and kept per process."""
     from probegrid.core import probefilter
 
     shape = probefilter.filter_matrix_shape(n, diffuse_size, levels)
@@ -115,7 +121,7 @@ def probe_filter_matrix(n: int, diffuse_size: int, levels: int) -> NDArray[np.fl
                                          "levels": int(levels),
                                          "version": probefilter.MATRIX_VERSION},
                         lambda: probefilter.filter_matrix(n, diffuse_size, levels)[0],
-                        dtype=np.float32, shape=shape)
+                        dtype=np.float32, shape=shape, mapped=True)
 
 
 if __name__ == "__main__":  # pragma: no cover - a convenience command

@@ -300,3 +300,133 @@ def test_texel_coverage_adds_up_to_the_triangle_solid_angle() -> None:
         assert np.all(om[:count] <= texel_solid_angles(8).reshape(-1)[tex[:count]] * (1 + 1e-9))
         hit = dist[:count, None] * dirs[:count]
         np.testing.assert_allclose((hit - a) @ nrm, 0, atol=1e-9)
+
+
+def test_guided_search_is_searchsorted() -> None:
+    """The cut-point search gives searchsorted's index everywhere: runs of zero probability,
+    values on the cut points and on the table's own entries, and a single entry."""
+    from probegrid.kernels import _search_right, guide_table
+
+    rng = np.random.default_rng(2)
+    p = rng.random(500) ** 4
+    p[100:300] = 0.0  # a long run of empty bins (a black ground)
+    p[-20:] = 0.0
+    for prob in (p, np.array([1.0]), np.array([0.0, 1.0, 0.0])):
+        cdf = np.cumsum(prob / prob.sum())
+        cdf[-1] = 1.0
+        guide = guide_table(cdf)
+        xs = np.concatenate([rng.random(4000), np.arange(len(cdf)) / len(cdf), cdf[:-1],
+                             np.nextafter(cdf[:-1], 0), [0.0, np.nextafter(1.0, 0)]])
+        xs = xs[(xs >= 0) & (xs < 1)]
+        want = np.minimum(np.searchsorted(cdf, xs, side="right"), len(cdf) - 1)
+        got = np.array([_search_right(cdf, guide, float(x)) for x in xs])
+        np.testing.assert_array_equal(got, want)
+
+
+def test_cosine_directions_match_numpy() -> None:
+    """The compiled cosine-weighted directions against the array expression (Duff et al.'s
+    basis), and their distribution: mean cosine 2/3, uniform azimuth."""
+    from probegrid.kernels import cosine_directions
+
+    rng = np.random.default_rng(4)
+    nrm = rng.normal(size=(3000, 3))
+    nrm[:5] = [[0, 0, 1], [0, 0, -1], [1, 0, 0], [0, -1, 0], [0, 0, -1 + 1e-12]]
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    r = rng.random((3000, 2))
+    nx, ny, nz = nrm.T
+    sign = np.where(nz >= 0.0, 1.0, -1.0)
+    a = -1.0 / (sign + nz)
+    bb = nx * ny * a
+    t1 = np.stack([1.0 + sign * nx * nx * a, sign * bb, -sign * nx], axis=1)
+    t2 = np.stack([bb, sign + ny * ny * a, -ny], axis=1)
+    rad, phi = np.sqrt(r[:, 0]), 2 * np.pi * r[:, 1]
+    d = ((rad * np.cos(phi))[:, None] * t1 + (rad * np.sin(phi))[:, None] * t2
+         + np.sqrt(1 - r[:, 0])[:, None] * nrm)
+    want = d / np.linalg.norm(d, axis=1, keepdims=True)
+    got = cosine_directions(nrm, r)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-14)
+    cos = np.einsum("ij,ij->i", got, nrm)
+    assert cos.min() >= 0 and abs(cos.mean() - 2 / 3) < 0.01
+
+
+def test_environment_samples_match_the_numpy_sampler() -> None:
+    """The compiled environment samples are EnvironmentLight.sample's directions with the
+    estimator's contributions radiance cos / (p L), for a rotated sky."""
+    from probegrid.bake.environment import Environment, EnvironmentLight
+    from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V
+    from probegrid.kernels import environment_samples
+
+    rng = np.random.default_rng(6)
+    faces = (rng.random((6, 8, 8, 3)) ** 3).astype(np.float32)
+    faces[3] = 0.0  # a black ground: zero-probability texels
+    light = EnvironmentLight(Environment(faces=faces, intensity=2.0, rotation=0.7), 8)
+    n, ls = 400, 3
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    r = rng.random((n, ls, 3))
+    which, dirs, contrib = environment_samples(nrm, r, light._cdf, light._guide, light._prob,
+                                               light.radiance, light.size, light._rotation,
+                                               FACE_NORMALS, FACE_U, FACE_V)
+    d, rad, pdf = light.sample(r)
+    cos = np.einsum("nlk,nk->nl", d, nrm)
+    i, k = np.nonzero((cos > 0) & (pdf > 0))
+    np.testing.assert_array_equal(which, i)
+    np.testing.assert_allclose(dirs, d[i, k], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(contrib, rad[i, k] * (cos[i, k] / (pdf[i, k] * ls))[:, None],
+                               rtol=1e-12)
+
+
+def test_emitter_samples_match_surface_sampling() -> None:
+    """The fused emitter sampling against choosing triangles with searchsorted, points through
+    Scene.surface_at and emitter_shadow_rays; the estimate against sum_rows."""
+    from probegrid.bake.emitters import Emitters
+    from probegrid.core.arrays import sum_rows
+    from probegrid.kernels import (
+        emitter_estimate,
+        emitter_samples,
+        emitter_shadow_rays,
+        sum_unblocked,
+    )
+    from probegrid.scene import Material, SceneBuilder
+
+    b = SceneBuilder()
+    hot = b.add_material(Material(emissive=(3.0, 2.0, 1.0)))
+    warm = b.add_material(Material(emissive=(0.5, 1.0, 0.2)))
+    b.add_quad((-0.5, 2, -0.5), (1, 0, 0), (0, 0, 1), material=hot)
+    b.add_quad((2, 0, -1), (0, 0, 2), (0, 1.5, 0), material=warm)
+    em = Emitters.from_scene(b.build())
+    rng = np.random.default_rng(8)
+    n, ls = 300, 2
+    pts = rng.uniform(-1, 1, (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    r = rng.random((n, ls, 3))
+    cdf, inv_pdf = em._selection
+    got = emitter_samples(pts, nrm, r, cdf, em._guide, inv_pdf, em.vertices, em.normals,
+                          em.factor, em.control, 1e-4)
+    e = np.minimum(np.searchsorted(cdf, r[..., 0], side="right"), len(em) - 1)
+    r1 = np.sqrt(r[..., 1])
+    surf = em.scene.surface_at(em.triangles[e], r1 * (1 - r[..., 2]), r1 * r[..., 2])
+    want = emitter_shadow_rays(pts, nrm, np.ascontiguousarray(surf.position),
+                               np.ascontiguousarray(em.normals[e]),
+                               np.ascontiguousarray(surf.emission),
+                               np.ascontiguousarray(em.control[e]),
+                               np.ascontiguousarray(inv_pdf[e]), 1e-4)
+    assert len(got[0]) > n // 2
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-15)
+    which, _, _, _, vis, occ = got
+    blocked = rng.random(len(which)) < 0.3
+    plain = sum_rows(which, np.where(blocked[:, None], 0.0, vis - occ), n)
+    whole = sum_rows(which, -occ, n)
+    a = rng.uniform(0.5, 2.0, (n, 3))
+    ok = whole > 0
+    ratio = np.where(ok, a * np.divide(plain, whole, out=np.zeros_like(plain), where=ok),
+                     a + plain)
+    np.testing.assert_allclose(emitter_estimate(n, which, blocked, vis, occ, a), ratio,
+                               rtol=1e-13)
+    np.testing.assert_allclose(emitter_estimate(n, which, blocked, vis, occ, np.zeros((0, 3))),
+                               plain, rtol=1e-13, atol=1e-300)
+    np.testing.assert_allclose(sum_unblocked(n, which, blocked, vis),
+                               sum_rows(which, np.where(blocked[:, None], 0.0, vis), n),
+                               rtol=1e-13, atol=1e-300)

@@ -55,7 +55,14 @@ from numpy.typing import NDArray
 
 from probegrid.core.arrays import sum_rows
 from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, texel_solid_angles
-from probegrid.kernels import emitter_irradiance, emitter_shadow_rays, texel_emitter_coverage
+from probegrid.kernels import (
+    emitter_estimate,
+    emitter_irradiance,
+    emitter_samples,
+    emitter_shadow_rays,
+    guide_table,
+    texel_emitter_coverage,
+)
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
@@ -139,6 +146,11 @@ class Emitters:
         cdf[-1] = 1.0
         return cdf, area / prob
 
+    @cached_property
+    def _guide(self) -> NDArray[np.int64]:
+        """The selection's cut-point table (:func:`probegrid.kernels.guide_table`)."""
+        return guide_table(self._selection[0])
+
     # -- light at surface points -----------------------------------------------------------
     def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64],
                    random: NDArray[np.float64], tracer: RayTracer, eps: float
@@ -150,33 +162,29 @@ class Emitters:
         out = np.zeros((n, 3))
         if n == 0 or len(self) == 0:
             return out, 0
-        if self.analytic:
-            out += emitter_irradiance(points, normals, self.vertices, self.normals,
-                                      self.control)
+        analytic = (emitter_irradiance(points, normals, self.vertices, self.normals,
+                                       self.control) if self.analytic else np.zeros((0, 3)))
         cdf, inv_pdf = self._selection
-        e = np.minimum(np.searchsorted(cdf, random[..., 0], side="right"), len(self) - 1)
-        r1 = np.sqrt(random[..., 1])
-        bu, bv = r1 * (1.0 - random[..., 2]), r1 * random[..., 2]
-        surf = self.scene.surface_at(self.triangles[e], bu, bv)
-        which, org, dirs, tmax, vis, occ = emitter_shadow_rays(
-            points, normals, np.ascontiguousarray(surf.position),
-            np.ascontiguousarray(self.normals[e]), np.ascontiguousarray(surf.emission),
-            np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps)
-        if not len(which):
-            return out, 0
-        blocked = tracer.occluded(org, dirs, tmax, tmin=eps)
-        seen = np.where(blocked[:, None], 0.0, vis - occ)  # Le g / (L p) where visible
-        plain = sum_rows(which, seen, n)
-        if not self.analytic:
-            return plain, len(which)
-        # the exact unoccluded integral scaled by the samples' visible share (ratio estimator);
-        # where no sample saw the control (all on the point's own plane, say), the control
-        # variate's estimate, A + sum of the contributions
-        whole = sum_rows(which, -occ, n)  # Lc g / (L p)
-        ok = whole > 0.0
-        out = np.where(ok, out * np.divide(plain, whole, out=np.zeros_like(plain), where=ok),
-                       out + plain)
-        return out, len(which)
+        if self.textured.any():  # the points' radiance through the textures
+            e = np.minimum(np.searchsorted(cdf, random[..., 0], side="right"), len(self) - 1)
+            r1 = np.sqrt(random[..., 1])
+            bu, bv = r1 * (1.0 - random[..., 2]), r1 * random[..., 2]
+            surf = self.scene.surface_at(self.triangles[e], bu, bv)
+            rays = emitter_shadow_rays(
+                points, normals, np.ascontiguousarray(surf.position),
+                np.ascontiguousarray(self.normals[e]), np.ascontiguousarray(surf.emission),
+                np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps)
+        else:  # the same, in one compiled pass
+            rays = emitter_samples(points, normals, np.ascontiguousarray(random), cdf,
+                                   self._guide, inv_pdf,
+                                   self.vertices, self.normals, self.factor, self.control, eps)
+        which, org, dirs, tmax, vis, occ = rays
+        blocked = (tracer.occluded(org, dirs, tmax, tmin=eps) if len(which)
+                   else np.zeros(0, np.bool_))
+        # with the exact unoccluded integral: it, scaled by the samples' visible share (ratio
+        # estimator); where no sample saw the control (all on the point's own plane, say), the
+        # control variate's estimate, A + sum of the contributions
+        return emitter_estimate(n, which, blocked, vis, occ, analytic), len(which)
 
     # -- what a probe sees -----------------------------------------------------------------
     def texel_view(self, origin: NDArray[np.float64], n: int, tracer: RayTracer, eps: float

@@ -39,11 +39,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.core.arrays import sum_rows
 from probegrid.core.color import luminance
 from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, check_cube, texel_solid_angles
 from probegrid.core.sampling import CubeSampler, resample
 from probegrid.core.sh import rotation_y
+from probegrid.kernels import environment_samples, guide_table, sum_unblocked
 from probegrid.raytrace import RayTracer
 
 __all__ = ["LIGHT_SIZE", "Environment", "EnvironmentLight"]
@@ -175,6 +175,7 @@ class EnvironmentLight:
         if len(cdf):
             cdf[-1] = 1.0
         self._cdf = cdf
+        self._guide = guide_table(cdf)
         self._prob = prob
         # environment frame -> world
         self._rotation = rotation_y(env.rotation) if env.rotation else None
@@ -207,21 +208,19 @@ class EnvironmentLight:
                    ) -> tuple[NDArray[np.float64], int]:
         """Direct irradiance (lux, RGB) from the environment at ``points (n, 3)`` with unit
         ``normals (n, 3)``, from ``random (n, L, 3)`` uniform numbers (L samples per point).
-        Returns ``(n, 3)`` and the shadow rays cast."""
+        Returns ``(n, 3)`` and the shadow rays cast (:meth:`sample` and the estimator in one
+        compiled pass, :func:`probegrid.kernels.environment_samples`)."""
         n = len(points)
         out = np.zeros((n, 3))
         if n == 0 or self.is_black:
             return out, 0
-        ls = random.shape[1]
-        d, rad, pdf = self.sample(random)
-        cos = np.einsum("nlk,nk->nl", d, np.asarray(normals, dtype=np.float64))
-        use = (cos > 0.0) & (pdf > 0.0)
-        which, k = np.nonzero(use)
+        which, dirs, contrib = environment_samples(
+            np.asarray(normals, dtype=np.float64), np.ascontiguousarray(random, np.float64),
+            self._cdf, self._guide, self._prob, self.radiance, self.size,
+            np.eye(3) if self._rotation is None else self._rotation,
+            FACE_NORMALS, FACE_U, FACE_V)
         if not which.size:
             return out, 0
-        dirs = d[which, k]
-        contrib = rad[which, k] * (cos[which, k] / (pdf[which, k] * ls))[:, None]
         blocked = tracer.occluded(np.asarray(points, dtype=np.float64)[which], dirs,
                                   np.full(len(which), np.inf), tmin=eps)
-        contrib[blocked] = 0.0
-        return sum_rows(which, contrib, n), len(which)
+        return sum_unblocked(n, which, blocked, contrib), len(which)

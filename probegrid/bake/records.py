@@ -27,7 +27,7 @@ probe's irradiance cube of the previous bounce.
 Final gather
 ------------
 Each front hit also casts ``gather_samples`` cosine-weighted rays (``gather_*`` records,
-:func:`cosine_directions`), traced once and lit as the probe's rays are (punctual lights, one
+:func:`probegrid.kernels.cosine_directions`), traced once and lit as the probe's rays are (punctual lights, one
 emitter and one environment sample at their hits; their misses and emission count 0: the
 environment and the emitters reach the hit by sampling), and with ``gather_depth = 2`` (the
 default) each of their hits casts one more (``gather2_*``). A bounce at level ``k`` reads the
@@ -101,6 +101,7 @@ from probegrid.core.ddgi import (
 from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.lights import splat_delta
 from probegrid.kernels import (
+    cosine_directions,
     distance_moments,
     hit_probe_weights,
     light_rays,
@@ -369,23 +370,6 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
             if name.startswith(k + "_") and name != off:  # (the offsets are the new ones)
                 out[name] = records[name][sel]
     return out
-
-
-def cosine_directions(normals: NDArray[np.float64], random: NDArray[np.float64]
-                      ) -> NDArray[np.float64]:
-    """Cosine-weighted directions about unit ``normals (n, 3)`` from uniform ``random (n, 2)``
-    (density ``cos / pi``; the orthonormal basis of Duff et al., JCGT 6(1), 2017)."""
-    nx, ny, nz = normals[:, 0], normals[:, 1], normals[:, 2]
-    sign = np.where(nz >= 0.0, 1.0, -1.0)
-    a = -1.0 / (sign + nz)
-    bb = nx * ny * a
-    t1 = np.stack([1.0 + sign * nx * nx * a, sign * bb, -sign * nx], axis=1)
-    t2 = np.stack([bb, sign + ny * ny * a, -ny], axis=1)
-    r = np.sqrt(random[:, 0])
-    phi = 2.0 * np.pi * random[:, 1]
-    z = np.sqrt(np.maximum(1.0 - random[:, 0], 0.0))
-    d = (r * np.cos(phi))[:, None] * t1 + (r * np.sin(phi))[:, None] * t2 + z[:, None] * normals
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 class RecordTracer:
