@@ -27,8 +27,9 @@ probe's irradiance cube of the previous bounce.
 Final gather
 ------------
 Each front hit also casts ``gather_samples`` cosine-weighted rays (``gather_*`` records,
-:func:`probegrid.kernels.cosine_directions`), traced once and lit as the probe's rays are (punctual lights, one
-emitter and one environment sample at their hits; their misses and emission count 0: the
+:func:`probegrid.kernels.cosine_directions`), traced once and lit as the probe's rays are
+(punctual lights, one emitter and one environment sample at their hits; their misses and
+emission count 0: the
 environment and the emitters reach the hit by sampling), and with ``gather_depth = 2`` (the
 default) each of their hits casts one more (``gather2_*``). A bounce at level ``k`` reads the
 grid at the deepest level's hits, for the light they reflect at level ``k - depth``, i.e. the
