@@ -20,10 +20,15 @@ documentation of the maths; ``tests/test_kernels.py`` compares the two on random
 * :func:`light_rays` -- :func:`probegrid.core.lights.incident_many` and the choice of shadow
   rays; :func:`replay_radiance` -- a bounce's pass over the per-hit records.
 * :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
-  :func:`orient_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
+  :func:`split_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
   per-texel means, distance moments and the backface rule.
 * :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
   conversions to and from Embree's float32 rays (tested through the tracer).
+* :func:`emitter_samples`, :func:`emitter_estimate`, :func:`environment_samples`,
+  :func:`sum_unblocked`, :func:`cosine_directions` -- the light sampled at hits
+  (:class:`probegrid.bake.emitters.Emitters`,
+  :class:`probegrid.bake.environment.EnvironmentLight`: ``searchsorted`` through a cut-point
+  table, :func:`guide_table`) and the final gather's directions.
 
 Floating point: float64 throughout (float32 only where the data is), with FMA contraction and
 reciprocal multiplication allowed (``fastmath={"contract", "arcp"}``; no other fast-math flag,
@@ -57,8 +62,8 @@ __all__ = [
     "hit_surfaces",
     "light_rays",
     "multiply_texture",
-    "orient_hits",
     "segment_rays",
+    "split_hits",
     "sum_unblocked",
     "texel_means",
 ]
@@ -323,40 +328,6 @@ def cube_sample_directions(
                 for k in range(s):
                     wt[f, row, col, k] /= total
     return d, wt
-
-
-@numba.njit(**_JIT)
-def orient_hits(
-    normals: NDArray[np.float64],
-    directions: NDArray[np.float64],
-    rows: NDArray[np.int64],
-    prim: NDArray[np.int64],
-    double_sided: NDArray[np.bool_],
-) -> NDArray[np.bool_]:
-    """Turn hit normals toward the rays that hit them; flag hits on the back of one-sided faces.
-
-    ``normals (h, 3)`` (geometric, as wound) of the hits of rays ``rows (h,)`` with
-    ``directions (N, 3)`` on triangles ``prim (h,)``: where ``dot(normal, direction) > 0`` the
-    ray sees the back, the normal is negated in place (the side the ray sees is shaded), and the
-    hit is a backface unless the triangle's material is ``double_sided (T,)``.
-
-    Returns
-    -------
-    (h,) bool
-        Backface hits.
-    """
-    h = rows.shape[0]
-    back = np.zeros(h, np.bool_)
-    for j in range(h):
-        r = rows[j]
-        d = (normals[j, 0] * directions[r, 0] + normals[j, 1] * directions[r, 1]
-             + normals[j, 2] * directions[r, 2])
-        if d > 0:
-            normals[j, 0] = -normals[j, 0]
-            normals[j, 1] = -normals[j, 1]
-            normals[j, 2] = -normals[j, 2]
-            back[j] = not double_sided[prim[j]]
-    return back
 
 
 @numba.njit(**_JIT)
@@ -1357,3 +1328,42 @@ def cosine_directions(normals: NDArray[np.float64], random: NDArray[np.float64]
         norm = math.sqrt(dx * dx + dy * dy + dz * dz)
         out[i, 0], out[i, 1], out[i, 2] = dx / norm, dy / norm, dz / norm
     return out
+
+
+@numba.njit(**_JIT)
+def split_hits(
+    directions: NDArray[np.float64],
+    prim: NDArray[np.int64],
+    tri_normals: NDArray[np.float64],
+    double_sided: NDArray[np.bool_],
+) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Sort rays ``directions (k, 3)`` by what they hit (``prim (k,)``, -1 for a miss;
+    ``tri_normals (T, 3)`` as wound): the backface rule (a ray that sees the back of a
+    triangle that is not double-sided finds black).
+
+    Returns ``kind (k,)`` uint8 (0 miss, 1 front hit, 2 the back of a one-sided triangle),
+    the front hits' rays ``rows (f,)``, whether each sees its triangle's back (its normal is to
+    be turned toward the ray, ``flip (f,)``) and whether it sees the front as wound
+    (``dot(normal, direction) < 0``: the side that emits, ``emits (f,)``).
+    """
+    k = prim.shape[0]
+    kind = np.zeros(k, np.uint8)
+    rows = np.empty(k, np.int64)
+    flip = np.empty(k, np.bool_)
+    emits = np.empty(k, np.bool_)
+    f = 0
+    for i in range(k):
+        t = prim[i]
+        if t < 0:
+            continue
+        d = (tri_normals[t, 0] * directions[i, 0] + tri_normals[t, 1] * directions[i, 1]
+             + tri_normals[t, 2] * directions[i, 2])
+        if d > 0 and not double_sided[t]:
+            kind[i] = 2
+            continue
+        kind[i] = 1
+        rows[f] = i
+        flip[f] = d > 0
+        emits[f] = d < 0
+        f += 1
+    return kind, rows[:f], flip[:f], emits[:f]

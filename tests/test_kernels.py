@@ -97,15 +97,18 @@ def test_texel_means_and_distance_moments_match_numpy() -> None:
     np.testing.assert_allclose(got[:, 1], np.bincount(bins, sa * t * t, 12) / den, rtol=1e-6)
 
 
-def test_orient_hits_flips_toward_the_ray_and_flags_one_sided_backs() -> None:
-    from probegrid.kernels import orient_hits
+def test_split_hits_sorts_misses_fronts_and_one_sided_backs() -> None:
+    from probegrid.kernels import split_hits
 
-    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
-    dirs = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [9.0, 9.0, 9.0], [0.0, 1.0, 0.0]])
-    rows = np.array([0, 1, 3])
-    back = orient_hits(nrm, dirs, rows, np.array([0, 0, 1]), np.array([False, True]))
-    assert back.tolist() == [False, True, False]  # the second triangle is double-sided
-    assert nrm.tolist() == [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, -1.0, 0.0]]
+    tri_n = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # triangle 1 is double-sided
+    dirs = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [9.0, 9.0, 9.0], [0.0, 1.0, 0.0],
+                     [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+    prim = np.array([0, 0, -1, 1, 1, 0])
+    kind, rows, flip, emits = split_hits(dirs, prim, tri_n, np.array([False, True]))
+    assert kind.tolist() == [1, 2, 0, 1, 1, 1]  # the back of one-sided triangle 0 is black
+    assert rows.tolist() == [0, 3, 4, 5]
+    assert flip.tolist() == [False, True, False, False]  # turned toward the ray
+    assert emits.tolist() == [True, False, True, False]  # (edge-on: neither flipped nor lit)
 
 
 def test_light_rays_match_incident_many() -> None:

@@ -106,8 +106,9 @@ from probegrid.kernels import (
     distance_moments,
     hit_probe_weights,
     light_rays,
-    orient_hits,
     replay_radiance,
+    split_hits,
+    sum_unblocked,
     texel_means,
 )
 from probegrid.raytrace import RayTracer
@@ -404,29 +405,25 @@ class RecordTracer:
         rec = _new_records(k)
         hits = self.tracer.intersect(origins, dirs)
         rays = k
-        miss = hits.prim_id < 0
+        kind, rows, flip, emits = split_hits(dirs, hits.prim_id, self.scene.triangle_normals,
+                                             rd._double_sided)
+        rec["kind"] = kind
+        miss = kind == 0
         if sky_at_misses and miss.any() and not rd.environment.is_black:
             rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
         t = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
-        hit = np.flatnonzero(~miss)
-        if not hit.size:
+        if not rows.size:
             return rec, t, rays
-        prim = hits.prim_id[hit]
-        p, nrm, albedo, emission = self.scene.surface_at(prim, hits.u[hit], hits.v[hit])
-        # emission leaves the front (as wound) only
-        front_side = np.einsum("ij,ij->i", nrm, dirs[hit]) < 0
-        is_back = orient_hits(nrm, dirs, hit, prim, rd._double_sided)
-        emission = np.where(front_side[:, None], emission, 0.0)
-        rec["kind"][hit] = np.where(is_back, 2, 1)
-        fh = np.flatnonzero(~is_back)
-        p, nrm, albedo, emission = p[fh], nrm[fh], albedo[fh], emission[fh]
-        rows = hit[fh]
+        p, nrm, albedo, emission = self.scene.surface_at(hits.prim_id[rows], hits.u[rows],
+                                                         hits.v[rows])
+        nrm[flip] *= -1.0  # turned toward the ray: the side it sees is shaded
+        emission[~emits] = 0.0  # emission leaves the front (as wound) only
         which, s_org, s_dir, s_tmax, s_irr = light_rays(p, nrm, *rd._lights, eps)
-        e_p = np.zeros((len(fh), 3))
+        e_p = np.zeros((len(rows), 3))
         if len(which):
             occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
             rays += len(which)
-            e_p = sum_rows(which, np.where(occluded[:, None], 0.0, s_irr), len(fh))
+            e_p = sum_unblocked(len(rows), which, occluded, s_irr)
         rec["light_punctual"][rows] = e_p / np.pi
         # lit a ray offset short of the hit: a hit exactly on an edge of a closed room (texel
         # centres find them) would see the adjacent wall edge-on
