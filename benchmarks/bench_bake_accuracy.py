@@ -82,6 +82,15 @@ def _bake_main(spec_file: str) -> None:
     from probegrid.scene import load_gltf
     from probegrid.store import open_store
 
+    # as ``probegrid bake`` does: the worker processes start (and import the bake) while the
+    # scene loads; the timed bake begins once the scene is loaded (what is left of the workers'
+    # start-up is timed). (Older checkouts start them with the bake.)
+    try:
+        executor = make_executor(workers=spec["workers"], preload=("probegrid.bake.driver",))
+    except TypeError:
+        executor = make_executor(workers=spec["workers"])
+    if hasattr(executor, "start"):
+        executor.start()
     scene = load_gltf(spec["scene"])
     scene = dataclasses.replace(scene, lights=tuple(
         dataclasses.replace(lt, range=None) if getattr(lt, "range", None) is not None else lt
@@ -101,7 +110,6 @@ def _bake_main(spec_file: str) -> None:
         settings = BakeSettings(face_size=spec["face_size"], bounces=bounces,
                                 samples=spec["samples"], store_incoming=True)
     out = Path(spec["out"])
-    executor = make_executor(workers=spec["workers"])
     try:
         t0 = time.perf_counter()
         report = bake(scene, grid, out, settings=settings, environment=env, executor=executor,

@@ -412,3 +412,33 @@ def test_workers_exit_when_their_caller_is_killed(tmp_path):
                 alive.discard(pid)
         time.sleep(0.1)
     assert not alive, f"workers {alive} outlived their caller"
+
+
+def modules_task(state: dict, batch: np.ndarray) -> dict:
+    import sys
+
+    return {"pid": os.getpid(), "has": "colorsys" in sys.modules}
+
+
+def test_started_processes_import_the_preload_before_any_task(tmp_path):
+    """start() brings every process up at once (before any map) with the preload modules
+    imported; map then runs on those processes."""
+    import multiprocessing
+
+    with ex.LocalExecutor(2, preload=("colorsys",)) as executor:
+        pool = executor.start()
+        assert executor.start() is pool  # once
+        deadline = time.monotonic() + 60
+        while len(multiprocessing.active_children()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        started = {p.pid for p in multiprocessing.active_children()}
+        out = [r for _, r in executor.map(modules_task, NoiseContext(SEED, str(tmp_path)),
+                                          ex.make_batches(6, batch_size=1))]
+    assert all(r["has"] for r in out)
+    assert {r["pid"] for r in out} <= started
+    # without a preload a spawned process imports nothing extra (a fork server keeps what it
+    # preloaded for every later pool of this process)
+    with ex.LocalExecutor(1, start_method="spawn") as executor:
+        out = [r for _, r in executor.map(modules_task, NoiseContext(SEED, str(tmp_path)),
+                                          ex.make_batches(2, batch_size=1))]
+    assert not any(r["has"] for r in out)

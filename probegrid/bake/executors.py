@@ -173,6 +173,11 @@ class Executor(Protocol):
         """Yield ``(batch, fn(state, batch))`` for every batch, in order of completion."""
         ...
 
+    def start(self) -> object:
+        """Get the workers ready now, so that their start-up overlaps the caller's own work
+        (:meth:`map` does it otherwise)."""
+        ...
+
     def close(self) -> None:
         """Release the executor's resources."""
         ...
@@ -420,6 +425,9 @@ class InlineExecutor:
         )
         yield from pipeline.run(todo, progress)
 
+    def start(self) -> None:
+        """Nothing to start: batches run in the caller."""
+
     def close(self) -> None:
         """Nothing to release."""
 
@@ -496,8 +504,13 @@ class LocalExecutor:
         How processes start; default ``forkserver`` where available, else ``spawn``.
     max_in_flight_per_worker : int
         Batches submitted and not yet handed back, per process (default 2).
+    preload : sequence of str
+        Modules the processes import before their first task: with ``forkserver`` the fork
+        server imports them once and every worker starts with them (when this process has not
+        started its fork server yet); with ``spawn`` each worker imports them as it starts.
 
-    The worker processes start with the first :meth:`map` call and serve every later one
+    The worker processes start with :meth:`start` (to overlap their start-up with the caller's
+    own work), else with the first :meth:`map` call, and serve every later one
     until :meth:`close` (or the end of a ``with`` block), so a bake's stages do not each pay for
     starting processes, importing the library and building the BVH
     (:meth:`probegrid.raytrace.RayTracer.shared`). Each call's context travels once, as a
@@ -515,6 +528,7 @@ class LocalExecutor:
         *,
         start_method: StartMethod | None = None,
         max_in_flight_per_worker: int = 2,
+        preload: Sequence[str] = (),
     ) -> None:
         if workers is None:
             workers = default_workers()
@@ -533,6 +547,7 @@ class LocalExecutor:
         self._workers = int(workers)
         self._start_method = start_method
         self._per_worker = int(max_in_flight_per_worker)
+        self._preload = tuple(str(m) for m in preload)
         self._pool: cf.ProcessPoolExecutor | None = None
 
     @property
@@ -560,14 +575,7 @@ class LocalExecutor:
     ) -> Iterator[tuple[Batch, R]]:
         if not todo:
             return
-        if self._pool is None:
-            self._pool = cf.ProcessPoolExecutor(
-                max_workers=self._workers,
-                mp_context=multiprocessing.get_context(self._start_method),
-                initializer=_exit_with_caller,
-                initargs=(os.getpid(),),
-            )
-        pool = self._pool
+        pool = self.start()
         token = uuid.uuid4().hex
         _remove_stale_context_files()
         fd, context_file = tempfile.mkstemp(prefix=f"{_CONTEXT_PREFIX}{os.getpid()}-",
@@ -611,6 +619,24 @@ class LocalExecutor:
                 self.close()
             os.unlink(context_file)
 
+    def start(self) -> cf.ProcessPoolExecutor:
+        """Start the worker processes now (they import ``preload`` as they start), unless they
+        run already; returns the pool."""
+        if self._pool is None:
+            ctx = multiprocessing.get_context(self._start_method)
+            if self._start_method == "forkserver" and self._preload:
+                ctx.set_forkserver_preload(list(self._preload))  # (a running server keeps its)
+            pool = cf.ProcessPoolExecutor(
+                max_workers=self._workers,
+                mp_context=ctx,
+                initializer=_start_worker,
+                initargs=(os.getpid(), self._preload),
+            )
+            for _ in range(self._workers):  # one task each: every process starts now
+                pool.submit(os.getpid)
+            self._pool = pool
+        return self._pool
+
     def close(self) -> None:
         """Stop the worker processes (waits for running batches; cancels pending ones)."""
         pool, self._pool = self._pool, None
@@ -624,8 +650,17 @@ class LocalExecutor:
         self.close()
 
 
+def _start_worker(pid: int, preload: tuple[str, ...]) -> None:
+    """Worker initializer: :func:`_exit_with_caller`, then import the ``preload`` modules."""
+    import importlib
+
+    _exit_with_caller(pid)
+    for name in preload:
+        importlib.import_module(name)
+
+
 def _exit_with_caller(pid: int) -> None:
-    """Worker initializer: end this worker when the process that started the pool is gone.
+    """End this worker when the process that started the pool is gone.
 
     A caller killed with SIGKILL (or crashing) cannot stop its workers; without this they would
     run on, orphaned, and keep the forkserver and resource tracker alive. A daemon thread waits
@@ -902,6 +937,10 @@ class DaskExecutor:
             with contextlib.suppress(Exception):
                 client.run(_dask_forget, token)
 
+    def start(self) -> None:
+        """Nothing to start: the cluster's workers run already (the client connected when
+        this executor was made)."""
+
     def close(self) -> None:
         """Close the client if this executor opened it."""
         if self._owns_client:
@@ -915,15 +954,16 @@ class DaskExecutor:
 
 
 def make_executor(
-    *, workers: int | None = None, scheduler: str | None = None
+    *, workers: int | None = None, scheduler: str | None = None, preload: Sequence[str] = ()
 ) -> LocalExecutor | DaskExecutor:
     """The executor the CLI's ``--workers N`` / ``--scheduler ADDRESS`` ask for.
 
     A scheduler address gives a :class:`DaskExecutor` (``workers`` must then be None); otherwise a
-    :class:`LocalExecutor` with ``workers`` processes (default every usable core).
+    :class:`LocalExecutor` with ``workers`` processes (default every usable core) that import
+    the ``preload`` modules as they start.
     """
     if scheduler is not None:
         if workers is not None:
             raise ValueError("give either workers (local processes) or a Dask scheduler, not both")
         return DaskExecutor(scheduler)
-    return LocalExecutor(workers)
+    return LocalExecutor(workers, preload=preload)

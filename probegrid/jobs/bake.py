@@ -480,27 +480,30 @@ def run_bake(job: BakeJob) -> BakeReport:
     if job.out.exists() and not job.overwrite:
         raise ValueError(f"{job.out} exists; pass --overwrite to replace it")
     job.settings.levels()
-    scene = load_gltf(job.scene)
-    env = load_environment(job.environment, layout=job.environment_layout,
-                           color=job.environment_color, intensity=job.environment_intensity,
-                           rotation_deg=job.environment_rotation)
-    require_light(scene, env, allow_black=job.allow_black)
-    notes: list[str] = []  # printed once every check passed: an error stays one line
-    grid = grid_for(scene, grid=job.grid, spacing=job.spacing, bounds=job.bounds,
-                    margin=job.margin, say=notes.append)
-    est = estimate(job.settings, grid, scene, env, shares_files=job.scheduler is None)
-    notes.append(est.summary())
-    check_disk(job.out, est)
-    executor = make_executor(workers=job.workers, scheduler=job.scheduler)
+    executor = make_executor(workers=job.workers, scheduler=job.scheduler,
+                             preload=("probegrid.bake.driver",))
+    executor.start()  # local processes start (and import the bake) while the scene loads
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
-    for line in notes:
-        print(line, file=sys.stderr)
-    print(f"baking {grid.label} = {grid.n_probes} probes of {job.scene} on "
-          f"{executor.description}", file=sys.stderr)
-    print(size_note(job.settings, grid.n_probes), file=sys.stderr)
-    if (note := resume_note(job.out)) is not None:
-        print(note, file=sys.stderr)
     try:
+        scene = load_gltf(job.scene)
+        env = load_environment(job.environment, layout=job.environment_layout,
+                               color=job.environment_color,
+                               intensity=job.environment_intensity,
+                               rotation_deg=job.environment_rotation)
+        require_light(scene, env, allow_black=job.allow_black)
+        notes: list[str] = []  # printed once every check passed: an error stays one line
+        grid = grid_for(scene, grid=job.grid, spacing=job.spacing, bounds=job.bounds,
+                        margin=job.margin, say=notes.append)
+        est = estimate(job.settings, grid, scene, env, shares_files=job.scheduler is None)
+        notes.append(est.summary())
+        check_disk(job.out, est)
+        for line in notes:
+            print(line, file=sys.stderr)
+        print(f"baking {grid.label} = {grid.n_probes} probes of {job.scene} on "
+              f"{executor.description}", file=sys.stderr)
+        print(size_note(job.settings, grid.n_probes), file=sys.stderr)
+        if (note := resume_note(job.out)) is not None:
+            print(note, file=sys.stderr)
         return bake(scene, grid, job.out, settings=job.settings, environment=env,
                     executor=executor, progress=bar, overwrite=job.overwrite,
                     scene_file=job.scene, allow_black=job.allow_black,
