@@ -86,7 +86,7 @@ def _bake_main(spec_file: str) -> None:
     # scene loads; the timed bake begins once the scene is loaded (what is left of the workers'
     # start-up is timed). (Older checkouts start them with the bake.)
     try:
-        executor = make_executor(workers=spec["workers"], preload=("probegrid.bake.driver",))
+        executor = make_executor(workers=spec["workers"], preload=("probegrid.bake.preload",))
     except TypeError:
         executor = make_executor(workers=spec["workers"])
     if hasattr(executor, "start"):

@@ -549,6 +549,7 @@ class LocalExecutor:
         self._per_worker = int(max_in_flight_per_worker)
         self._preload = tuple(str(m) for m in preload)
         self._pool: cf.ProcessPoolExecutor | None = None
+        self._starting: threading.Thread | None = None
 
     @property
     def workers(self) -> int:
@@ -575,7 +576,7 @@ class LocalExecutor:
     ) -> Iterator[tuple[Batch, R]]:
         if not todo:
             return
-        pool = self.start()
+        pool = self._started()
         token = uuid.uuid4().hex
         _remove_stale_context_files()
         fd, context_file = tempfile.mkstemp(prefix=f"{_CONTEXT_PREFIX}{os.getpid()}-",
@@ -620,8 +621,10 @@ class LocalExecutor:
             os.unlink(context_file)
 
     def start(self) -> cf.ProcessPoolExecutor:
-        """Start the worker processes now (they import ``preload`` as they start), unless they
-        run already; returns the pool."""
+        """Start the worker processes now, unless they run already, and return the pool
+        without waiting for them: a thread of this process asks for them, so that their
+        start-up (the fork server's ``preload`` included) overlaps the caller's own work.
+        :meth:`map` waits for them."""
         if self._pool is None:
             ctx = multiprocessing.get_context(self._start_method)
             if self._start_method == "forkserver" and self._preload:
@@ -632,13 +635,31 @@ class LocalExecutor:
                 initializer=_start_worker,
                 initargs=(os.getpid(), self._preload),
             )
-            for _ in range(self._workers):  # one task each: every process starts now
-                pool.submit(os.getpid)
+
+            def ask() -> None:
+                with contextlib.suppress(RuntimeError):  # (closed before they started)
+                    for _ in range(self._workers):  # one task each: every process starts now
+                        pool.submit(os.getpid)
+
+            self._starting = threading.Thread(target=ask, name="probegrid-start-workers",
+                                              daemon=True)
+            self._starting.start()
             self._pool = pool
         return self._pool
 
+    def _started(self) -> cf.ProcessPoolExecutor:
+        """The pool, once :meth:`start` has asked for every process."""
+        pool = self.start()
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
+        return pool
+
     def close(self) -> None:
         """Stop the worker processes (waits for running batches; cancels pending ones)."""
+        if self._starting is not None:
+            self._starting.join()
+            self._starting = None
         pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)

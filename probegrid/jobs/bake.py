@@ -481,7 +481,7 @@ def run_bake(job: BakeJob) -> BakeReport:
         raise ValueError(f"{job.out} exists; pass --overwrite to replace it")
     job.settings.levels()
     executor = make_executor(workers=job.workers, scheduler=job.scheduler,
-                             preload=("probegrid.bake.driver",))
+                             preload=("probegrid.bake.preload",))
     executor.start()  # local processes start (and import the bake) while the scene loads
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
