@@ -61,6 +61,7 @@ __all__ = [
     "guide_table",
     "hit_surfaces",
     "light_rays",
+    "mean_per_parent",
     "multiply_texture",
     "segment_rays",
     "split_hits",
@@ -1367,3 +1368,26 @@ def split_hits(
         emits[f] = d < 0
         f += 1
     return kind, rows[:f], flip[:f], emits[:f]
+
+
+@numba.njit(**_JIT)
+def mean_per_parent(parent: NDArray[np.int64], radiance: NDArray[np.float32], parents: int
+                    ) -> NDArray[np.float32]:
+    """The mean of ``radiance (k, 3)`` over the rows of each of ``parents`` parents
+    (``parent (k,)`` each row's parent), summed in float64 in row order; 0 for a parent with
+    no row. Returns ``(parents, 3)`` float32."""
+    total = np.zeros((parents, 3))
+    count = np.zeros(parents)
+    for i in range(parent.shape[0]):
+        p = parent[i]
+        count[p] += 1.0
+        total[p, 0] += radiance[i, 0]
+        total[p, 1] += radiance[i, 1]
+        total[p, 2] += radiance[i, 2]
+    out = np.zeros((parents, 3), np.float32)
+    for p in range(parents):
+        if count[p] > 0:
+            out[p, 0] = total[p, 0] / count[p]
+            out[p, 1] = total[p, 1] / count[p]
+            out[p, 2] = total[p, 2] / count[p]
+    return out

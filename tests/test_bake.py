@@ -643,3 +643,22 @@ def test_progress_names_the_bounces(tmp_path):
     assert stages[2] == "converging: bounce 1, residual -"
     assert stages[3].startswith("converging: bounce 2, residual ") and stages[3].endswith(" %")
     assert stages[-1].startswith("converged: bounce ") and stages[-1].endswith("(final)")
+
+
+def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
+    """probegrid.bake.preload (what worker processes import before their first batch) swallows
+    its errors, so here its warm-up must run cleanly and leave the bake's kernels compiled."""
+    import numba
+
+    import probegrid.kernels as kernels
+    from probegrid.bake import preload
+
+    preload._warm_up()  # raises if the tiny bake fails
+    used = ["hit_surfaces", "split_hits", "light_rays", "emitter_samples", "emitter_estimate",
+            "emitter_irradiance", "environment_samples", "cosine_directions",
+            "hit_probe_weights", "replay_radiance", "distance_moments", "cube_sample_directions",
+            "texel_emitter_coverage", "embree_rays", "embree_hits"]
+    for name in used:
+        fn = getattr(kernels, name)
+        assert isinstance(fn, numba.core.registry.CPUDispatcher)
+        assert fn.signatures, f"{name} was not loaded by the warm-up bake"

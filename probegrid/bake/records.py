@@ -106,6 +106,7 @@ from probegrid.kernels import (
     distance_moments,
     hit_probe_weights,
     light_rays,
+    mean_per_parent,
     replay_radiance,
     split_hits,
     sum_unblocked,
@@ -307,19 +308,19 @@ def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
 
 def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
     """The records in the directory ``path`` (one block: memory bounded by the batch), from
-    this process's memory when it holds them, or None when there is no complete record."""
+    this process's memory when it holds them, else memory-mapped from their files; None when
+    there is no complete record."""
     key = _mark(path)
     if key is None:
         return None
     held = _held_get(key)
     if held is not None:
         return held
-    try:
-        out = {f.stem: np.load(f, allow_pickle=False)
+    try:  # memory-mapped: the page cache holds them, no copy (nothing to hold here)
+        out = {f.stem: np.load(f, allow_pickle=False, mmap_mode="r").view(np.ndarray)
                for f in path.glob("*.npy") if not f.name.startswith(".")}
     except (OSError, ValueError):
         return None
-    _hold(key, out)
     return out
 
 
@@ -701,16 +702,6 @@ def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
                            g, FACE_U, FACE_V, level, gathered)
 
 
-def _mean_per_parent(parent: NDArray[np.int64], radiance: NDArray[np.float32], parents: int
-                     ) -> NDArray[np.float32]:
-    """The mean ``radiance (k, 3)`` of the rays of each of ``parents`` hits (``parent (k,)``
-    their parent's row): the parent's irradiance / pi, for cosine-weighted rays (0 for hits
-    with none)."""
-    count = np.bincount(parent, minlength=parents).astype(np.float64)[:, None]
-    total = sum_rows(parent, radiance, parents)
-    return np.divide(total, count, out=np.zeros_like(total), where=count > 0).astype(np.float32)
-
-
 def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,
            cubes: NDArray[np.float32] | None, *, final: bool
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -741,7 +732,7 @@ def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: in
             continue
         _, reflected = _replay_level(records, _LEVELS[d], level - d,
                                      grid if d == depth else empty, below, g)
-        below = _mean_per_parent(records[_LEVELS[d] + "primary"], reflected, parents)
+        below = mean_per_parent(records[_LEVELS[d] + "primary"], reflected, parents)
     rad, bnc = _replay_level(records, "", level, empty if depth else grid, below, g)
     wts = (np.stack([sample_pattern(settings, int(i))[1].reshape(-1) for i in probes])
            if s > 1 else None)
