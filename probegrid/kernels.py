@@ -654,7 +654,8 @@ def replay_radiance(
       irradiance / pi, ``G`` each probe's bordered irradiance cube ``cubes`` (face ``cube_n``,
       :class:`probegrid.core.ddgi.BorderedCubes` layout ``(P * 6 (n + 2)^2, 3)``) read
       bilinearly at the normal; an empty ``cubes`` is a black grid. A non-empty ``indirect``
-      ``(N, 3)`` (irradiance / pi gathered at each hit) takes the grid's place.
+      ``(N, 3)`` (irradiance / pi gathered at each hit) takes the grid's place. An empty
+      ``emission`` ``(0, 3)`` is no emission (``normals`` may be empty when no grid is read).
 
     Returns
     -------
@@ -668,6 +669,7 @@ def replay_radiance(
     nr = kind.shape[0]
     rad = np.zeros((nr, 3), np.float32)
     bnc = np.zeros((nr, 3), np.float32)
+    has_emission = emission.shape[0] > 0
     use_indirect = level > 0 and indirect.shape[0] > 0
     use_grid = level > 0 and cubes.shape[0] > 0 and not use_indirect
     n = cube_n
@@ -720,9 +722,12 @@ def replay_radiance(
         b1 = albedo[i, 1] * l1
         b2 = albedo[i, 2] * l2
         bnc[i, 0], bnc[i, 1], bnc[i, 2] = b0, b1, b2
-        rad[i, 0] = emission[i, 0] + b0
-        rad[i, 1] = emission[i, 1] + b1
-        rad[i, 2] = emission[i, 2] + b2
+        if has_emission:
+            rad[i, 0] = emission[i, 0] + b0
+            rad[i, 1] = emission[i, 1] + b1
+            rad[i, 2] = emission[i, 2] + b2
+        else:
+            rad[i, 0], rad[i, 1], rad[i, 2] = b0, b1, b2
     return rad, bnc
 
 

@@ -88,6 +88,7 @@ from probegrid.bake.records import (
     resolve_directory,
     save_records,
     select_probes,
+    weighted_positions,
 )
 from probegrid.bake.render import ProbeRenderer, RenderSettings
 from probegrid.bake.settings import BakeSettings, store_arrays
@@ -309,8 +310,11 @@ def _weighted_records(state: _State, batch: NDArray[np.int64], *, keep: bool = T
         assert state.data is not None
         new = all_hit_weights(rec, state.data)
         rec.update(new)
+        gone = weighted_positions(rec)
         if path is not None and keep:
-            save_records(path, new)
+            save_records(path, new, drop=gone)
+        for k in gone:
+            rec.pop(k, None)
     return rec, path, rays
 
 

@@ -134,6 +134,15 @@ def irradiance_size(gather: bool) -> int:
 _RECORD_KEYS = ("kind", "emission", "light_punctual", "light_emitters", "albedo", "position",
                 "normal")
 
+
+def _gather_keys(*, deepest: bool) -> tuple[str, ...]:
+    """What a gather level keeps of its records: no emission (its hits' emission counts 0: the
+    emitters reach the hit above by sampling), and positions and normals only at the deepest
+    level, whose hits read the grid (the positions until their probe weights are known,
+    :func:`all_hit_weights`)."""
+    keep = ("kind", "light_punctual", "light_emitters", "albedo")
+    return keep + ("position", "normal") if deepest else keep
+
 #: Key prefix of each level's records: the probes' rays, then each gather level (the rays of
 #: level ``d`` name their parent hit of level ``d - 1`` in ``PREFIX + "primary"``).
 _LEVELS = ("", "gather_", "gather2_")
@@ -280,11 +289,13 @@ def _drop(path: Path) -> None:
             _held_bytes[0] -= _held.pop(key)[1]
 
 
-def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
+def save_records(path: Path, records: dict[str, NDArray[Any]], *,
+                 drop: tuple[str, ...] = ()) -> None:
     """Write ``records`` as one ``.npy`` per array into the directory ``path``, each file
     atomically and the ``complete`` mark last (a killed worker leaves no half record); arrays
     already there (the same bits) are not written again. The process keeps them in memory too
-    (:data:`RECORDS_MEMORY`)."""
+    (:data:`RECORDS_MEMORY`). The arrays named in ``drop`` are then deleted (from the block
+    this process holds too): what no later pass reads."""
     path.mkdir(parents=True, exist_ok=True)
     done = (path / "complete").is_file()
     for k, v in records.items():
@@ -293,6 +304,8 @@ def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
             _atomic_npy(f, np.asarray(v))
     if not done:
         (path / "complete").write_text(os.urandom(8).hex())
+    for k in drop:
+        (path / f"{k}.npy").unlink(missing_ok=True)
     key = _mark(path)
     if key is None:
         return
@@ -303,6 +316,8 @@ def save_records(path: Path, records: dict[str, NDArray[Any]]) -> None:
     if held is not None:  # arrays added to a block this process holds
         if held is not records:
             held.update(records)
+        for k in drop:
+            held.pop(k, None)
         _hold(key, held)
 
 
@@ -359,7 +374,7 @@ def select_probes(records: dict[str, NDArray[Any]], probes: NDArray[np.int64]
         for k in records:
             if k.startswith(prefix) and k != prefix + "primary":
                 out[k] = records[k][rows_k]
-        out[prefix + "primary"] = mapped[rows_k]
+        out[prefix + "primary"] = mapped[rows_k].astype(np.int32)
         kept, parents = rows_k, len(records[prefix + "kind"])
     for k in ("backface_fraction",):
         out[k] = records[k][rows]
@@ -531,9 +546,9 @@ class RecordTracer:
                     draw, (3 * depth, 3 * depth + 1, 3 * depth + 2), rows, parent["position"],
                     arriving, parent["normal"], bool(ls), bool(ks))
                 rays += cast
-                for k in _RECORD_KEYS:
+                for k in _gather_keys(deepest=depth == self.gather_depth):
                     rec[prefix + k] = level[k]
-                rec[prefix + "primary"] = parent_row.astype(np.int64)
+                rec[prefix + "primary"] = parent_row.astype(np.int32)
                 hit = np.flatnonzero(level["kind"] == 1)  # the next level's parents, one ray each
                 rows, arriving, parent_row = rows[hit], g_dir[hit], hit
                 parent = {k: level[k][hit] for k in parent}
@@ -610,6 +625,13 @@ def all_hit_weights(records: dict[str, NDArray[Any]], data: GridData
     prefix = _LEVELS[gather_depth(records)]
     wi, ww = hit_weights({k: records[prefix + k] for k in ("kind", "position", "normal")}, data)
     return {prefix + "weight_index": wi, prefix + "weight": ww}
+
+
+def weighted_positions(records: dict[str, NDArray[Any]]) -> tuple[str, ...]:
+    """The positions no pass reads once :func:`all_hit_weights` are known: the deepest gather
+    level's (the probes' own hits keep theirs: the final view weighs them again)."""
+    depth = gather_depth(records)
+    return (_LEVELS[depth] + "position",) if depth else ()
 
 
 def has_hit_weights(records: dict[str, NDArray[Any]]) -> bool:
@@ -696,10 +718,12 @@ def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
     wi, ww = records.get(prefix + "weight_index"), records.get(prefix + "weight")
     if wi is None or ww is None:
         wi, ww = np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
-    return replay_radiance(records[prefix + "kind"], records[prefix + "emission"],
+    none = np.zeros((0, 3), np.float32)  # (a gather level keeps no emission, and normals
+    return replay_radiance(records[prefix + "kind"],  # only where its hits read the grid)
+                           records.get(prefix + "emission", none),
                            records[prefix + "light_punctual"], records[prefix + "light_emitters"],
-                           records[prefix + "albedo"], records[prefix + "normal"], wi, ww, grid,
-                           g, FACE_U, FACE_V, level, gathered)
+                           records[prefix + "albedo"], records.get(prefix + "normal", none), wi,
+                           ww, grid, g, FACE_U, FACE_V, level, gathered)
 
 
 def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,
