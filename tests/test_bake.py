@@ -650,7 +650,7 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
     its errors, so here its warm-up must run cleanly and leave the bake's kernels compiled."""
     import numba
 
-    import probegrid.kernels as kernels
+    from probegrid import kernels
     from probegrid.bake import preload
 
     preload._warm_up()  # raises if the tiny bake fails

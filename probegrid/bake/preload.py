@@ -24,15 +24,16 @@ Importing it anywhere else works the same (it is only slower to import).
 
 from __future__ import annotations
 
+import logging
 import os
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import tempfile  # noqa: E402
-from pathlib import Path  # noqa: E402
+import tempfile
+from pathlib import Path
 
-from probegrid.bake import driver  # noqa: E402
+from probegrid.bake import driver
 
 __all__: list[str] = []
 
@@ -66,4 +67,4 @@ def _warm_up() -> None:
 try:
     _warm_up()
 except Exception:  # noqa: BLE001 - only a head start: the workers load what they need anyway
-    pass
+    logging.getLogger(__name__).debug("the warm-up bake failed", exc_info=True)
