@@ -66,5 +66,5 @@ def _warm_up() -> None:
 
 try:
     _warm_up()
-except Exception:  # noqa: BLE001 - only a head start: the workers load what they need anyway
+except Exception:
     logging.getLogger(__name__).debug("the warm-up bake failed", exc_info=True)
