@@ -9,11 +9,9 @@ kernels per process on the reference machine).
 
 Importing this module:
 
-1. sets one BLAS thread (``OPENBLAS_NUM_THREADS`` and the like, unless set) before numpy
-   loads: a process that others fork from must not run threads, and the workers use one BLAS
-   thread each anyway (:meth:`probegrid.bake.driver._Context.setup`);
-2. imports the bake (:mod:`probegrid.bake.driver`);
-3. bakes a tiny built-in scene (a closed box with an emissive panel, a point light, a constant
+1. imports the bake (:mod:`probegrid.bake.driver`; numpy's OpenBLAS stops its threads before a
+   fork, and each worker limits BLAS to one thread in its ``setup``);
+2. bakes a tiny built-in scene (a closed box with an emissive panel, a point light, a constant
    environment; 2 probes, 8^2 faces) in this process into a temporary directory, which calls
    every kernel a bake calls with the argument types of a real bake, so numba loads each from
    its cache (or compiles it on a machine's first bake). Its result is discarded. A failure
@@ -25,11 +23,6 @@ Importing it anywhere else works the same (it is only slower to import).
 from __future__ import annotations
 
 import logging
-import os
-
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
 import tempfile
 from pathlib import Path
 
