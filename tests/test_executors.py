@@ -425,13 +425,16 @@ def test_started_processes_import_the_preload_before_any_task(tmp_path):
     imported; map then runs on those processes."""
     import multiprocessing
 
+    before = {p.pid for p in multiprocessing.active_children()}  # (other tests' processes)
     with ex.LocalExecutor(2, preload=("colorsys",)) as executor:
         pool = executor.start()
         assert executor.start() is pool  # once
         deadline = time.monotonic() + 60
-        while len(multiprocessing.active_children()) < 2 and time.monotonic() < deadline:
+        started: set[int] = set()
+        while len(started) < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
-        started = {p.pid for p in multiprocessing.active_children()}
+            started = {p.pid for p in multiprocessing.active_children()} - before
+        assert len(started) == 2
         out = [r for _, r in executor.map(modules_task, NoiseContext(SEED, str(tmp_path)),
                                           ex.make_batches(6, batch_size=1))]
     assert all(r["has"] for r in out)
