@@ -168,6 +168,7 @@ class _Context:
     moments_bordered: NDArray[np.float32] | str | None = None
     cubes: NDArray[np.float32] | str | None = None
     moments: NDArray[np.float32] | str | None = None
+    key: str = ""  # the bake's fingerprint (scene, environment, plan): what the tracer depends on
 
     def setup(self) -> _State:
         import multiprocessing
@@ -178,12 +179,17 @@ class _Context:
 
             threadpool_limits(1)
         positions, valid = _array(self.positions), _array(self.valid)
-        tracer = RecordTracer(self.scene, self.environment, self.render,
-                              light_samples=self.settings.light_samples,
-                              gather_samples=(self.settings.gather_samples
-                                              if self.settings.gather_levels() else 0),
-                              gather_depth=max(self.settings.gather_levels(), 1),
-                              tracer=RayTracer.shared(self.scene))
+        tracer = _TRACERS.get(self.key) if self.key else None
+        if tracer is None:  # built once per process and bake, not once per stage
+            tracer = RecordTracer(self.scene, self.environment, self.render,
+                                  light_samples=self.settings.light_samples,
+                                  gather_samples=(self.settings.gather_samples
+                                                  if self.settings.gather_levels() else 0),
+                                  gather_depth=max(self.settings.gather_levels(), 1),
+                                  tracer=RayTracer.shared(self.scene))
+            _TRACERS.clear()
+            if self.key:
+                _TRACERS[self.key] = tracer
         data = None
         if self.moments_bordered is not None:
             assert positions is not None and valid is not None
@@ -195,6 +201,12 @@ class _Context:
                             mb.shape[2] - 2,
                             None if cubes is None else np.ascontiguousarray(cubes).reshape(-1, 3))
         return _State(tracer, self, data, positions, valid, _array(self.moments))
+
+
+#: The record tracer of the bake a process last worked for, by the bake's fingerprint
+#: (:attr:`_Context.key`): its stages then share the BVH, the emitters' tables and the
+#: environment's sampling tables.
+_TRACERS: dict[str, RecordTracer] = {}
 
 
 def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
@@ -621,7 +633,8 @@ def bake(
         stamp.write_text(fingerprint)
         stages = _Stages(ex, plan, scene_hash, progress)
         t0 = time.perf_counter()
-        base = _Context(scene, env, render, st, grid)
+        base = _Context(scene, env, render, st, grid,
+                        key=hashlib.sha256((fingerprint + repr(render)).encode()).hexdigest())
 
         # 1. classify
         cls_arrays = {
