@@ -70,3 +70,36 @@ def test_a_subset_of_a_blocks_records_is_what_tracing_the_subset_gives():
     assert rc.gather_depth(picked) == 2 and len(picked["lights_direction"]) > 0
     for k in alone:
         np.testing.assert_array_equal(np.asarray(picked[k]), np.asarray(alone[k]), err_msg=k)
+
+
+def test_record_bytes_bounds_the_records_of_a_closed_room():
+    """The bake's estimate of its records (record_bytes) against a block traced and weighted
+    in a closed box, where every ray hits and each gather level is full: exact, the per-probe
+    arrays aside; a gather level keeps no emission, the upper level no position or normal."""
+    from probegrid.bake.driver import GridData
+    from probegrid.bake.environment import Environment
+    from probegrid.bake.render import RenderSettings
+    from probegrid.core.ddgi import bordered_cubes
+    from probegrid.core.grid import GridSpec
+    from probegrid.scene import Material, SceneBuilder
+
+    b = SceneBuilder()
+    b.add_box((-1, 0, -1), (1, 2, 1), material=b.add_material(Material.diffuse(0.5)),
+              inward=True)
+    scene = b.build()
+    st = RenderSettings(face_size=4, moments_size=4)
+    tracer = rc.RecordTracer(scene, Environment(), st, gather_samples=2, gather_depth=2)
+    pos = np.array([[0.0, 1.0, 0.0], [0.3, 0.5, -0.2]])
+    rec, moments, _ = tracer.trace(pos, np.array([0, 1]))
+    assert "gather_emission" not in rec and "gather_position" not in rec
+    assert "gather2_position" in rec and "gather2_normal" in rec
+    grid = GridSpec(bounds_min=(0.0, 1.0, 0.0), bounds_max=(0.3, 1.0, 0.0), counts=(2, 1, 1))
+    mb = bordered_cubes(moments)
+    data = GridData(grid, np.ones(2, bool), pos, np.ascontiguousarray(mb).reshape(-1, 2),
+                    mb.shape[2] - 2, None)
+    rec.update(rc.all_hit_weights(rec, data))
+    primary = 2 * 6 * 4 * 4
+    assert len(rec["gather2_kind"]) == 2 * primary  # (every gather ray hit the box)
+    per_ray = sum(v.nbytes for k, v in rec.items() if not k.startswith(("view", "lights"))
+                  and np.ndim(v) and len(v) in (primary, 2 * primary))
+    assert per_ray == rc.record_bytes(primary, 2, 2)

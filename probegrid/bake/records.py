@@ -120,6 +120,7 @@ __all__ = [
     "RecordTracer",
     "irradiance_cubes",
     "irradiance_size",
+    "record_bytes",
     "records_file",
     "replay",
 ]
@@ -164,6 +165,26 @@ def _new_records(k: int) -> dict[str, NDArray[Any]]:
         "position": np.zeros((k, 3), np.float64),
         "normal": np.zeros((k, 3), np.float32),
     }
+
+
+def record_bytes(primary: int, gather_samples: int, depth: int) -> int:
+    """Bytes the records of ``primary`` probe rays take at most (every ray a front hit, every
+    gather level full), their probe weights included: the probes' rays keep every
+    :data:`_RECORD_KEYS` array; each gather level (``gather_samples`` rays per primary ray)
+    what :func:`_gather_keys` keeps plus its 32-bit parent rows; the level whose hits read the
+    grid also its weights (8 int32 probes and 8 float32 weights)."""
+    size = {k: v.itemsize * (v.shape[1] if v.ndim > 1 else 1)
+            for k, v in _new_records(1).items()}
+    weights = 8 * (4 + 4)
+    total = primary * sum(size[k] for k in _RECORD_KEYS)
+    if depth == 0 or gather_samples == 0:
+        return total + primary * weights
+    for d in range(1, depth + 1):
+        deepest = d == depth
+        per_ray = (sum(size[k] for k in _gather_keys(deepest=deepest)) + 4
+                   + (weights if deepest else 0))
+        total += primary * gather_samples * per_ray
+    return total
 
 
 def _stream(seed: int, index: int, purpose: int) -> np.random.Generator:

@@ -278,11 +278,6 @@ class BakeEstimate:
                 f"worker memory {_size(self.worker_bytes)}")
 
 
-#: Bytes of per-hit records a traced ray leaves in the work directory (measured on the sample
-#: room: 3.6 GB of records for 32x16x32 probes at face 16, 2 bounces).
-RECORD_BYTES_PER_RAY = 149
-
-
 def _size(n: float) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
         if abs(n) < 1024 or unit == "TiB":
@@ -301,7 +296,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     from probegrid.bake.driver import CLASSIFY_FACE_SIZE, FILTER_GROUP
     from probegrid.bake.inside import DIRECTIONS
     from probegrid.bake.nolight import light_sources
-    from probegrid.bake.records import RECORDS_MEMORY, irradiance_size
+    from probegrid.bake.records import RECORDS_MEMORY, irradiance_size, record_bytes
     from probegrid.bake.render import SHADE_CHUNK
     from probegrid.bake.settings import store_arrays
     from probegrid.core import probefilter
@@ -333,7 +328,8 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     # moments, the done masks
     g = irradiance_size(st.gather_levels() > 0)
     work = npy((3,), "float64") + npy((), "bool") + npy((), "float64") + npy((), "bool")
-    work += (primary + gather) * RECORD_BYTES_PER_RAY
+    records = record_bytes(primary, st.gather_samples, st.gather_levels())
+    work += records
     work += 2 * npy((6, g, g, 3), "float32") + npy((6, m, m, 2), "float32") + npy((), "bool")
 
     scene_bytes = (scene.vertices.nbytes * 3 + scene.triangles.nbytes * 2
@@ -354,7 +350,7 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
               + batch_rays * BATCH_RAY_BYTES + min(batch_rays, SHADE_CHUNK) * CHUNK_RAY_BYTES
               + 3 * min(st.batch_size, p) * cube
               # the records a worker keeps between passes (probegrid.bake.records)
-              + min(RECORDS_MEMORY, (primary + gather) * RECORD_BYTES_PER_RAY))
+              + min(RECORDS_MEMORY, records))
     if not shares_files:  # positions, validity, the previous bounce's SH, coefficients, moments
         worker += p * (24 + 1 + 2 * 216 + 6 * (m + 2) ** 2 * 8)
     return BakeEstimate(p, classify, primary, gather, shadow, store, work, worker)
