@@ -40,15 +40,15 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._types import (
@@ -64,6 +64,7 @@ from probegrid._types import (
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import downsample, mip_sizes, solid_angle_integral
+from probegrid.errors import SettingsError
 
 __all__ = [
     "FILTER_FORMAT",
@@ -82,31 +83,94 @@ FILTER_FORMAT = "probegrid.filter"
 Progress = Callable[[str], None]
 
 
-class FilterSettings(BaseModel):
-    """Options of ``probegrid filter`` (see ``probegrid filter --help``)."""
+def _option(default: Any, **bounds: float) -> Any:
+    """A :class:`FilterSettings` field with its bounds (``ge``, ``le``, ``gt``)."""
+    return field(default=default, metadata=bounds)
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+
+@dataclass(frozen=True, kw_only=True)
+class FilterSettings:
+    """Options of ``probegrid filter`` (see ``probegrid filter --help``).
+
+    A frozen dataclass whose every field is checked on construction against its type (a
+    ``Literal`` of :mod:`probegrid._types`, an integer, a number or a flag, optionally None)
+    and bounds (:class:`probegrid.errors.SettingsError`, naming the field, for a bad value);
+    the command line's options are generated from it. (A dataclass, not a pydantic model like
+    the bake's settings: the filter command runs in well under a second, and loading pydantic
+    and building a model would take a tenth of that.)
+    """
 
     layout: InputLayout = "auto"
-    size: int | None = Field(default=None, ge=1, le=4096)
-    diffuse_size: int = Field(default=32, ge=1, le=1024)
+    size: int | None = _option(None, ge=1, le=4096)
+    diffuse_size: int = _option(32, ge=1, le=1024)
     diffuse_method: DiffuseMethod = "exact"
-    diffuse_source_size: int | None = Field(default=None, ge=1, le=4096)
-    specular_levels: int | None = Field(default=None, ge=1, le=16)
+    diffuse_source_size: int | None = _option(None, ge=1, le=4096)
+    specular_levels: int | None = _option(None, ge=1, le=16)
     specular_method: GGXMethod = "tiered"
-    samples: int | None = Field(default=None, ge=1, le=65536)
-    sh_bands: int = Field(default=3, ge=1, le=16)
+    samples: int | None = _option(None, ge=1, le=65536)
+    sh_bands: int = _option(3, ge=1, le=16)
     sh_window: SHWindow = "none"
-    sh_window_width: float | None = Field(default=None, gt=0)
+    sh_window_width: float | None = _option(None, gt=0)
     format: MapFormat = "exr"
     cube_convention: CubeConvention = "gltf"
     half: bool = True
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
-    clamp: float | None = Field(default=None, gt=0)
+    clamp: float | None = _option(None, gt=0)
     keep_negative: bool = False
-    lut_size: int = Field(default=128, ge=2, le=1024)
+    lut_size: int = _option(128, ge=2, le=1024)
     previews: bool = True
+
+    def __post_init__(self) -> None:
+        hints = _settings_types()
+        for f in fields(self):
+            value = _checked(f.name, getattr(self, f.name), hints[f.name], f.metadata)
+            object.__setattr__(self, f.name, value)  # (a numpy integer becomes an int)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every field and its value (the manifest's ``settings``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@lru_cache(maxsize=1)
+def _settings_types() -> dict[str, Any]:
+    return get_type_hints(FilterSettings)
+
+
+def _checked(name: str, value: Any, annotation: Any, bounds: Mapping[str, float]) -> Any:
+    """``value`` of the field ``name`` checked against its type and bounds (an integer field
+    takes any integral number, a number field any real one); a :class:`SettingsError`
+    otherwise."""
+    kinds = get_args(annotation) if get_origin(annotation) is not Literal else (annotation,)
+    kinds = kinds or (annotation,)
+    if value is None and type(None) in kinds:
+        return None
+    literal = next((k for k in kinds if get_origin(k) is Literal), None)
+    if literal is not None:
+        if isinstance(value, str) and value in get_args(literal):
+            return value
+        raise SettingsError(name, f"expected one of {', '.join(map(repr, get_args(literal)))}, "
+                                  f"got {value!r}")
+    if bool in kinds:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        raise SettingsError(name, f"expected true or false, got {value!r}")
+    if int in kinds:
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise SettingsError(name, f"expected an integer, got {value!r}")
+        value = int(value)
+    elif float in kinds:
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer,
+                                                                          np.floating)):
+            raise SettingsError(name, f"expected a number, got {value!r}")
+        value = float(value)
+    if "ge" in bounds and not value >= bounds["ge"]:
+        raise SettingsError(name, f"must be >= {bounds['ge']}, got {value!r}")
+    if "le" in bounds and not value <= bounds["le"]:
+        raise SettingsError(name, f"must be <= {bounds['le']}, got {value!r}")
+    if "gt" in bounds and not value > bounds["gt"]:
+        raise SettingsError(name, f"must be > {bounds['gt']}, got {value!r}")
+    return value
 
 
 @dataclass
@@ -179,7 +243,7 @@ def prepare_output_dir(
         ``out_dir`` as a Path.
     """
     # (the store's names, imported here: the filter command needs nothing else of the store)
-    from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
+    from probegrid.store.names import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -632,7 +696,7 @@ def _filter_into(
                       "kept" if settings.keep_negative and settings.clamp is None
                       else "set to 0")},
                   "cube_size": n, "diffuse_source_size": diffuse_source},
-        "settings": settings.model_dump(),
+        "settings": settings.as_dict(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
                      "roughness": ([k / (levels - 1) if levels > 1 else 0.0
