@@ -21,9 +21,9 @@ output location that cannot be written are refused before any work (:func:`check
 :func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
 beside the output directory and moved into place only when complete, so a failed or
 interrupted run leaves the output directory as it was (an earlier output whole) and no
-temporary file: a directory with a manifest holds a finished job. The maps are flushed to disk
-by two threads while the next ones are encoded, and the previews are made in another. An
-all-black input is legitimate: its maps are black and its quality figures finite (energy ratios 1).
+temporary file: a directory with a manifest holds a finished job. The maps and the previews
+are encoded and flushed to disk by a pool of two threads (a map's six faces by the same one),
+while the main thread writes ``sh.json`` and the LUT. An all-black input is legitimate: its maps are black and its quality figures finite (energy ratios 1).
 
 Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
 depends only on its size and is cached per machine (:mod:`probegrid.usercache`).
@@ -319,6 +319,10 @@ def default_cube_size(height: int, width: int, layout: str) -> int:
     return min(n, DEFAULT_MAX_SIZE)
 
 
+#: Threads encoding and flushing the output files (on this 2-core machine two keep both cores
+#: busy beside the thread writing sh.json and the LUT).
+_WRITE_THREADS = 2
+
 #: The exact diffuse sum reads at most this face size by default (the box mip of larger cubes).
 DEFAULT_DIFFUSE_SOURCE = 128
 
@@ -578,58 +582,63 @@ def _filter_into(
     ext = settings.format
     write_layout = settings.output_layout
 
-    def previews() -> list[dict[str, Any]]:
-        entries: list[dict[str, Any]] = []
-        exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
-        for name, faces in (("input", cube), ("diffuse", diff)):
-            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
-                                      durable=False)
-            entries.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
-                            "level": None, "roughness": None, "layout": "hcross",
-                            "format": "png"})
-        imageio.write_preview_png(out / "preview_specular.png", _specular_sheet(spec),
-                                  exposure=exposure, durable=False)
-        entries.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
-                        "level": None, "roughness": None,
-                        "layout": "hcross per level, level 0 at the top", "format": "png"})
-        return entries
+    # every map file and preview is encoded in one pool of threads (the encoders, the tone
+    # mapping and the flushes release the GIL) while this thread writes sh.json and the LUT;
+    # each task flushes its files to disk (the staging folder's commit then finds them there)
+    pool = ThreadPoolExecutor(max_workers=_WRITE_THREADS)
 
-    # the previews (tone mapping, PNG encoding) are made in a second thread meanwhile, and
-    # written files are flushed to disk by two more while the next ones are encoded (the
-    # staging folder's commit then finds them on disk)
-    writer = ThreadPoolExecutor(max_workers=1)
-    flusher = ThreadPoolExecutor(max_workers=2)
+    def preview(name: str, faces: NDArray[np.float32], exposure: float, layout: str
+                ) -> dict[str, Any]:
+        path = imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
+                                         durable=False)
+        fsync_file(path)
+        return {"path": path.name, "kind": "preview", "of": name, "level": None,
+                "roughness": None, "layout": layout, "format": "png"}
 
-    def flush(paths: Sequence[str | os.PathLike[str]]) -> None:
-        for p in paths:
-            flusher.submit(fsync_file, p)
+    def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> dict[str, Any]:
+        written = imageio.write_cube(
+            out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
+            metadata={**attrs, "probegrid:kind": meta["kind"]},
+            durable=False,  # flushed here, and by staged_output before publishing
+            parallel=False,  # (the pool writes several cubes at once)
+        )
+        for p in written:
+            fsync_file(p)
+        rel = [str(Path(p).relative_to(out)) for p in written]
+        return {
+            "path": rel[0] if len(rel) == 1 else rel,
+            "layout": write_layout,
+            "face_size": int(faces.shape[1]),
+            "format": ext,
+            "dtype": written.pixel_type,  # half, or float where a value exceeds half
+            "seam": settings.seam,
+            **meta,
+        }
 
     try:
-        preview_entries = writer.submit(previews) if settings.previews else None
+        previews = []
         if settings.previews:
             say("writing maps and previews")
-
-        def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
-            written = imageio.write_cube(
-                out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
-                metadata={**attrs, "probegrid:kind": meta["kind"]},
-                durable=False,  # flushed below, and by staged_output before publishing
-            )
-            flush(written)
-            rel = [str(Path(p).relative_to(out)) for p in written]
-            files.append({
-                "path": rel[0] if len(rel) == 1 else rel,
-                "layout": write_layout,
-                "face_size": int(faces.shape[1]),
-                "format": ext,
-                "dtype": written.pixel_type,  # half, or float where a value exceeds half
-                "seam": settings.seam,
-                **meta,
-            })
-
-        if not settings.previews:
+            exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
+            previews = [  # (the largest first)
+                pool.submit(preview, "input", cube, exposure, "hcross"),
+                pool.submit(preview, "specular", _specular_sheet(spec), exposure,
+                            "hcross per level, level 0 at the top"),
+                pool.submit(preview, "diffuse", diff, exposure, "hcross"),
+            ]
+        else:
             say("writing maps")
-        if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
+        maps = []
+        if ext not in ("ktx2", "gltf"):
+            maps.append(pool.submit(write_cube, "diffuse", diff_out, kind="diffuse", level=0,
+                                    roughness=None, content="irradiance / pi",
+                                    method=settings.diffuse_method,
+                                    sh_window=sh_window["window"]))
+            for k, lv in enumerate(spec_out):
+                r = k / (levels - 1) if levels > 1 else 0.0
+                maps.append(pool.submit(write_cube, f"specular_m{k}", lv, kind="specular",
+                                        level=k, roughness=r, alpha=r * r))
+        elif ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
             from probegrid.export.environment import write_environment_ktx2
 
             files += write_environment_ktx2(out, diff_out, spec_out,
@@ -637,15 +646,8 @@ def _filter_into(
                                             cube_convention=settings.cube_convention,
                                             key_values={"probegrid:conventions":
                                                         json.dumps(conv)})
-        elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
+        else:  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
             files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
-        else:
-            write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
-                       content="irradiance / pi", method=settings.diffuse_method,
-                       sh_window=sh_window["window"])
-        for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
-            r = k / (levels - 1) if levels > 1 else 0.0
-            write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
         band_factors = shbands.clamped_cosine_factors(bands)
         sh_doc = {
@@ -665,22 +667,23 @@ def _filter_into(
             "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
         }
         atomic_write_json(out / "sh.json", sh_doc)
-        files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
-                      "layout": None, "format": "json"})
 
         lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
-        flush([imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
-                                   metadata={**attrs, "probegrid:kind": "lut"}, durable=False)])
-        files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
-                      "layout": "x = N.V (columns), y = perceptual roughness (rows)",
-                      "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
-                      "size": settings.lut_size})
-        if preview_entries is not None:
-            files += preview_entries.result()
-            flush([out / f["path"] for f in files if f["kind"] == "preview"])
-    finally:  # (on an error too: the staging folder is removed after this)
-        writer.shutdown(wait=True)
-        flusher.shutdown(wait=True)
+        fsync_file(imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                                       metadata={**attrs, "probegrid:kind": "lut"},
+                                       durable=False))
+        lut_entry = {"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
+                     "layout": "x = N.V (columns), y = perceptual roughness (rows)",
+                     "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
+                     "size": settings.lut_size}
+        sh_entry = {"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                    "layout": None, "format": "json"}
+        entries = {f["of"]: f for f in (p.result() for p in previews)}
+        files += [m.result() for m in maps] + [sh_entry, lut_entry] + [
+            entries[name] for name in ("input", "diffuse", "specular") if name in entries]
+    finally:  # (on an error too: no task writes into the staging folder after this, which
+        # is then removed)
+        pool.shutdown(wait=True, cancel_futures=True)
     timings["write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
