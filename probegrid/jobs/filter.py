@@ -346,11 +346,12 @@ def _diffuse_source_size(n: int, requested: int | None) -> int:
     return requested
 
 
-def _load_environment(
+def _read_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
-) -> tuple[NDArray[np.float32], str, int, int, tuple[int, int]]:
-    """Read, check and resample the environment; returns (cube, layout, nonfinite count,
-    negative count, source width and height (of one face for six files))."""
+) -> tuple[NDArray[np.float32], str, int, int, tuple[int, int], int]:
+    """Read and check the environment and choose the cube size; returns (the image or the six
+    faces, layout, nonfinite count, negative count, source width and height (of one face for
+    six files), cube face size). :func:`probegrid.core.layouts.to_cube` then resamples it."""
     from probegrid import imageio
     from probegrid.core import layouts
 
@@ -406,8 +407,7 @@ def _load_environment(
                f"{DEFAULT_MAX_SIZE}; --size to choose")
     _diffuse_source_size(n, settings.diffuse_source_size)  # a bad value is refused before work
     progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube ({why})")
-    cube = layouts.to_cube(source, layout, n)
-    return cube, layout, bad, negative, (int(source.shape[-2]), int(source.shape[-3]))
+    return source, layout, bad, negative, (int(source.shape[-2]), int(source.shape[-3])), n
 
 
 def run_filter(
@@ -472,24 +472,44 @@ def _filter_into(
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Compute everything, then write it into the (staging) directory ``out``; returns the
     manifest and its file list."""
-    from probegrid import imageio, usercache
-    from probegrid.core import lobes, seams, sh, shbands, specular
-    from probegrid.export.shforms import sh_forms
+    from probegrid import imageio
+    from probegrid.core import layouts
 
     say: Progress = progress or (lambda _m: None)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    cube, in_layout, nonfinite, negative, source_wh = _load_environment(
+    source, in_layout, nonfinite, negative, source_wh, n = _read_environment(
         [Path(p) for p in paths], settings, say)
-    n = cube.shape[1]
-    # the full chain by default; a cube that is not a power of two gets its level 0 only
-    default_levels = None if n & (n - 1) == 0 else 1
-    levels = len(mip_sizes(n, settings.specular_levels or default_levels))
-    if settings.format == "gltf":
-        from probegrid.export import gltf_ibl
+    # the resampling runs in a second thread while this one loads the modules of the next
+    # stages and builds the tables of the dense sums (input-independent, cached per process)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        resampled = pool.submit(layouts.to_cube, source, in_layout, n)
+        try:
+            from probegrid import usercache
+            from probegrid.core import lobes, seams, sh, shbands, specular
+            from probegrid.export.shforms import sh_forms
 
-        levels = gltf_ibl.mip_count(n)  # ValueError (one line) unless n is a power of two >= 32
+            # the full chain by default; a cube that is not a power of two gets its level 0
+            default_levels = None if n & (n - 1) == 0 else 1
+            levels = len(mip_sizes(n, settings.specular_levels or default_levels))
+            if settings.format == "gltf":
+                from probegrid.export import gltf_ibl
+
+                levels = gltf_ibl.mip_count(n)  # ValueError unless n is a power of two >= 32
+            diffuse_source = _diffuse_source_size(n, settings.diffuse_source_size)
+            dense = (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0
+                     and settings.format != "gltf" and settings.specular_method == "tiered"
+                     and settings.diffuse_method == "exact" and diffuse_source == n)
+            if dense:
+                outs = [specular.ZonalOutput(settings.diffuse_size, "cosine")] + [
+                    specular.ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
+                        lobes.level_roughness(k, levels))))
+                    for k, s in enumerate(mip_sizes(n, levels)) if k]
+                specular.prepare_zonal_sums(n, outs)
+        finally:
+            cube = resampled.result()  # (its error first, if both failed)
+    del source
     timings["read"] = time.perf_counter() - t0
 
     # --- compute everything before touching the output directory -----------------------
@@ -501,7 +521,6 @@ def _filter_into(
     irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
     timings["sh"] = time.perf_counter() - t
 
-    diffuse_source = _diffuse_source_size(n, settings.diffuse_source_size)
     say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
         + (f" from the {diffuse_source}^2 box mip" if settings.diffuse_method == "exact"
            and diffuse_source != n else "") + ") and GGX specular "
@@ -530,16 +549,10 @@ def _filter_into(
     spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
     if settings.samples is not None:
         spec_kwargs["samples"] = settings.samples
-    if (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0 and settings.format != "gltf"
-            and settings.specular_method == "tiered" and settings.diffuse_method == "exact"
-            and diffuse_source == n):
+    if dense:
         # one pass of dense sums over every input texel: the diffuse map and every GGX level
         # (exact), the cube's symmetries shared, the blocks split between two threads
         t = time.perf_counter()
-        sizes = mip_sizes(n, levels)
-        outs = [specular.ZonalOutput(settings.diffuse_size, "cosine")] + [
-            specular.ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
-                lobes.level_roughness(k, levels)))) for k, s in enumerate(sizes) if k]
         diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
         spec = [cube.copy(), *rest]
         info = None
