@@ -482,14 +482,36 @@ def _command_name(argv: Sequence[str]) -> str | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
-    from probegrid.errors import ExecutorError
-
+    whole_process = argv is None  # the console script's call: this process is the command
     argv = sys.argv[1:] if argv is None else list(argv)
     command = _command_name(argv)
     if command == "filter":
         _one_blas_thread()
     parser = build_parser(command)
     args = parser.parse_args(argv)
+    code = _dispatch(args)
+    if whole_process and command == "filter":
+        _exit_now(code)
+    return code
+
+
+def _exit_now(code: int) -> NoReturn:
+    """End a finished ``probegrid filter`` process at once, without the interpreter's teardown
+    (freeing every module and array one by one: 20 ms of the command's 0.5 s here). Its files
+    are closed and on disk by then (the staged output is flushed before it is published), its
+    threads have ended, and the standard streams are flushed here."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed or broken pipe: nothing more to say
+            pass
+    os._exit(code)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    """Run the parsed command; returns the exit code (module docstring)."""
+    from probegrid.errors import ExecutorError
+
     # SIGTERM stops a command like Ctrl-C does: its cleanup runs (worker processes stopped,
     # temporary files removed; a bake stays resumable)
     previous = None
