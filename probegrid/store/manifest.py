@@ -68,7 +68,7 @@ from pydantic import (
 from probegrid._version import __version__
 from probegrid.core.grid import GridSpec
 from probegrid.errors import StoreError
-from probegrid.store.names import (
+from probegrid.store.names import (  # (the store's names, re-exported: see __all__)
     DONE_FILE,
     MANIFEST_FILE,
     PARTIAL_SUFFIX,
@@ -82,9 +82,11 @@ from probegrid.store.names import (
 GridField = Annotated[GridSpec, PlainValidator(GridSpec.from_dict),
                       PlainSerializer(GridSpec.as_dict)]
 
-__all__ = ['ENVIRONMENT_SOURCES', 'FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS',
-           'ArrayInfo', 'ArraySpec', 'BakeInputs', 'EnvironmentInput', 'EnvironmentSource',
-           'SceneFile', 'SceneInput', 'StoreError', 'StoreManifest', 'partial_path']
+__all__ = ['DONE_FILE', 'ENVIRONMENT_SOURCES', 'FORMAT_NAME', 'FORMAT_VERSION', 'MANIFEST_FILE',
+           'PARTIAL_SUFFIX', 'PLAN_FILE', 'STORE_DIR_SUFFIXES', 'STORE_SUFFIX',
+           'SUPPORTED_FORMAT_VERSIONS', 'WORK_SUFFIX', 'ArrayInfo', 'ArraySpec', 'BakeInputs',
+           'EnvironmentInput', 'EnvironmentSource', 'SceneFile', 'SceneInput', 'StoreError',
+           'StoreManifest', 'partial_path']
 
 
 FORMAT_NAME: Final = "probegrid.store"
