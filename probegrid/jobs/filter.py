@@ -21,9 +21,11 @@ output location that cannot be written are refused before any work (:func:`check
 :func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
 beside the output directory and moved into place only when complete, so a failed or
 interrupted run leaves the output directory as it was (an earlier output whole) and no
-temporary file: a directory with a manifest holds a finished job. The maps and the previews
-are encoded and flushed to disk by a pool of two threads (a map's six faces by the same one),
-while the main thread writes ``sh.json`` and the LUT. An all-black input is legitimate: its maps are black and its quality figures finite (energy ratios 1).
+temporary file: a directory with a manifest holds a finished job. The input is resampled in
+a second thread while the main one loads the next stages' modules and tables; the maps and
+the previews are encoded and flushed to disk by a pool of two threads (a map's six faces by
+the same one) while the main thread writes ``sh.json`` and the LUT. An all-black input is
+legitimate: its maps are black and its quality figures finite (energy ratios 1).
 
 Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
 depends only on its size and is cached per machine (:mod:`probegrid.usercache`).
