@@ -514,92 +514,10 @@ def _filter_into(
     del source
     timings["read"] = time.perf_counter() - t0
 
-    # --- compute everything before touching the output directory -----------------------
-    t = time.perf_counter()
-    bands = settings.sh_bands
-    coeffs = shbands.project_cube(cube, bands)
-    # band 2, what sh.json's consumers and the glTF light take (the same projection at 3 bands)
-    sh9 = coeffs if bands == 3 else sh.project_cube(cube)
-    irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
-    timings["sh"] = time.perf_counter() - t
-
-    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
-        + (f" from the {diffuse_source}^2 box mip" if settings.diffuse_method == "exact"
-           and diffuse_source != n else "") + ") and GGX specular "
-        f"chain: {levels} levels from {n}^2")
-    sh_window: dict[str, Any] = {"window": "none"}
-
-    def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
-        from probegrid.core import diffuse
-
-        t = time.perf_counter()
-        if settings.diffuse_method == "exact":
-            src = cube
-            while src.shape[1] > diffuse_source:  # the box mip it reads
-                src = downsample(src)
-            if src.shape[1] > specular.DENSE_CHAIN_MAX:
-                d = diffuse.diffuse_exact(src, settings.diffuse_size)
-            else:  # the same sum through the cube's symmetries; beside the chain up to 128^2
-                d = specular.symmetric_zonal_sums(
-                    src, [specular.ZonalOutput(settings.diffuse_size, "cosine")],
-                    workers=1 if n <= 128 else 2)[0]
-            return d, None, time.perf_counter() - t
-        d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
-                                    width=settings.sh_window_width, bands=bands)
-        return d, inf, time.perf_counter() - t
-
-    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
-    if settings.samples is not None:
-        spec_kwargs["samples"] = settings.samples
-    if dense:
-        # one pass of dense sums over every input texel: the diffuse map and every GGX level
-        # (exact), the cube's symmetries shared, the blocks split between two threads
-        t = time.perf_counter()
-        diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
-        spec = [cube.copy(), *rest]
-        info = None
-        timings["specular"] = time.perf_counter() - t
-        timings["diffuse"] = 0.0  # (in the specular figure: one pass computed both)
-    else:
-        diff, info, spec = _separate_stages(cube, settings, spec_kwargs, diffuse_stage, timings)
-    if info is not None:
-        sh_window = {
-            "window": info.window,
-            "width": info.width if np.isfinite(info.width) else None,
-            "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
-            "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
-        }
-
-    t = time.perf_counter()
-    lut = usercache.dfg_lut(settings.lut_size)  # computed once per machine (same bits)
-    timings["dfg"] = time.perf_counter() - t
-
-    cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
-
-    def ratio(x: NDArray[np.float32]) -> float:
-        return _integral_ratio(float(solid_angle_integral(x).sum()), cube_integral)
-
-    energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
-    diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
-    spec_out = seams.apply_seam_mode(list(spec), settings.seam)
-    seam_scores = {
-        "diffuse": float(seams.seam_score(diff_out if settings.seam != "border" else diff)),
-        "specular": [float(seams.seam_score(lv)) for lv in
-                     (spec_out if settings.seam != "border" else spec)],
-    }
-
-    # --- write (into the staging folder) ----------------------------------------------------
-    manifest_path = out / "manifest.json"
-    t = time.perf_counter()
-    conv = conventions()
-    attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
-    files: list[dict[str, Any]] = []
-    ext = settings.format
-    write_layout = settings.output_layout
-
     # every map file and preview is encoded in one pool of threads (the encoders, the tone
-    # mapping and the flushes release the GIL) while this thread writes sh.json and the LUT;
-    # each task flushes its files to disk (the staging folder's commit then finds them there)
+    # mapping and the flushes release the GIL), each task flushing its files to disk (the
+    # staging folder's commit then finds them there); the input's preview, which needs the
+    # cube alone, is made beside the dense sums, the rest in the write stage below
     pool = ThreadPoolExecutor(max_workers=_WRITE_THREADS)
 
     def preview(name: str, faces: NDArray[np.float32], exposure: float, layout: str
@@ -610,33 +528,121 @@ def _filter_into(
         return {"path": path.name, "kind": "preview", "of": name, "level": None,
                 "roughness": None, "layout": layout, "format": "png"}
 
-    def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> dict[str, Any]:
-        written = imageio.write_cube(
-            out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
-            metadata={**attrs, "probegrid:kind": meta["kind"]},
-            durable=False,  # flushed here, and by staged_output before publishing
-            parallel=False,  # (the pool writes several cubes at once)
-        )
-        for p in written:
-            fsync_file(p)
-        rel = [str(Path(p).relative_to(out)) for p in written]
-        return {
-            "path": rel[0] if len(rel) == 1 else rel,
-            "layout": write_layout,
-            "face_size": int(faces.shape[1]),
-            "format": ext,
-            "dtype": written.pixel_type,  # half, or float where a value exceeds half
-            "seam": settings.seam,
-            **meta,
+    try:
+        early_preview = None
+        if settings.previews:
+            exposure = imageio.cube_exposure(cube)  # one for all previews, so they compare
+            early_preview = pool.submit(preview, "input", cube, exposure, "hcross")
+
+        # --- compute everything (the staging folder gets the input's preview meanwhile) --
+        t = time.perf_counter()
+        bands = settings.sh_bands
+        coeffs = shbands.project_cube(cube, bands)
+        # band 2, what sh.json's consumers and the glTF light take (the same projection at 3 bands)
+        sh9 = coeffs if bands == 3 else sh.project_cube(cube)
+        irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
+        timings["sh"] = time.perf_counter() - t
+
+        say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
+            + (f" from the {diffuse_source}^2 box mip" if settings.diffuse_method == "exact"
+               and diffuse_source != n else "") + ") and GGX specular "
+            f"chain: {levels} levels from {n}^2")
+        sh_window: dict[str, Any] = {"window": "none"}
+
+        def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
+            from probegrid.core import diffuse
+
+            t = time.perf_counter()
+            if settings.diffuse_method == "exact":
+                src = cube
+                while src.shape[1] > diffuse_source:  # the box mip it reads
+                    src = downsample(src)
+                if src.shape[1] > specular.DENSE_CHAIN_MAX:
+                    d = diffuse.diffuse_exact(src, settings.diffuse_size)
+                else:  # the same sum through the cube's symmetries; beside the chain up to 128^2
+                    d = specular.symmetric_zonal_sums(
+                        src, [specular.ZonalOutput(settings.diffuse_size, "cosine")],
+                        workers=1 if n <= 128 else 2)[0]
+                return d, None, time.perf_counter() - t
+            d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
+                                        width=settings.sh_window_width, bands=bands)
+            return d, inf, time.perf_counter() - t
+
+        spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
+        if settings.samples is not None:
+            spec_kwargs["samples"] = settings.samples
+        if dense:
+            # one pass of dense sums over every input texel: the diffuse map and every GGX level
+            # (exact), the cube's symmetries shared, the blocks split between two threads
+            t = time.perf_counter()
+            diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
+            spec = [cube.copy(), *rest]
+            info = None
+            timings["specular"] = time.perf_counter() - t
+            timings["diffuse"] = 0.0  # (in the specular figure: one pass computed both)
+        else:
+            diff, info, spec = _separate_stages(cube, settings, spec_kwargs, diffuse_stage, timings)
+        if info is not None:
+            sh_window = {
+                "window": info.window,
+                "width": info.width if np.isfinite(info.width) else None,
+                "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
+                "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
+            }
+
+        t = time.perf_counter()
+        lut = usercache.dfg_lut(settings.lut_size)  # computed once per machine (same bits)
+        timings["dfg"] = time.perf_counter() - t
+
+        cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
+
+        def ratio(x: NDArray[np.float32]) -> float:
+            return _integral_ratio(float(solid_angle_integral(x).sum()), cube_integral)
+
+        energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
+        diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
+        spec_out = seams.apply_seam_mode(list(spec), settings.seam)
+        seam_scores = {
+            "diffuse": float(seams.seam_score(diff_out if settings.seam != "border" else diff)),
+            "specular": [float(seams.seam_score(lv)) for lv in
+                         (spec_out if settings.seam != "border" else spec)],
         }
 
-    try:
-        previews = []
-        if settings.previews:
+        # --- write (into the staging folder) -------------------------------------------
+        manifest_path = out / "manifest.json"
+        t = time.perf_counter()
+        conv = conventions()
+        attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
+        files: list[dict[str, Any]] = []
+        ext = settings.format
+        write_layout = settings.output_layout
+
+        def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> dict[str, Any]:
+            written = imageio.write_cube(
+                out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
+                metadata={**attrs, "probegrid:kind": meta["kind"]},
+                durable=False,  # flushed here, and by staged_output before publishing
+                parallel=False,  # (the pool writes several cubes at once)
+            )
+            for p in written:
+                fsync_file(p)
+            rel = [str(Path(p).relative_to(out)) for p in written]
+            return {
+                "path": rel[0] if len(rel) == 1 else rel,
+                "layout": write_layout,
+                "face_size": int(faces.shape[1]),
+                "format": ext,
+                "dtype": written.pixel_type,  # half, or float where a value exceeds half
+                "seam": settings.seam,
+                **meta,
+            }
+
+        previews = []  # (the pool encodes the maps and previews while this thread writes
+        # sh.json and the LUT)
+        if settings.previews and early_preview is not None:
             say("writing maps and previews")
-            exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
             previews = [  # (the largest first)
-                pool.submit(preview, "input", cube, exposure, "hcross"),
+                early_preview,
                 pool.submit(preview, "specular", _specular_sheet(spec), exposure,
                             "hcross per level, level 0 at the top"),
                 pool.submit(preview, "diffuse", diff, exposure, "hcross"),
