@@ -47,7 +47,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+from typing import Any, Literal, cast, get_args, get_origin, get_type_hints
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +59,7 @@ from probegrid._types import (
     DiffuseMethod,
     GGXMethod,
     InputLayout,
+    Layout,
     MapFormat,
     SeamMode,
     SHWindow,
@@ -486,7 +487,7 @@ def _filter_into(
     # the resampling runs in a second thread while this one loads the modules of the next
     # stages and builds the tables of the dense sums (input-independent, cached per process)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        resampled = pool.submit(layouts.to_cube, source, in_layout, n)
+        resampled = pool.submit(layouts.to_cube, source, cast(Layout, in_layout), n)
         try:
             from probegrid import usercache
             from probegrid.core import lobes, seams, sh, shbands, specular
