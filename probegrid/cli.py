@@ -9,6 +9,7 @@ non-finite pixel) ends with one line ``probegrid: error: ...`` on stderr and a n
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import re
@@ -66,8 +67,10 @@ def _rgb(text: str) -> str:
     return text
 
 
+@functools.cache
 def _fields(model: type) -> dict[str, tuple[Any, Any]]:
-    """Each field of a settings class, a pydantic model or a dataclass: (default, type)."""
+    """Each field of a settings class, a pydantic model or a dataclass: (default, type); read
+    once per class (resolving a dataclass's annotations takes 0.3 ms)."""
     if hasattr(model, "model_fields"):  # a pydantic model
         return {k: (f.default, f.annotation) for k, f in model.model_fields.items()}
     import dataclasses
