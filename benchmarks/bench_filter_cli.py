@@ -241,7 +241,7 @@ def main() -> None:
     ap.add_argument("--hdr", nargs="*", default=None, help="stems of files in ../shared/data/hdr")
     ap.add_argument("--bytecode", action="store_true",
                     help="run probegrid without PYTHONDONTWRITEBYTECODE (if the environment sets "
-                         "it, every run compiles probegrid's modules from source, ~0.1 s CPU)")
+                         "it, every run compiles probegrid's modules from source, ~0.07 s CPU)")
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     files = sorted(DATA.glob("*.hdr"))

@@ -9,6 +9,7 @@ that catches ``ValueError`` or ``RuntimeError`` keeps working::
           ├── SceneError(ValueError)            a scene cannot be used (file, glTF, geometry)
           ├── StoreError(ValueError)            a grid store cannot be read, written or resumed
           ├── ImageError(ValueError)            an image cannot be read or written
+          ├── SettingsError(ValueError)         an option's value its settings refuse
           ├── ExecutorError(RuntimeError)       a batch failed, a worker died, no cluster
           └── ProbeGridError                    probegrid.client: every error of the HTTP client
                ├── InvalidArgumentError(ValueError)   bad arguments, caught before any request
@@ -27,7 +28,8 @@ the caller, not failures of a job.
 
 from __future__ import annotations
 
-__all__ = ["ExecutorError", "ImageError", "ProbegridError", "SceneError", "StoreError"]
+__all__ = ["ExecutorError", "ImageError", "ProbegridError", "SceneError", "SettingsError",
+           "StoreError"]
 
 
 class ProbegridError(Exception):
@@ -47,6 +49,16 @@ class StoreError(ProbegridError, ValueError):
 
 class ImageError(ProbegridError, ValueError):
     """An image file cannot be read or written; the message is one line naming the file."""
+
+
+class SettingsError(ProbegridError, ValueError):
+    """An option's value that a settings object refuses (its type or bounds); ``option`` names
+    the field, ``reason`` says what is wrong, and the message is ``"<option>: <reason>"``."""
+
+    def __init__(self, option: str, reason: str) -> None:
+        super().__init__(f"{option}: {reason}")
+        self.option = option
+        self.reason = reason
 
 
 class ExecutorError(ProbegridError, RuntimeError):

@@ -62,7 +62,8 @@ Previews
 --------
 :func:`tonemap_preview` maps linear radiance to display sRGB bytes: scale by ``2**exposure``
 (default: automatic, the *key* 0.18 over the log-average luminance, Reinhard et al. 2002),
-apply Narkowicz's ACES filmic fit per channel, then the sRGB OETF.
+apply Narkowicz's ACES filmic fit per channel, then the sRGB OETF. :func:`write_preview_png`
+writes with the quickest PNG compression (``fast``).
 
 References
 ----------
@@ -541,10 +542,15 @@ def _prepare(p: Path, image: ArrayLike, half: bool) -> tuple[NDArray, PixelType]
 _WRITERS: Final[int] = 3
 
 
+#: PNG encoder settings of ``fast`` writes (previews): zlib level 1 and the "sub" filter
+#: encode a 512 x 384 preview in 5 instead of 27 ms, in a file ~15 % larger (the same pixels).
+_FAST_PNG: Final[Mapping[str, int]] = {"png:compressionLevel": 1, "png:filter": 16}
+
+
 def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
-               metadata: Mapping[str, str], durable: bool = True) -> Path:
+               metadata: Mapping[str, str], durable: bool = True, fast: bool = False) -> Path:
     """Write ``data`` to a temporary sibling of ``p`` and (``durable``) flush it; return the
-    temporary path."""
+    temporary path. ``fast``: a PNG with :data:`_FAST_PNG`."""
     directory = p.parent
     if not directory.is_dir():
         raise ImageError(f"{p}: the directory {directory} does not exist.")
@@ -565,6 +571,9 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
                 spec.attribute(str(key), str(value))
         elif ext in (".tif", ".tiff"):
             spec.attribute("tiff:write_exif", 0)  # libtiff fails on an empty Exif directory
+        elif ext == ".png" and fast:
+            for key, level in _FAST_PNG.items():
+                spec.attribute(key, level)
         ok = out.open(str(tmp), spec) and out.write_image(data)
         ok = out.close() and ok
         if not ok or out.has_error:
@@ -578,17 +587,18 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
 
 
 def _write_all(items: Sequence[tuple[Path, NDArray, PixelType]],
-               metadata: Mapping[str, str], durable: bool = True) -> None:
-    """Write every item to a temporary file (several at once: the encoders release the GIL),
-    then rename them all into place; ``durable``: each file and the directory are flushed to
-    disk first."""
+               metadata: Mapping[str, str], durable: bool = True, fast: bool = False,
+               parallel: bool = True) -> None:
+    """Write every item to a temporary file (``parallel``: several at once, the encoders
+    release the GIL), then rename them all into place; ``durable``: each file and the
+    directory are flushed to disk first."""
     tmps: list[Path | None] = [None] * len(items)
     try:
         def one(i: int) -> None:
             p, data, pixel_type = items[i]
-            tmps[i] = _write_tmp(p, data, pixel_type, metadata, durable)
+            tmps[i] = _write_tmp(p, data, pixel_type, metadata, durable, fast)
 
-        if len(items) > 1:
+        if len(items) > 1 and parallel:
             with ThreadPoolExecutor(max_workers=min(len(items), _WRITERS)) as pool:
                 list(pool.map(one, range(len(items))))
         else:
@@ -631,6 +641,7 @@ def write_image(
     half: bool = True,
     metadata: Mapping[str, str] | None = None,
     durable: bool = True,
+    fast: bool = False,
 ) -> Path:
     """Write one image atomically.
 
@@ -651,6 +662,9 @@ def write_image(
     durable : bool
         Flush the file and its directory entry to disk before returning (default). A caller
         that flushes a whole staging folder before publishing it passes False.
+    fast : bool
+        ``.png`` only: the quickest compression (zlib level 1, the "sub" row filter), ~5x
+        faster in a file ~15 % larger with the same pixels (previews); other formats ignore it.
 
     Returns
     -------
@@ -659,7 +673,7 @@ def write_image(
     """
     p = Path(path)
     data, pixel_type = _prepare(p, image, half)
-    _write_all([(p, data, pixel_type)], _check_metadata(metadata), durable)
+    _write_all([(p, data, pixel_type)], _check_metadata(metadata), durable, fast)
     return p
 
 
@@ -672,6 +686,7 @@ def write_cube(
     half: bool = True,
     metadata: Mapping[str, str] | None = None,
     durable: bool = True,
+    parallel: bool = True,
 ) -> WrittenFiles:
     """Write a cube map atomically as six face files, a cross or an equirect image.
 
@@ -692,6 +707,9 @@ def write_cube(
         EXR header attributes (ignored for ``"hdr"``).
     durable : bool
         As :func:`write_image`.
+    parallel : bool
+        Encode the files in threads at once (default); False encodes them one after the other
+        in the calling thread, for a caller that writes several cubes at once itself.
 
     Returns
     -------
@@ -722,7 +740,7 @@ def write_cube(
     types = {t for _, _, t in items}
     if types == {"half", "float"}:  # some face overflows half: one pixel type per cube
         items = [(p, data, "float") for p, data, _ in items]
-    _write_all(items, _check_metadata(metadata), durable)
+    _write_all(items, _check_metadata(metadata), durable, parallel=parallel)
     return WrittenFiles([p for p, _ in images], items[0][2])
 
 
@@ -818,4 +836,4 @@ def write_preview_png(
         raise ValueError(
             f"a preview needs an (H, W, 3) image or a (6, n, n, 3) cube, got {a.shape}."
         )
-    return write_image(p, tonemap_preview(a, exposure=exposure), durable=durable)
+    return write_image(p, tonemap_preview(a, exposure=exposure), durable=durable, fast=True)

@@ -130,6 +130,59 @@ def test_bad_input_gives_one_line_errors(tmp_path, cli):
     assert not (tmp_path / "o" / "manifest.json").exists()
 
 
+def test_filter_settings_check_every_field(tmp_path, cli):
+    from probegrid.errors import SettingsError
+    from probegrid.jobs.filter import FilterSettings
+
+    s = FilterSettings(size=np.int64(64), clamp=2, half=np.bool_(False))
+    assert (s.size, s.clamp, s.half) == (64, 2.0, False)
+    assert type(s.size) is int and type(s.clamp) is float and type(s.half) is bool
+    assert s.as_dict()["size"] == 64 and len(s.as_dict()) == 20
+    for bad, reason in (({"size": 0}, "must be >= 1, got 0"),
+                        ({"lut_size": 2000}, "must be <= 1024, got 2000"),
+                        ({"clamp": 0}, "must be > 0, got 0.0"),
+                        ({"diffuse_size": 4.5}, "expected an integer, got 4.5"),
+                        ({"diffuse_size": True}, "expected an integer, got True"),
+                        ({"previews": "yes"}, "expected true or false, got 'yes'"),
+                        ({"format": "png"}, "expected one of 'exr', 'hdr', 'ktx2', 'gltf'")):
+        with pytest.raises(SettingsError) as err:
+            FilterSettings(**bad)
+        assert err.value.option == next(iter(bad)) and reason in err.value.reason
+        assert isinstance(err.value, ValueError)
+    with pytest.raises(TypeError):
+        FilterSettings(sise=4)  # a misspelt option is no silent default
+    line = _one_error_line(cli("filter", SKY, "--out", tmp_path / "o", "--lut-size", "1"))
+    assert line == "probegrid: error: --lut-size: must be >= 2, got 1"
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_filter_command_loads_only_what_it_needs(tmp_path):
+    # no pydantic (its import and a model take ~0.09 s of the command's start-up), no store
+    # models; OpenBLAS started with one thread (its thread pool costs 50 ms at start-up) and
+    # the variable gone again once numpy is in
+    code = f"""
+import json, os, sys
+from probegrid.cli import main
+code = main(["filter", {str(SKY)!r}, "--out", {str(tmp_path / "o")!r}, "--size", "8",
+             "--diffuse-size", "4", "--lut-size", "4", "--no-previews"])
+from threadpoolctl import threadpool_info
+print(json.dumps({{"code": code, "modules": sorted(sys.modules),
+                   "blas": [p["num_threads"] for p in threadpool_info()
+                            if p["user_api"] == "blas"],
+                   "env": "OPENBLAS_NUM_THREADS" in os.environ}}))
+"""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    r = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True,
+                       env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["code"] == 0 and (tmp_path / "o" / "manifest.json").is_file()
+    assert not [m for m in got["modules"] if m.split(".")[0] in ("pydantic", "pydantic_core")]
+    assert "probegrid.store.manifest" not in got["modules"]
+    assert "probegrid.store.names" in got["modules"]
+    assert got["blas"] and set(got["blas"]) == {1} and not got["env"]
+
+
 def test_nonfinite_pixels_are_counted_or_clamped(tmp_path, cli):
     img = np.ones((16, 32, 3), np.float32)
     img[3, 4, 0] = np.nan

@@ -37,7 +37,9 @@ def srgb_to_linear(encoded: ArrayLike) -> NDArray[np.float32]:
 def linear_to_srgb(linear: ArrayLike) -> NDArray[np.float32]:
     """The inverse sRGB EOTF: linear values clipped to ``[0, 1]`` (NaN -> 0), encoded, float32."""
     x = np.clip(np.nan_to_num(np.asarray(linear, dtype=np.float64), nan=0.0), 0.0, 1.0)
-    enc = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+    enc = np.asarray(12.92 * x)  # (an array for a 0-d input too)
+    above = x > 0.0031308  # (the power only where it is used: it is most of the cost)
+    enc[above] = 1.055 * x[above] ** (1 / 2.4) - 0.055
     return enc.astype(np.float32)
 
 
@@ -86,5 +88,8 @@ def tonemap_preview(image: ArrayLike, *, exposure: float | None = None) -> NDArr
     elif not np.isfinite(exposure):
         raise ValueError(f"exposure must be a finite number of stops, got {exposure!r}.")
     x = np.nan_to_num(a, nan=0.0, posinf=np.inf, neginf=0.0) * 2.0 ** float(exposure)
-    mapped = np.where(np.isinf(x), 1.0, aces_filmic(np.where(np.isinf(x), 0.0, np.maximum(x, 0))))
+    inf = np.isinf(x)
+    mapped = np.asarray(aces_filmic(np.where(inf, 0.0, np.maximum(x, 0)) if inf.any()
+                                    else np.maximum(x, 0)))
+    mapped[inf] = 1.0
     return np.rint(linear_to_srgb(mapped) * 255.0).astype(np.uint8)

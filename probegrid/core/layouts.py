@@ -700,8 +700,10 @@ def _equirect_side_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray[
     h0, h1 = _hat_cos_integrals(theta_p[seg], theta_p[seg + 1], th)
     tp = theta_p[lo:hi + 1]
     p0, p1 = _hat_cos_integrals(tp[:-1], tp[1:], tp[1:])           # whole pieces
-    ii = np.arange(fine)[:, None]
+    # flat (row, sub-column) index of each edge's piece start, for the gathers below
+    at = (seg - lo) * fine + np.arange(fine)[:, None]                # (fine, n + 1)
     den_e = -(np.sin(th[:, 1:]) - np.sin(th[:, :-1]))              # int cos over texel rows
+    rows = img[lo:hi + 1]
     for f in (0, 1, 4, 5):
         nf, uf = FACE_NORMALS[f], FACE_U[f]
         phi_e = np.arctan2(nf[2] + u_edges * uf[2], nf[0] + u_edges * uf[0])
@@ -710,13 +712,17 @@ def _equirect_side_faces(img: NDArray[np.float32], n: int, k: int, out: NDArray[
         x0 = np.floor(x)
         tx = (x - x0)[None, :, None]
         x0 = x0.astype(np.intp)
-        rows = img[lo:hi + 1]
-        col = rows[:, x0 % w] * (1.0 - tx) + rows[:, (x0 + 1) % w] * tx  # (rows, fine, c) f64
-        g = np.zeros_like(col)  # running integral from node lo down to each node
-        np.cumsum(col[:-1] * p0[:, None, None] + col[1:] * p1[:, None, None], axis=0,
-                  out=g[1:])
-        s = seg - lo
-        gq = g[s, ii] + col[s, ii] * h0[..., None] + col[s + 1, ii] * h1[..., None]
+        col = (np.take(rows, x0 % w, axis=1) * (1.0 - tx)
+               + np.take(rows, (x0 + 1) % w, axis=1) * tx)         # (rows, fine, c) f64
+        piece = col[:-1] * p0[:, None, None] + col[1:] * p1[:, None, None]
+        g = np.empty_like(col)  # running integral from node lo down to each node
+        g[0] = 0.0
+        g[1] = piece[0]
+        for r in range(1, len(piece)):  # row by row (a cumsum down axis 0, cache-friendly)
+            np.add(g[r], piece[r], out=g[r + 1])
+        col = col.reshape(-1, c)
+        gq = (np.take(g.reshape(-1, c), at, axis=0) + np.take(col, at, axis=0) * h0[..., None]
+              + np.take(col, at + fine, axis=0) * h1[..., None])
         num = ((gq[:, :-1] - gq[:, 1:]) * dphi[:, None, None]).reshape(n, k, n, c).sum(axis=1)
         den = (den_e * dphi[:, None]).reshape(n, k, n).sum(axis=1)
         out[f] = (num / den[..., None]).transpose(1, 0, 2)

@@ -939,6 +939,21 @@ def _zonal_kernel(c: NDArray[np.float64], out: ZonalOutput) -> NDArray[np.float3
     return k
 
 
+def prepare_zonal_sums(n: int, outputs: Sequence[ZonalOutput]) -> None:
+    """Build the input-independent tables :func:`symmetric_zonal_sums` reads for an ``n``-cube
+    and these outputs (the symmetry permutations, fundamental domains, texel directions and
+    solid angles; cached per process), so that a caller can make them in one thread while the
+    input is still being read or resampled in another. Calling it is optional."""
+    _check_size(n, "cube size")
+    _group_permutations(n)
+    texel_solid_angles(n)
+    texel_directions(n)
+    for o in outputs:
+        _check_size(o.size, "output size")
+        _fundamental_domain(o.size)
+        texel_directions(o.size)
+
+
 def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
                          workers: int = 1) -> list[NDArray[np.float32]]:
     """Zonal sums over every input texel (the midpoint rule on the input, as
@@ -983,8 +998,14 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     perm = _group_permutations(n)                                  # (48, 6 n^2)
     om = texel_solid_angles(n).reshape(-1)
     lw = src.reshape(-1, c) * om[:, None].astype(np.float32)
-    # column block k of row q holds L dOmega at S_k(q)
-    x = np.take(lw, perm.T, axis=0).reshape(6 * n * n, 48 * c)
+    # column block k of row q holds L dOmega at S_k(q) (gathered by the threads, a share each)
+    x = np.empty((6 * n * n, 48, c), dtype=np.float32)
+    shares = np.linspace(0, 6 * n * n, workers + 1).astype(np.intp)
+
+    def gather(part: int) -> None:
+        q0, q1 = shares[part], shares[part + 1]
+        np.take(lw, perm.T[q0:q1], axis=0, out=x[q0:q1])
+
     om32 = om.astype(np.float32)
     sd = texel_directions(n).reshape(-1, 3)
     results = [np.empty((6 * o.size * o.size, c), dtype=np.float32) for o in outputs]
@@ -1022,10 +1043,14 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
 
     with threadpool_limits(limits=1, user_api="blas"):
         if workers == 1:
+            gather(0)
+            x = x.reshape(6 * n * n, 48 * c)
             for job in jobs:
                 run(job)
         else:
             with ThreadPoolExecutor(max_workers=workers) as pool:
+                list(pool.map(gather, range(workers)))
+                x = x.reshape(6 * n * n, 48 * c)
                 list(pool.map(run, jobs))
     return [r.reshape(6, o.size, o.size, c) for r, o in zip(results, outputs)]
 

@@ -21,9 +21,11 @@ output location that cannot be written are refused before any work (:func:`check
 :func:`probegrid.jobs.staging.staged_output`). Everything is written into a staging folder
 beside the output directory and moved into place only when complete, so a failed or
 interrupted run leaves the output directory as it was (an earlier output whole) and no
-temporary file: a directory with a manifest holds a finished job. The maps are flushed to disk
-by two threads while the next ones are encoded, and the previews are made in another. An
-all-black input is legitimate: its maps are black and its quality figures finite (energy ratios 1).
+temporary file: a directory with a manifest holds a finished job. The input is resampled in
+a second thread while the main one loads the next stages' modules and tables; the maps and
+the previews are encoded and flushed to disk by a pool of two threads (a map's six faces by
+the same one) while the main thread writes ``sh.json`` and the LUT. An all-black input is
+legitimate: its maps are black and its quality figures finite (energy ratios 1).
 
 Negative input pixels are set to 0 and counted (``--keep-negative`` keeps them). The DFG table
 depends only on its size and is cached per machine (:mod:`probegrid.usercache`).
@@ -40,15 +42,15 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, cast, get_args, get_origin, get_type_hints
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._types import (
@@ -57,6 +59,7 @@ from probegrid._types import (
     DiffuseMethod,
     GGXMethod,
     InputLayout,
+    Layout,
     MapFormat,
     SeamMode,
     SHWindow,
@@ -64,6 +67,7 @@ from probegrid._types import (
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import downsample, mip_sizes, solid_angle_integral
+from probegrid.errors import SettingsError
 
 __all__ = [
     "FILTER_FORMAT",
@@ -82,31 +86,94 @@ FILTER_FORMAT = "probegrid.filter"
 Progress = Callable[[str], None]
 
 
-class FilterSettings(BaseModel):
-    """Options of ``probegrid filter`` (see ``probegrid filter --help``)."""
+def _option(default: Any, **bounds: float) -> Any:
+    """A :class:`FilterSettings` field with its bounds (``ge``, ``le``, ``gt``)."""
+    return field(default=default, metadata=bounds)
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+
+@dataclass(frozen=True, kw_only=True)
+class FilterSettings:
+    """Options of ``probegrid filter`` (see ``probegrid filter --help``).
+
+    A frozen dataclass whose every field is checked on construction against its type (a
+    ``Literal`` of :mod:`probegrid._types`, an integer, a number or a flag, optionally None)
+    and bounds (:class:`probegrid.errors.SettingsError`, naming the field, for a bad value);
+    the command line's options are generated from it. (A dataclass, not a pydantic model like
+    the bake's settings: the filter command runs in well under a second, and loading pydantic
+    and building a model would take a tenth of that.)
+    """
 
     layout: InputLayout = "auto"
-    size: int | None = Field(default=None, ge=1, le=4096)
-    diffuse_size: int = Field(default=32, ge=1, le=1024)
+    size: int | None = _option(None, ge=1, le=4096)
+    diffuse_size: int = _option(32, ge=1, le=1024)
     diffuse_method: DiffuseMethod = "exact"
-    diffuse_source_size: int | None = Field(default=None, ge=1, le=4096)
-    specular_levels: int | None = Field(default=None, ge=1, le=16)
+    diffuse_source_size: int | None = _option(None, ge=1, le=4096)
+    specular_levels: int | None = _option(None, ge=1, le=16)
     specular_method: GGXMethod = "tiered"
-    samples: int | None = Field(default=None, ge=1, le=65536)
-    sh_bands: int = Field(default=3, ge=1, le=16)
+    samples: int | None = _option(None, ge=1, le=65536)
+    sh_bands: int = _option(3, ge=1, le=16)
     sh_window: SHWindow = "none"
-    sh_window_width: float | None = Field(default=None, gt=0)
+    sh_window_width: float | None = _option(None, gt=0)
     format: MapFormat = "exr"
     cube_convention: CubeConvention = "gltf"
     half: bool = True
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
-    clamp: float | None = Field(default=None, gt=0)
+    clamp: float | None = _option(None, gt=0)
     keep_negative: bool = False
-    lut_size: int = Field(default=128, ge=2, le=1024)
+    lut_size: int = _option(128, ge=2, le=1024)
     previews: bool = True
+
+    def __post_init__(self) -> None:
+        hints = _settings_types()
+        for f in fields(self):
+            value = _checked(f.name, getattr(self, f.name), hints[f.name], f.metadata)
+            object.__setattr__(self, f.name, value)  # (a numpy integer becomes an int)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every field and its value (the manifest's ``settings``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@lru_cache(maxsize=1)
+def _settings_types() -> dict[str, Any]:
+    return get_type_hints(FilterSettings)
+
+
+def _checked(name: str, value: Any, annotation: Any, bounds: Mapping[str, float]) -> Any:
+    """``value`` of the field ``name`` checked against its type and bounds (an integer field
+    takes any integral number, a number field any real one); a :class:`SettingsError`
+    otherwise."""
+    kinds = get_args(annotation) if get_origin(annotation) is not Literal else (annotation,)
+    kinds = kinds or (annotation,)
+    if value is None and type(None) in kinds:
+        return None
+    literal = next((k for k in kinds if get_origin(k) is Literal), None)
+    if literal is not None:
+        if isinstance(value, str) and value in get_args(literal):
+            return value
+        raise SettingsError(name, f"expected one of {', '.join(map(repr, get_args(literal)))}, "
+                                  f"got {value!r}")
+    if bool in kinds:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        raise SettingsError(name, f"expected true or false, got {value!r}")
+    if int in kinds:
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise SettingsError(name, f"expected an integer, got {value!r}")
+        value = int(value)
+    elif float in kinds:
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer,
+                                                                          np.floating)):
+            raise SettingsError(name, f"expected a number, got {value!r}")
+        value = float(value)
+    if "ge" in bounds and not value >= bounds["ge"]:
+        raise SettingsError(name, f"must be >= {bounds['ge']}, got {value!r}")
+    if "le" in bounds and not value <= bounds["le"]:
+        raise SettingsError(name, f"must be <= {bounds['le']}, got {value!r}")
+    if "gt" in bounds and not value > bounds["gt"]:
+        raise SettingsError(name, f"must be > {bounds['gt']}, got {value!r}")
+    return value
 
 
 @dataclass
@@ -179,7 +246,7 @@ def prepare_output_dir(
         ``out_dir`` as a Path.
     """
     # (the store's names, imported here: the filter command needs nothing else of the store)
-    from probegrid.store.manifest import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
+    from probegrid.store.names import DONE_FILE, PLAN_FILE, STORE_DIR_SUFFIXES
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -255,6 +322,10 @@ def default_cube_size(height: int, width: int, layout: str) -> int:
     return min(n, DEFAULT_MAX_SIZE)
 
 
+#: Threads encoding and flushing the output files (on this 2-core machine two keep both cores
+#: busy beside the thread writing sh.json and the LUT).
+_WRITE_THREADS = 2
+
 #: The exact diffuse sum reads at most this face size by default (the box mip of larger cubes).
 DEFAULT_DIFFUSE_SOURCE = 128
 
@@ -278,11 +349,12 @@ def _diffuse_source_size(n: int, requested: int | None) -> int:
     return requested
 
 
-def _load_environment(
+def _read_environment(
     paths: Sequence[Path], settings: FilterSettings, progress: Progress
-) -> tuple[NDArray[np.float32], str, int, int, tuple[int, int]]:
-    """Read, check and resample the environment; returns (cube, layout, nonfinite count,
-    negative count, source width and height (of one face for six files))."""
+) -> tuple[NDArray[np.float32], str, int, int, tuple[int, int], int]:
+    """Read and check the environment and choose the cube size; returns (the image or the six
+    faces, layout, nonfinite count, negative count, source width and height (of one face for
+    six files), cube face size). :func:`probegrid.core.layouts.to_cube` then resamples it."""
     from probegrid import imageio
     from probegrid.core import layouts
 
@@ -338,8 +410,7 @@ def _load_environment(
                f"{DEFAULT_MAX_SIZE}; --size to choose")
     _diffuse_source_size(n, settings.diffuse_source_size)  # a bad value is refused before work
     progress(f"resampling {layout} {source.shape[-2]}x{source.shape[-3]} to a {n}^2 cube ({why})")
-    cube = layouts.to_cube(source, layout, n)
-    return cube, layout, bad, negative, (int(source.shape[-2]), int(source.shape[-3]))
+    return source, layout, bad, negative, (int(source.shape[-2]), int(source.shape[-3])), n
 
 
 def run_filter(
@@ -404,156 +475,163 @@ def _filter_into(
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Compute everything, then write it into the (staging) directory ``out``; returns the
     manifest and its file list."""
-    from probegrid import imageio, usercache
-    from probegrid.core import lobes, seams, sh, shbands, specular
-    from probegrid.export.shforms import sh_forms
+    from probegrid import imageio
+    from probegrid.core import layouts
 
     say: Progress = progress or (lambda _m: None)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
-    cube, in_layout, nonfinite, negative, source_wh = _load_environment(
+    source, in_layout, nonfinite, negative, source_wh, n = _read_environment(
         [Path(p) for p in paths], settings, say)
-    n = cube.shape[1]
-    # the full chain by default; a cube that is not a power of two gets its level 0 only
-    default_levels = None if n & (n - 1) == 0 else 1
-    levels = len(mip_sizes(n, settings.specular_levels or default_levels))
-    if settings.format == "gltf":
-        from probegrid.export import gltf_ibl
+    # the resampling runs in a second thread while this one loads the modules of the next
+    # stages and builds the tables of the dense sums (input-independent, cached per process)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        resampled = pool.submit(layouts.to_cube, source, cast(Layout, in_layout), n)
+        try:
+            from probegrid import usercache
+            from probegrid.core import lobes, seams, sh, shbands, specular
+            from probegrid.export.shforms import sh_forms
 
-        levels = gltf_ibl.mip_count(n)  # ValueError (one line) unless n is a power of two >= 32
+            # the full chain by default; a cube that is not a power of two gets its level 0
+            default_levels = None if n & (n - 1) == 0 else 1
+            levels = len(mip_sizes(n, settings.specular_levels or default_levels))
+            if settings.format == "gltf":
+                from probegrid.export import gltf_ibl
+
+                levels = gltf_ibl.mip_count(n)  # ValueError unless n is a power of two >= 32
+            diffuse_source = _diffuse_source_size(n, settings.diffuse_source_size)
+            dense = (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0
+                     and settings.format != "gltf" and settings.specular_method == "tiered"
+                     and settings.diffuse_method == "exact" and diffuse_source == n)
+            if dense:
+                outs = [specular.ZonalOutput(settings.diffuse_size, "cosine")] + [
+                    specular.ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
+                        lobes.level_roughness(k, levels))))
+                    for k, s in enumerate(mip_sizes(n, levels)) if k]
+                specular.prepare_zonal_sums(n, outs)
+        finally:
+            cube = resampled.result()  # (its error first, if both failed)
+    del source
     timings["read"] = time.perf_counter() - t0
 
-    # --- compute everything before touching the output directory -----------------------
-    t = time.perf_counter()
-    bands = settings.sh_bands
-    coeffs = shbands.project_cube(cube, bands)
-    # band 2, what sh.json's consumers and the glTF light take (the same projection at 3 bands)
-    sh9 = coeffs if bands == 3 else sh.project_cube(cube)
-    irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
-    timings["sh"] = time.perf_counter() - t
+    # every map file and preview is encoded in one pool of threads (the encoders, the tone
+    # mapping and the flushes release the GIL), each task flushing its files to disk (the
+    # staging folder's commit then finds them there); the input's preview, which needs the
+    # cube alone, is made beside the dense sums (not beside the larger cubes' tiered chain,
+    # whose memory it would add to: 530 instead of 430 MB peak for a 1500 x 750 input), the
+    # rest in the write stage below
+    pool = ThreadPoolExecutor(max_workers=_WRITE_THREADS)
 
-    diffuse_source = _diffuse_source_size(n, settings.diffuse_source_size)
-    say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
-        + (f" from the {diffuse_source}^2 box mip" if settings.diffuse_method == "exact"
-           and diffuse_source != n else "") + ") and GGX specular "
-        f"chain: {levels} levels from {n}^2")
-    sh_window: dict[str, Any] = {"window": "none"}
-
-    def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
-        from probegrid.core import diffuse
-
-        t = time.perf_counter()
-        if settings.diffuse_method == "exact":
-            src = cube
-            while src.shape[1] > diffuse_source:  # the box mip it reads
-                src = downsample(src)
-            if src.shape[1] > specular.DENSE_CHAIN_MAX:
-                d = diffuse.diffuse_exact(src, settings.diffuse_size)
-            else:  # the same sum through the cube's symmetries; beside the chain up to 128^2
-                d = specular.symmetric_zonal_sums(
-                    src, [specular.ZonalOutput(settings.diffuse_size, "cosine")],
-                    workers=1 if n <= 128 else 2)[0]
-            return d, None, time.perf_counter() - t
-        d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
-                                    width=settings.sh_window_width, bands=bands)
-        return d, inf, time.perf_counter() - t
-
-    spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
-    if settings.samples is not None:
-        spec_kwargs["samples"] = settings.samples
-    if (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0 and settings.format != "gltf"
-            and settings.specular_method == "tiered" and settings.diffuse_method == "exact"
-            and diffuse_source == n):
-        # one pass of dense sums over every input texel: the diffuse map and every GGX level
-        # (exact), the cube's symmetries shared, the blocks split between two threads
-        t = time.perf_counter()
-        sizes = mip_sizes(n, levels)
-        outs = [specular.ZonalOutput(settings.diffuse_size, "cosine")] + [
-            specular.ZonalOutput(s, "ggx", float(lobes.roughness_to_alpha(
-                lobes.level_roughness(k, levels)))) for k, s in enumerate(sizes) if k]
-        diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
-        spec = [cube.copy(), *rest]
-        info = None
-        timings["specular"] = time.perf_counter() - t
-        timings["diffuse"] = 0.0  # (in the specular figure: one pass computed both)
-    else:
-        diff, info, spec = _separate_stages(cube, settings, spec_kwargs, diffuse_stage, timings)
-    if info is not None:
-        sh_window = {
-            "window": info.window,
-            "width": info.width if np.isfinite(info.width) else None,
-            "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
-            "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
-        }
-
-    t = time.perf_counter()
-    lut = usercache.dfg_lut(settings.lut_size)  # computed once per machine (same bits)
-    timings["dfg"] = time.perf_counter() - t
-
-    cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
-
-    def ratio(x: NDArray[np.float32]) -> float:
-        return _integral_ratio(float(solid_angle_integral(x).sum()), cube_integral)
-
-    energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
-    diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
-    spec_out = seams.apply_seam_mode(list(spec), settings.seam)
-    seam_scores = {
-        "diffuse": float(seams.seam_score(diff_out if settings.seam != "border" else diff)),
-        "specular": [float(seams.seam_score(lv)) for lv in
-                     (spec_out if settings.seam != "border" else spec)],
-    }
-
-    # --- write (into the staging folder) ----------------------------------------------------
-    manifest_path = out / "manifest.json"
-    t = time.perf_counter()
-    conv = conventions()
-    attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
-    files: list[dict[str, Any]] = []
-    ext = settings.format
-    write_layout = settings.output_layout
-
-    def previews() -> list[dict[str, Any]]:
-        entries: list[dict[str, Any]] = []
-        exposure = imageio.cube_exposure(cube)  # one exposure for all, so they compare
-        for name, faces in (("input", cube), ("diffuse", diff)):
-            imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
-                                      durable=False)
-            entries.append({"path": f"preview_{name}.png", "kind": "preview", "of": name,
-                            "level": None, "roughness": None, "layout": "hcross",
-                            "format": "png"})
-        imageio.write_preview_png(out / "preview_specular.png", _specular_sheet(spec),
-                                  exposure=exposure, durable=False)
-        entries.append({"path": "preview_specular.png", "kind": "preview", "of": "specular",
-                        "level": None, "roughness": None,
-                        "layout": "hcross per level, level 0 at the top", "format": "png"})
-        return entries
-
-    # the previews (tone mapping, PNG encoding) are made in a second thread meanwhile, and
-    # written files are flushed to disk by two more while the next ones are encoded (the
-    # staging folder's commit then finds them on disk)
-    writer = ThreadPoolExecutor(max_workers=1)
-    flusher = ThreadPoolExecutor(max_workers=2)
-
-    def flush(paths: Sequence[str | os.PathLike[str]]) -> None:
-        for p in paths:
-            flusher.submit(fsync_file, p)
+    def preview(name: str, faces: NDArray[np.float32], exposure: float, layout: str
+                ) -> dict[str, Any]:
+        path = imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
+                                         durable=False)
+        fsync_file(path)
+        return {"path": path.name, "kind": "preview", "of": name, "level": None,
+                "roughness": None, "layout": layout, "format": "png"}
 
     try:
-        preview_entries = writer.submit(previews) if settings.previews else None
+        previews = []
         if settings.previews:
-            say("writing maps and previews")
+            exposure = imageio.cube_exposure(cube)  # one for all previews, so they compare
+            if dense:
+                previews.append(pool.submit(preview, "input", cube, exposure, "hcross"))
 
-        def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> None:
+        # --- compute everything (the staging folder gets the input's preview meanwhile) --
+        t = time.perf_counter()
+        bands = settings.sh_bands
+        coeffs = shbands.project_cube(cube, bands)
+        # band 2, what sh.json's consumers and the glTF light take (the same projection at 3 bands)
+        sh9 = coeffs if bands == 3 else sh.project_cube(cube)
+        irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
+        timings["sh"] = time.perf_counter() - t
+
+        say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
+            + (f" from the {diffuse_source}^2 box mip" if settings.diffuse_method == "exact"
+               and diffuse_source != n else "") + ") and GGX specular "
+            f"chain: {levels} levels from {n}^2")
+        sh_window: dict[str, Any] = {"window": "none"}
+
+        def diffuse_stage() -> tuple[NDArray[np.float32], Any, float]:
+            from probegrid.core import diffuse
+
+            t = time.perf_counter()
+            if settings.diffuse_method == "exact":
+                src = cube
+                while src.shape[1] > diffuse_source:  # the box mip it reads
+                    src = downsample(src)
+                if src.shape[1] > specular.DENSE_CHAIN_MAX:
+                    d = diffuse.diffuse_exact(src, settings.diffuse_size)
+                else:  # the same sum through the cube's symmetries; beside the chain up to 128^2
+                    d = specular.symmetric_zonal_sums(
+                        src, [specular.ZonalOutput(settings.diffuse_size, "cosine")],
+                        workers=1 if n <= 128 else 2)[0]
+                return d, None, time.perf_counter() - t
+            d, inf = diffuse.diffuse_sh(cube, settings.diffuse_size, window=settings.sh_window,
+                                        width=settings.sh_window_width, bands=bands)
+            return d, inf, time.perf_counter() - t
+
+        spec_kwargs: dict[str, Any] = {"levels": levels, "method": settings.specular_method}
+        if settings.samples is not None:
+            spec_kwargs["samples"] = settings.samples
+        if dense:
+            # one pass of dense sums over every input texel: the diffuse map and every GGX level
+            # (exact), the cube's symmetries shared, the blocks split between two threads
+            t = time.perf_counter()
+            diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
+            spec = [cube.copy(), *rest]
+            info = None
+            timings["specular"] = time.perf_counter() - t
+            timings["diffuse"] = 0.0  # (in the specular figure: one pass computed both)
+        else:
+            diff, info, spec = _separate_stages(cube, settings, spec_kwargs, diffuse_stage, timings)
+        if info is not None:
+            sh_window = {
+                "window": info.window,
+                "width": info.width if np.isfinite(info.width) else None,
+                "min_irradiance_over_pi_after_window": [float(x) for x in info.minimum],
+                "coefficients_after_window": [[float(x) for x in row] for row in info.coefficients],
+            }
+
+        t = time.perf_counter()
+        lut = usercache.dfg_lut(settings.lut_size)  # computed once per machine (same bits)
+        timings["dfg"] = time.perf_counter() - t
+
+        cube_integral = float(solid_angle_integral(cube).sum())  # once, not once per level
+
+        def ratio(x: NDArray[np.float32]) -> float:
+            return _integral_ratio(float(solid_angle_integral(x).sum()), cube_integral)
+
+        energy = {"diffuse": ratio(diff), "specular": [ratio(lv) for lv in spec]}
+        diff_out = seams.apply_seam_mode([diff], settings.seam)[0]
+        spec_out = seams.apply_seam_mode(list(spec), settings.seam)
+        seam_scores = {
+            "diffuse": float(seams.seam_score(diff_out if settings.seam != "border" else diff)),
+            "specular": [float(seams.seam_score(lv)) for lv in
+                         (spec_out if settings.seam != "border" else spec)],
+        }
+
+        # --- write (into the staging folder) -------------------------------------------
+        manifest_path = out / "manifest.json"
+        t = time.perf_counter()
+        conv = conventions()
+        attrs = {"probegrid:conventions": json.dumps(conv), "probegrid:version": __version__}
+        files: list[dict[str, Any]] = []
+        ext = settings.format
+        write_layout = settings.output_layout
+
+        def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> dict[str, Any]:
             written = imageio.write_cube(
                 out / stem, faces, layout=write_layout, fmt=ext, half=settings.half,
                 metadata={**attrs, "probegrid:kind": meta["kind"]},
-                durable=False,  # flushed below, and by staged_output before publishing
+                durable=False,  # flushed here, and by staged_output before publishing
+                parallel=False,  # (the pool writes several cubes at once)
             )
-            flush(written)
+            for p in written:
+                fsync_file(p)
             rel = [str(Path(p).relative_to(out)) for p in written]
-            files.append({
+            return {
                 "path": rel[0] if len(rel) == 1 else rel,
                 "layout": write_layout,
                 "face_size": int(faces.shape[1]),
@@ -561,11 +639,31 @@ def _filter_into(
                 "dtype": written.pixel_type,  # half, or float where a value exceeds half
                 "seam": settings.seam,
                 **meta,
-            })
+            }
 
-        if not settings.previews:
+        # (the pool encodes the maps and previews while this thread writes sh.json and the LUT)
+        if settings.previews:
+            say("writing maps and previews")
+            if not previews:
+                previews.append(pool.submit(preview, "input", cube, exposure, "hcross"))
+            previews += [  # (the largest first)
+                pool.submit(preview, "specular", _specular_sheet(spec), exposure,
+                            "hcross per level, level 0 at the top"),
+                pool.submit(preview, "diffuse", diff, exposure, "hcross"),
+            ]
+        else:
             say("writing maps")
-        if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
+        maps = []
+        if ext not in ("ktx2", "gltf"):
+            maps.append(pool.submit(write_cube, "diffuse", diff_out, kind="diffuse", level=0,
+                                    roughness=None, content="irradiance / pi",
+                                    method=settings.diffuse_method,
+                                    sh_window=sh_window["window"]))
+            for k, lv in enumerate(spec_out):
+                r = k / (levels - 1) if levels > 1 else 0.0
+                maps.append(pool.submit(write_cube, f"specular_m{k}", lv, kind="specular",
+                                        level=k, roughness=r, alpha=r * r))
+        elif ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
             from probegrid.export.environment import write_environment_ktx2
 
             files += write_environment_ktx2(out, diff_out, spec_out,
@@ -573,15 +671,8 @@ def _filter_into(
                                             cube_convention=settings.cube_convention,
                                             key_values={"probegrid:conventions":
                                                         json.dumps(conv)})
-        elif ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
+        else:  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
             files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
-        else:
-            write_cube("diffuse", diff_out, kind="diffuse", level=0, roughness=None,
-                       content="irradiance / pi", method=settings.diffuse_method,
-                       sh_window=sh_window["window"])
-        for k, lv in enumerate(spec_out if ext not in ("ktx2", "gltf") else []):
-            r = k / (levels - 1) if levels > 1 else 0.0
-            write_cube(f"specular_m{k}", lv, kind="specular", level=k, roughness=r, alpha=r * r)
 
         band_factors = shbands.clamped_cosine_factors(bands)
         sh_doc = {
@@ -601,22 +692,23 @@ def _filter_into(
             "consumers": sh_forms(sh9),  # the consumers take band 2 (9 coefficients)
         }
         atomic_write_json(out / "sh.json", sh_doc)
-        files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
-                      "layout": None, "format": "json"})
 
         lut_rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), np.float32)], axis=-1)
-        flush([imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
-                                   metadata={**attrs, "probegrid:kind": "lut"}, durable=False)])
-        files.append({"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
-                      "layout": "x = N.V (columns), y = perceptual roughness (rows)",
-                      "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
-                      "size": settings.lut_size})
-        if preview_entries is not None:
-            files += preview_entries.result()
-            flush([out / f["path"] for f in files if f["kind"] == "preview"])
-    finally:  # (on an error too: the staging folder is removed after this)
-        writer.shutdown(wait=True)
-        flusher.shutdown(wait=True)
+        fsync_file(imageio.write_image(out / "dfg_lut.exr", lut_rgb, half=False,
+                                       metadata={**attrs, "probegrid:kind": "lut"},
+                                       durable=False))
+        lut_entry = {"path": "dfg_lut.exr", "kind": "lut", "level": None, "roughness": None,
+                     "layout": "x = N.V (columns), y = perceptual roughness (rows)",
+                     "format": "exr", "dtype": "float", "channels": "R = A, G = B, B = 0",
+                     "size": settings.lut_size}
+        sh_entry = {"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                    "layout": None, "format": "json"}
+        entries = {f["of"]: f for f in (p.result() for p in previews)}
+        files += [m.result() for m in maps] + [sh_entry, lut_entry] + [
+            entries[name] for name in ("input", "diffuse", "specular") if name in entries]
+    finally:  # (on an error too: no task writes into the staging folder after this, which
+        # is then removed)
+        pool.shutdown(wait=True, cancel_futures=True)
     timings["write"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
 
@@ -632,7 +724,7 @@ def _filter_into(
                       "kept" if settings.keep_negative and settings.clamp is None
                       else "set to 0")},
                   "cube_size": n, "diffuse_source_size": diffuse_source},
-        "settings": settings.model_dump(),
+        "settings": settings.as_dict(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
                      "roughness": ([k / (levels - 1) if levels > 1 else 0.0

@@ -68,14 +68,25 @@ from pydantic import (
 from probegrid._version import __version__
 from probegrid.core.grid import GridSpec
 from probegrid.errors import StoreError
+from probegrid.store.names import (  # (the store's names, re-exported: see __all__)
+    DONE_FILE,
+    MANIFEST_FILE,
+    PARTIAL_SUFFIX,
+    PLAN_FILE,
+    STORE_DIR_SUFFIXES,
+    STORE_SUFFIX,
+    WORK_SUFFIX,
+)
 
 #: A manifest's grid: validated by :meth:`GridSpec.from_dict`, written by :meth:`GridSpec.as_dict`.
 GridField = Annotated[GridSpec, PlainValidator(GridSpec.from_dict),
                       PlainSerializer(GridSpec.as_dict)]
 
-__all__ = ['ENVIRONMENT_SOURCES', 'FORMAT_NAME', 'FORMAT_VERSION', 'SUPPORTED_FORMAT_VERSIONS',
-           'ArrayInfo', 'ArraySpec', 'BakeInputs', 'EnvironmentInput', 'EnvironmentSource',
-           'SceneFile', 'SceneInput', 'StoreError', 'StoreManifest', 'partial_path']
+__all__ = ['DONE_FILE', 'ENVIRONMENT_SOURCES', 'FORMAT_NAME', 'FORMAT_VERSION', 'MANIFEST_FILE',
+           'PARTIAL_SUFFIX', 'PLAN_FILE', 'STORE_DIR_SUFFIXES', 'STORE_SUFFIX',
+           'SUPPORTED_FORMAT_VERSIONS', 'WORK_SUFFIX', 'ArrayInfo', 'ArraySpec', 'BakeInputs',
+           'EnvironmentInput', 'EnvironmentSource', 'SceneFile', 'SceneInput', 'StoreError',
+           'StoreManifest', 'partial_path']
 
 
 FORMAT_NAME: Final = "probegrid.store"
@@ -87,26 +98,6 @@ FORMAT_VERSION: Final = 2
 
 #: Versions :func:`open_store` reads (1: no extras).
 SUPPORTED_FORMAT_VERSIONS: Final = frozenset({1, 2})
-
-
-MANIFEST_FILE: Final = "manifest.json"
-
-
-PLAN_FILE: Final = "_bake.json"  # partial directories only
-
-
-DONE_FILE: Final = "_done.npy"  # partial directories only
-
-
-PARTIAL_SUFFIX: Final = ".partial"
-
-#: A finished store's directory name ends in this (the one ``.probes`` naming rule).
-STORE_SUFFIX: Final = ".probes"
-#: A bake's own working directory beside the store (``NAME.probes.work``).
-WORK_SUFFIX: Final = ".work"
-#: Every directory name a store or a bake of one uses; no other output may be written there.
-STORE_DIR_SUFFIXES: Final = (STORE_SUFFIX, STORE_SUFFIX + PARTIAL_SUFFIX,
-                             STORE_SUFFIX + WORK_SUFFIX)
 
 
 _NAME_RE = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
