@@ -579,7 +579,7 @@ def _filter_into(
             # one pass of dense sums over every input texel: the diffuse map and every GGX level
             # (exact), the cube's symmetries shared, the blocks split between two threads
             t = time.perf_counter()
-            diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2)
+            diff, *rest = specular.symmetric_zonal_sums(cube, outs, workers=2, far_field=True)
             spec = [cube.copy(), *rest]
             info = None
             timings["specular"] = time.perf_counter() - t
