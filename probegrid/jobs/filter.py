@@ -9,7 +9,8 @@ resample it to a cube without aliasing, and compute
 * the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
   (:mod:`probegrid.core.specular`); by default, for cubes up to 128^2, the exact diffuse map
   and every GGX level are one pass of dense sums over every input texel shared between two
-  threads (:func:`probegrid.core.specular.symmetric_zonal_sums`),
+  threads (:func:`probegrid.core.specular.symmetric_zonal_sums`; level 1's far field over
+  2x2 merged texels, ``far_field``),
 * the radiance SH coefficients (9 by default, ``bands^2`` with ``sh_bands``;
   :mod:`probegrid.core.sh`, :mod:`probegrid.core.shbands`) and the minimum irradiance they imply,
 * the split-sum DFG lookup table (:mod:`probegrid.core.dfg`, cached per machine by
@@ -727,6 +728,9 @@ def _filter_into(
         "settings": settings.as_dict(),
         "conventions": conv,
         "specular": {"levels": levels, "sizes": [int(lv.shape[1]) for lv in spec],
+                     "method": ("dense sums over every input texel (the far field of lobes "
+                                "narrower than alpha 0.06 over 2x2 merged texels)" if dense
+                                else settings.specular_method),
                      "roughness": ([k / (levels - 1) if levels > 1 else 0.0
                                     for k in range(levels)] if ext != "gltf" else
                                    [float(np.sqrt(a)) for a in gltf_ibl.babylon_alphas(n)])},
