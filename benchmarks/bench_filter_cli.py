@@ -24,6 +24,9 @@ For each HDR in ``../shared/data/hdr`` it prints, in one run:
 * **SH diffuse at 3, 5, 7, 9 bands** against the same diffuse reference, beside the best that
   band count allows (:func:`probegrid.core.shbands.project_equirect` of every input pixel).
 
+Last, issue 13's second target: one of the HDRs resampled to 1500 x 750 and filtered with
+every default, against 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the same file.
+
 References are cached on disk (``--cache``). Usage::
 
     .venv/bin/python benchmarks/bench_filter_cli.py [--repeat 3] [--hdr venice studio] [--no-bytecode]
@@ -258,6 +261,51 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for f in files:
             bench(f.stem.split("_")[0], f, Path(tmp), args.cache, args)
+        if files:
+            bench_defaults(files[-1], Path(tmp), args)
+
+
+def bench_defaults(hdr: Path, work: Path, args: argparse.Namespace) -> None:
+    """Issue 13's second target: a 1500 x 750 lat-long (``hdr`` resampled bilinearly) with
+    every default (the cube size chosen from the input: 256^2), against 5 s and 500 MB, beside
+    cmgen's three runs at 256^2 on the same file."""
+    img = read_rgb(hdr).astype(np.float64)
+    h, w = 750, 1500
+    y = (np.arange(h) + 0.5) * img.shape[0] / h - 0.5
+    x = (np.arange(w) + 0.5) * img.shape[1] / w - 0.5
+    y0 = np.clip(np.floor(y).astype(int), 0, img.shape[0] - 2)
+    x0 = np.floor(x).astype(int)
+    fy = np.clip(y - y0, 0, 1)[:, None, None]
+    fx = (x - x0)[None, :, None]
+    x0 %= img.shape[1]
+    x1 = (x0 + 1) % img.shape[1]  # (the longitude wraps)
+    big = ((1 - fy) * ((1 - fx) * img[y0][:, x0] + fx * img[y0][:, x1])
+           + fy * ((1 - fx) * img[y0 + 1][:, x0] + fx * img[y0 + 1][:, x1]))
+    src = work / "big_1500x750.hdr"
+    out = oiio.ImageOutput.create(str(src))
+    out.open(str(src), oiio.ImageSpec(w, h, 3, oiio.FLOAT))
+    out.write_image(big.astype(np.float32))
+    out.close()
+    print(f"\n===== defaults: {hdr.name} resampled to {w}x{h} =====")
+    env = None if args.no_bytecode else {k: v for k, v in os.environ.items()
+                                         if k != "PYTHONDONTWRITEBYTECODE"}
+    res = work / "big"
+    runs, cm = [], []
+    for _ in range(args.repeat):
+        shutil.rmtree(res, ignore_errors=True)
+        runs.append(timed([PROBEGRID, "filter", str(src), "--out", str(res)], env))
+        cm.append(sum(timed([CMGEN, "--no-mirror", "-q", "-f", "psd", "-c", "32", *extra,
+                             str(src)])[0]
+                      for extra in (["-s", "256", f"--ibl-ld={work / 'ld'}"],
+                                    ["-s", "32", f"--ibl-irradiance={work / 'irr'}"],
+                                    ["--sh=3", f"--sh-output={work / 'sh.txt'}"])))
+    manifest = json.loads((res / "manifest.json").read_text())
+    wall, rss = min(r[0] for r in runs), max(r[1] for r in runs)
+    ok = "MET" if wall <= 5.0 and rss <= 500 else "NOT MET"
+    print(f"probegrid filter (all defaults: {manifest['input']['cube_size']}^2 cube, "
+          f"{manifest['specular']['levels']} GGX levels): {wall:.2f} s wall (best of "
+          f"{args.repeat}), {min(r[2] for r in runs):.2f} s CPU, {rss:.0f} MB peak (largest); "
+          f"target <= 5 s and <= 500 MB: {ok}; cmgen's three runs at 256^2: {min(cm):.2f} s")
 
 
 if __name__ == "__main__":
