@@ -886,7 +886,9 @@ def emitter_shadow_rays(
     eps: float,
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
            NDArray[np.float64], NDArray[np.float64]]:
-    """Next-event estimation toward points sampled on emitters, as a control-variate correction.
+    """Next-event estimation toward points sampled on emitters: the shadow rays and what each
+    contributes to the ratio estimator of :class:`probegrid.bake.emitters.Emitters` (or the
+    control variate's correction, :func:`emitter_estimate`).
 
     Point ``i`` has ``L`` samples ``sample_points (n, L, 3)`` on emitting triangles (unit
     ``sample_normals``, front as wound), with radiance ``sample_radiance (n, L, 3)`` (textures

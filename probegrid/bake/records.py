@@ -60,11 +60,15 @@ Bounce levels (as before this module: ``bounces = B`` makes a furnace box read
 lights' reflected light; at level ``k > 0`` it adds the emitters' and the environment's
 reflected direct light and the level ``k - 1`` grid.
 
-Records live in ``.npz`` files, one per block of probes (the fixed batch partition), written
-atomically by the worker that traced them; a pass over a block reads only that block's file, so
-a worker's memory is bounded by its batch. A block whose file is missing (a Dask worker on
-another machine, a file deleted) is traced again: the records are deterministic, so the result
-is the same bits.
+Records live in a directory per block of probes (the fixed batch partition), one ``.npy`` per
+array, written atomically by the worker that traced them (the ``complete`` mark last); the
+worker also keeps the blocks it used last in memory (:data:`RECORDS_MEMORY`), and any other
+block is memory-mapped from its files, so a pass over a block reads only that block and a
+worker's memory is bounded by its batch. A gather level keeps only what later passes read
+(:func:`_gather_keys`; the deepest level's positions go once its probe weights are known,
+:func:`weighted_positions`): :func:`record_bytes` gives the bake's estimate. A block whose
+files are missing (a Dask worker on another machine, a file deleted) is traced again: the
+records are deterministic, so the result is the same bits.
 """
 
 from __future__ import annotations
