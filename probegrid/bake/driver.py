@@ -170,6 +170,14 @@ class _Context:
     moments: NDArray[np.float32] | str | None = None
     key: str = ""  # the bake's fingerprint (scene, environment, plan): what the tracer depends on
 
+    @property
+    def block_size(self) -> int:
+        """Probes per batch: the grid split into as few blocks of at most ``batch_size`` as it
+        takes, of (nearly) equal sizes (27 probes in 4 batches of 7, not 8, 8, 8 and 3: the
+        workers finish together). Each block's records are kept under its first probe."""
+        p, bs = self.grid.n_probes, self.settings.batch_size
+        return max(1, -(-p // max(1, -(-p // bs)))) if p else bs
+
     def setup(self) -> _State:
         import multiprocessing
 
@@ -279,7 +287,7 @@ def _block_records(state: _State, batch: NDArray[np.int64]
     (deterministic: the same bits). Returns them, the block's file when they came from a whole
     block, and the rays cast."""
     ctx = state.ctx
-    bs = ctx.settings.batch_size
+    bs = ctx.block_size
     path = records_file(resolve_directory(ctx.records), int(batch[0]) // bs * bs)
     rec = load_records(path)
     if rec is not None:
@@ -306,7 +314,7 @@ def _trace_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     assert state.positions is not None
     ctx = state.ctx
     rec, moments, rays = state.tracer.trace(state.positions[batch], batch)
-    bs = ctx.settings.batch_size
+    bs = ctx.block_size
     save_records(records_file(resolve_directory(ctx.records), int(batch[0]) // bs * bs), rec)
     out = _bounced_outputs(rec, ctx.render, 0, None)
     out.update(moments=moments, backface_fraction=rec["backface_fraction"], rays=rays)
@@ -554,8 +562,7 @@ class _Stages:
             scene_hash=self.scene_hash, bake=self.plan, overwrite=overwrite, durable=False,
         )
         resumed = writer.n_done
-        batches = make_batches(grid.n_probes, batch_size=ctx.settings.batch_size,
-                               done=writer.done)
+        batches = make_batches(grid.n_probes, batch_size=ctx.block_size, done=writer.done)
         started = time.perf_counter()
 
         def progress(p: Progress) -> None:
