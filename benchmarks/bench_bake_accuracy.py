@@ -75,22 +75,23 @@ def _bake_main(spec_file: str) -> None:
     import dataclasses
 
     spec = json.loads(Path(spec_file).read_text())
-    import probegrid
-    from probegrid.bake import BakeSettings, bake
     from probegrid.bake.executors import make_executor
-    from probegrid.jobs.bake import grid_for, load_environment
-    from probegrid.scene import load_gltf
-    from probegrid.store import open_store
 
-    # as ``probegrid bake`` does: the worker processes start (and import the bake) while the
-    # scene loads; the timed bake begins once the scene is loaded (what is left of the workers'
-    # start-up is timed). (Older checkouts start them with the bake.)
+    # as ``probegrid bake`` does: the worker processes start (and import the bake) while this
+    # process imports it and loads the scene; the timed bake begins once the scene is loaded
+    # (what is left of the workers' start-up is timed). (Older checkouts start them with the
+    # bake.)
     try:
         executor = make_executor(workers=spec["workers"], preload=("probegrid.bake.preload",))
     except TypeError:
         executor = make_executor(workers=spec["workers"])
     if hasattr(executor, "start"):
         executor.start()
+    import probegrid
+    from probegrid.bake import BakeSettings, bake
+    from probegrid.jobs.bake import grid_for, load_environment
+    from probegrid.scene import load_gltf
+    from probegrid.store import open_store
     scene = load_gltf(spec["scene"])
     scene = dataclasses.replace(scene, lights=tuple(
         dataclasses.replace(lt, range=None) if getattr(lt, "range", None) is not None else lt

@@ -467,10 +467,7 @@ def run_bake(job: BakeJob) -> BakeReport:
     and environment (refused when they hold no light, unless ``allow_black``), the grid (the
     default one printed), the estimate (printed; refused when the disk cannot hold the store)
     and the executor, then :func:`~probegrid.bake.bake`."""
-    from probegrid.bake.driver import bake
     from probegrid.bake.executors import make_executor
-    from probegrid.bake.nolight import require_light
-    from probegrid.scene import load_gltf
 
     check_store_name(job.out)
     if job.out.exists() and not job.overwrite:
@@ -478,7 +475,12 @@ def run_bake(job: BakeJob) -> BakeReport:
     job.settings.levels()
     executor = make_executor(workers=job.workers, scheduler=job.scheduler,
                              preload=("probegrid.bake.preload",))
-    executor.start()  # local processes start (and import the bake) while the scene loads
+    # local processes start (and import the bake) while this one imports it and loads the scene
+    executor.start()
+    from probegrid.bake.driver import bake
+    from probegrid.bake.nolight import require_light
+    from probegrid.scene import load_gltf
+
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
         scene = load_gltf(job.scene)
