@@ -196,12 +196,13 @@ def test_a_store_that_does_not_fit_on_the_disk_is_refused_with_the_figures(
     assert not list(tmp_path.iterdir())
 
 
-def test_the_job_refuses_a_dark_scene_from_python_too(tmp_path, monkeypatch):
+def test_the_job_refuses_a_dark_scene_from_python_too(tmp_path, monkeypatch, scene_file):
     import probegrid.scene as scenes
 
     monkeypatch.setattr(scenes, "load_gltf", lambda path: _dark_room())
     with pytest.raises(ValueError, match="the scene has no light"):
-        run_bake(BakeJob(scene=Path("x.glb"), out=tmp_path / "d.probes", grid="2x2x2"))
+        run_bake(BakeJob(scene=Path(scene_file(_dark_room())), out=tmp_path / "d.probes",
+                         grid="2x2x2"))
 
 
 def test_the_manifest_records_six_faces_in_face_order_and_a_colour(tmp_path, scene_file,
@@ -252,3 +253,27 @@ def test_the_manifest_records_six_faces_in_face_order_and_a_colour(tmp_path, sce
     text = describe_store(col)
     assert "scene hash:" in text and "as given" not in text
     capsys.readouterr()
+
+
+@pytest.mark.parametrize("content", [None, b"glTF\x02\x00\x00\x00\xff\xff\x00\x00rest", b"{}"])
+def test_a_missing_or_truncated_scene_is_refused_before_any_worker_starts(tmp_path,
+                                                                         monkeypatch, capsys,
+                                                                         content):
+    """``probegrid bake`` starts its worker processes before it loads the scene (to overlap
+    them); a scene file that is missing, truncated by its own header or not binary glTF is
+    refused first, in one line, with no process started."""
+    import probegrid.bake.executors as executors
+
+    def no_workers(**_: object) -> None:
+        raise AssertionError("workers were started for a scene that cannot load")
+
+    monkeypatch.setattr(executors, "make_executor", no_workers)
+    scene = tmp_path / "s.glb"
+    if content is not None:
+        scene.write_bytes(content)
+    code = main(["bake", str(scene), "--out", str(tmp_path / "x.probes")])
+    assert code == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("probegrid: error: ")
+    assert ("not found" in err[0] if content is None else
+            "truncated" in err[0] if content.startswith(b"glTF") else "bad magic" in err[0])

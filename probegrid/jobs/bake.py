@@ -468,11 +468,13 @@ def run_bake(job: BakeJob) -> BakeReport:
     default one printed), the estimate (printed; refused when the disk cannot hold the store)
     and the executor, then :func:`~probegrid.bake.bake`."""
     from probegrid.bake.executors import make_executor
+    from probegrid.scene.gltf import check_scene_file
 
     check_store_name(job.out)
     if job.out.exists() and not job.overwrite:
         raise ValueError(f"{job.out} exists; pass --overwrite to replace it")
     job.settings.levels()
+    check_scene_file(job.scene)  # (what needs no parsing, before any process starts)
     executor = make_executor(workers=job.workers, scheduler=job.scheduler,
                              preload=("probegrid.bake.preload",))
     # local processes start (and import the bake) while this one imports it and loads the scene

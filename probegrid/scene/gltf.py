@@ -60,7 +60,7 @@ from probegrid.core.color import srgb_to_linear
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.scene.model import Material, Scene, SceneError
 
-__all__ = ['gltf_mesh_count', 'load_gltf']
+__all__ = ['check_scene_file', 'gltf_mesh_count', 'load_gltf']
 
 
 #: glTF sampler wrap codes (OpenGL enums) -> our names.
@@ -384,13 +384,8 @@ def load_gltf(path: str | Path) -> Scene:
         Missing or unreadable file, truncated .glb or buffer, missing or undecodable texture,
         non-finite vertices, no triangles, unsupported features (see module docstring).
     """
-    p = Path(path)
+    p = check_scene_file(path)
     label = p.name
-    suffix = p.suffix.lower()
-    if suffix not in (".gltf", ".glb"):
-        raise SceneError(f"{label}: expected a .gltf or .glb file, got suffix {p.suffix!r}.")
-    if not p.is_file():
-        raise SceneError(f"scene file not found: {p}")
     data = p.read_bytes()
     try:
         return _load_gltf_data(p, data)
@@ -400,6 +395,32 @@ def load_gltf(path: str | Path) -> Scene:
         # JSON of the wrong shape ("asset": "2.0", "materials": [5], a node cycle, ...)
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise SceneError(f"{label} is not a well-formed glTF 2.0 scene ({msg}).") from None
+
+
+def check_scene_file(path: str | Path) -> Path:
+    """The checks of :func:`load_gltf` that read no more than a header: a ``.gltf`` or ``.glb``
+    that exists, and a ``.glb``'s magic, version and length against the file's size (what a
+    caller can refuse before starting any work). Raises :class:`SceneError`; returns the path."""
+    p = Path(path)
+    if p.suffix.lower() not in (".gltf", ".glb"):
+        raise SceneError(f"{p.name}: expected a .gltf or .glb file, got suffix {p.suffix!r}.")
+    if not p.is_file():
+        raise SceneError(f"scene file not found: {p}")
+    if p.suffix.lower() == ".glb":
+        try:
+            with open(p, "rb") as f:
+                head = f.read(12)
+            size = p.stat().st_size
+        except OSError as exc:
+            raise SceneError(f"cannot read {p}: {exc.strerror or exc}") from None
+        if len(head) == 12 and head[:4] == _GLB_MAGIC:
+            _, length = struct.unpack_from("<II", head, 4)
+            if length > size:
+                raise SceneError(f"{p.name} is truncated: header says {length} bytes, file has "
+                                 f"{size}.")
+        else:
+            raise SceneError(f"{p.name} is not a binary glTF file (bad magic).")
+    return p
 
 
 def gltf_mesh_count(path: str | Path) -> int | None:
