@@ -262,7 +262,7 @@ def test_a_missing_or_truncated_scene_is_refused_before_any_worker_starts(tmp_pa
     """``probegrid bake`` starts its worker processes before it loads the scene (to overlap
     them); a scene file that is missing, truncated by its own header or not binary glTF is
     refused first, in one line, with no process started."""
-    import probegrid.bake.executors as executors
+    from probegrid.bake import executors
 
     def no_workers(**_: object) -> None:
         raise AssertionError("workers were started for a scene that cannot load")
