@@ -3,18 +3,18 @@
 ``settings`` (:class:`BakeSettings`), ``environment`` (the distant light), ``render`` (one
 probe's incoming light, traced through :mod:`probegrid.raytrace`), ``executors`` (local processes
 or Dask: the one dask importer) and ``driver`` (:func:`bake`: stages, work directory, store).
-:func:`bake` and :class:`BakeReport` load the driver (Embree, numba) on first use, so importing
-the settings stays cheap.
+:func:`bake` and :class:`BakeReport` load the driver (Embree, numba) on first use, and
+:class:`BakeSettings` the settings (pydantic), so importing the executors stays cheap (a bake
+starts its worker processes first).
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from probegrid.bake.settings import BakeSettings
-
 if TYPE_CHECKING:
     from probegrid.bake.driver import BakeReport, bake
+    from probegrid.bake.settings import BakeSettings
 
 __all__ = ["BakeReport", "BakeSettings", "bake"]
 
@@ -24,4 +24,8 @@ def __getattr__(name: str) -> Any:
         from probegrid.bake import driver
 
         return getattr(driver, name)
+    if name == "BakeSettings":  # (pydantic and the kernels' numba: not for the executors alone)
+        from probegrid.bake.settings import BakeSettings
+
+        return BakeSettings
     raise AttributeError(f"module 'probegrid.bake' has no attribute {name!r}")
