@@ -470,17 +470,21 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 parser_class=_Parser)
-    for add in _SUBCOMMANDS:
-        if only is None or add.__name__ == f"_add_{only}":
-            add(sub)
+    for add in _SUBCOMMANDS if only is None else (_adder(only),):
+        add(sub)
     return parser
+
+
+def _adder(command: str | None) -> Callable[[argparse._SubParsersAction], None] | None:
+    """The function that adds ``command``'s parser (None for a name that is no command)."""
+    return next((add for add in _SUBCOMMANDS if add.__name__ == f"_add_{command}"), None)
 
 
 def _command_name(argv: Sequence[str]) -> str | None:
     """The command a command line runs (its first word that is not an option), when it is one
     of the commands; None otherwise (the full parser then reports the error or the help)."""
     word = next((a for a in argv if not a.startswith("-")), None)
-    return word if any(add.__name__ == f"_add_{word}" for add in _SUBCOMMANDS) else None
+    return word if _adder(word) is not None else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -178,6 +178,11 @@ class _Context:
         p, bs = self.grid.n_probes, self.settings.batch_size
         return max(1, -(-p // max(1, -(-p // bs)))) if p else bs
 
+    def records_path(self, batch: NDArray[np.int64]) -> Path:
+        """The records directory of the block holding ``batch`` (a whole block or part of one)."""
+        bs = self.block_size
+        return records_file(resolve_directory(self.records), int(batch[0]) // bs * bs)
+
     def setup(self) -> _State:
         import multiprocessing
 
@@ -287,8 +292,7 @@ def _block_records(state: _State, batch: NDArray[np.int64]
     (deterministic: the same bits). Returns them, the block's file when they came from a whole
     block, and the rays cast."""
     ctx = state.ctx
-    bs = ctx.block_size
-    path = records_file(resolve_directory(ctx.records), int(batch[0]) // bs * bs)
+    path = ctx.records_path(batch)
     rec = load_records(path)
     if rec is not None:
         whole = np.array_equal(rec["probes"], batch)
@@ -314,8 +318,7 @@ def _trace_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     assert state.positions is not None
     ctx = state.ctx
     rec, moments, rays = state.tracer.trace(state.positions[batch], batch)
-    bs = ctx.block_size
-    save_records(records_file(resolve_directory(ctx.records), int(batch[0]) // bs * bs), rec)
+    save_records(ctx.records_path(batch), rec)
     out = _bounced_outputs(rec, ctx.render, 0, None)
     out.update(moments=moments, backface_fraction=rec["backface_fraction"], rays=rays)
     return out

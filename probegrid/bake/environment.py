@@ -179,6 +179,7 @@ class EnvironmentLight:
         self._prob = prob
         # environment frame -> world
         self._rotation = rotation_y(env.rotation) if env.rotation else None
+        self._to_world = np.eye(3) if self._rotation is None else self._rotation  # (kernel's)
 
     def sample(self, random: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                             NDArray[np.float64],
@@ -216,8 +217,7 @@ class EnvironmentLight:
             return out, 0
         which, dirs, contrib = environment_samples(
             np.asarray(normals, dtype=np.float64), np.ascontiguousarray(random, np.float64),
-            self._cdf, self._guide, self._prob, self.radiance, self.size,
-            np.eye(3) if self._rotation is None else self._rotation,
+            self._cdf, self._guide, self._prob, self.radiance, self.size, self._to_world,
             FACE_NORMALS, FACE_U, FACE_V)
         if not which.size:
             return out, 0

@@ -86,15 +86,22 @@ _CHUNK_JSON: Final[int] = 0x4E4F534A
 _CHUNK_BIN: Final[int] = 0x004E4942
 
 
-def _parse_glb(data: bytes, name: str) -> tuple[dict, bytes | None]:
-    """(JSON header, BIN chunk or None) of a binary glTF; checks the container's lengths."""
-    if len(data) < 12 or data[:4] != _GLB_MAGIC:
+def _glb_length(head: bytes, size: int, name: str) -> int:
+    """The length a binary glTF's 12-byte header ``head`` declares, checked against the file's
+    ``size`` (magic, version 2, not truncated)."""
+    if len(head) < 12 or head[:4] != _GLB_MAGIC:
         raise SceneError(f"{name} is not a binary glTF file (bad magic).")
-    version, length = struct.unpack_from("<II", data, 4)
+    version, length = struct.unpack_from("<II", head, 4)
     if version != 2:
         raise SceneError(f"{name} is binary glTF version {version}; only version 2 is supported.")
-    if length > len(data):
-        raise SceneError(f"{name} is truncated: header says {length} bytes, file has {len(data)}.")
+    if length > size:
+        raise SceneError(f"{name} is truncated: header says {length} bytes, file has {size}.")
+    return int(length)
+
+
+def _parse_glb(data: bytes, name: str) -> tuple[dict, bytes | None]:
+    """(JSON header, BIN chunk or None) of a binary glTF; checks the container's lengths."""
+    length = _glb_length(data[:12], len(data), name)
     header, binary, offset = None, None, 12
     while offset < length:
         if offset + 8 > length:
@@ -399,8 +406,8 @@ def load_gltf(path: str | Path) -> Scene:
 
 def check_scene_file(path: str | Path) -> Path:
     """The checks of :func:`load_gltf` that read no more than a header: a ``.gltf`` or ``.glb``
-    that exists, and a ``.glb``'s magic, version and length against the file's size (what a
-    caller can refuse before starting any work). Raises :class:`SceneError`; returns the path."""
+    that exists, and a ``.glb``'s header (:func:`_glb_length`; what a caller can refuse before
+    starting any work). Raises :class:`SceneError`; returns the path."""
     p = Path(path)
     if p.suffix.lower() not in (".gltf", ".glb"):
         raise SceneError(f"{p.name}: expected a .gltf or .glb file, got suffix {p.suffix!r}.")
@@ -413,13 +420,7 @@ def check_scene_file(path: str | Path) -> Path:
             size = p.stat().st_size
         except OSError as exc:
             raise SceneError(f"cannot read {p}: {exc.strerror or exc}") from None
-        if len(head) == 12 and head[:4] == _GLB_MAGIC:
-            _, length = struct.unpack_from("<II", head, 4)
-            if length > size:
-                raise SceneError(f"{p.name} is truncated: header says {length} bytes, file has "
-                                 f"{size}.")
-        else:
-            raise SceneError(f"{p.name} is not a binary glTF file (bad magic).")
+        _glb_length(head, size, p.name)
     return p
 
 
