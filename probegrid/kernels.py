@@ -56,6 +56,7 @@ __all__ = [
     "embree_hits",
     "embree_rays",
     "emitter_estimate",
+    "emitter_irradiance",
     "emitter_samples",
     "environment_samples",
     "guide_table",
@@ -63,6 +64,7 @@ __all__ = [
     "light_rays",
     "mean_per_parent",
     "multiply_texture",
+    "polygon_irradiance",
     "segment_rays",
     "split_hits",
     "sum_unblocked",
@@ -753,11 +755,11 @@ def _clip_plane(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: f
 
 
 @numba.njit(**_JIT)
-def _polygon_form_factor(px: NDArray[np.float64], count: int, nx: float, ny: float,
-                         nz: float) -> float:
-    """Lambert's edge formula: ``(1 / 2) |sum_i theta_i (n . g_i)|`` for the polygon
-    ``px[:count]`` (relative to the receiver, entirely in its upper half-space): the cosine-
-    weighted solid angle, i.e. the irradiance of a unit-radiance polygon."""
+def _edge_sum(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: float) -> float:
+    """Lambert's edge formula, signed: ``sum_i theta_i (n . g_i)`` over the edges of the closed
+    loop ``px[:count]`` (relative to the receiver, in its upper half-space); half its absolute
+    value is the loop's cosine-weighted solid angle, and the sums of the loops bounding one
+    planar region (an outline and its holes) add up to the region's."""
     total = 0.0
     for i in range(count):
         j = (i + 1) % count
@@ -775,10 +777,66 @@ def _polygon_form_factor(px: NDArray[np.float64], count: int, nx: float, ny: flo
             continue
         theta = math.atan2(lc, ax * bx + ay * by + az * bz)
         total += theta * (cx * nx + cy * ny + cz * nz) / lc
-    return 0.5 * abs(total)
+    return total
 
 
 @numba.njit(**_JIT)
+def polygon_irradiance(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    loop_vertices: NDArray[np.float64],
+    loop_start: NDArray[np.int64],
+    group_loops: NDArray[np.int64],
+    group_normals: NDArray[np.float64],
+    group_radiance: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Unoccluded irradiance of uniformly emitting planar regions at surface points (exact).
+
+    Region ``q`` is bounded by the closed loops ``group_loops[q] .. group_loops[q + 1] - 1``
+    (an outline and its holes; loop ``l`` is ``loop_vertices[loop_start[l]:loop_start[l + 1]]``,
+    counter-clockwise seen from the side ``group_normals[q]`` points to) and emits
+    ``group_radiance[q] (3,)`` from that side. At a point ``points (n, 3)`` with unit
+    ``normals (n, 3)`` in front of the region's plane, every loop is clipped to the point's upper
+    half-space (Sutherland-Hodgman, which keeps a loop's signed edge sum right even when it is
+    not convex) and the region's cosine-weighted solid angle is ``|sum of the loops' edge sums|
+    / 2`` (Lambert's edge formula). A triangle is a region of one 3-vertex loop
+    (:func:`emitter_irradiance`). Returns ``(n, 3)`` lux.
+    """
+    n = points.shape[0]
+    ng = group_normals.shape[0]
+    out = np.zeros((n, 3))
+    longest = 3
+    for m in range(loop_start.shape[0] - 1):
+        longest = max(longest, loop_start[m + 1] - loop_start[m])
+    poly = np.empty((longest, 3))
+    clipped = np.empty((2 * longest + 2, 3))
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        for q in range(ng):
+            v0 = loop_start[group_loops[q]]
+            side = (group_normals[q, 0] * (px - loop_vertices[v0, 0])
+                    + group_normals[q, 1] * (py - loop_vertices[v0, 1])
+                    + group_normals[q, 2] * (pz - loop_vertices[v0, 2]))
+            if not side > 0:
+                continue
+            total = 0.0
+            for m in range(group_loops[q], group_loops[q + 1]):
+                s0, count = loop_start[m], loop_start[m + 1] - loop_start[m]
+                for v in range(count):
+                    poly[v, 0] = loop_vertices[s0 + v, 0] - px
+                    poly[v, 1] = loop_vertices[s0 + v, 1] - py
+                    poly[v, 2] = loop_vertices[s0 + v, 2] - pz
+                k = _clip_plane(poly, count, nx, ny, nz, clipped)
+                if k >= 3:
+                    total += _edge_sum(clipped, k, nx, ny, nz)
+            f = 0.5 * abs(total)
+            out[i, 0] += f * group_radiance[q, 0]
+            out[i, 1] += f * group_radiance[q, 1]
+            out[i, 2] += f * group_radiance[q, 2]
+    return out
+
+
 def emitter_irradiance(
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
@@ -786,39 +844,18 @@ def emitter_irradiance(
     tri_normals: NDArray[np.float64],
     tri_radiance: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """Unoccluded irradiance of uniformly emitting triangles at surface points (exact).
-
-    Each triangle ``tri_vertices (E, 3, 3)`` emits ``tri_radiance (E, 3)`` from its front (the
-    side ``tri_normals (E, 3)`` points to, as wound); at a point ``points (n, 3)`` with unit
-    ``normals (n, 3)`` in front of it, the triangle is clipped to the point's upper half-space
-    and integrated by Lambert's edge formula. Returns ``(n, 3)`` lux.
-    """
-    n = points.shape[0]
-    ne = tri_vertices.shape[0]
-    out = np.zeros((n, 3))
-    poly = np.empty((3, 3))
-    clipped = np.empty((8, 3))
-    for i in range(n):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        for e in range(ne):
-            side = (tri_normals[e, 0] * (px - tri_vertices[e, 0, 0])
-                    + tri_normals[e, 1] * (py - tri_vertices[e, 0, 1])
-                    + tri_normals[e, 2] * (pz - tri_vertices[e, 0, 2]))
-            if not side > 0:
-                continue
-            for v in range(3):
-                poly[v, 0] = tri_vertices[e, v, 0] - px
-                poly[v, 1] = tri_vertices[e, v, 1] - py
-                poly[v, 2] = tri_vertices[e, v, 2] - pz
-            k = _clip_plane(poly, 3, nx, ny, nz, clipped)
-            if k < 3:
-                continue
-            f = _polygon_form_factor(clipped, k, nx, ny, nz)
-            out[i, 0] += f * tri_radiance[e, 0]
-            out[i, 1] += f * tri_radiance[e, 1]
-            out[i, 2] += f * tri_radiance[e, 2]
-    return out
+    """Unoccluded irradiance of uniformly emitting triangles at surface points (exact):
+    :func:`polygon_irradiance` with each triangle ``tri_vertices (E, 3, 3)`` a region of its own,
+    emitting ``tri_radiance (E, 3)`` from its front (the side ``tri_normals (E, 3)`` points to,
+    as wound). Returns ``(n, 3)`` lux."""
+    e = len(tri_vertices)
+    return polygon_irradiance(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(normals, dtype=np.float64),
+        np.ascontiguousarray(np.asarray(tri_vertices, np.float64).reshape(-1, 3)),
+        np.arange(0, 3 * e + 1, 3, dtype=np.int64), np.arange(e + 1, dtype=np.int64),
+        np.ascontiguousarray(tri_normals, dtype=np.float64),
+        np.ascontiguousarray(tri_radiance, dtype=np.float64))
 
 
 @numba.njit(**_JIT)

@@ -3,6 +3,8 @@ exact where nothing occludes them, exactly 0 where everything does, never negati
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from probegrid.bake.emitters import Emitters
@@ -54,3 +56,67 @@ def test_penumbra_is_between_zero_and_the_unoccluded_integral():
     _, free = _estimate(_scene(False), pts, samples=4)
     assert np.all(shaded >= 0) and np.all(shaded <= free * (1 + 1e-12))
     assert (shaded < free).any() and (shaded > 0).any()
+
+
+def _fan(centre, radius, k, y, *, hole=0.0):
+    """Triangles of a horizontal disc (or an annulus with ``hole`` > 0) at height ``y``,
+    wound as the squares of the test below."""
+    a = np.linspace(0, 2 * np.pi, k + 1)
+    rim = np.column_stack([np.cos(a), np.zeros(k + 1), np.sin(a)])
+    rim[-1] = rim[0]  # closed bit for bit (sin(2 pi) is not 0)
+    c = np.array([centre[0], y, centre[1]])
+    if hole == 0.0:
+        return np.stack([np.stack([c, c + radius * rim[i + 1], c + radius * rim[i]])
+                         for i in range(k)])
+    tris = []
+    for i in range(k):  # two triangles per ring segment
+        o0, o1 = c + radius * rim[i], c + radius * rim[i + 1]
+        i0, i1 = c + hole * rim[i], c + hole * rim[i + 1]
+        tris += [np.stack([i0, o1, o0]), np.stack([i0, i1, o1])]
+    return np.stack(tris)
+
+
+def test_merged_outlines_integrate_as_their_triangles():
+    """polygon_irradiance over emitter_outlines (coplanar triangles merged into loops: a quad,
+    a fan-tessellated disc, an annulus with its hole, an L-shape, a separate square of another
+    radiance) equals the per-triangle sum at points all around, receivers tilted so the
+    horizon clips the regions (non-convex loops included), and has only the outlines' edges."""
+    from probegrid.bake.emitters import emitter_outlines
+    from probegrid.kernels import emitter_irradiance, polygon_irradiance
+
+    quad = np.array([[[0, 2, 0], [1, 2, 1], [1, 2, 0]], [[0, 2, 0], [0, 2, 1], [1, 2, 1]]],
+                    float)
+    ell = np.array([[[2, 2, 0], [3, 2, 1], [3, 2, 0]], [[2, 2, 0], [2, 2, 1], [3, 2, 1]],
+                    [[2, 2, 1], [3, 2, 2], [3, 2, 1]], [[2, 2, 1], [2, 2, 2], [3, 2, 2]],
+                    [[3, 2, 0], [4, 2, 1], [4, 2, 0]], [[3, 2, 0], [3, 2, 1], [4, 2, 1]]],
+                   float)
+    disc = _fan((-2.0, 0.5), 0.8, 24, 2.5)
+    ring = _fan((0.5, -2.0), 1.0, 20, 1.5, hole=0.4)
+    other = quad + [5.0, 0.0, 0.0]
+    tris = np.concatenate([quad, ell, disc, ring, other])[:, [0, 2, 1]]  # wound facing down
+    nrm = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    assert np.allclose(nrm, [0, -1, 0])
+    rad = np.ones((len(tris), 3))
+    rad[-2:] = [2.0, 1.0, 0.5]
+    outlines = emitter_outlines(tris, nrm, rad)
+    loops = np.diff(outlines[1])
+    # quad + L-shape (one region: same plane and radiance) | disc | ring | other square
+    assert len(outlines[3]) == 4
+    assert sorted(loops.tolist()) == sorted([4, 8, 24, 20, 20, 4])
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-4, -1, -4], [6, 1.4, 3], (400, 3))
+    n = rng.normal(size=(400, 3)) + [0, 1.5, 0]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ref = emitter_irradiance(pts, n, tris, nrm, rad)
+    got = polygon_irradiance(pts, n, *outlines)
+    assert (ref > 0).mean() > 0.8
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-13 * ref.max())
+
+
+def test_the_sample_rooms_panel_is_one_quad():
+    from probegrid.scene import load_gltf
+
+    em = Emitters.from_scene(load_gltf(Path(__file__).parents[1] / "data" / "sample_room.glb"))
+    assert len(em) == 2 and em.analytic
+    assert em.outlines[1].tolist() == [0, 4] and em.outlines[2].tolist() == [0, 1]
