@@ -10,11 +10,14 @@ top, texel centres at ``u = 2(col + 0.5)/n - 1``, OpenGL/KTX2 face table).
 Conversion (what is the same, and what is refused rather than guessed)
 ----------------------------------------------------------------------
 * Triangles: one PLY per material, flat (face) normals, glTF winding kept, so Mitsuba's front
-  side is probegrid's (``normalize((b - a) x (c - a))``). Single-sided materials reflect and
-  emit on the front only (a back hit is black in both tools); double-sided materials get
-  Mitsuba's ``twosided`` BSDF and, if emissive, a second, reversed copy of their triangles
-  moved ``1e-6`` of the scene's size behind them, so both sides emit (glTF: a double-sided back
-  face is shaded with the flipped normal; Mitsuba's area lights emit on the front only).
+  side is probegrid's (``normalize((b - a) x (c - a))``). Single-sided materials reflect on the
+  front only (a back hit is black in both tools); double-sided materials get Mitsuba's
+  ``twosided`` BSDF (glTF: a double-sided back face is shaded with the flipped normal).
+  Emission leaves the front only, whatever ``doubleSided`` (probegrid's convention,
+  :mod:`probegrid.bake.emitters`, README "Conventions"), as Mitsuba's ``area`` emitter does.
+  (Converter 1 gave double-sided emitters a reversed copy that emitted backwards: its
+  references lit the Cornell box's ceiling behind the panel, 3 % of what the probes see of
+  light reflected once.)
 * Lambertian albedo ``baseColorFactor.rgb * baseColorTexture.rgb`` (the linear texture probegrid
   decoded, premultiplied by the factor, bilinear, its wrap mode; glTF UVs, whose (0, 0) is the
   image's first row, as Mitsuba's bitmap reads them); emission ``emissiveFactor *
@@ -61,7 +64,7 @@ __all__ = ["CubeRender", "MitsubaReference", "check_environment_energy", "check_
            "check_orientation", "without_light_ranges"]
 
 #: Bumped when the conversion changes (part of every cache key).
-CONVERTER_VERSION = "1"
+CONVERTER_VERSION = "2"
 
 
 def _mi() -> Any:
@@ -138,7 +141,6 @@ def scene_dict(scene: Scene, environment: Environment | None, directory: Path, *
                          "integrator": {"type": "path", "max_depth": int(max_depth)}}
     if scene.colors is not None and not np.all(scene.colors[:, :3] == 1.0):
         raise ValueError("vertex colours (COLOR_0) other than white are not supported")
-    size = float(np.linalg.norm(np.ptp(scene.bounds, axis=0)))
     tris = scene.triangles
     for mid, mat in enumerate(scene.materials):
         sel = np.flatnonzero(scene.material == mid)
@@ -164,21 +166,13 @@ def scene_dict(scene: Scene, environment: Environment | None, directory: Path, *
                        "radiance": _bitmap(mi, tex, mat.emissive_wrap, f"material {mat.name!r}")}
         elif np.any(mat.emissive > 0):
             emitter = {"type": "area", "radiance": _rgb(mat.emissive)}
-        copies = [(pos, uv, "")]
-        if emitter is not None and mat.double_sided:
-            # the back side as a reversed copy slightly behind the front (module docstring)
-            normals = np.repeat(scene.triangle_normals[sel], 3, axis=0)
-            back = (pos - 1e-6 * size * normals).reshape(-1, 3, 3)[:, ::-1].reshape(-1, 3)
-            buv = None if uv is None else uv.reshape(-1, 3, 2)[:, ::-1].reshape(-1, 2)
-            copies.append((back, buv, "_back"))
-        for p, u, suffix in copies:
-            file = directory / f"m{mid}{suffix}.ply"
-            _write_ply(file, p, u)
-            shape: dict[str, Any] = {"type": "ply", "filename": str(file), "face_normals": True,
-                                     "bsdf": bsdf}
-            if emitter is not None:
-                shape["emitter"] = emitter
-            d[f"shape_{mid}{suffix}"] = shape
+        file = directory / f"m{mid}.ply"
+        _write_ply(file, pos, uv)
+        shape: dict[str, Any] = {"type": "ply", "filename": str(file), "face_normals": True,
+                                 "bsdf": bsdf}
+        if emitter is not None:  # (front only, module docstring)
+            shape["emitter"] = emitter
+        d[f"shape_{mid}"] = shape
     for i, light in enumerate(scene.lights):
         power = np.asarray(light.color, dtype=np.float64) * light.intensity
         if isinstance(light, PointLight):

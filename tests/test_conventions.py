@@ -72,3 +72,40 @@ def test_dfg_axes(conv):
     assert lut[0, -1].sum() == pytest.approx(1.0, abs=0.02)
     # fully rough (last row) at normal incidence loses most of its single-scattered energy
     assert 0.25 < lut[-1, -1].sum() < 0.4
+
+
+def test_surfaces_emit_from_the_front_only_and_double_sided_backs_reflect(conv):
+    """The 'surfaces' statement against the bake: a double-sided emissive quad (facing down)
+    lights a point below it and not one above it, and a probe above it sees no emission; a
+    double-sided quad's back is a lit front hit with the normal turned, a single-sided back is
+    black."""
+    import dataclasses
+
+    from probegrid.bake.emitters import Emitters
+    from probegrid.kernels import split_hits
+    from probegrid.raytrace import RayTracer
+    from probegrid.scene import Material, SceneBuilder
+
+    assert "front only, whatever doubleSided" in conv["surfaces"]
+    b = SceneBuilder()
+    lamp = b.add_material(dataclasses.replace(Material(emissive=(2.0, 2.0, 2.0)),
+                                              double_sided=True))
+    b.add_quad((-0.5, 1, -0.5), (1, 0, 0), (0, 0, 1), material=lamp)  # faces -Y
+    scene = b.build()
+    assert np.allclose(scene.triangle_normals, [0, -1, 0])
+    em = Emitters.from_scene(scene)
+    tracer = RayTracer(scene.vertices, scene.triangles)
+    pts = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    nrm = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])  # each facing the lamp
+    e, _ = em.irradiance(pts, nrm, np.random.default_rng(0).random((2, 4, 3)), tracer, 1e-5)
+    assert e[0, 0] > 0.5 and e[1].max() == 0.0
+    below = em.texel_view(pts[0], 8, tracer, 1e-5)
+    above = em.texel_view(pts[1], 8, tracer, 1e-5)
+    assert len(below[0]) > 0 and len(above[0]) == 0
+    dirs = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])  # from below (front), from above (back)
+    hits = tracer.intersect(np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]]), dirs)
+    for double, back_kind in ((True, 1), (False, 2)):
+        kind, rows, flip, _ = split_hits(dirs, hits.prim_id, scene.triangle_normals,
+                                         np.array([double]))
+        assert kind.tolist() == [1, back_kind]
+        assert flip[rows == 1].tolist() == ([True] if double else [])

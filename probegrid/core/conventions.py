@@ -17,7 +17,7 @@ from probegrid.core.cubemap import FACE_NAMES
 
 __all__ = ["CONVENTIONS_VERSION", "Conventions", "conventions"]
 
-CONVENTIONS_VERSION = 1
+CONVENTIONS_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -90,6 +90,13 @@ class Conventions:
     )
     hcross_layout: str = "4x3: row 1 = -X +Z +X -Z, +Y above +Z, -Y below +Z, faces upright"
     vcross_layout: str = "3x4: +Y; -X +Z +X; -Y; -Z at the bottom rotated 180 degrees"
+    surfaces: str = (
+        "glTF materials as Lambertian: albedo baseColorFactor * baseColorTexture * COLOR_0; the "
+        "front is the winding's side, normalize((b - a) x (c - a)); a doubleSided back face "
+        "reflects with the flipped normal, a single-sided back face is black; emission "
+        "(emissiveFactor * emissiveStrength * emissiveTexture, cd/m^2) leaves the front only, "
+        "whatever doubleSided"
+    )
     light_units: str = (
         "KHR_lights_punctual: point and spot intensity in candela, directional in lux; "
         "falloff max(min(1 - (d/range)^4, 1), 0) / d^2 (the specification's recommended "
