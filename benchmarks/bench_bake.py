@@ -9,7 +9,9 @@
    again uninstrumented. Both are CPU times of this process, so a busy machine changes them
    less than wall time. Two scenes (the bundled room, 44 triangles, and the same room with a
    327,680-triangle sculpture), 1 and 4 rays per texel, 2 bounces and ``converge``; and the
-   converged bake's time over the 2-bounce bake's.
+   converged bake's time over the 2-bounce bake's. A third run of each bake times its compiled
+   kernels and filter products alone (:class:`KernelClock`): ``raw / (raw + kernels)`` bounds
+   what any implementation of the same estimator could reach, glue-free.
 2. Probes per second for the sample scene with 1 and 2 local worker processes, for two grid
    sizes (time should grow linearly in probes and fall with workers), and the peak memory of
    the workers.
@@ -90,6 +92,42 @@ class Recorder:
     @property
     def rays(self) -> int:
         return sum(len(b[1]) for b in self.batches)
+
+
+class KernelClock:
+    """Times every call of the compiled kernels (numba dispatchers) the bake's modules hold, and
+    the filter's matrix products: the estimator's arithmetic, as opposed to the Python and
+    numpy work around it. With the raw Embree time it bounds the efficiency that any
+    implementation of the same estimator, with no other work at all, could reach."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self._undo: list[tuple[object, str, object]] = []
+
+    def __enter__(self) -> Self:
+        from numba.core.registry import CPUDispatcher
+
+        from probegrid.core import probefilter
+
+        clock = self
+        for name, mod in list(sys.modules.items()):
+            if not name.startswith("probegrid") or mod is None:
+                continue
+            for attr, fn in list(vars(mod).items()):
+                if isinstance(fn, CPUDispatcher) or fn is probefilter.filter_cube:
+                    def timed(*a, _fn=fn, **k):
+                        t = time.process_time()
+                        try:
+                            return _fn(*a, **k)
+                        finally:
+                            clock.seconds += time.process_time() - t
+                    setattr(mod, attr, timed)
+                    self._undo.append((mod, attr, fn))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for mod, attr, fn in reversed(self._undo):
+            setattr(mod, attr, fn)
 
 
 def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
@@ -242,8 +280,11 @@ def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
     print("1. distinct-ray efficiency: raw embreex time for the bake's distinct rays / bake CPU")
     print("   time (1 process; grid 4x3x4, 32^2 faces, the bundled sky; targets: >= 0.3 sample")
     print("   room at 1 ray/texel and 2 bounces, >= 0.4 with the sculpture or 4 rays/texel)")
+    print("   (kernels s: CPU time inside the compiled kernels and the filter's matrix products,"
+          " the\n   estimator's arithmetic; bound = raw / (raw + kernels): the efficiency of this"
+          " estimator\n   with no other work at all)")
     print("   scene                     triangles spp bounces  reached  distinct rays (cast)"
-          "  bake CPU s  raw s  efficiency")
+          "  bake CPU s  raw s  efficiency  kernels s  bound")
     scenes = [("sample room", scene), ("sample room + sculpture", detailed_scene(scene))]
     times: dict[tuple[str, int, str], float] = {}
     for label, sc in scenes:
@@ -264,12 +305,16 @@ def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
                 rep = bake(sc, grid, tmp / f"a{tag}.probes", settings=st, environment=env,
                            executor=run)
                 cpu = time.process_time() - c
+                with KernelClock() as kc:  # the same bake again, its kernels timed
+                    bake(sc, grid, tmp / f"k{tag}.probes", settings=st, environment=env,
+                         executor=run)
                 batches, distinct, total = distinct_batches(rec.batches)
                 t_raw = raw_embree_seconds(sc, batches)
                 times[(label, samples, str(bounces))] = cpu
                 print(f"   {label:<25} {sc.n_triangles:9,d} {samples:3d} {bounces!s:>8} "
                       f"{rep.quality['bounces']:8d}  {distinct / 1e6:7.2f} M ({total / 1e6:5.2f} M)"
-                      f"  {cpu:10.2f} {t_raw:6.2f}  {t_raw / cpu:10.3f}")
+                      f"  {cpu:10.2f} {t_raw:6.2f}  {t_raw / cpu:10.3f}  {kc.seconds:9.2f}"
+                      f"  {t_raw / (t_raw + kc.seconds):5.3f}")
     print("\n   converged bake / 2-bounce bake, CPU time (target <= 1.5):")
     for label, _ in scenes:
         for samples in (1, 4):
