@@ -101,8 +101,9 @@ def _bake_main(spec_file: str) -> None:
     bounces: Any = spec["bounces"]
     note = ""
     try:
+        extra = {"gather_depth": spec["gather_depth"]} if spec.get("gather_depth") else {}
         settings = BakeSettings(face_size=spec["face_size"], bounces=bounces,
-                                samples=spec["samples"], store_incoming=True)
+                                samples=spec["samples"], store_incoming=True, **extra)
     except ValueError:
         if bounces != "converge":
             raise
@@ -230,7 +231,7 @@ def bench_scene(label: str, path: Path, sky: Path | None, args: argparse.Namespa
     n = args.face_size
     spec = {"scene": str(path), "environment": str(sky) if sky else None, "grid": args.grid,
             "face_size": n, "samples": args.samples, "workers": args.workers,
-            "fallback_bounces": args.fallback_bounces}
+            "fallback_bounces": args.fallback_bounces, "gather_depth": args.gather_depth}
     print(f"\n== {label}: {path.name}" + (f" + {sky.name}" if sky else "") +
           f", grid {args.grid}, faces {n}^2, {args.samples} ray(s) per texel")
     info, baked = run_bake(args.repo, work, f"{label}-conv", bounces=args.bounces, **spec)
@@ -361,6 +362,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--samples", type=int, default=1, help="probegrid rays per texel")
     p.add_argument("--bounces", default="converge",
                    help="probegrid --bounces (default converge, where the checkout has it)")
+    p.add_argument("--gather-depth", type=int, default=None,
+                   help="probegrid --gather-depth (default: the checkout's)")
     p.add_argument("--fallback-bounces", type=int, default=8,
                    help="bounces when the checkout has no 'converge' (default 8)")
     p.add_argument("--ref-spp", type=int, default=None, help="reference samples per pixel")

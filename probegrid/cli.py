@@ -264,7 +264,9 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, S, "gather_samples", help="cosine-weighted rays from every hit that bring back "
             "the light bounced off what they hit (0: read the probes at the hit itself)")
     _option(p, S, "gather_depth", help="gather levels before the probes are read: 2 casts one "
-            "more ray from every gather ray's hit")
+            "more ray from every gather ray's hit, 3 one more again (the sample room against a "
+            "path tracer: 0.77 %% mean error instead of 0.99 %%, for 1.4x the converged bake's "
+            "time)")
     _option(p, S, "samples", help="rays per texel")
     _option(p, S, "seed", help="random seed of the ray jitter")
     _option(p, S, "diffuse_size", help="diffuse cube face size")

@@ -595,27 +595,31 @@ def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path):
     assert checked > 50
 
 
-def test_converged_bounces_match_the_furnace_series(tmp_path):
+@pytest.mark.parametrize("depth", [2, 3])
+def test_converged_bounces_match_the_furnace_series(tmp_path, depth):
     """``bounces="converge"`` stops when the estimated limit of the grid's energy changes by
     less than the tolerance and extrapolates the grid to it: a closed furnace box, a pure
     geometric series, reads ``Le / (1 - rho)`` within 1e-4 (SH; the 8^2 diffuse map within its
-    quadrature's 1e-3), ten times closer than the fixed bounce count it ran; the pair ratio it found is
-    ``rho^2`` (gather rays read the grid two levels down); the manifest records all of it."""
+    quadrature's 1e-3), ten times closer than the fixed bounce count it ran; the ratio of one
+    grid level to the next it found is ``rho^(depth + 1)`` (the gather rays' deepest hits read
+    the grid ``depth + 1`` levels down); the manifest records all of it."""
     rho, le = 0.5, 2.0
     scene = box_scene((-1, -1, -1), (1, 1, 1), albedo=rho, emission=le, inward=True)
     grid = GridSpec.from_counts((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), (2, 1, 1))
-    st = BakeSettings(bounces="converge", **FAST)
+    st = BakeSettings(bounces="converge", gather_depth=depth, **FAST)
     report = bake(scene, grid, tmp_path / "f.probes", settings=st)
     q = report.store.manifest.quality
     limit = le / (1 - rho)
     np.testing.assert_allclose(report.store["diffuse"], limit, rtol=1e-3)  # the quadrature
     np.testing.assert_allclose(report.store["sh"][:, 0], 2 * np.sqrt(np.pi) * limit, rtol=1e-4)
-    np.testing.assert_allclose(q["bounce_extrapolation"], rho**3 / (1 - rho**3), rtol=1e-3)
-    assert q["bounce_passes"] == q["bounces"] - 3 and 7 <= q["bounce_passes"] < st.max_bounces
+    step = rho ** (depth + 1)
+    np.testing.assert_allclose(q["bounce_extrapolation"], step / (1 - step), rtol=1e-3)
+    assert q["bounce_passes"] == q["bounces"] - (depth + 1)
+    assert 7 <= q["bounce_passes"] < st.max_bounces
     assert 0 <= q["bounce_residual"] < st.tolerance
     assert q["bounce_energy_limit"] > q["bounce_energy"][-1]
     fixed = bake(scene, grid, tmp_path / "g.probes",
-                 settings=BakeSettings(bounces=q["bounces"], **FAST)).store
+                 settings=BakeSettings(bounces=q["bounces"], gather_depth=depth, **FAST)).store
     dc = 2 * np.sqrt(np.pi) * limit
     assert (np.abs(report.store["sh"][:, 0] - dc).max()
             < 0.1 * np.abs(fixed["sh"][:, 0] - dc).max())

@@ -4,6 +4,7 @@ is the block's files, never a stale copy of an earlier bake of the same store.""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from probegrid.bake import records as rc
 
@@ -72,10 +73,11 @@ def test_a_subset_of_a_blocks_records_is_what_tracing_the_subset_gives():
         np.testing.assert_array_equal(np.asarray(picked[k]), np.asarray(alone[k]), err_msg=k)
 
 
-def test_record_bytes_bounds_the_records_of_a_closed_room():
+@pytest.mark.parametrize("depth", [2, 3])
+def test_record_bytes_bounds_the_records_of_a_closed_room(depth):
     """The bake's estimate of its records (record_bytes) against a block traced and weighted
     in a closed box, where every ray hits and each gather level is full: exact, the per-probe
-    arrays aside; a gather level keeps no emission, the upper level no position or normal."""
+    arrays aside; a gather level keeps no emission, the upper levels no position or normal."""
     from probegrid.bake.driver import GridData
     from probegrid.bake.environment import Environment
     from probegrid.bake.render import RenderSettings
@@ -88,18 +90,22 @@ def test_record_bytes_bounds_the_records_of_a_closed_room():
               inward=True)
     scene = b.build()
     st = RenderSettings(face_size=4, moments_size=4)
-    tracer = rc.RecordTracer(scene, Environment(), st, gather_samples=2, gather_depth=2)
+    tracer = rc.RecordTracer(scene, Environment(), st, gather_samples=2, gather_depth=depth)
     pos = np.array([[0.0, 1.0, 0.0], [0.3, 0.5, -0.2]])
     rec, moments, _ = tracer.trace(pos, np.array([0, 1]))
     assert "gather_emission" not in rec and "gather_position" not in rec
-    assert "gather2_position" in rec and "gather2_normal" in rec
+    deepest = rc._LEVELS[depth]
+    assert rc.gather_depth(rec) == depth
+    assert deepest + "position" in rec and deepest + "normal" in rec
+    assert all(rc._LEVELS[d] + "position" not in rec for d in range(1, depth))
     grid = GridSpec(bounds_min=(0.0, 1.0, 0.0), bounds_max=(0.3, 1.0, 0.0), counts=(2, 1, 1))
     mb = bordered_cubes(moments)
     data = GridData(grid, np.ones(2, bool), pos, np.ascontiguousarray(mb).reshape(-1, 2),
                     mb.shape[2] - 2, None)
     rec.update(rc.all_hit_weights(rec, data))
     primary = 2 * 6 * 4 * 4
-    assert len(rec["gather2_kind"]) == 2 * primary  # (every gather ray hit the box)
+    for d in range(1, depth + 1):  # (every gather ray hit the box)
+        assert len(rec[rc._LEVELS[d] + "kind"]) == 2 * primary
     per_ray = sum(v.nbytes for k, v in rec.items() if not k.startswith(("view", "lights"))
                   and np.ndim(v) and len(v) in (primary, 2 * primary))
-    assert per_ray == rc.record_bytes(primary, 2, 2)
+    assert per_ray == rc.record_bytes(primary, 2, depth)

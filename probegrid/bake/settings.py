@@ -37,7 +37,7 @@ class BakeSettings(BaseModel):
     max_bounces: int = Field(default=32, ge=1, le=256)
     light_samples: int = Field(default=2, ge=1, le=64)
     gather_samples: int = Field(default=2, ge=0, le=64)
-    gather_depth: int = Field(default=2, ge=1, le=2)
+    gather_depth: int = Field(default=2, ge=1, le=3)
     diffuse_size: int = Field(default=8, ge=1, le=128)
     specular_levels: int | None = Field(default=None, ge=1, le=10)
     moments_size: int = Field(default=8, ge=1, le=64)

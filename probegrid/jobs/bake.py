@@ -236,7 +236,7 @@ class BakeEstimate:
     classify_rays, primary_rays, gather_rays, shadow_rays : int
         Rays of the classification (without relocation's extra points), the probes' own rays
         (each cast once: the bounces replay their records), at most the gather rays (``K`` from
-        every hit, and with ``gather_depth = 2`` one more from each of theirs) and at most the
+        every hit, and one more from each of theirs per further gather level) and at most the
         shadow rays of all their hits (one per punctual light, and ``--light-samples`` toward
         the emitters and the environment each; one each at a gather ray's hit).
     store_bytes : int
