@@ -436,29 +436,30 @@ class RecordTracer:
         self.gather_depth = int(gather_depth)
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
-               rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None, *,
-               sky_at_misses: bool) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
-        """Records of one chunk of rays (:data:`_RECORD_KEYS`), their hit distances and the rays
-        cast: the rays themselves and every shadow ray of their front hits (punctual lights;
-        ``rnd_e (n, L, 3)`` points on the emitters, ``rnd_s (n, L, 3)`` directions of the
-        environment, None for none). A miss keeps the environment's radiance when
-        ``sky_at_misses`` (what a probe sees), else 0 (the environment reaches hits by sampling)."""
+               rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None,
+               rec: dict[str, NDArray[Any]], t: NDArray[np.float64], *, sky_at_misses: bool
+               ) -> int:
+        """Fills ``rec`` (:data:`_RECORD_KEYS`, zeros: misses) and ``t`` with the records and hit
+        distances of one chunk of rays; returns the rays cast: the rays themselves and every
+        shadow ray of their front hits (punctual lights; ``rnd_e (n, L, 3)`` points on the
+        emitters, ``rnd_s (n, L, 3)`` directions of the environment, None for none). A miss keeps
+        the environment's radiance when ``sky_at_misses`` (what a probe sees), else 0 (the
+        environment reaches hits by sampling)."""
         st = self.settings
         rd = self.renderer
         eps = st.ray_offset
         k = len(dirs)
-        rec = _new_records(k)
         hits = self.tracer.intersect(origins, dirs)
         rays = k
         kind, rows, flip, emits = split_hits(dirs, hits.prim_id, self.scene.triangle_normals,
                                              rd._double_sided)
-        rec["kind"] = kind
+        rec["kind"][:] = kind
         miss = kind == 0
         if sky_at_misses and miss.any() and not rd.environment.is_black:
             rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
-        t = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
+        t[:] = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
         if not rows.size:
-            return rec, t, rays
+            return rays
         p, nrm, albedo, emission = self.scene.surface_at(hits.prim_id[rows], hits.u[rows],
                                                          hits.v[rows])
         nrm[flip] *= -1.0  # turned toward the ray: the side it sees is shaded
@@ -485,27 +486,24 @@ class RecordTracer:
         rec["albedo"][rows] = albedo
         rec["position"][rows] = p
         rec["normal"][rows] = nrm
-        return rec, t, rays
+        return rays
 
     def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                    rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None, *,
                    sky_at_misses: bool
                    ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
-        """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time."""
-        parts, t_parts, rays = [], [], 0
+        """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time, into one set of
+        records."""
+        rec = _new_records(len(dirs))
+        t = np.empty(len(dirs))
+        rays = 0
         for c0 in range(0, len(dirs), SHADE_CHUNK):  # loop over chunks of rays, not rays
             sl = slice(c0, min(c0 + SHADE_CHUNK, len(dirs)))
-            r, t, cast = self._shade(origins[sl], dirs[sl],
-                                     None if rnd_e is None else rnd_e[sl],
-                                     None if rnd_s is None else rnd_s[sl],
-                                     sky_at_misses=sky_at_misses)
-            parts.append(r)
-            t_parts.append(t)
-            rays += cast
-        if not parts:
-            return _new_records(0), np.zeros(0), 0
-        return ({k: np.concatenate([p[k] for p in parts]) for k in _RECORD_KEYS},
-                np.concatenate(t_parts), rays)
+            rays += self._shade(origins[sl], dirs[sl], None if rnd_e is None else rnd_e[sl],
+                                None if rnd_s is None else rnd_s[sl],
+                                {k: v[sl] for k, v in rec.items()}, t[sl],
+                                sky_at_misses=sky_at_misses)
+        return rec, t, rays
 
     def _gather_level(self, draw: Any, purposes: tuple[int, int, int], rows: NDArray[np.int64],
                       positions: NDArray[np.float64], arriving: NDArray[np.float64],
