@@ -868,6 +868,16 @@ def _shadow_ray_arrays(cap: int) -> tuple[NDArray[np.int64], NDArray[np.float64]
 
 
 @numba.njit(**_JIT)
+def _first_rays(out: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64],
+                           NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]],
+                k: int) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64],
+                                 NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The first ``k`` of :func:`_shadow_ray_arrays`' rays: the ones stored."""
+    which, org, dirs, tmax, vis, occ = out
+    return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
+
+
+@numba.njit(**_JIT)
 def _emitter_shadow_ray(points: NDArray[np.float64], normals: NDArray[np.float64], i: int,
                         qx: float, qy: float, qz: float, qnx: float, qny: float, qnz: float,
                         radiance: NDArray[np.float64], control: NDArray[np.float64], row: int,
@@ -957,8 +967,7 @@ def emitter_shadow_rays(
                 sample_points[i, s, 2], sample_normals[i, s, 0], sample_normals[i, s, 1],
                 sample_normals[i, s, 2], rad, ctl, i * ns + s, inverse_pdf[i, s], inv_l, eps,
                 k, *out)
-    which, org, dirs, tmax, vis, occ = out
-    return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
+    return _first_rays(out, k)
 
 
 @numba.njit(**_JIT)
@@ -1232,8 +1241,7 @@ def emitter_samples(
                 w0 * q[e, 0, 2] + w1 * q[e, 1, 2] + w2 * q[e, 2, 2], tri_normals[e, 0],
                 tri_normals[e, 1], tri_normals[e, 2], tri_radiance, tri_control, e,
                 inverse_pdf[e], inv_l, eps, k, *out)
-    which, org, dirs, tmax, vis, occ = out
-    return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
+    return _first_rays(out, k)
 
 
 @numba.njit(**_JIT)

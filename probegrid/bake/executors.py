@@ -650,16 +650,19 @@ class LocalExecutor:
     def _started(self) -> cf.ProcessPoolExecutor:
         """The pool, once :meth:`start` has asked for every process."""
         pool = self.start()
+        self._join_starting()
+        return pool
+
+    def _join_starting(self) -> None:
+        """Wait for :meth:`start`'s thread (if one still runs) to have asked for every
+        process."""
         if self._starting is not None:
             self._starting.join()
             self._starting = None
-        return pool
 
     def close(self) -> None:
         """Stop the worker processes (waits for running batches; cancels pending ones)."""
-        if self._starting is not None:
-            self._starting.join()
-            self._starting = None
+        self._join_starting()
         pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)

@@ -96,6 +96,7 @@ from probegrid.core.arrays import sum_rows
 from probegrid.core.cubemap import (
     FACE_U,
     FACE_V,
+    direction_to_face,
     downsample,
     texel_directions,
     texel_solid_angles,
@@ -150,6 +151,7 @@ def _gather_keys(*, deepest: bool) -> tuple[str, ...]:
     :func:`all_hit_weights`)."""
     keep = ("kind", "light_punctual", "light_emitters", "albedo")
     return keep + ("position", "normal") if deepest else keep
+
 
 #: Key prefix of each level's records: the probes' rays, then each gather level (the rays of
 #: level ``d`` name their parent hit of level ``d - 1`` in ``PREFIX + "primary"``).
@@ -702,7 +704,7 @@ def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
     blocks of :data:`GATHER_BLOCK` texels: each front hit's ``albedo * gathered`` becomes
     ``albedo * G`` (the grid read at the hit itself: smooth, but biased) plus the block's
     solid-angle-weighted mean of ``albedo * (gathered - G)``. A block is the texels of an
-    ``8 x 8`` square whose hits face one side (the normal's dominant axis and sign): spread
+    ``8 x 8`` square whose hits face one side (the normal's cube face): spread
     across the edge between a wall and the ceiling, the corrections moved light from the sample
     room's red wall to its ceiling (2-3 % of each against a path tracer). A block's integral is
     unchanged
@@ -728,11 +730,9 @@ def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
     row, col = np.divmod(rest, n)
     bs = min(GATHER_BLOCK, n)
     nb = -(-n // bs)
-    # the hit's side (the normal's dominant axis and sign): light is not moved across the
-    # edge between a wall and the ceiling a block straddles
-    nrm = records["normal"]
-    axis = np.argmax(np.abs(nrm), axis=1)
-    side = 2 * axis + (nrm[np.arange(total), axis] > 0)
+    # the side the hit faces (its normal's cube face): light is not moved across the edge
+    # between a wall and the ceiling a block straddles
+    side = direction_to_face(records["normal"])
     block = (((probe * 6 + face) * nb + row // bs) * nb + col // bs) * 6 + side
     w = texel_solid_angles(n).reshape(-1)[texel] * front
     if sample_weights is not None:

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from probegrid._types import MapDType
 from probegrid.bake.precision import map_dtype
 from probegrid.core.cubemap import mip_sizes
+from probegrid.core.lobes import level_roughness
 from probegrid.store.manifest import ArraySpec
 
 if TYPE_CHECKING:
@@ -109,7 +110,7 @@ def store_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
     }
     for k in range(levels):
         s = n >> k
-        r = k / (levels - 1) if levels > 1 else 0.0
+        r = float(level_roughness(k, levels))
         arrays[f"specular_{k}"] = ArraySpec(
             (6, s, s, 3), md, f"GGX prefiltered radiance, roughness {r:.4g}"
         )

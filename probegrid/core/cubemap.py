@@ -61,6 +61,7 @@ __all__ = [
     "FACE_V",
     "CubeMap",
     "check_cube",
+    "direction_to_face",
     "direction_to_face_uv",
     "direction_to_texel",
     "downsample",
@@ -115,6 +116,26 @@ def face_uv_to_direction(face: ArrayLike, u: ArrayLike, v: ArrayLike) -> NDArray
     return FACE_NORMALS[f] + uu * FACE_U[f] + vv * FACE_V[f]
 
 
+def _major_axis(d: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """The face of each direction ``d (..., 3)`` (its major axis and sign; ties go to X, then
+    Y, then Z) and the direction's component along that axis."""
+    if d.shape[-1:] != (3,):
+        raise ValueError(f"directions must have shape (..., 3), got {d.shape}")
+    a = np.abs(d)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    is_x = (a[..., 0] >= a[..., 1]) & (a[..., 0] >= a[..., 2])
+    is_y = ~is_x & (a[..., 1] >= a[..., 2])
+    axis = np.where(is_x, 0, np.where(is_y, 1, 2))
+    comp = np.where(is_x, x, np.where(is_y, y, z))
+    return (2 * axis + (comp < 0)).astype(np.intp), comp
+
+
+def direction_to_face(directions: ArrayLike) -> NDArray[np.intp]:
+    """The face a direction lands on (:func:`direction_to_face_uv`'s face alone): the face of
+    its major axis and sign, ties to X, then Y, then Z; the zero vector maps to +X."""
+    return _major_axis(np.asarray(directions, dtype=np.float64))[0]
+
+
 def direction_to_face_uv(
     directions: ArrayLike,
 ) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]]:
@@ -133,15 +154,7 @@ def direction_to_face_uv(
     u, v : (...) float64 in [-1, 1]
     """
     d = np.asarray(directions, dtype=np.float64)
-    if d.shape[-1:] != (3,):
-        raise ValueError(f"directions must have shape (..., 3), got {d.shape}")
-    a = np.abs(d)
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    is_x = (a[..., 0] >= a[..., 1]) & (a[..., 0] >= a[..., 2])
-    is_y = ~is_x & (a[..., 1] >= a[..., 2])
-    axis = np.where(is_x, 0, np.where(is_y, 1, 2))
-    comp = np.where(is_x, x, np.where(is_y, y, z))
-    face = (2 * axis + (comp < 0)).astype(np.intp)
+    face, comp = _major_axis(d)
     ma = np.abs(comp)
     ma = np.where(ma > 0, ma, 1.0)
     u = np.einsum("...i,...i->...", d, FACE_U[face]) / ma

@@ -661,7 +661,7 @@ def _filter_into(
                                     method=settings.diffuse_method,
                                     sh_window=sh_window["window"]))
             for k, lv in enumerate(spec_out):
-                r = k / (levels - 1) if levels > 1 else 0.0
+                r = float(lobes.level_roughness(k, levels))
                 maps.append(pool.submit(write_cube, f"specular_m{k}", lv, kind="specular",
                                         level=k, roughness=r, alpha=r * r))
         elif ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
@@ -731,8 +731,9 @@ def _filter_into(
                      "method": ("dense sums over every input texel (the far field of lobes "
                                 "narrower than alpha 0.06 over 2x2 merged texels)" if dense
                                 else settings.specular_method),
-                     "roughness": ([k / (levels - 1) if levels > 1 else 0.0
-                                    for k in range(levels)] if ext != "gltf" else
+                     "roughness": ([float(r) for r in lobes.level_roughness(np.arange(levels),
+                                                                           levels)]
+                                   if ext != "gltf" else
                                    [float(np.sqrt(a)) for a in gltf_ibl.babylon_alphas(n)])},
         "quality": {
             "sh_min_irradiance_over_pi": [float(x) / np.pi for x in irr_min],
