@@ -20,7 +20,7 @@ documentation of the maths; ``tests/test_kernels.py`` compares the two on random
 * :func:`light_rays` -- :func:`probegrid.core.lights.incident_many` and the choice of shadow
   rays; :func:`replay_radiance` -- a bounce's pass over the per-hit records.
 * :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
-  :func:`split_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
+  :func:`split_hits`, :func:`shade_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
   per-texel means, distance moments and the backface rule.
 * :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
   conversions to and from Embree's float32 rays (tested through the tracer).
@@ -65,8 +65,11 @@ __all__ = [
     "mean_per_parent",
     "multiply_texture",
     "polygon_irradiance",
+    "scatter_divided",
     "segment_rays",
+    "shade_hits",
     "split_hits",
+    "stream_uniforms",
     "sum_unblocked",
     "texel_means",
 ]
@@ -495,7 +498,8 @@ def segment_rays(
 @numba.njit(**_JIT)
 def hit_probe_weights(
     points: NDArray[np.float64],
-    normals: NDArray[np.float64],
+    normals: NDArray[np.floating],
+    rows: NDArray[np.int64],
     lo: NDArray[np.float64],
     hi: NDArray[np.float64],
     step: NDArray[np.float64],
@@ -512,7 +516,8 @@ def hit_probe_weights(
     min_weight: float,
     crush: float,
 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
-    """The 8 probes around each surface point and their normalised DDGI weights.
+    """The 8 probes around surface points ``rows`` of ``points (n, 3)`` (unit ``normals``) and
+    their normalised DDGI weights (the other rows, misses say, stay 0).
 
     The weights of :func:`probegrid.core.ddgi.probe_weights` with normals and moments (the
     normal-facing term, the Chebyshev test on the seamless bilinear moments, the crush),
@@ -539,8 +544,9 @@ def hit_probe_weights(
     base = np.empty(3, np.int64)
     frac = np.empty(3)
     cp = np.empty(3)
-    for i in range(n_pts):
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        nx, ny, nz = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
         big = max(abs(nx), abs(ny), abs(nz))
         if not big > 0:
             continue
@@ -765,9 +771,7 @@ def _edge_sum(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: flo
         j = (i + 1) % count
         ax, ay, az = px[i, 0], px[i, 1], px[i, 2]
         bx, by, bz = px[j, 0], px[j, 1], px[j, 2]
-        la = math.sqrt(ax * ax + ay * ay + az * az)
-        lb = math.sqrt(bx * bx + by * by + bz * bz)
-        if not (la > 0 and lb > 0):
+        if not (ax * ax + ay * ay + az * az > 0 and bx * bx + by * by + bz * bz > 0):
             continue
         cx = ay * bz - az * by
         cy = az * bx - ax * bz
@@ -1420,6 +1424,142 @@ def split_hits(
         emits[f] = d < 0
         f += 1
     return kind, rows[:f], flip[:f], emits[:f]
+
+
+@numba.njit(**_JIT)
+def shade_hits(
+    directions: NDArray[np.float64],
+    prim: NDArray[np.int64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    t_hit: NDArray[np.float64],
+    max_distance: float,
+    eps: float,
+    vertices: NDArray[np.float64],
+    triangles: NDArray[np.int64],
+    tri_normals: NDArray[np.float64],
+    material: NDArray[np.int64],
+    base_color: NDArray[np.float64],
+    emissive: NDArray[np.float64],
+    colors: NDArray[np.float64],
+    double_sided: NDArray[np.bool_],
+    kind: NDArray[np.uint8],
+    distance: NDArray[np.float64],
+    position: NDArray[np.float64],
+    normal: NDArray[np.float32],
+    albedo: NDArray[np.float32],
+    emission: NDArray[np.float32],
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`split_hits` and :func:`hit_surfaces` of a chunk of rays in one pass, written into
+    its records: ``kind (k,)``; ``distance (k,)`` the hit distance (``max_distance`` for a miss,
+    at most ``max_distance``); and for each front hit its ``position``, its ``normal`` turned
+    toward the ray, its ``albedo`` (without textures) and its ``emission`` (0 unless the ray
+    sees the front as wound, the side that emits). Rows of misses and back hits are left as
+    they are (the records start as zeros).
+
+    Returns the front hits' rays ``rows (f,)`` and, for the light sampled at them, their
+    positions and turned normals ``(f, 3)`` float64 and the points ``eps`` back along the ray
+    from the hit ``(f, 3)`` (a hit exactly on an edge of a closed room would see the adjacent
+    wall edge-on)."""
+    k = prim.shape[0]
+    rows = np.empty(k, np.int64)
+    pts = np.empty((k, 3))
+    nrm = np.empty((k, 3))
+    back = np.empty((k, 3))
+    has_colors = colors.shape[0] > 0
+    f = 0
+    for i in range(k):
+        t = prim[i]
+        if t < 0:
+            kind[i] = 0
+            distance[i] = max_distance
+            continue
+        distance[i] = min(t_hit[i], max_distance)
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        d = tri_normals[t, 0] * dx + tri_normals[t, 1] * dy + tri_normals[t, 2] * dz
+        if d > 0 and not double_sided[t]:
+            kind[i] = 2
+            continue
+        kind[i] = 1
+        rows[f] = i
+        sign = -1.0 if d > 0 else 1.0
+        w1, w2 = u[i], v[i]
+        w0 = 1.0 - w1 - w2
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        m = material[t]
+        for j in range(3):
+            pj = w0 * vertices[a, j] + w1 * vertices[b, j] + w2 * vertices[c, j]
+            nj = sign * tri_normals[t, j]
+            pts[f, j] = pj
+            nrm[f, j] = nj
+            back[f, j] = pj - eps * directions[i, j]
+            position[i, j] = pj
+            normal[i, j] = nj
+            al = base_color[m, j]
+            if has_colors:
+                al *= w0 * colors[a, j] + w1 * colors[b, j] + w2 * colors[c, j]
+            albedo[i, j] = al
+            emission[i, j] = emissive[m, j] if d < 0 else 0.0
+        f += 1
+    return rows[:f], pts[:f], nrm[:f], back[:f]
+
+
+@numba.njit(**_JIT)
+def scatter_divided(out: NDArray[np.float32], rows: NDArray[np.int64],
+                    values: NDArray[np.float64], divisor: float, add: bool) -> None:
+    """``out[rows] = values / divisor`` (``+=`` when ``add``), ``values (len(rows), 3)``, the
+    quotient in float64 rounded once to ``out``'s type."""
+    for j in range(rows.shape[0]):
+        i = rows[j]
+        for c in range(3):
+            x = values[j, c] / divisor
+            if add:
+                out[i, c] += x
+            else:
+                out[i, c] = x
+
+
+#: SplitMix64's increment (the golden ratio in 64 bits) and its output mix's multipliers
+#: (Steele, Lea and Flood, "Fast splittable pseudorandom number generators", OOPSLA 2014).
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+
+
+@numba.njit(**_JIT)
+def _splitmix(z: np.uint64) -> np.uint64:
+    z = (z ^ (z >> np.uint64(30))) * _MIX1
+    z = (z ^ (z >> np.uint64(27))) * _MIX2
+    return z ^ (z >> np.uint64(31))
+
+
+@numba.njit(**_JIT)
+def stream_uniforms(keys: NDArray[np.uint64], per_key: int, rows: NDArray[np.int64],
+                    width: int) -> NDArray[np.float64]:
+    """Uniform numbers in [0, 1) of counter-based streams, for the given rows only.
+
+    Row ``r`` belongs to stream ``keys[r // per_key]`` (a probe's stream of one purpose) as its
+    row ``j = r % per_key``; its ``width`` numbers are SplitMix64's outputs number
+    ``j width .. j width + width - 1`` of that stream (state ``key + (c + 1) golden``, the
+    output mix, the top 53 bits over ``2^53``). A number depends only on its key and counter,
+    never on which other rows are drawn: a batch draws what its rays use and nothing else.
+    Returns ``(len(rows), width)``.
+    """
+    out = np.empty((rows.shape[0], width))
+    scale = 1.0 / 9007199254740992.0  # 2^-53
+    q, lo = -1, 0
+    key = np.uint64(0)
+    for i in range(rows.shape[0]):
+        r = rows[i]
+        if not (q >= 0 and lo <= r < lo + per_key):  # (rows mostly come in order)
+            q = r // per_key
+            lo = q * per_key
+            key = keys[q]
+        base = np.uint64((r - lo) * width)
+        for d in range(width):
+            z = _splitmix(key + (base + np.uint64(d + 1)) * _GOLDEN)
+            out[i, d] = np.int64(z >> np.uint64(11)) * scale
+    return out
 
 
 @numba.njit(**_JIT)

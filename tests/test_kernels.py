@@ -182,6 +182,86 @@ def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
     np.testing.assert_array_equal(em, emis[material[prim]])
 
 
+def test_shade_hits_is_split_hits_then_hit_surfaces() -> None:
+    """The fused records pass against the two kernels it fuses: kinds, distances, the front
+    hits' surfaces (normals turned toward the ray, emission from the front only, albedo and
+    emission rounded to the records' float32), and the points eps back along the ray."""
+    from probegrid.kernels import hit_surfaces, shade_hits, split_hits
+
+    rng = np.random.default_rng(16)
+    verts = rng.normal(size=(30, 3))
+    tris = np.stack([rng.permutation(30)[:3] for _ in range(40)]).astype(np.int64)
+    p = verts[tris]
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    material = rng.integers(0, 3, 40).astype(np.int64)
+    base, emis = rng.random((3, 3)), rng.random((3, 3))
+    colors = np.ascontiguousarray(rng.random((30, 3)))
+    double = rng.random(40) < 0.5
+    n = 600
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    prim = np.where(rng.random(n) < 0.2, -1, rng.integers(0, 40, n)).astype(np.int64)
+    u = rng.random(n)
+    v = rng.random(n) * (1 - u)
+    t_hit = np.where(prim < 0, np.inf, rng.uniform(0.0, 30.0, n))
+    eps = 1e-4
+    kind = np.full(n, 7, np.uint8)
+    dist = np.empty(n)
+    rec = {k: np.zeros((n, 3), np.float64 if k == "position" else np.float32)
+           for k in ("position", "normal", "albedo", "emission")}
+    rows, pts, turned, back = shade_hits(dirs, prim, u, v, t_hit, 20.0, eps, verts, tris, nrm,
+                                         material, base, emis, colors, double, kind, dist,
+                                         rec["position"], rec["normal"], rec["albedo"],
+                                         rec["emission"])
+    kind_r, rows_r, flip, emits = split_hits(dirs, prim, nrm, double)
+    np.testing.assert_array_equal(kind, kind_r)
+    np.testing.assert_array_equal(rows, rows_r)
+    assert 0 < len(rows) < n and (kind == 2).any()
+    np.testing.assert_array_equal(dist, np.where(prim < 0, 20.0, np.minimum(t_hit, 20.0)))
+    pos, nn, alb, em = hit_surfaces(prim[rows], u[rows], v[rows], verts, tris, nrm, material,
+                                    base, emis, colors)
+    nn[flip] *= -1.0
+    em[~emits] = 0.0
+    np.testing.assert_array_equal(pts, pos)
+    np.testing.assert_array_equal(turned, nn)
+    np.testing.assert_array_equal(back, pos - eps * dirs[rows])
+    for name, want in (("position", pos), ("normal", nn), ("albedo", alb), ("emission", em)):
+        expect = np.zeros_like(rec[name])
+        expect[rows] = want
+        np.testing.assert_array_equal(rec[name], expect)
+
+
+def test_textures_apply_to_the_given_rows_only() -> None:
+    """Scene._apply_textures with rows (what the records pass uses): the same products as on
+    the rows' own arrays, other rows (misses, prim -1) untouched."""
+    from probegrid.scene import Material, SceneBuilder
+
+    rng = np.random.default_rng(17)
+    b = SceneBuilder()
+    tex = rng.random((4, 4, 4)).astype(np.float32)
+    m = b.add_material(Material(base_color=(0.8, 0.7, 0.6, 1.0), base_color_texture=tex,
+                                emissive=(0.5, 0.5, 0.5), emissive_texture=tex[..., :3]))
+    b.add_quad((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), material=m)
+    scene = b.build()
+    n = 50
+    prim = np.where(rng.random(n) < 0.3, -1, rng.integers(0, scene.n_triangles, n))
+    u = rng.random(n)
+    v = rng.random(n) * (1 - u)
+    rows = np.flatnonzero(prim >= 0)
+    alb, emi = rng.random((n, 3)), rng.random((n, 3))
+    alb_r, emi_r = alb[rows].copy(), emi[rows].copy()
+    scene._apply_textures(prim[rows], u[rows], v[rows], alb_r, emi_r)
+    before_a, before_e = alb.copy(), emi.copy()
+    scene._apply_textures(prim, u, v, alb, emi, rows)
+    np.testing.assert_array_equal(alb[rows], alb_r)
+    np.testing.assert_array_equal(emi[rows], emi_r)
+    miss = prim < 0
+    np.testing.assert_array_equal(alb[miss], before_a[miss])
+    np.testing.assert_array_equal(emi[miss], before_e[miss])
+    assert not np.array_equal(alb_r, before_a[rows])
+
+
 # ------------------------------------------------------------------------------ bake v2 kernels
 @pytest.mark.parametrize("counts", [(4, 3, 5), (2, 1, 1)])
 def test_hit_probe_weights_match_probe_weights(counts) -> None:
@@ -198,13 +278,16 @@ def test_hit_probe_weights_match_probe_weights(counts) -> None:
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     mom = BorderedCubes(field.moments)
     data = GridData(field.grid, field.valid, field.positions, mom.data, mom.n, None)
-    rec = {"kind": np.ones(n, np.uint8), "position": pts, "normal": nrm.astype(np.float32)}
+    kind = rng.choice(np.array([0, 1, 1, 1, 2], np.uint8), n)  # misses and back hits: none
+    rec = {"kind": kind, "position": pts, "normal": nrm.astype(np.float32)}
     idx, w = hit_weights(rec, data)
     ref = probe_weights(field.grid, pts, valid=field.valid,
                         normals=nrm.astype(np.float32).astype(np.float64),
                         probe_positions=field.positions, moments=mom)
-    np.testing.assert_array_equal(idx, ref.indices)
-    np.testing.assert_allclose(w, ref.weights, rtol=1e-6, atol=1e-7)
+    front = kind == 1
+    np.testing.assert_array_equal(idx[front], ref.indices[front])
+    np.testing.assert_allclose(w[front], ref.weights[front], rtol=1e-6, atol=1e-7)
+    assert not idx[~front].any() and not w[~front].any()
 
 
 def test_replay_kernel_matches_numpy() -> None:

@@ -47,6 +47,40 @@ def test_memory_held_is_bounded(tmp_path, monkeypatch):
     assert rc.load_records(rc.records_file(tmp_path, 0))["a"].nbytes == 1000  # from its files
 
 
+def test_records_kept_in_memory_alone_are_written_when_they_must_leave_it(tmp_path,
+                                                                         monkeypatch):
+    """save_records(files=False) (a bake's only worker process): nothing on disk while the
+    block is held, its added arrays and drops in memory; a block pushed out of memory by the
+    bound is written first, complete, and read back from its files; stale files of an earlier
+    bake under the same name are never taken for it."""
+    monkeypatch.setattr(rc, "RECORDS_MEMORY", 3000)
+    stale = rc.records_file(tmp_path, 0)
+    stale.mkdir(parents=True)
+    np.save(stale / "a.npy", np.full(1000, 9, np.uint8))
+    (stale / "complete").write_text("an earlier bake")
+    rc.save_records(stale, {"a": np.zeros(1000, np.uint8)}, files=False)
+    assert not stale.exists() and rc.load_records(stale)["a"].max() == 0
+    rc.save_records(stale, {"b": np.ones(10, np.uint8)}, drop=("a",))
+    assert set(rc.load_records(stale)) == {"b"} and not stale.exists()
+    for i in range(1, 5):  # 4 more blocks of 1,000 bytes: block 0 and 1 must leave memory
+        rc.save_records(rc.records_file(tmp_path, i), {"a": np.full(1000, i, np.uint8)},
+                        files=False)
+    assert rc._held_bytes[0] <= 3000
+    for i in range(5):
+        path = rc.records_file(tmp_path, i)
+        assert path.exists() == (i < 2), i  # written only once pushed out
+        got = rc.load_records(path)
+        assert got is not None
+        if i == 0:
+            assert set(got) == {"b"} and got["b"].tolist() == [1] * 10
+        else:
+            assert got["a"].tolist() == [i] * 1000
+    for i in range(5):
+        rc.remove_records(rc.records_file(tmp_path, i))
+        assert rc.load_records(rc.records_file(tmp_path, i)) is None
+    assert not rc._memory_only
+
+
 def test_a_subset_of_a_blocks_records_is_what_tracing_the_subset_gives():
     """A resumed or re-partitioned batch reads part of a block: every record (both gather
     levels, the probes' direct views of the emitters and lights, and their offsets) equals a

@@ -164,6 +164,7 @@ class _Context:
     positions: NDArray[np.float64] | str | None = None
     valid: NDArray[np.bool_] | str | None = None
     records: str = ""
+    record_files: bool = True  # False: one worker process, which keeps its records in memory
     level: int = 0
     moments_bordered: NDArray[np.float32] | str | None = None
     cubes: NDArray[np.float32] | str | None = None
@@ -318,7 +319,7 @@ def _trace_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
     assert state.positions is not None
     ctx = state.ctx
     rec, moments, rays = state.tracer.trace(state.positions[batch], batch)
-    save_records(ctx.records_path(batch), rec)
+    save_records(ctx.records_path(batch), rec, files=ctx.record_files)
     out = _bounced_outputs(rec, ctx.render, 0, None)
     out.update(moments=moments, backface_fraction=rec["backface_fraction"], rays=rays)
     return out
@@ -693,6 +694,9 @@ def bake(
                 return f"converged: bounce {k}, residual {r} (final)"
             return "tracing: bounce 0" if k == 0 else f"converging: bounce {k}, residual {r}"
 
+        # one worker process on this machine reads every block it wrote: its records stay in
+        # its memory (written only if they outgrow it); several workers share them as files
+        base = dataclasses.replace(base, record_files=not (files and ex.workers == 1))
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
         w, _ = stages.run(label(0, None), work / "trace.probes", trace_arrays, _trace_task, ctx)
         tstore = w.finish() if isinstance(w, StoreWriter) else w

@@ -67,7 +67,9 @@ Records live in a directory per block of probes (the fixed batch partition), one
 array, written atomically by the worker that traced them (the ``complete`` mark last); the
 worker also keeps the blocks it used last in memory (:data:`RECORDS_MEMORY`), and any other
 block is memory-mapped from its files, so a pass over a block reads only that block and a
-worker's memory is bounded by its batch. A gather level keeps only what later passes read
+worker's memory is bounded by its batch. A bake's only worker process (no other process will
+ask for its blocks) keeps them in memory alone and writes a block only when the bound pushes
+it out (``save_records(files=False)``). A gather level keeps only what later passes read
 (:func:`_gather_keys`; the deepest level's positions go once its probe weights are known,
 :func:`weighted_positions`): :func:`record_bytes` gives the bake's estimate. A block whose
 files are missing (a Dask worker on another machine, a file deleted) is traced again: the
@@ -76,6 +78,7 @@ records are deterministic, so the result is the same bits.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 import threading
@@ -87,12 +90,11 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from threadpoolctl import threadpool_limits
 
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment, EnvironmentLight
 from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
-from probegrid.core.arrays import sum_rows
+from probegrid.core.arrays import one_blas_thread, sum_rows
 from probegrid.core.cubemap import (
     FACE_U,
     FACE_V,
@@ -116,7 +118,9 @@ from probegrid.kernels import (
     light_rays,
     mean_per_parent,
     replay_radiance,
-    split_hits,
+    scatter_divided,
+    shade_hits,
+    stream_uniforms,
     sum_unblocked,
     texel_means,
 )
@@ -197,10 +201,12 @@ def record_bytes(primary: int, gather_samples: int, depth: int) -> int:
     return total
 
 
-def _stream(seed: int, index: int, purpose: int) -> np.random.Generator:
-    """A probe's random stream for one purpose (independent of the sample pattern's)."""
-    return np.random.default_rng(np.random.SeedSequence(int(seed),
-                                                        spawn_key=(int(index), purpose)))
+def _stream_keys(seed: int, indices: NDArray[np.int64], purpose: int) -> NDArray[np.uint64]:
+    """The keys of the probes' random streams for one purpose (independent of the sample
+    pattern's): 64 bits of ``SeedSequence(seed, spawn_key=(index, purpose))`` each, for
+    :func:`probegrid.kernels.stream_uniforms`."""
+    return np.array([np.random.SeedSequence(int(seed), spawn_key=(int(i), purpose))
+                     .generate_state(1, np.uint64)[0] for i in indices], np.uint64)
 
 
 @lru_cache(maxsize=4)
@@ -236,7 +242,7 @@ def irradiance_cubes(cubes: NDArray[np.float32], size: int) -> NDArray[np.float3
         stacked[..., :3 * k] = np.moveaxis(cubes[g0:g0 + k], 0, 3).reshape(6, n0, n0, 3 * k)
         while stacked.shape[1] > n:
             stacked = downsample(stacked)
-        with threadpool_limits(limits=1, user_api="blas"):  # small: threads only spin
+        with one_blas_thread():  # small: threads only spin
             res = mat @ stacked.reshape(6 * n * n, group * 3)  # (6 size^2, group * 3)
         out[g0:g0 + k] = np.moveaxis(res[:, :3 * k].reshape(-1, k, 3), 1, 0).reshape(
             k, 6, size, size, 3)
@@ -273,6 +279,8 @@ RECORDS_MEMORY = 256 << 20
 _held: OrderedDict[tuple[str, str], tuple[dict[str, NDArray[Any]], int]] = OrderedDict()
 _held_bytes = [0]
 _held_lock = threading.Lock()
+#: Blocks this process holds without files (``save_records(files=False)``): directory -> token.
+_memory_only: dict[str, str] = {}
 
 
 def _mark(path: Path) -> tuple[str, str] | None:
@@ -298,35 +306,10 @@ def _held_get(key: tuple[str, str]) -> dict[str, NDArray[Any]] | None:
         return item[0]
 
 
-def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
-    """Keep ``records`` (its size as it is now) as the most recently used block."""
-    with _held_lock:
-        old = _held.pop(key, None)
-        if old is not None:
-            _held_bytes[0] -= old[1]
-        size = _nbytes(records)
-        if size > RECORDS_MEMORY:
-            return
-        _held[key] = (records, size)
-        _held_bytes[0] += size
-        while _held_bytes[0] > RECORDS_MEMORY:  # the least recently used go first
-            _, (_, gone) = _held.popitem(last=False)
-            _held_bytes[0] -= gone
-
-
-def _drop(path: Path) -> None:
-    with _held_lock:
-        for key in [k for k in _held if k[0] == str(path)]:
-            _held_bytes[0] -= _held.pop(key)[1]
-
-
-def save_records(path: Path, records: dict[str, NDArray[Any]], *,
-                 drop: tuple[str, ...] = ()) -> None:
-    """Write ``records`` as one ``.npy`` per array into the directory ``path``, each file
-    atomically and the ``complete`` mark last (a killed worker leaves no half record); arrays
-    already there (the same bits) are not written again. The process keeps them in memory too
-    (:data:`RECORDS_MEMORY`). The arrays named in ``drop`` are then deleted (from the block
-    this process holds too): what no later pass reads."""
+def _write_block(path: Path, records: dict[str, NDArray[Any]], token: str | None) -> None:
+    """One ``.npy`` per array into the directory ``path``, each atomically, then the
+    ``complete`` mark (``token``, a new one when None) last: a killed worker leaves no half
+    block. Arrays already there when the mark is (the same bits) are not written again."""
     path.mkdir(parents=True, exist_ok=True)
     done = (path / "complete").is_file()
     for k, v in records.items():
@@ -334,7 +317,78 @@ def save_records(path: Path, records: dict[str, NDArray[Any]], *,
         if not (done and f.is_file()):
             _atomic_npy(f, np.asarray(v))
     if not done:
-        (path / "complete").write_text(os.urandom(8).hex())
+        (path / "complete").write_text(token or os.urandom(8).hex())
+
+
+def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
+    """Keep ``records`` (its size as it is now) as the most recently used block. A block held
+    without files that has to go (the least recently used beyond :data:`RECORDS_MEMORY`) is
+    written to its directory first (spilled): what a pass reads is always somewhere."""
+    import shutil
+
+    with _held_lock:
+        old = _held.pop(key, None)
+        if old is not None:
+            _held_bytes[0] -= old[1]
+        size = _nbytes(records)
+        if size > RECORDS_MEMORY:  # larger than all it may hold: not held
+            if _memory_only.get(key[0]) == key[1]:
+                _write_block(Path(key[0]), records, key[1])
+                del _memory_only[key[0]]
+            return
+        _held[key] = (records, size)
+        _held_bytes[0] += size
+        while _held_bytes[0] > RECORDS_MEMORY and _held:  # the least recently used go first
+            (where, token), (gone, nbytes) = _held.popitem(last=False)
+            _held_bytes[0] -= nbytes
+            if _memory_only.get(where) == token:
+                shutil.rmtree(where, ignore_errors=True)  # (files of an earlier bake)
+                _write_block(Path(where), gone, token)
+                del _memory_only[where]
+
+
+def _drop(path: Path) -> None:
+    with _held_lock:
+        _memory_only.pop(str(path), None)
+        for key in [k for k in _held if k[0] == str(path)]:
+            _held_bytes[0] -= _held.pop(key)[1]
+
+
+def save_records(path: Path, records: dict[str, NDArray[Any]], *,
+                 drop: tuple[str, ...] = (), files: bool = True) -> None:
+    """Keep a block's ``records`` for the later passes, and the arrays of ``drop`` no more
+    (what no later pass reads).
+
+    With ``files`` the arrays go into the directory ``path`` (:func:`_write_block`: atomic, the
+    ``complete`` mark last), which any process of the machine can read, and this process keeps
+    them in memory too (:data:`RECORDS_MEMORY`). Without, when no other process will ask for
+    the block (a bake's only worker process), this process keeps them in memory alone and
+    writes them only if they have to leave it (:func:`_hold`). Arrays added to a block (its
+    probe weights, say) go where the block is."""
+    sp = str(path)
+    with _held_lock:
+        token = _memory_only.get(sp)
+    if token is None and not files:  # a new block in memory alone
+        import shutil
+
+        shutil.rmtree(path, ignore_errors=True)  # (files of an earlier bake)
+        token = os.urandom(8).hex()
+        with _held_lock:
+            _memory_only[sp] = token
+        _hold((sp, token), records)
+        return
+    if token is not None:  # a block held without files: added to and dropped from in memory
+        key = (sp, token)
+        held = _held_get(key)
+        if held is not None:
+            if held is not records:
+                held.update(records)
+            for k in drop:
+                held.pop(k, None)
+            _hold(key, held)
+            return
+    done = (path / "complete").is_file()
+    _write_block(path, records, None)
     for k in drop:
         (path / f"{k}.npy").unlink(missing_ok=True)
     key = _mark(path)
@@ -356,6 +410,13 @@ def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
     """The records in the directory ``path`` (one block: memory bounded by the batch), from
     this process's memory when it holds them, else memory-mapped from their files; None when
     there is no complete record."""
+    sp = str(path)
+    with _held_lock:  # (a block held without files is spilled under this lock)
+        token = _memory_only.get(sp)
+        item = None if token is None else _held.get((sp, token))
+        if item is not None:
+            _held.move_to_end((sp, token))
+            return item[0]
     key = _mark(path)
     if key is None:
         return None
@@ -453,41 +514,38 @@ class RecordTracer:
         k = len(dirs)
         hits = self.tracer.intersect(origins, dirs)
         rays = k
-        kind, rows, flip, emits = split_hits(dirs, hits.prim_id, self.scene.triangle_normals,
-                                             rd._double_sided)
-        rec["kind"][:] = kind
-        miss = kind == 0
-        if sky_at_misses and miss.any() and not rd.environment.is_black:
-            rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
-        t[:] = np.where(miss, st.max_distance, np.minimum(hits.t, st.max_distance))
+        sc = self.scene
+        vertices, triangles, tri_normals, material = sc._kernel_tables
+        base, emis = sc._factor_tables
+        # the records of the chunk in one pass: kind, distance, and at each front hit its
+        # surface (the normal turned toward the ray: the side it sees is shaded; emission leaves
+        # the front as wound only)
+        rows, p, nrm, back_off = shade_hits(
+            dirs, hits.prim_id, hits.u, hits.v, hits.t, float(st.max_distance), eps, vertices,
+            triangles, tri_normals, material, base, emis, sc._kernel_colors, rd._double_sided,
+            rec["kind"], t, rec["position"], rec["normal"], rec["albedo"], rec["emission"])
+        sc._apply_textures(hits.prim_id, hits.u, hits.v, rec["albedo"], rec["emission"], rows)
+        if sky_at_misses and not rd.environment.is_black:
+            miss = np.flatnonzero(rec["kind"] == 0)
+            if miss.size:
+                rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
         if not rows.size:
             return rays
-        p, nrm, albedo, emission = self.scene.surface_at(hits.prim_id[rows], hits.u[rows],
-                                                         hits.v[rows])
-        nrm[flip] *= -1.0  # turned toward the ray: the side it sees is shaded
-        emission[~emits] = 0.0  # emission leaves the front (as wound) only
         which, s_org, s_dir, s_tmax, s_irr = light_rays(p, nrm, *rd._lights, eps)
-        e_p = np.zeros((len(rows), 3))
         if len(which):
             occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
             rays += len(which)
-            e_p = sum_unblocked(len(rows), which, occluded, s_irr)
-        rec["light_punctual"][rows] = e_p / np.pi
-        # lit a ray offset short of the hit: a hit exactly on an edge of a closed room (texel
-        # centres find them) would see the adjacent wall edge-on
-        back_off = p - eps * dirs[rows]
+            scatter_divided(rec["light_punctual"], rows,
+                            sum_unblocked(len(rows), which, occluded, s_irr), np.pi, False)
+        # lit from a point offset short of the hit, back along the ray (shade_hits)
         if rnd_e is not None:
             e_e, r = self.emitters.irradiance(back_off, nrm, rnd_e[rows], self.tracer, eps)
             rays += r
-            rec["light_emitters"][rows] = e_e / np.pi
+            scatter_divided(rec["light_emitters"], rows, e_e, np.pi, False)
         if rnd_s is not None:  # the environment, sampled as a light (it no longer reaches the grid)
             e_s, r = self.sky.irradiance(back_off, nrm, rnd_s[rows], self.tracer, eps)
             rays += r
-            rec["light_emitters"][rows] += e_s / np.pi
-        rec["emission"][rows] = emission
-        rec["albedo"][rows] = albedo
-        rec["position"][rows] = p
-        rec["normal"][rows] = nrm
+            scatter_divided(rec["light_emitters"], rows, e_s, np.pi, True)
         return rays
 
     def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
@@ -523,9 +581,9 @@ class RecordTracer:
         # off the surface and back along the ray that found the hit: a hit on an edge of a
         # closed room (texel centres find them) would start its rays in the next wall
         org = positions - eps * arriving + eps * nrm
-        dirs = cosine_directions(nrm, draw(purposes[0], (kg, 2)).reshape(-1, 2)[rows])
-        rnd_e = draw(purposes[1], (kg, 1, 3)).reshape(-1, 1, 3)[rows] if emitters else None
-        rnd_s = draw(purposes[2], (kg, 1, 3)).reshape(-1, 1, 3)[rows] if sky else None
+        dirs = cosine_directions(nrm, draw(purposes[0], (kg, 2), rows))
+        rnd_e = draw(purposes[1], (kg, 1, 3), rows) if emitters else None
+        rnd_s = draw(purposes[2], (kg, 1, 3), rows) if sky else None
         rec, _, rays = self._shade_all(org, dirs, rnd_e, rnd_s, sky_at_misses=False)
         return rec, dirs, rays
 
@@ -552,13 +610,19 @@ class RecordTracer:
         ks = 0 if self.sky.is_black else self.light_samples
         kg = self.gather_samples
 
-        def draw(purpose: int, shape: tuple[int, ...]) -> NDArray[np.float64]:
-            # per probe and purpose: what a probe draws does not depend on its batch
-            return np.concatenate([_stream(st.seed, int(i), purpose).random((nr, *shape))
-                                   for i in idx])
+        def draw(purpose: int, shape: tuple[int, ...], rows: NDArray[np.int64] | None = None
+                 ) -> NDArray[np.float64]:
+            # rows of (nr, *shape) numbers per probe and purpose (all when None), row r of the
+            # batch being row r % nr of probe r // nr; shape[1:] per row. What a probe draws
+            # depends only on its stream and the row, not on its batch or the other rows
+            per = nr * shape[0]
+            sel = np.arange(b * per) if rows is None else rows
+            out = stream_uniforms(_stream_keys(st.seed, idx, purpose), per, sel,
+                                  math.prod(shape[1:]))
+            return out.reshape(len(sel), *shape[1:])
 
-        rnd_e = draw(1, (ls, 3)) if ls else None
-        rnd_s = draw(2, (ks, 3)) if ks else None
+        rnd_e = draw(1, (ls, 3)).reshape(-1, ls, 3) if ls else None
+        rnd_s = draw(2, (ks, 3)).reshape(-1, ks, 3) if ks else None
         rec, t, rays = self._shade_all(origins, flat, rnd_e, rnd_s, sky_at_misses=True)
         if kg:
             # final gather (module docstring): kg rays from every front hit, one more from each
@@ -674,21 +738,13 @@ def hit_weights(records: dict[str, NDArray[Any]], data: GridData
     g = data.grid
     counts = np.array(g.counts, dtype=np.int64)
     bias = DEFAULT_NORMAL_BIAS * g.smallest_cell()
-    total = len(records["kind"])
-    idx = np.zeros((total, 8), np.int32)
-    w = np.zeros((total, 8), np.float32)
-    front = np.flatnonzero(records["kind"] == 1)
-    if front.size:
-        i, ww = hit_probe_weights(
-            np.ascontiguousarray(records["position"][front]),
-            np.ascontiguousarray(records["normal"][front], dtype=np.float64),
-            g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS,
-            np.ascontiguousarray(data.valid, dtype=bool),
-            np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
-            data.moments_n, bias, FACE_U, FACE_V, NORMAL_TERM_FLOOR, MIN_WEIGHT,
-            CRUSH_THRESHOLD)
-        idx[front], w[front] = i, ww
-    return idx, w
+    return hit_probe_weights(
+        np.ascontiguousarray(records["position"], dtype=np.float64),
+        np.ascontiguousarray(records["normal"]), np.flatnonzero(records["kind"] == 1),
+        g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS,
+        np.ascontiguousarray(data.valid, dtype=bool),
+        np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
+        data.moments_n, bias, FACE_U, FACE_V, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD)
 
 
 #: Side, in texels, of the blocks of a probe's faces over which :func:`_smooth_gathered`

@@ -32,9 +32,9 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from probegrid.core import lobes
+from probegrid.core.arrays import one_blas_thread
 from probegrid.core.cubemap import check_cube, mip_sizes, texel_directions, texel_solid_angles
 
 __all__ = ["MATRIX_VERSION", "MAX_FACE", "describe", "filter_cube", "filter_matrix",
@@ -147,7 +147,7 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
         matrix = filter_matrix(n, int(diffuse_size), int(levels))[0]
     elif matrix.shape != (shape := filter_matrix_shape(n, int(diffuse_size), int(levels))):
         raise ValueError(f"the filter matrix has shape {matrix.shape}, expected {shape}")
-    with threadpool_limits(limits=1, user_api="blas"):  # workers are processes (cf. specular)
+    with one_blas_thread():  # workers are processes (cf. specular)
         y = matrix @ np.ascontiguousarray(src.reshape(-1, c), dtype=np.float32)
     parts = []
     r0 = 0

@@ -110,10 +110,10 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import threadpool_limits
 
 from probegrid._types import GGXMethod
 from probegrid.core import lobes
+from probegrid.core.arrays import one_blas_thread
 from probegrid.core.cubemap import (
     FACE_NORMALS,
     FACE_U,
@@ -1107,7 +1107,7 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
         for f, mg in merged.items():
             mg["x"] = _merge_rows(x, n, f)
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         if workers == 1:
             gather(0)
             x = x.reshape(6 * n * n, 48 * c)
@@ -1266,7 +1266,7 @@ def ggx_prefilter(
     # there and, on a loaded machine, its spin-waiting made runs 2-10x slower (measured), so
     # BLAS is limited to one thread for the duration of the call; ``workers`` threads filter
     # different levels instead (numpy releases the GIL in the gathers and products).
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         pyramid = _moment_pyramid(src)
         _chain_permutations(n)  # shared caches, built once before any thread needs them
         _geometric_pyramid(n)
@@ -1318,6 +1318,6 @@ def ggx_filter(faces: ArrayLike, alpha: float, size: int, *, beta: float = 6.0,
     n = src.shape[1]
     if n & (n - 1):
         raise ValueError(f"the tiered GGX filter needs a power-of-two input size, got {n}.")
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         stages = ggx_tier_plan(n, size, float(alpha), beta=float(beta), gamma=float(gamma))
         return _apply_plan(_moment_pyramid(src), n, stages, size)

@@ -28,7 +28,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Final, NamedTuple
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -372,14 +372,20 @@ class Scene:
                         dtype=np.int64)
 
     def _apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
-                        v: NDArray[np.float64], albedo: NDArray[np.float64],
-                        emission: NDArray[np.float64]) -> None:
+                        v: NDArray[np.float64], albedo: NDArray[Any],
+                        emission: NDArray[Any], rows: NDArray[np.int64] | None = None
+                        ) -> None:
         """Multiply ``albedo``/``emission (n, 3)`` in place by the textures sampled at the
         interpolated UV of the hits (:func:`sample_texture`'s bilinear filter and wrap modes,
-        compiled as :func:`probegrid.kernels.multiply_texture`)."""
+        compiled as :func:`probegrid.kernels.multiply_texture`); only ``rows`` of them when
+        given (the other entries of ``pid``, misses say, are not read)."""
         if not self._textured_materials.size or not pid.size:
             return
-        mat = self.material[pid]
+        if rows is None:
+            mat = self.material[pid]
+        else:
+            mat = np.full(len(pid), -1, np.int64)
+            mat[rows] = self.material[pid[rows]]
         tris, uvs = self._kernel_tables[1], self._kernel_uvs
         for i in self._textured_materials:  # loop over textured materials, not hits
             sel = np.flatnonzero(mat == i)
