@@ -25,7 +25,7 @@ documentation of the maths; ``tests/test_kernels.py`` compares the two on random
 * :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
   conversions to and from Embree's float32 rays (tested through the tracer).
 * :func:`emitter_samples`, :func:`emitter_estimate`, :func:`environment_samples`,
-  :func:`sum_unblocked`, :func:`cosine_directions` -- the light sampled at hits
+  :func:`sum_unblocked`, :func:`cosine_directions`, :func:`gather_rays` -- the light sampled at hits
   (:class:`probegrid.bake.emitters.Emitters`,
   :class:`probegrid.bake.environment.EnvironmentLight`: ``searchsorted`` through a cut-point
   table, :func:`guide_table`) and the final gather's directions.
@@ -59,6 +59,7 @@ __all__ = [
     "emitter_irradiance",
     "emitter_samples",
     "environment_samples",
+    "gather_rays",
     "guide_table",
     "hit_surfaces",
     "light_rays",
@@ -546,7 +547,8 @@ def hit_probe_weights(
     cp = np.empty(3)
     for j in range(rows.shape[0]):
         i = rows[j]
-        nx, ny, nz = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
+        nx = np.float64(normals[i, 0])  # (float() keeps a float32)
+        ny, nz = np.float64(normals[i, 1]), np.float64(normals[i, 2])
         big = max(abs(nx), abs(ny), abs(nz))
         if not big > 0:
             continue
@@ -768,17 +770,16 @@ def _edge_sum(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: flo
     planar region (an outline and its holes) add up to the region's."""
     total = 0.0
     for i in range(count):
-        j = (i + 1) % count
+        j = i + 1 if i + 1 < count else 0
         ax, ay, az = px[i, 0], px[i, 1], px[i, 2]
         bx, by, bz = px[j, 0], px[j, 1], px[j, 2]
-        if not (ax * ax + ay * ay + az * az > 0 and bx * bx + by * by + bz * bz > 0):
-            continue
         cx = ay * bz - az * by
         cy = az * bx - ax * bz
         cz = ax * by - ay * bx
-        lc = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if not lc > 0:
+        l2 = cx * cx + cy * cy + cz * cz
+        if not l2 > 0:  # (a vertex at the receiver, or a degenerate edge: no area)
             continue
+        lc = math.sqrt(l2)
         theta = math.atan2(lc, ax * bx + ay * by + az * bz)
         total += theta * (cx * nx + cy * ny + cz * nz) / lc
     return total
@@ -827,13 +828,20 @@ def polygon_irradiance(
             total = 0.0
             for m in range(group_loops[q], group_loops[q + 1]):
                 s0, count = loop_start[m], loop_start[m + 1] - loop_start[m]
+                above = 0
                 for v in range(count):
-                    poly[v, 0] = loop_vertices[s0 + v, 0] - px
-                    poly[v, 1] = loop_vertices[s0 + v, 1] - py
-                    poly[v, 2] = loop_vertices[s0 + v, 2] - pz
-                k = _clip_plane(poly, count, nx, ny, nz, clipped)
-                if k >= 3:
-                    total += _edge_sum(clipped, k, nx, ny, nz)
+                    x = loop_vertices[s0 + v, 0] - px
+                    y = loop_vertices[s0 + v, 1] - py
+                    z = loop_vertices[s0 + v, 2] - pz
+                    poly[v, 0], poly[v, 1], poly[v, 2] = x, y, z
+                    if x * nx + y * ny + z * nz >= 0:
+                        above += 1
+                if above == count:  # nothing to clip (what _clip_plane would return)
+                    total += _edge_sum(poly, count, nx, ny, nz)
+                elif above > 0:
+                    k = _clip_plane(poly, count, nx, ny, nz, clipped)
+                    if k >= 3:
+                        total += _edge_sum(clipped, k, nx, ny, nz)
             f = 0.5 * abs(total)
             out[i, 0] += f * group_radiance[q, 0]
             out[i, 1] += f * group_radiance[q, 1]
@@ -881,7 +889,7 @@ def _first_rays(out: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.fl
     return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
 
 
-@numba.njit(**_JIT)
+@numba.njit(inline="always", **_JIT)
 def _emitter_shadow_ray(points: NDArray[np.float64], normals: NDArray[np.float64], i: int,
                         qx: float, qy: float, qz: float, qnx: float, qny: float, qnz: float,
                         radiance: NDArray[np.float64], control: NDArray[np.float64], row: int,
@@ -960,6 +968,7 @@ def emitter_shadow_rays(
     """
     n, ns = sample_points.shape[0], sample_points.shape[1]
     out = _shadow_ray_arrays(n * ns)
+    which, org, dirs, tmax, vis, occ = out
     k = 0
     inv_l = 1.0 / ns
     rad = sample_radiance.reshape(n * ns, 3)
@@ -970,7 +979,7 @@ def emitter_shadow_rays(
                 points, normals, i, sample_points[i, s, 0], sample_points[i, s, 1],
                 sample_points[i, s, 2], sample_normals[i, s, 0], sample_normals[i, s, 1],
                 sample_normals[i, s, 2], rad, ctl, i * ns + s, inverse_pdf[i, s], inv_l, eps,
-                k, *out)
+                k, which, org, dirs, tmax, vis, occ)
     return _first_rays(out, k)
 
 
@@ -1229,6 +1238,7 @@ def emitter_samples(
     """
     n, ns = random.shape[0], random.shape[1]
     out = _shadow_ray_arrays(n * ns)
+    which, org, dirs, tmax, vis, occ = out
     k = 0
     inv_l = 1.0 / ns
     for i in range(n):
@@ -1244,7 +1254,7 @@ def emitter_samples(
                 w0 * q[e, 0, 1] + w1 * q[e, 1, 1] + w2 * q[e, 2, 1],
                 w0 * q[e, 0, 2] + w1 * q[e, 1, 2] + w2 * q[e, 2, 2], tri_normals[e, 0],
                 tri_normals[e, 1], tri_normals[e, 2], tri_radiance, tri_control, e,
-                inverse_pdf[e], inv_l, eps, k, *out)
+                inverse_pdf[e], inv_l, eps, k, which, org, dirs, tmax, vis, occ)
     return _first_rays(out, k)
 
 
@@ -1315,7 +1325,6 @@ def environment_samples(
     step = 2.0 / m
     area = 0.25 * m * m
     k = 0
-    d = np.empty(3)
     for i in range(n):
         for s in range(ns):
             t = _search_right(cdf, guide, random[i, s, 0])
@@ -1326,15 +1335,19 @@ def environment_samples(
             u = -1.0 + (col + random[i, s, 1]) * step
             v = -1.0 + (row + random[i, s, 2]) * step
             q = 1.0 + u * u + v * v
-            inv = 1.0 / math.sqrt(q)
-            for a in range(3):
-                d[a] = (face_normals[face, a] + u * face_u[face, a] + v * face_v[face, a]) * inv
-            wx = rotation[0, 0] * d[0] + rotation[0, 1] * d[1] + rotation[0, 2] * d[2]
-            wy = rotation[1, 0] * d[0] + rotation[1, 1] * d[1] + rotation[1, 2] * d[2]
-            wz = rotation[2, 0] * d[0] + rotation[2, 1] * d[1] + rotation[2, 2] * d[2]
-            pdf = prob[t] * area * q * math.sqrt(q)
+            sq = math.sqrt(q)
+            inv = 1.0 / sq
+            d0 = (face_normals[face, 0] + u * face_u[face, 0] + v * face_v[face, 0]) * inv
+            d1 = (face_normals[face, 1] + u * face_u[face, 1] + v * face_v[face, 1]) * inv
+            d2 = (face_normals[face, 2] + u * face_u[face, 2] + v * face_v[face, 2]) * inv
+            wx = rotation[0, 0] * d0 + rotation[0, 1] * d1 + rotation[0, 2] * d2
+            wy = rotation[1, 0] * d0 + rotation[1, 1] * d1 + rotation[1, 2] * d2
+            wz = rotation[2, 0] * d0 + rotation[2, 1] * d1 + rotation[2, 2] * d2
             cos = wx * normals[i, 0] + wy * normals[i, 1] + wz * normals[i, 2]
-            if not (cos > 0.0 and pdf > 0.0):
+            if not cos > 0.0:
+                continue
+            pdf = prob[t] * area * q * sq
+            if not pdf > 0.0:
                 continue
             w = cos / (pdf * ns)
             which[k] = i
@@ -1360,6 +1373,26 @@ def sum_unblocked(n: int, which: NDArray[np.int64], blocked: NDArray[np.bool_],
 
 
 @numba.njit(**_JIT)
+def _cosine_direction(nx: float, ny: float, nz: float, r0: float, r1: float
+                      ) -> tuple[float, float, float]:
+    """One cosine-weighted unit direction about the unit normal ``n`` (:func:`cosine_directions`)."""
+    sign = 1.0 if nz >= 0.0 else -1.0
+    a = -1.0 / (sign + nz)
+    bb = nx * ny * a
+    t1x, t1y, t1z = 1.0 + sign * nx * nx * a, sign * bb, -sign * nx
+    t2x, t2y, t2z = bb, sign + ny * ny * a, -ny
+    r = math.sqrt(r0)
+    phi = 2.0 * math.pi * r1
+    z = math.sqrt(max(1.0 - r0, 0.0))
+    c, s = r * math.cos(phi), r * math.sin(phi)
+    dx = c * t1x + s * t2x + z * nx
+    dy = c * t1y + s * t2y + z * ny
+    dz = c * t1z + s * t2z + z * nz
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx / norm, dy / norm, dz / norm
+
+
+@numba.njit(**_JIT)
 def cosine_directions(normals: NDArray[np.float64], random: NDArray[np.float64]
                       ) -> NDArray[np.float64]:
     """Cosine-weighted unit directions about unit ``normals (n, 3)`` from uniform
@@ -1369,22 +1402,34 @@ def cosine_directions(normals: NDArray[np.float64], random: NDArray[np.float64]
     n = normals.shape[0]
     out = np.empty((n, 3))
     for i in range(n):
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        sign = 1.0 if nz >= 0.0 else -1.0
-        a = -1.0 / (sign + nz)
-        bb = nx * ny * a
-        t1x, t1y, t1z = 1.0 + sign * nx * nx * a, sign * bb, -sign * nx
-        t2x, t2y, t2z = bb, sign + ny * ny * a, -ny
-        r = math.sqrt(random[i, 0])
-        phi = 2.0 * math.pi * random[i, 1]
-        z = math.sqrt(max(1.0 - random[i, 0], 0.0))
-        c, s = r * math.cos(phi), r * math.sin(phi)
-        dx = c * t1x + s * t2x + z * nx
-        dy = c * t1y + s * t2y + z * ny
-        dz = c * t1z + s * t2z + z * nz
-        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-        out[i, 0], out[i, 1], out[i, 2] = dx / norm, dy / norm, dz / norm
+        out[i, 0], out[i, 1], out[i, 2] = _cosine_direction(
+            normals[i, 0], normals[i, 1], normals[i, 2], random[i, 0], random[i, 1])
     return out
+
+
+@numba.njit(**_JIT)
+def gather_rays(positions: NDArray[np.float64], normals: NDArray[np.floating],
+                arriving: NDArray[np.float64], parents: NDArray[np.int64],
+                random: NDArray[np.float64], eps: float
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The final gather's rays from hits ``parents (k,)`` of a level (their ``positions``,
+    unit ``normals`` facing the side the ray came from, and the ``arriving`` directions that
+    found them): origins ``position - eps arriving + eps normal`` (off the surface and back
+    along the ray: a hit on an edge of a closed room would start its rays in the next wall)
+    and :func:`cosine_directions` about the normals from ``random (k, 2)``. Returns both
+    ``(k, 3)``."""
+    k = parents.shape[0]
+    org = np.empty((k, 3))
+    dirs = np.empty((k, 3))
+    for j in range(k):
+        i = parents[j]
+        nx = np.float64(normals[i, 0])  # (float() keeps a float32)
+        ny, nz = np.float64(normals[i, 1]), np.float64(normals[i, 2])
+        for a in range(3):
+            org[j, a] = positions[i, a] - eps * arriving[i, a] + eps * np.float64(normals[i, a])
+        dirs[j, 0], dirs[j, 1], dirs[j, 2] = _cosine_direction(nx, ny, nz, random[j, 0],
+                                                               random[j, 1])
+    return org, dirs
 
 
 @numba.njit(**_JIT)

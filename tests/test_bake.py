@@ -667,7 +667,7 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
 
     preload._warm_up()  # raises if the tiny bake fails
     used = ["shade_hits", "scatter_divided", "light_rays", "emitter_samples", "emitter_estimate",
-            "polygon_irradiance", "environment_samples", "cosine_directions",
+            "polygon_irradiance", "environment_samples", "gather_rays",
             "hit_probe_weights", "replay_radiance", "distance_moments", "cube_sample_directions",
             "texel_emitter_coverage", "embree_rays", "embree_hits"]
     for name in used:

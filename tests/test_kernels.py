@@ -435,6 +435,26 @@ def test_cosine_directions_match_numpy() -> None:
     assert cos.min() >= 0 and abs(cos.mean() - 2 / 3) < 0.01
 
 
+def test_gather_rays_start_off_their_parents_and_follow_the_cosine() -> None:
+    """The gather's rays from chosen parent hits: origins ``p - eps arriving + eps n`` and the
+    cosine directions about the parents' (float32) normals, row by row."""
+    from probegrid.kernels import cosine_directions, gather_rays
+
+    rng = np.random.default_rng(14)
+    m = 200
+    pos = rng.normal(size=(m, 3))
+    nrm = rng.normal(size=(m, 3))
+    nrm = (nrm / np.linalg.norm(nrm, axis=1, keepdims=True)).astype(np.float32)
+    arriving = rng.normal(size=(m, 3))
+    parents = rng.integers(0, m, 500)
+    r = rng.random((500, 2))
+    org, dirs = gather_rays(pos, nrm, arriving, parents, r, 1e-3)
+    n64 = nrm.astype(np.float64)[parents]
+    np.testing.assert_allclose(org, pos[parents] - 1e-3 * arriving[parents] + 1e-3 * n64,
+                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(dirs, cosine_directions(n64, r), rtol=0, atol=1e-15)
+
+
 def test_environment_samples_match_the_numpy_sampler() -> None:
     """The compiled environment samples are EnvironmentLight.sample's directions with the
     estimator's contributions radiance cos / (p L), for a rotated sky."""

@@ -332,6 +332,19 @@ def test_min_over_sphere_matches_dense_brute_force():
     np.testing.assert_allclose(at_min, val, rtol=1e-12)
 
 
+def test_min_over_sphere_of_a_channel_does_not_depend_on_the_others():
+    """A bake computes the minima of a whole block of probes in one call: each channel's
+    result must be the same bits as alone (or with any other channels)."""
+    rng = np.random.default_rng(12)
+    coeffs = rng.standard_normal((9, 37))
+    val, where = sh.min_over_sphere(coeffs)
+    for j in (0, 5, 36):
+        alone_v, alone_w = sh.min_over_sphere(coeffs[:, j])
+        assert alone_v == val[j] and np.array_equal(alone_w, where[j])
+    part_v, _ = sh.min_over_sphere(coeffs[:, 3:11])
+    assert np.array_equal(part_v, val[3:11])
+
+
 def _analytic_auto_width(kind, ambient):
     """Largest width at which (unit directional light + ambient irradiance) windowed stays >= 0,
     from the exact 1-D minimum: dense scan for the last sign change, then Brent."""

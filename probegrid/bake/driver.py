@@ -435,13 +435,11 @@ def _padded_groups(items: NDArray[Any]) -> Iterator[tuple[int, int, NDArray[Any]
 
 
 def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``,
-    FILTER_GROUP probes per :func:`probegrid.core.sh.min_over_sphere` call."""
-    out = np.empty((len(coeffs), 3))
-    for g0, k, group in _padded_groups(coeffs):
-        vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(np.moveaxis(group, 1, 0)))
-        out[g0:g0 + k] = vmin[:k] / np.pi
-    return out
+    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``, in one
+    :func:`probegrid.core.sh.min_over_sphere` call (each channel's result does not depend on
+    the others)."""
+    vmin, _ = sh.min_over_sphere(sh.irradiance_coefficients(np.moveaxis(coeffs, 1, 0)))
+    return vmin / np.pi
 
 
 def _unstack_probes(cube: NDArray[np.float32], channels: int) -> NDArray[np.float32]:

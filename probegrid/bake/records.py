@@ -27,7 +27,7 @@ probe's irradiance cube of the previous bounce.
 Final gather
 ------------
 Each front hit also casts ``gather_samples`` cosine-weighted rays (``gather_*`` records,
-:func:`probegrid.kernels.cosine_directions`), traced once and lit as the probe's rays are
+:func:`probegrid.kernels.gather_rays`), traced once and lit as the probe's rays are
 (punctual lights, one emitter and one environment sample at their hits; their misses and
 emission count 0: the
 environment and the emitters reach the hit by sampling), and with ``gather_depth = 2`` (the
@@ -112,8 +112,8 @@ from probegrid.core.ddgi import (
 from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.lights import splat_delta
 from probegrid.kernels import (
-    cosine_directions,
     distance_moments,
+    gather_rays,
     hit_probe_weights,
     light_rays,
     mean_per_parent,
@@ -566,22 +566,19 @@ class RecordTracer:
         return rec, t, rays
 
     def _gather_level(self, draw: Any, purposes: tuple[int, int, int], rows: NDArray[np.int64],
-                      positions: NDArray[np.float64], arriving: NDArray[np.float64],
-                      normals: NDArray[np.float32], emitters: bool, sky: bool
+                      above: dict[str, NDArray[Any]], arriving: NDArray[np.float64],
+                      parents: NDArray[np.int64], emitters: bool, sky: bool
                       ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
-        """One gather level: a cosine-weighted ray from each hit at ``positions`` (reached along
-        ``arriving``, ``normals`` facing that side), lit as a probe's rays are (one emitter and
-        one environment sample; misses and emission count 0). Its random numbers are row
-        ``rows`` of the per-primary-ray draws ``draw(purpose, (K, ...))`` of ``purposes``
-        (directions, emitters, environment). Returns the records, the directions and the rays
-        cast."""
+        """One gather level: a cosine-weighted ray from each hit ``parents`` of the level
+        ``above`` (records with ``position`` and ``normal``, the normal facing the side the ray
+        ``arriving`` came from), lit as a probe's rays are (one emitter and one environment
+        sample; misses and emission count 0). Its random numbers are row ``rows`` of the
+        per-primary-ray draws ``draw(purpose, (K, ...))`` of ``purposes`` (directions,
+        emitters, environment). Returns the records, the directions and the rays cast."""
         eps = self.settings.ray_offset
         kg = self.gather_samples
-        nrm = normals.astype(np.float64)
-        # off the surface and back along the ray that found the hit: a hit on an edge of a
-        # closed room (texel centres find them) would start its rays in the next wall
-        org = positions - eps * arriving + eps * nrm
-        dirs = cosine_directions(nrm, draw(purposes[0], (kg, 2), rows))
+        org, dirs = gather_rays(above["position"], above["normal"], arriving, parents,
+                                draw(purposes[0], (kg, 2), rows), eps)
         rnd_e = draw(purposes[1], (kg, 1, 3), rows) if emitters else None
         rnd_s = draw(purposes[2], (kg, 1, 3), rows) if sky else None
         rec, _, rays = self._shade_all(org, dirs, rnd_e, rnd_s, sky_at_misses=False)
@@ -629,22 +626,20 @@ class RecordTracer:
             # of their hits at depth 2; a bounce reads the grid at the deepest level's hits
             front = np.flatnonzero(rec["kind"] == 1)
             rows = np.repeat(front, kg) * kg + np.tile(np.arange(kg), len(front))
-            parent = {"position": np.repeat(rec["position"][front], kg, axis=0),
-                      "normal": np.repeat(rec["normal"][front], kg, axis=0)}
-            arriving = np.repeat(flat[front], kg, axis=0)
             parent_row = np.repeat(front, kg)  # each ray's parent in the level above
+            above, arriving = rec, flat
             for depth in range(1, self.gather_depth + 1):
                 prefix = _LEVELS[depth]
                 level, g_dir, cast = self._gather_level(
-                    draw, (3 * depth, 3 * depth + 1, 3 * depth + 2), rows, parent["position"],
-                    arriving, parent["normal"], bool(ls), bool(ks))
+                    draw, (3 * depth, 3 * depth + 1, 3 * depth + 2), rows, above, arriving,
+                    parent_row, bool(ls), bool(ks))
                 rays += cast
                 for k in _gather_keys(deepest=depth == self.gather_depth):
                     rec[prefix + k] = level[k]
                 rec[prefix + "primary"] = parent_row.astype(np.int32)
                 hit = np.flatnonzero(level["kind"] == 1)  # the next level's parents, one ray each
-                rows, arriving, parent_row = rows[hit], g_dir[hit], hit
-                parent = {k: level[k][hit] for k in parent}
+                rows, parent_row = rows[hit], hit
+                above, arriving = level, g_dir
         back = rec["kind"].reshape(b, nr) == 2
         moments = np.empty((b, 6, m, m, 2), dtype=np.float32)
         sa = rd._texel_sa * wts

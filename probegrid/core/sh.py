@@ -756,7 +756,13 @@ def min_over_sphere(coeffs: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.
     for j in range(0, flat.shape[1], _MIN_CHANNEL_BLOCK):  # bounded memory for many channels
         blk = flat[:, j : j + _MIN_CHANNEL_BLOCK]
         k = blk.shape[1]
-        best = np.argpartition(basis @ blk, m - 1, axis=0)[:m]  # (m, k) sample indices
+        # the samples' values summed coefficient by coefficient (not a BLAS product, whose
+        # rounding may depend on how many channels share it): each channel's minimum is
+        # the same bits whatever channels it is computed with
+        vals = basis[:, :1] * blk[0]
+        for i in range(1, NUM_COEFFS):
+            vals += basis[:, i:i + 1] * blk[i]
+        best = np.argpartition(vals, m - 1, axis=0)[:m]  # (m, k) sample indices
         c, b, s = _quadratic_form(blk)
         # One refinement per (channel, candidate), laid out channel-major as (k * m).
         start = dirs[best.T.reshape(-1)]
