@@ -1289,6 +1289,18 @@ def emitter_estimate(n: int, which: NDArray[np.int64], blocked: NDArray[np.bool_
 
 
 @numba.njit(**_JIT)
+def _environment_texel(dx: float, dy: float, dz: float, m: int, face_u: NDArray[np.float64],
+                       face_v: NDArray[np.float64]) -> tuple[int, float]:
+    """The texel of an ``m``-cube a unit direction (environment frame) falls in and
+    ``(1 + u^2 + v^2)^(3/2)``, its density's texel-to-solid-angle factor."""
+    face, u, v = _face_uv(dx, dy, dz, face_u, face_v)
+    col = min(max(int((u + 1.0) * 0.5 * m), 0), m - 1)
+    row = min(max(int((v + 1.0) * 0.5 * m), 0), m - 1)
+    q = 1.0 + u * u + v * v
+    return (face * m + row) * m + col, q * math.sqrt(q)
+
+
+@numba.njit(**_JIT)
 def environment_samples(
     normals: NDArray[np.float64],
     random: NDArray[np.float64],
@@ -1302,16 +1314,20 @@ def environment_samples(
     face_u: NDArray[np.float64],
     face_v: NDArray[np.float64],
 ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-    """Directions drawn from a piecewise-constant environment cube and their contributions
-    (:class:`probegrid.bake.environment.EnvironmentLight`: ``sample`` and the estimator of
-    ``irradiance`` before the shadow rays).
+    """Directions drawn from a piecewise-constant environment cube, folded into the upper
+    hemisphere of each normal, and their contributions
+    (:class:`probegrid.bake.environment.EnvironmentLight`: ``sample_above`` and the estimator
+    of ``irradiance`` before the shadow rays).
 
     A texel ``t = searchsorted(cdf, r0, "right")`` of the ``size``-cube (flat
     ``(face, row, col)`` order), the point ``u = -1 + (col + r1) 2 / size``,
     ``v = -1 + (row + r2) 2 / size`` of its face square, the direction normalised and turned by
-    ``rotation (3, 3)`` (environment frame to world), density
-    ``p = prob[t] (size^2 / 4) (1 + u^2 + v^2)^(3/2)``. A sample with ``cos = n . w > 0`` and
-    ``p > 0`` gives a shadow ray toward ``w`` and contributes ``radiance[t] cos / (p L)``.
+    ``rotation (3, 3)`` (environment frame to world): density
+    ``p(w) = prob[t] (size^2 / 4) (1 + u^2 + v^2)^(3/2)``. A direction below the point's
+    horizon is mirrored in its tangent plane, ``w - 2 (n . w) n`` (a reflection: it keeps solid
+    angle), so every sample lands above it with density ``p(w) + p(mirror of w)``, and
+    contributes ``radiance[texel of w] cos / (density L)`` and a shadow ray toward ``w``
+    (unless ``cos = 0`` or the density is 0).
 
     ``normals (n, 3)``, ``random (n, L, 3)``, ``guide`` the cdf's :func:`guide_table`. Returns ``point (k,)``, ``directions (k, 3)`` and
     ``contribution (k, 3)`` of the samples that count.
@@ -1326,6 +1342,7 @@ def environment_samples(
     area = 0.25 * m * m
     k = 0
     for i in range(n):
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         for s in range(ns):
             t = _search_right(cdf, guide, random[i, s, 0])
             face = t // (m * m)
@@ -1343,10 +1360,19 @@ def environment_samples(
             wx = rotation[0, 0] * d0 + rotation[0, 1] * d1 + rotation[0, 2] * d2
             wy = rotation[1, 0] * d0 + rotation[1, 1] * d1 + rotation[1, 2] * d2
             wz = rotation[2, 0] * d0 + rotation[2, 1] * d1 + rotation[2, 2] * d2
-            cos = wx * normals[i, 0] + wy * normals[i, 1] + wz * normals[i, 2]
-            if not cos > 0.0:
+            cos = wx * nx + wy * ny + wz * nz
+            if cos == 0.0 or math.isnan(cos):
                 continue
-            pdf = prob[t] * area * q * sq
+            pdf = prob[t] * area * q * sq  # the drawn direction's density
+            # its mirror in the tangent plane, in the environment frame (rotation^T)
+            rx, ry, rz = wx - 2.0 * cos * nx, wy - 2.0 * cos * ny, wz - 2.0 * cos * nz
+            ex = rotation[0, 0] * rx + rotation[1, 0] * ry + rotation[2, 0] * rz
+            ey = rotation[0, 1] * rx + rotation[1, 1] * ry + rotation[2, 1] * rz
+            ez = rotation[0, 2] * rx + rotation[1, 2] * ry + rotation[2, 2] * rz
+            tr, qr = _environment_texel(ex, ey, ez, m, face_u, face_v)
+            pdf += prob[tr] * area * qr
+            if cos < 0.0:  # below the horizon: the mirror is the sample
+                wx, wy, wz, t, cos = rx, ry, rz, tr, -cos
             if not pdf > 0.0:
                 continue
             w = cos / (pdf * ns)

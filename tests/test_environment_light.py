@@ -38,7 +38,7 @@ def _exact(env: Environment, size: int, normal) -> np.ndarray:
     return (light.radiance[coarse] * w[:, None]).sum(axis=0)
 
 
-@pytest.mark.parametrize("normal", [(0, 1, 0), (0.6, 0, -0.8), (-1, 0, 0)])
+@pytest.mark.parametrize("normal", [(0, 1, 0), (0.6, 0, -0.8), (-1, 0, 0), (0, -1, 0)])
 def test_sampled_irradiance_is_unbiased(normal):
     rng = np.random.default_rng(3)
     faces = rng.gamma(0.7, 1.0, (6, 8, 8, 3)).astype(np.float32)
@@ -52,6 +52,22 @@ def test_sampled_irradiance_is_unbiased(normal):
     exact = _exact(env, 8, normal)
     np.testing.assert_allclose(e[0], exact, rtol=0.015)
     assert 0 < rays <= k
+
+
+@pytest.mark.parametrize("normal", [(0, 1, 0), (0.6, 0, -0.8), (0, -1, 0)])
+def test_folded_samples_cover_the_hemisphere_once(normal):
+    """Draws below the horizon are mirrored above it (sample_above): every sample lies above,
+    and its density p(w) + p(mirror) integrates to 1 over the hemisphere, i.e. the mean of
+    1 / density over the samples is the hemisphere's 2 pi (a sky with a sun, rotated)."""
+    rng = np.random.default_rng(8)
+    faces = rng.gamma(0.7, 1.0, (6, 8, 8, 3)).astype(np.float32) + 0.05
+    faces[2, 3, 4] = 300.0
+    light = EnvironmentLight(Environment(faces=faces, rotation=0.7), 8)
+    k = 400_000
+    n = np.array([normal], float) / np.linalg.norm(normal)
+    d, _, pdf = light.sample_above(rng.random((1, k, 3)), n)
+    assert np.all(d[0] @ n[0] >= 0) and np.all(pdf > 0)
+    np.testing.assert_allclose(np.mean(1.0 / pdf), 2 * np.pi, rtol=0.01)
 
 
 def test_sampled_irradiance_is_shadowed():

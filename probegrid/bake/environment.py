@@ -22,7 +22,11 @@ a uniform point in that texel's face square), each tested by a shadow ray, and
     E = (1 / L) sum_i L_i max(0, n . w_i) V_i / p(w_i),
 
 with ``p(w) = P_texel (m^2 / 4) (1 + u^2 + v^2)^(3/2)`` the density over solid angle of a point
-uniform on the texel's ``(2/m)^2`` square of the face plane. It is unbiased for the
+uniform on the texel's ``(2/m)^2`` square of the face plane. A direction drawn below the
+point's horizon is mirrored in its tangent plane (:meth:`EnvironmentLight.sample_above`), so
+that every sample can light the point: the density of a folded direction is
+``p(w) + p(mirror of w)`` (a mirror keeps solid angle). Half of the sample room's draws fell
+below the horizon and were lost before. The estimator is unbiased for the
 piecewise-constant environment and non-negative; a sun falls on its few texels, so a hit in the
 sun or in a shadow is found with the first samples. The light a window lets into a room then
 depends on where each hit is, not on the probes it would otherwise be read from (a sun patch on
@@ -40,7 +44,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from probegrid.core.color import luminance
-from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, check_cube, texel_solid_angles
+from probegrid.core.cubemap import (
+    FACE_NORMALS,
+    FACE_U,
+    FACE_V,
+    check_cube,
+    direction_to_face_uv,
+    texel_solid_angles,
+)
 from probegrid.core.sampling import CubeSampler, resample
 from probegrid.core.sh import rotation_y
 from probegrid.kernels import environment_samples, guide_table, sum_unblocked
@@ -204,13 +215,53 @@ class EnvironmentLight:
             d = d @ self._rotation.T
         return d, self.radiance[t], pdf
 
+    def _texels(self, directions: NDArray[np.float64]
+                ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """The sampled cube's texels at unit world ``directions (..., 3)`` (flat index) and
+        ``(1 + u^2 + v^2)^(3/2)`` there (:func:`probegrid.kernels._environment_texel`)."""
+        d = np.asarray(directions, dtype=np.float64)
+        if self._rotation is not None:
+            d = d @ self._rotation  # world -> environment frame
+        m = self.size
+        face, u, v = direction_to_face_uv(d)
+        col = np.clip(((u + 1.0) * 0.5 * m).astype(np.int64), 0, m - 1)
+        row = np.clip(((v + 1.0) * 0.5 * m).astype(np.int64), 0, m - 1)
+        return (face * m + row) * m + col, (1.0 + u * u + v * v) ** 1.5
+
+    def density(self, directions: NDArray[np.float64]) -> NDArray[np.float64]:
+        """:meth:`sample`'s density over solid angle at unit world ``directions (..., 3)``."""
+        t, factor = self._texels(directions)
+        return self._prob[t] * (0.25 * self.size * self.size) * factor
+
+    def radiance_of(self, directions: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The sampled (piecewise-constant) environment's radiance at unit world
+        ``directions (..., 3)``."""
+        return self.radiance[self._texels(directions)[0]]
+
+    def sample_above(self, random: NDArray[np.float64], normals: NDArray[np.float64]
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`sample`'s directions folded into the upper hemisphere of ``normals (n, 3)``
+        (``random (n, L, 3)``): one below the horizon is mirrored in the tangent plane,
+        ``w - 2 (n . w) n``. Returns the directions ``(n, L, 3)``, the environment's radiance
+        there and their density ``p(w) + p(mirror of w)`` (the mirror keeps solid angle; 0 for a
+        direction in the tangent plane, which contributes nothing)."""
+        d, rad, pdf = self.sample(random)
+        nrm = np.asarray(normals, dtype=np.float64)[:, None, :]
+        cos = np.sum(d * nrm, axis=-1, keepdims=True)
+        mirror = d - 2.0 * cos * nrm
+        total = pdf + self.density(mirror)
+        below = cos < 0
+        up = np.where(below, mirror, d)
+        rad = np.where(below, self.radiance_of(mirror), rad)
+        return up, rad, np.where(cos[..., 0] == 0, 0.0, total)
+
     def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64],
                    random: NDArray[np.float64], tracer: RayTracer, eps: float
                    ) -> tuple[NDArray[np.float64], int]:
         """Direct irradiance (lux, RGB) from the environment at ``points (n, 3)`` with unit
         ``normals (n, 3)``, from ``random (n, L, 3)`` uniform numbers (L samples per point).
-        Returns ``(n, 3)`` and the shadow rays cast (:meth:`sample` and the estimator in one
-        compiled pass, :func:`probegrid.kernels.environment_samples`)."""
+        Returns ``(n, 3)`` and the shadow rays cast (:meth:`sample_above` and the estimator in
+        one compiled pass, :func:`probegrid.kernels.environment_samples`)."""
         n = len(points)
         out = np.zeros((n, 3))
         if n == 0 or self.is_black:
@@ -222,5 +273,5 @@ class EnvironmentLight:
         if not which.size:
             return out, 0
         blocked = tracer.occluded(np.asarray(points, dtype=np.float64)[which], dirs,
-                                  np.full(len(which), np.inf), tmin=eps)
+                                  np.inf, tmin=eps)
         return sum_unblocked(n, which, blocked, contrib), len(which)

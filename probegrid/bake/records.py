@@ -78,11 +78,11 @@ records are deterministic, so the result is the same bits.
 
 from __future__ import annotations
 
-import math
 import os
 import tempfile
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -167,6 +167,9 @@ def gather_depth(records: dict[str, NDArray[Any]]) -> int:
     (``gather3_*`` too)."""
     return sum(1 for prefix in _LEVELS[1:] if prefix + "primary" in records)
 
+
+#: Random numbers for given rows (a probe stream's rows, see RecordTracer.trace).
+Draw = Callable[[NDArray[np.int64]], NDArray[np.float64]]
 
 def _new_records(k: int) -> dict[str, NDArray[Any]]:
     """Empty records (:data:`_RECORD_KEYS`) of ``k`` rays: misses."""
@@ -499,13 +502,14 @@ class RecordTracer:
         self.gather_depth = int(gather_depth)
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
-               rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None,
+               draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None,
                rec: dict[str, NDArray[Any]], t: NDArray[np.float64], *, sky_at_misses: bool
                ) -> int:
         """Fills ``rec`` (:data:`_RECORD_KEYS`, zeros: misses) and ``t`` with the records and hit
         distances of one chunk of rays; returns the rays cast: the rays themselves and every
-        shadow ray of their front hits (punctual lights; ``rnd_e (n, L, 3)`` points on the
-        emitters, ``rnd_s (n, L, 3)`` directions of the environment, None for none). A miss keeps
+        shadow ray of their front hits (punctual lights; ``draw_e(rows) (k, L, 3)`` the random
+        numbers of points on the emitters, ``draw_s`` of directions of the environment, None for
+        none; ray ``i``'s are row ``draw_rows[i]``, drawn for the front hits only). A miss keeps
         the environment's radiance when ``sky_at_misses`` (what a probe sees), else 0 (the
         environment reaches hits by sampling)."""
         st = self.settings
@@ -538,18 +542,20 @@ class RecordTracer:
             scatter_divided(rec["light_punctual"], rows,
                             sum_unblocked(len(rows), which, occluded, s_irr), np.pi, False)
         # lit from a point offset short of the hit, back along the ray (shade_hits)
-        if rnd_e is not None:
-            e_e, r = self.emitters.irradiance(back_off, nrm, rnd_e[rows], self.tracer, eps)
+        if draw_e is not None:
+            e_e, r = self.emitters.irradiance(back_off, nrm, draw_e(draw_rows[rows]),
+                                              self.tracer, eps)
             rays += r
             scatter_divided(rec["light_emitters"], rows, e_e, np.pi, False)
-        if rnd_s is not None:  # the environment, sampled as a light (it no longer reaches the grid)
-            e_s, r = self.sky.irradiance(back_off, nrm, rnd_s[rows], self.tracer, eps)
+        if draw_s is not None:  # the environment, sampled as a light (it no longer reaches the grid)
+            e_s, r = self.sky.irradiance(back_off, nrm, draw_s(draw_rows[rows]), self.tracer,
+                                         eps)
             rays += r
             scatter_divided(rec["light_emitters"], rows, e_s, np.pi, True)
         return rays
 
     def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
-                   rnd_e: NDArray[np.float64] | None, rnd_s: NDArray[np.float64] | None, *,
+                   draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None, *,
                    sky_at_misses: bool
                    ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
         """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time, into one set of
@@ -559,29 +565,36 @@ class RecordTracer:
         rays = 0
         for c0 in range(0, len(dirs), SHADE_CHUNK):  # loop over chunks of rays, not rays
             sl = slice(c0, min(c0 + SHADE_CHUNK, len(dirs)))
-            rays += self._shade(origins[sl], dirs[sl], None if rnd_e is None else rnd_e[sl],
-                                None if rnd_s is None else rnd_s[sl],
+            rays += self._shade(origins[sl], dirs[sl], draw_rows[sl], draw_e, draw_s,
                                 {k: v[sl] for k, v in rec.items()}, t[sl],
                                 sky_at_misses=sky_at_misses)
         return rec, t, rays
 
-    def _gather_level(self, draw: Any, purposes: tuple[int, int, int], rows: NDArray[np.int64],
-                      above: dict[str, NDArray[Any]], arriving: NDArray[np.float64],
-                      parents: NDArray[np.int64], emitters: bool, sky: bool
-                      ) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
+    def _gather_level(self, draw: Any, rays_per_probe: int, purposes: tuple[int, int, int],
+                      rows: NDArray[np.int64], above: dict[str, NDArray[Any]],
+                      arriving: NDArray[np.float64], parents: NDArray[np.int64], emitters: bool,
+                      sky: bool) -> tuple[dict[str, NDArray[Any]], NDArray[np.float64], int]:
         """One gather level: a cosine-weighted ray from each hit ``parents`` of the level
         ``above`` (records with ``position`` and ``normal``, the normal facing the side the ray
         ``arriving`` came from), lit as a probe's rays are (one emitter and one environment
-        sample; misses and emission count 0). Its random numbers are row ``rows`` of the
-        per-primary-ray draws ``draw(purpose, (K, ...))`` of ``purposes`` (directions,
-        emitters, environment). Returns the records, the directions and the rays cast."""
+        sample; misses and emission count 0). Its random numbers are rows ``rows`` of the
+        probes' streams of ``purposes`` (directions, emitters, environment; ``rays_per_probe``
+        primary rays of K gather rays each per probe, :meth:`trace`'s ``draw``). Returns the
+        records, the directions and the rays cast."""
         eps = self.settings.ray_offset
         kg = self.gather_samples
         org, dirs = gather_rays(above["position"], above["normal"], arriving, parents,
-                                draw(purposes[0], (kg, 2), rows), eps)
-        rnd_e = draw(purposes[1], (kg, 1, 3), rows) if emitters else None
-        rnd_s = draw(purposes[2], (kg, 1, 3), rows) if sky else None
-        rec, _, rays = self._shade_all(org, dirs, rnd_e, rnd_s, sky_at_misses=False)
+                                draw(purposes[0], rays_per_probe * kg, 2, rows), eps)
+        per = rays_per_probe * kg
+
+        def draw_e(r: NDArray[np.int64]) -> NDArray[np.float64]:
+            return draw(purposes[1], per, 3, r).reshape(-1, 1, 3)
+
+        def draw_s(r: NDArray[np.int64]) -> NDArray[np.float64]:
+            return draw(purposes[2], per, 3, r).reshape(-1, 1, 3)
+
+        rec, _, rays = self._shade_all(org, dirs, rows, draw_e if emitters else None,
+                                       draw_s if sky else None, sky_at_misses=False)
         return rec, dirs, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
@@ -607,20 +620,26 @@ class RecordTracer:
         ks = 0 if self.sky.is_black else self.light_samples
         kg = self.gather_samples
 
-        def draw(purpose: int, shape: tuple[int, ...], rows: NDArray[np.int64] | None = None
-                 ) -> NDArray[np.float64]:
-            # rows of (nr, *shape) numbers per probe and purpose (all when None), row r of the
-            # batch being row r % nr of probe r // nr; shape[1:] per row. What a probe draws
-            # depends only on its stream and the row, not on its batch or the other rows
-            per = nr * shape[0]
-            sel = np.arange(b * per) if rows is None else rows
-            out = stream_uniforms(_stream_keys(st.seed, idx, purpose), per, sel,
-                                  math.prod(shape[1:]))
-            return out.reshape(len(sel), *shape[1:])
+        keys: dict[int, NDArray[np.uint64]] = {}
 
-        rnd_e = draw(1, (ls, 3)).reshape(-1, ls, 3) if ls else None
-        rnd_s = draw(2, (ks, 3)).reshape(-1, ks, 3) if ks else None
-        rec, t, rays = self._shade_all(origins, flat, rnd_e, rnd_s, sky_at_misses=True)
+        def draw(purpose: int, per: int, width: int, rows: NDArray[np.int64]
+                 ) -> NDArray[np.float64]:
+            # rows of the probes' streams of one purpose, ``per`` rows of ``width`` numbers per
+            # probe: row r of the batch is row r % per of probe r // per. What a probe draws
+            # depends only on its stream and the row, not on its batch or the other rows
+            if purpose not in keys:
+                keys[purpose] = _stream_keys(st.seed, idx, purpose)
+            return stream_uniforms(keys[purpose], per, rows, width)
+
+        def draw_e(r: NDArray[np.int64]) -> NDArray[np.float64]:
+            return draw(1, nr, ls * 3, r).reshape(-1, ls, 3)
+
+        def draw_s(r: NDArray[np.int64]) -> NDArray[np.float64]:
+            return draw(2, nr, ks * 3, r).reshape(-1, ks, 3)
+
+        rec, t, rays = self._shade_all(origins, flat, np.arange(b * nr),
+                                       draw_e if ls else None, draw_s if ks else None,
+                                       sky_at_misses=True)
         if kg:
             # final gather (module docstring): kg rays from every front hit, one more from each
             # of their hits at depth 2; a bounce reads the grid at the deepest level's hits
@@ -631,7 +650,7 @@ class RecordTracer:
             for depth in range(1, self.gather_depth + 1):
                 prefix = _LEVELS[depth]
                 level, g_dir, cast = self._gather_level(
-                    draw, (3 * depth, 3 * depth + 1, 3 * depth + 2), rows, above, arriving,
+                    draw, nr, (3 * depth, 3 * depth + 1, 3 * depth + 2), rows, above, arriving,
                     parent_row, bool(ls), bool(ks))
                 rays += cast
                 for k in _gather_keys(deepest=depth == self.gather_depth):
