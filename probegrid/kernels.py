@@ -1302,6 +1302,7 @@ def _environment_texel(dx: float, dy: float, dz: float, m: int, face_u: NDArray[
 
 @numba.njit(**_JIT)
 def environment_samples(
+    points: NDArray[np.float64],
     normals: NDArray[np.float64],
     random: NDArray[np.float64],
     cdf: NDArray[np.float64],
@@ -1313,7 +1314,7 @@ def environment_samples(
     face_normals: NDArray[np.float64],
     face_u: NDArray[np.float64],
     face_v: NDArray[np.float64],
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Directions drawn from a piecewise-constant environment cube, folded into the upper
     hemisphere of each normal, and their contributions
     (:class:`probegrid.bake.environment.EnvironmentLight`: ``sample_above`` and the estimator
@@ -1329,12 +1330,14 @@ def environment_samples(
     contributes ``radiance[texel of w] cos / (density L)`` and a shadow ray toward ``w``
     (unless ``cos = 0`` or the density is 0).
 
-    ``normals (n, 3)``, ``random (n, L, 3)``, ``guide`` the cdf's :func:`guide_table`. Returns ``point (k,)``, ``directions (k, 3)`` and
-    ``contribution (k, 3)`` of the samples that count.
+    ``points (n, 3)`` and their ``normals``, ``random (n, L, 3)``, ``guide`` the cdf's
+    :func:`guide_table`. Returns ``point (k,)``, the shadow rays' ``origins`` (the points) and
+    ``directions (k, 3)``, and ``contribution (k, 3)`` of the samples that count.
     """
     n, ns = random.shape[0], random.shape[1]
     cap = n * ns
     which = np.empty(cap, np.int64)
+    org = np.empty((cap, 3))
     dirs = np.empty((cap, 3))
     contrib = np.empty((cap, 3))
     m = size
@@ -1377,12 +1380,13 @@ def environment_samples(
                 continue
             w = cos / (pdf * ns)
             which[k] = i
+            org[k, 0], org[k, 1], org[k, 2] = points[i, 0], points[i, 1], points[i, 2]
             dirs[k, 0], dirs[k, 1], dirs[k, 2] = wx, wy, wz
             contrib[k, 0] = radiance[t, 0] * w
             contrib[k, 1] = radiance[t, 1] * w
             contrib[k, 2] = radiance[t, 2] * w
             k += 1
-    return which[:k], dirs[:k], contrib[:k]
+    return which[:k], org[:k], dirs[:k], contrib[:k]
 
 
 @numba.njit(**_JIT)

@@ -470,9 +470,12 @@ def test_environment_samples_match_the_numpy_sampler() -> None:
     nrm = rng.normal(size=(n, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     r = rng.random((n, ls, 3))
-    which, dirs, contrib = environment_samples(nrm, r, light._cdf, light._guide, light._prob,
-                                               light.radiance, light.size, light._rotation,
-                                               FACE_NORMALS, FACE_U, FACE_V)
+    pts = rng.normal(size=(n, 3))
+    which, org, dirs, contrib = environment_samples(pts, nrm, r, light._cdf, light._guide,
+                                                    light._prob, light.radiance, light.size,
+                                                    light._rotation, FACE_NORMALS, FACE_U,
+                                                    FACE_V)
+    np.testing.assert_array_equal(org, pts[which])
     d, rad, pdf = light.sample_above(r, nrm)
     cos = np.einsum("nlk,nk->nl", d, nrm)
     i, k = np.nonzero((cos > 0) & (pdf > 0))

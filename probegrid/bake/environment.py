@@ -266,12 +266,11 @@ class EnvironmentLight:
         out = np.zeros((n, 3))
         if n == 0 or self.is_black:
             return out, 0
-        which, dirs, contrib = environment_samples(
-            np.asarray(normals, dtype=np.float64), np.ascontiguousarray(random, np.float64),
-            self._cdf, self._guide, self._prob, self.radiance, self.size, self._to_world,
-            FACE_NORMALS, FACE_U, FACE_V)
+        which, org, dirs, contrib = environment_samples(
+            np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
+            np.ascontiguousarray(random, np.float64), self._cdf, self._guide, self._prob,
+            self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V)
         if not which.size:
             return out, 0
-        blocked = tracer.occluded(np.asarray(points, dtype=np.float64)[which], dirs,
-                                  np.inf, tmin=eps)
+        blocked = tracer.occluded(org, dirs, np.inf, tmin=eps)
         return sum_unblocked(n, which, blocked, contrib), len(which)
