@@ -102,6 +102,8 @@ def _bake_main(spec_file: str) -> None:
     note = ""
     try:
         extra = {"gather_depth": spec["gather_depth"]} if spec.get("gather_depth") else {}
+        if spec.get("seed") is not None:
+            extra["seed"] = spec["seed"]
         settings = BakeSettings(face_size=spec["face_size"], bounces=bounces,
                                 samples=spec["samples"], store_incoming=True, **extra)
     except ValueError:
@@ -231,7 +233,8 @@ def bench_scene(label: str, path: Path, sky: Path | None, args: argparse.Namespa
     n = args.face_size
     spec = {"scene": str(path), "environment": str(sky) if sky else None, "grid": args.grid,
             "face_size": n, "samples": args.samples, "workers": args.workers,
-            "fallback_bounces": args.fallback_bounces, "gather_depth": args.gather_depth}
+            "fallback_bounces": args.fallback_bounces, "gather_depth": args.gather_depth,
+            "seed": args.seed}
     print(f"\n== {label}: {path.name}" + (f" + {sky.name}" if sky else "") +
           f", grid {args.grid}, faces {n}^2, {args.samples} ray(s) per texel")
     info, baked = run_bake(args.repo, work, f"{label}-conv", bounces=args.bounces, **spec)
@@ -373,6 +376,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--no-direct", dest="direct", action="store_false")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--scene", choices=["cornell", "room", "both"], default="both")
+    p.add_argument("--seed", type=int, default=None,
+                   help="the bake's seed (default: BakeSettings' own): the error's spread")
     args = p.parse_args(argv)
     if args._bake:
         _bake_main(args._bake)

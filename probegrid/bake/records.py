@@ -79,6 +79,7 @@ records are deterministic, so the result is the same bits.
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 import threading
 from collections import OrderedDict
@@ -170,6 +171,7 @@ def gather_depth(records: dict[str, NDArray[Any]]) -> int:
 
 #: Random numbers for given rows (a probe stream's rows, see RecordTracer.trace).
 Draw = Callable[[NDArray[np.int64]], NDArray[np.float64]]
+
 
 def _new_records(k: int) -> dict[str, NDArray[Any]]:
     """Empty records (:data:`_RECORD_KEYS`) of ``k`` rays: misses."""
@@ -327,8 +329,6 @@ def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
     """Keep ``records`` (its size as it is now) as the most recently used block. A block held
     without files that has to go (the least recently used beyond :data:`RECORDS_MEMORY`) is
     written to its directory first (spilled): what a pass reads is always somewhere."""
-    import shutil
-
     with _held_lock:
         old = _held.pop(key, None)
         if old is not None:
@@ -372,8 +372,6 @@ def save_records(path: Path, records: dict[str, NDArray[Any]], *,
     with _held_lock:
         token = _memory_only.get(sp)
     if token is None and not files:  # a new block in memory alone
-        import shutil
-
         shutil.rmtree(path, ignore_errors=True)  # (files of an earlier bake)
         token = os.urandom(8).hex()
         with _held_lock:
@@ -436,8 +434,6 @@ def load_records(path: Path) -> dict[str, NDArray[Any]] | None:
 
 def remove_records(path: Path) -> None:
     """Delete a block's records (its last use)."""
-    import shutil
-
     _drop(path)
     shutil.rmtree(path, ignore_errors=True)
 
@@ -583,9 +579,9 @@ class RecordTracer:
         records, the directions and the rays cast."""
         eps = self.settings.ray_offset
         kg = self.gather_samples
-        org, dirs = gather_rays(above["position"], above["normal"], arriving, parents,
-                                draw(purposes[0], rays_per_probe * kg, 2, rows), eps)
         per = rays_per_probe * kg
+        org, dirs = gather_rays(above["position"], above["normal"], arriving, parents,
+                                draw(purposes[0], per, 2, rows), eps)
 
         def draw_e(r: NDArray[np.int64]) -> NDArray[np.float64]:
             return draw(purposes[1], per, 3, r).reshape(-1, 1, 3)

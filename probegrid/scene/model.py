@@ -381,14 +381,11 @@ class Scene:
         given (the other entries of ``pid``, misses say, are not read)."""
         if not self._textured_materials.size or not pid.size:
             return
-        if rows is None:
-            mat = self.material[pid]
-        else:
-            mat = np.full(len(pid), -1, np.int64)
-            mat[rows] = self.material[pid[rows]]
+        hit = np.arange(len(pid)) if rows is None else np.asarray(rows, np.int64)
+        mat = self.material[pid[hit]]
         tris, uvs = self._kernel_tables[1], self._kernel_uvs
         for i in self._textured_materials:  # loop over textured materials, not hits
-            sel = np.flatnonzero(mat == i)
+            sel = hit[mat == i]
             if not sel.size:
                 continue
             m = self.materials[int(i)]
