@@ -52,6 +52,7 @@ time (16 minutes on this loaded 2-core machine) and about 2 minutes cached.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -72,8 +73,6 @@ SHARED = REPO.parent / "shared" / "data"
 # ------------------------------------------------------------------------------ bake (subprocess)
 def _bake_main(spec_file: str) -> None:
     """Child process: bake one scene with the probegrid on ``sys.path``; write arrays + JSON."""
-    import dataclasses
-
     spec = json.loads(Path(spec_file).read_text())
     from probegrid.bake.executors import make_executor
 
@@ -93,7 +92,7 @@ def _bake_main(spec_file: str) -> None:
     from probegrid.scene import load_gltf
     from probegrid.store import open_store
     scene = load_gltf(spec["scene"])
-    scene = dataclasses.replace(scene, lights=tuple(
+    scene = dataclasses.replace(scene, lights=() if spec.get("no_punctual") else tuple(
         dataclasses.replace(lt, range=None) if getattr(lt, "range", None) is not None else lt
         for lt in scene.lights))
     grid = grid_for(scene, grid=spec["grid"])
@@ -234,7 +233,7 @@ def bench_scene(label: str, path: Path, sky: Path | None, args: argparse.Namespa
     spec = {"scene": str(path), "environment": str(sky) if sky else None, "grid": args.grid,
             "face_size": n, "samples": args.samples, "workers": args.workers,
             "fallback_bounces": args.fallback_bounces, "gather_depth": args.gather_depth,
-            "seed": args.seed}
+            "seed": args.seed, "no_punctual": args.no_punctual}
     print(f"\n== {label}: {path.name}" + (f" + {sky.name}" if sky else "") +
           f", grid {args.grid}, faces {n}^2, {args.samples} ray(s) per texel")
     info, baked = run_bake(args.repo, work, f"{label}-conv", bounces=args.bounces, **spec)
@@ -247,6 +246,8 @@ def bench_scene(label: str, path: Path, sky: Path | None, args: argparse.Namespa
     pos = baked["positions"][valid]
     d = baked["diffuse"].shape[2]
     scene = mr.without_light_ranges(load_gltf(path))
+    if args.no_punctual:
+        scene = dataclasses.replace(scene, lights=())
     env = load_environment(sky) if sky else None
     out: dict[str, Any] = {"label": label, "valid": int(valid.sum()), "probes": len(valid),
                            "bake_seconds": info["seconds"]}
@@ -376,6 +377,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--no-direct", dest="direct", action="store_false")
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--scene", choices=["cornell", "room", "both"], default="both")
+    p.add_argument("--no-punctual", action="store_true",
+                   help="leave the scenes' punctual lights out (the room lit by its sky and "
+                        "panel: the sampled light alone)")
     p.add_argument("--seed", type=int, default=None,
                    help="the bake's seed (default: BakeSettings' own): the error's spread")
     args = p.parse_args(argv)
