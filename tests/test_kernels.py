@@ -154,16 +154,22 @@ def test_light_rays_match_incident_many() -> None:
     assert not lit[0, 0]  # at the light: neither the reference nor the kernel lights it
 
 
-def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
-    from probegrid.kernels import hit_surfaces
-
-    rng = np.random.default_rng(6)
+def _triangle_soup(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """30 random vertices, 40 triangles of them, their unit normals as wound and one of 3
+    materials each."""
     verts = rng.normal(size=(30, 3))
     tris = np.stack([rng.permutation(30)[:3] for _ in range(40)]).astype(np.int64)
     p = verts[tris]
     nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    material = rng.integers(0, 3, 40).astype(np.int64)
+    return verts, tris, nrm, rng.integers(0, 3, 40).astype(np.int64)
+
+
+def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
+    from probegrid.kernels import hit_surfaces
+
+    rng = np.random.default_rng(6)
+    verts, tris, nrm, material = _triangle_soup(rng)
     base = rng.random((3, 3))
     emis = rng.random((3, 3))
     colors = rng.random((30, 4))
@@ -189,12 +195,7 @@ def test_shade_hits_is_split_hits_then_hit_surfaces() -> None:
     from probegrid.kernels import hit_surfaces, shade_hits, split_hits
 
     rng = np.random.default_rng(16)
-    verts = rng.normal(size=(30, 3))
-    tris = np.stack([rng.permutation(30)[:3] for _ in range(40)]).astype(np.int64)
-    p = verts[tris]
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    material = rng.integers(0, 3, 40).astype(np.int64)
+    verts, tris, nrm, material = _triangle_soup(rng)
     base, emis = rng.random((3, 3)), rng.random((3, 3))
     colors = np.ascontiguousarray(rng.random((30, 3)))
     double = rng.random(40) < 0.5
