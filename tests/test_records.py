@@ -3,6 +3,8 @@ is the block's files, never a stale copy of an earlier bake of the same store.""
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -79,6 +81,18 @@ def test_records_kept_in_memory_alone_are_written_when_they_must_leave_it(tmp_pa
         rc.remove_records(rc.records_file(tmp_path, i))
         assert rc.load_records(rc.records_file(tmp_path, i)) is None
     assert not rc._memory_only
+    # a block whose bake directory was deleted meanwhile is dropped, not written back
+    gone = tmp_path / "deleted-bake" / "records"
+    gone.mkdir(parents=True)
+    rc.save_records(rc.records_file(gone, 0), {"a": np.zeros(2000, np.uint8)}, files=False)
+    shutil.rmtree(tmp_path / "deleted-bake")
+    for i in range(1, 3):
+        rc.save_records(rc.records_file(tmp_path, 10 + i), {"a": np.zeros(1000, np.uint8)},
+                        files=False)
+    assert not (tmp_path / "deleted-bake").exists()
+    assert rc.load_records(rc.records_file(gone, 0)) is None
+    for i in range(1, 3):
+        rc.remove_records(rc.records_file(tmp_path, 10 + i))
 
 
 def test_a_subset_of_a_blocks_records_is_what_tracing_the_subset_gives():

@@ -328,7 +328,8 @@ def _write_block(path: Path, records: dict[str, NDArray[Any]], token: str | None
 def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
     """Keep ``records`` (its size as it is now) as the most recently used block. A block held
     without files that has to go (the least recently used beyond :data:`RECORDS_MEMORY`) is
-    written to its directory first (spilled): what a pass reads is always somewhere."""
+    written to its directory first (spilled): what a pass reads is always somewhere. (Unless the
+    directory's bake directory is gone: a later pass would trace it again.)"""
     with _held_lock:
         old = _held.pop(key, None)
         if old is not None:
@@ -345,9 +346,10 @@ def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
             (where, token), (gone, nbytes) = _held.popitem(last=False)
             _held_bytes[0] -= nbytes
             if _memory_only.get(where) == token:
-                shutil.rmtree(where, ignore_errors=True)  # (files of an earlier bake)
-                _write_block(Path(where), gone, token)
                 del _memory_only[where]
+                if Path(where).parent.parent.is_dir():  # (else its bake's files are gone)
+                    shutil.rmtree(where, ignore_errors=True)  # (files of an earlier bake)
+                    _write_block(Path(where), gone, token)
 
 
 def _drop(path: Path) -> None:
