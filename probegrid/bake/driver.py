@@ -505,7 +505,9 @@ class BakeReport:
             (f"  invalid probes: {q['invalid_probes']} (relocated {q['relocated_probes']}); "
             f"backface rays {q['backface_ray_fraction']:.3%}"),
             (f"  energy (diffuse / incoming): worst |1 - ratio| {q['energy_max_error']:.2e}; "
-            f"SH min irradiance/pi {q['sh_min_irradiance_over_pi']:.4g}; "
+            f"raw SH min irradiance/pi {q['sh_min_irradiance_over_pi']:.4g}"
+            + (" (ringing: the deringed SH that /sh serves is >= 0)"
+               if (self.quality.get("sh_min_irradiance_over_pi") or 0.0) < 0 else "") + "; "
             f"seam score {q['seam_score_mean']:.2e}"),
         ])
 
