@@ -50,6 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "alias_table",
     "cosine_directions",
     "cube_sample_directions",
     "distance_moments",
@@ -1290,6 +1291,42 @@ def emitter_estimate(n: int, which: NDArray[np.int64], blocked: NDArray[np.bool_
 
 
 @numba.njit(**_JIT)
+def alias_table(prob: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Walker's alias table of a discrete distribution ``prob (N,)`` (summing to 1), built by
+    Vose's method: entry ``i`` is kept with probability ``accept[i]`` and otherwise gives
+    ``alias[i]``, so ``i = floor(r N)``, then ``i`` if ``frac(r N) < accept[i]`` else
+    ``alias[i]`` draws index ``t`` with probability ``prob[t]`` from one uniform ``r`` in O(1)
+    (:func:`environment_samples`; a zero-probability entry is never drawn)."""
+    n = prob.shape[0]
+    scaled = prob * n
+    accept = np.ones(n)
+    alias = np.arange(n)
+    small = np.empty(n, np.int64)
+    large = np.empty(n, np.int64)
+    ns = 0
+    nl = 0
+    for i in range(n):
+        if scaled[i] < 1.0:
+            small[ns] = i
+            ns += 1
+        else:
+            large[nl] = i
+            nl += 1
+    while ns > 0 and nl > 0:
+        ns -= 1
+        lo = small[ns]
+        hi = large[nl - 1]
+        accept[lo] = scaled[lo]
+        alias[lo] = hi
+        scaled[hi] = (scaled[hi] + scaled[lo]) - 1.0
+        if scaled[hi] < 1.0:  # now short itself: the next one to be topped up
+            nl -= 1
+            small[ns] = hi
+            ns += 1
+    return accept, alias  # (entries left over are full up to rounding: accept 1)
+
+
+@numba.njit(**_JIT)
 def _environment_texel(dx: float, dy: float, dz: float, m: int, face_u: NDArray[np.float64],
                        face_v: NDArray[np.float64]) -> tuple[int, float]:
     """The texel of an ``m``-cube a unit direction (environment frame) falls in and
@@ -1306,8 +1343,8 @@ def environment_samples(
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
     random: NDArray[np.float64],
-    cdf: NDArray[np.float64],
-    guide: NDArray[np.int64],
+    accept: NDArray[np.float64],
+    alias: NDArray[np.int64],
     prob: NDArray[np.float64],
     radiance: NDArray[np.float64],
     size: int,
@@ -1321,8 +1358,9 @@ def environment_samples(
     (:class:`probegrid.bake.environment.EnvironmentLight`: ``sample_above`` and the estimator
     of ``irradiance`` before the shadow rays).
 
-    A texel ``t = searchsorted(cdf, r0, "right")`` of the ``size``-cube (flat
-    ``(face, row, col)`` order), the point ``u = -1 + (col + r1) 2 / size``,
+    A texel ``t`` of the ``size``-cube (flat ``(face, row, col)`` order) drawn with probability
+    ``prob[t]`` from ``r0`` through its :func:`alias_table` ``(accept, alias)``, the point
+    ``u = -1 + (col + r1) 2 / size``,
     ``v = -1 + (row + r2) 2 / size`` of its face square, the direction normalised and turned by
     ``rotation (3, 3)`` (environment frame to world): density
     ``p(w) = prob[t] (size^2 / 4) (1 + u^2 + v^2)^(3/2)``. A direction below the point's
@@ -1331,9 +1369,9 @@ def environment_samples(
     contributes ``radiance[texel of w] cos / (density L)`` and a shadow ray toward ``w``
     (unless ``cos = 0`` or the density is 0).
 
-    ``points (n, 3)`` and their ``normals``, ``random (n, L, 3)``, ``guide`` the cdf's
-    :func:`guide_table`. Returns ``point (k,)``, the shadow rays' ``origins`` (the points) and
-    ``directions (k, 3)``, and ``contribution (k, 3)`` of the samples that count.
+    ``points (n, 3)`` and their ``normals``, ``random (n, L, 3)``. Returns ``point (k,)``, the
+    shadow rays' ``origins`` (the points) and ``directions (k, 3)``, and ``contribution (k, 3)``
+    of the samples that count.
     """
     n, ns = random.shape[0], random.shape[1]
     cap = n * ns
@@ -1342,15 +1380,22 @@ def environment_samples(
     dirs = np.empty((cap, 3))
     contrib = np.empty((cap, 3))
     m = size
+    mm = m * m
+    nt = 6 * mm
     step = 2.0 / m
     area = 0.25 * m * m
+    # (the identity, an unrotated environment, is skipped: a sample costs a third less)
+    rotated = not (rotation[0, 0] == 1.0 and rotation[1, 1] == 1.0 and rotation[2, 2] == 1.0)
     k = 0
     for i in range(n):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         for s in range(ns):
-            t = _search_right(cdf, guide, random[i, s, 0])
-            face = t // (m * m)
-            rest = t - face * m * m
+            x = random[i, s, 0] * nt
+            t = min(int(x), nt - 1)
+            if not x - t < accept[t]:
+                t = alias[t]
+            face = t // mm
+            rest = t - face * mm
             row = rest // m
             col = rest - row * m
             u = -1.0 + (col + random[i, s, 1]) * step
@@ -1358,21 +1403,25 @@ def environment_samples(
             q = 1.0 + u * u + v * v
             sq = math.sqrt(q)
             inv = 1.0 / sq
-            d0 = (face_normals[face, 0] + u * face_u[face, 0] + v * face_v[face, 0]) * inv
-            d1 = (face_normals[face, 1] + u * face_u[face, 1] + v * face_v[face, 1]) * inv
-            d2 = (face_normals[face, 2] + u * face_u[face, 2] + v * face_v[face, 2]) * inv
-            wx = rotation[0, 0] * d0 + rotation[0, 1] * d1 + rotation[0, 2] * d2
-            wy = rotation[1, 0] * d0 + rotation[1, 1] * d1 + rotation[1, 2] * d2
-            wz = rotation[2, 0] * d0 + rotation[2, 1] * d1 + rotation[2, 2] * d2
+            wx = (face_normals[face, 0] + u * face_u[face, 0] + v * face_v[face, 0]) * inv
+            wy = (face_normals[face, 1] + u * face_u[face, 1] + v * face_v[face, 1]) * inv
+            wz = (face_normals[face, 2] + u * face_u[face, 2] + v * face_v[face, 2]) * inv
+            if rotated:
+                d0, d1, d2 = wx, wy, wz
+                wx = rotation[0, 0] * d0 + rotation[0, 1] * d1 + rotation[0, 2] * d2
+                wy = rotation[1, 0] * d0 + rotation[1, 1] * d1 + rotation[1, 2] * d2
+                wz = rotation[2, 0] * d0 + rotation[2, 1] * d1 + rotation[2, 2] * d2
             cos = wx * nx + wy * ny + wz * nz
             if cos == 0.0 or math.isnan(cos):
                 continue
             pdf = prob[t] * area * q * sq  # the drawn direction's density
             # its mirror in the tangent plane, in the environment frame (rotation^T)
             rx, ry, rz = wx - 2.0 * cos * nx, wy - 2.0 * cos * ny, wz - 2.0 * cos * nz
-            ex = rotation[0, 0] * rx + rotation[1, 0] * ry + rotation[2, 0] * rz
-            ey = rotation[0, 1] * rx + rotation[1, 1] * ry + rotation[2, 1] * rz
-            ez = rotation[0, 2] * rx + rotation[1, 2] * ry + rotation[2, 2] * rz
+            ex, ey, ez = rx, ry, rz
+            if rotated:
+                ex = rotation[0, 0] * rx + rotation[1, 0] * ry + rotation[2, 0] * rz
+                ey = rotation[0, 1] * rx + rotation[1, 1] * ry + rotation[2, 1] * rz
+                ez = rotation[0, 2] * rx + rotation[1, 2] * ry + rotation[2, 2] * rz
             tr, qr = _environment_texel(ex, ey, ez, m, face_u, face_v)
             pdf += prob[tr] * area * qr
             if cos < 0.0:  # below the horizon: the mirror is the sample

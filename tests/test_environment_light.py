@@ -63,11 +63,13 @@ def test_folded_samples_cover_the_hemisphere_once(normal):
     faces = rng.gamma(0.7, 1.0, (6, 8, 8, 3)).astype(np.float32) + 0.05
     faces[2, 3, 4] = 300.0
     light = EnvironmentLight(Environment(faces=faces, rotation=0.7), 8)
-    k = 400_000
+    k = 1_000_000
     n = np.array([normal], float) / np.linalg.norm(normal)
     d, _, pdf = light.sample_above(rng.random((1, k, 3)), n)
     assert np.all(d[0] @ n[0] >= 0) and np.all(pdf > 0)
-    np.testing.assert_allclose(np.mean(1.0 / pdf), 2 * np.pi, rtol=0.01)
+    # (1 / density is heavy-tailed where the sun makes the rest rare: 2 %; without the
+    # mirror's term the mean is 2.5-5x too high here)
+    np.testing.assert_allclose(np.mean(1.0 / pdf), 2 * np.pi, rtol=0.02)
 
 
 def test_sampled_irradiance_is_shadowed():

@@ -436,6 +436,27 @@ def test_cosine_directions_match_numpy() -> None:
     assert cos.min() >= 0 and abs(cos.mean() - 2 / 3) < 0.01
 
 
+def test_alias_table_draws_each_entry_with_its_probability() -> None:
+    """Walker's alias table (Vose): the probability it gives each entry, accept / N plus the
+    refused shares aliased to it, is the distribution's; zero-probability entries (a black
+    ground) are never drawn, also on a fine sweep of the uniform."""
+    from probegrid.kernels import alias_table
+
+    rng = np.random.default_rng(21)
+    for prob in (rng.gamma(0.3, 1.0, 6 * 64 * 64), np.r_[np.zeros(7), 1.0, np.zeros(3)],
+                 np.full(5, 0.2)):
+        prob = prob / prob.sum()
+        accept, alias = alias_table(prob)
+        n = len(prob)
+        got = accept / n
+        np.add.at(got, alias, (1.0 - accept) / n)
+        np.testing.assert_allclose(got, prob, rtol=0, atol=1e-15)
+        x = (np.arange(1_000_000) + 0.5) / 1_000_000 * n
+        t = np.minimum(x.astype(np.int64), n - 1)
+        t = np.where(x - t < accept[t], t, alias[t])
+        assert np.all(prob[t] > 0)
+
+
 def test_gather_rays_start_off_their_parents_and_follow_the_cosine() -> None:
     """The gather's rays from chosen parent hits: origins ``p - eps arriving + eps n`` and the
     cosine directions about the parents' (float32) normals, row by row."""
@@ -472,7 +493,7 @@ def test_environment_samples_match_the_numpy_sampler() -> None:
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     r = rng.random((n, ls, 3))
     pts = rng.normal(size=(n, 3))
-    which, org, dirs, contrib = environment_samples(pts, nrm, r, light._cdf, light._guide,
+    which, org, dirs, contrib = environment_samples(pts, nrm, r, light._accept, light._alias,
                                                     light._prob, light.radiance, light.size,
                                                     light._rotation, FACE_NORMALS, FACE_U,
                                                     FACE_V)

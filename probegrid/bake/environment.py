@@ -16,7 +16,8 @@ The environment as a light (:class:`EnvironmentLight`)
 -----------------------------------------------------
 Surface points are lit by the environment through explicit sampling, as they are by the
 emitters: directions are drawn from the environment itself (a texel of its
-:data:`LIGHT_SIZE`-face box-filtered cube picked in proportion to ``luminance * solid angle``,
+:data:`LIGHT_SIZE`-face box-filtered cube picked in proportion to ``luminance * solid angle``
+through an alias table (:func:`probegrid.kernels.alias_table`),
 a uniform point in that texel's face square), each tested by a shadow ray, and
 
     E = (1 / L) sum_i L_i max(0, n . w_i) V_i / p(w_i),
@@ -54,7 +55,7 @@ from probegrid.core.cubemap import (
 )
 from probegrid.core.sampling import CubeSampler, resample
 from probegrid.core.sh import rotation_y
-from probegrid.kernels import environment_samples, guide_table, sum_unblocked
+from probegrid.kernels import alias_table, environment_samples, sum_unblocked
 from probegrid.raytrace import RayTracer
 
 __all__ = ["LIGHT_SIZE", "Environment", "EnvironmentLight"]
@@ -182,12 +183,8 @@ class EnvironmentLight:
         self.radiance = radiance
         self.is_black = not total > 0.0
         prob = power / total if total > 0 else power
-        cdf = np.cumsum(prob)
-        if len(cdf):
-            cdf[-1] = 1.0
-        self._cdf = cdf
-        self._guide = guide_table(cdf)
         self._prob = prob
+        self._accept, self._alias = alias_table(prob)
         # environment frame -> world
         self._rotation = rotation_y(env.rotation) if env.rotation else None
         self._to_world = np.eye(3) if self._rotation is None else self._rotation  # (kernel's)
@@ -202,7 +199,10 @@ class EnvironmentLight:
         """
         r = np.asarray(random, dtype=np.float64)
         m = self.size
-        t = np.minimum(np.searchsorted(self._cdf, r[..., 0], side="right"), len(self._cdf) - 1)
+        nt = len(self._prob)
+        x = r[..., 0] * nt  # the alias table's column, then its coin
+        t = np.minimum(x.astype(np.int64), nt - 1)
+        t = np.where(x - t < self._accept[t], t, self._alias[t])
         face, rest = np.divmod(t, m * m)
         row, col = np.divmod(rest, m)
         u = -1.0 + (col + r[..., 1]) * (2.0 / m)
@@ -268,7 +268,7 @@ class EnvironmentLight:
             return out, 0
         which, org, dirs, contrib = environment_samples(
             np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
-            np.ascontiguousarray(random, np.float64), self._cdf, self._guide, self._prob,
+            np.ascontiguousarray(random, np.float64), self._accept, self._alias, self._prob,
             self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V)
         if not which.size:
             return out, 0
