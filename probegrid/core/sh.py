@@ -180,7 +180,8 @@ _CACHE_MAX_SIZE: Final = 512
 #: Fibonacci samples of :func:`min_over_sphere`'s search, and how many of the best are refined.
 _MIN_SAMPLES: Final = 4096
 _MIN_REFINE: Final = 32
-_NEWTON_STEPS: Final = 12
+#: Newton steps (quadratic convergence: 6 gave the same bits as 12 on 5000 random functions).
+_NEWTON_STEPS: Final = 8
 _MIN_CHANNEL_BLOCK: Final = 256
 
 
