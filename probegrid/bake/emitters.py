@@ -278,7 +278,7 @@ class Emitters:
         for sub in (VIEW_SUBDIVISION, 1):
             m = n * sub
             limit = 24 * n * n if sub > 1 else np.inf
-            cap = 256
+            cap = 24 * n * n  # (room for what the sub-texel pass keeps: one call, not two)
             while True:
                 count, tex, tri, omega, dirs, dist = texel_emitter_coverage(
                     o, self.vertices, self.normals, m, FACE_NORMALS, FACE_U, FACE_V, cap)
