@@ -20,15 +20,16 @@ documentation of the maths; ``tests/test_kernels.py`` compares the two on random
 * :func:`light_rays` -- :func:`probegrid.core.lights.incident_many` and the choice of shadow
   rays; :func:`replay_radiance` -- a bounce's pass over the per-hit records.
 * :func:`cube_sample_directions`, :func:`texel_means`, :func:`distance_moments`,
-  :func:`split_hits`, :func:`shade_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s conversions),
-  per-texel means, distance moments and the backface rule.
+  :func:`split_hits` -- the render's sample pattern (:mod:`probegrid.core.cubemap`'s
+  conversions), per-texel means, distance moments and the backface rule;
+  :func:`shade_hits` -- :func:`split_hits` and :func:`hit_surfaces` in one pass into the records.
 * :func:`embree_rays`, :func:`embree_hits` -- :class:`probegrid.raytrace.RayTracer`'s
   conversions to and from Embree's float32 rays (tested through the tracer).
 * :func:`emitter_samples`, :func:`emitter_estimate`, :func:`environment_samples`,
-  :func:`sum_unblocked`, :func:`cosine_directions`, :func:`gather_rays` -- the light sampled at hits
-  (:class:`probegrid.bake.emitters.Emitters`,
-  :class:`probegrid.bake.environment.EnvironmentLight`: ``searchsorted`` through a cut-point
-  table, :func:`guide_table`) and the final gather's directions.
+  :func:`sum_unblocked`, :func:`cosine_directions`, :func:`gather_rays` -- the light sampled at
+  hits (:class:`probegrid.bake.emitters.Emitters`: ``searchsorted`` through a cut-point table,
+  :func:`guide_table`; :class:`probegrid.bake.environment.EnvironmentLight`: an alias table,
+  :func:`alias_table`) and the final gather's rays.
 
 Floating point: float64 throughout (float32 only where the data is), with FMA contraction and
 reciprocal multiplication allowed (``fastmath={"contract", "arcp"}``; no other fast-math flag,
@@ -100,6 +101,25 @@ def _face_uv(dx: float, dy: float, dz: float, face_u: NDArray[np.float64],
 
 
 @numba.njit(**_JIT)
+def _barycentric(values: NDArray[np.float64], a: int, b: int, c: int, w0: float, w1: float,
+                 w2: float, k: int) -> float:
+    """Component ``k`` of ``w0 values[a] + w1 values[b] + w2 values[c]`` (a point's vertex
+    attribute, interpolated over its triangle)."""
+    return w0 * values[a, k] + w1 * values[b, k] + w2 * values[c, k]
+
+
+@numba.njit(**_JIT)
+def _hit_side(tri_normals: NDArray[np.float64], t: int, dx: float, dy: float, dz: float,
+              double_sided: NDArray[np.bool_]) -> tuple[int, float]:
+    """The backface rule for a ray along ``d`` that hits triangle ``t``: kind 1 (front, or the
+    back of a double-sided triangle) or 2 (the back of a one-sided triangle: black), and
+    ``dot(normal as wound, d)`` (> 0: it sees the back, whose normal is turned toward it;
+    < 0: it sees the front, the side that emits)."""
+    d = tri_normals[t, 0] * dx + tri_normals[t, 1] * dy + tri_normals[t, 2] * dz
+    return (2 if d > 0 and not double_sided[t] else 1), d
+
+
+@numba.njit(**_JIT)
 def hit_surfaces(
     prim: NDArray[np.int64],
     u: NDArray[np.float64],
@@ -143,11 +163,11 @@ def hit_surfaces(
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         m = material[t]
         for k in range(3):
-            pos[i, k] = w0 * vertices[a, k] + w1 * vertices[b, k] + w2 * vertices[c, k]
+            pos[i, k] = _barycentric(vertices, a, b, c, w0, w1, w2, k)
             nrm[i, k] = tri_normals[t, k]
             f = base_color[m, k]
             if has_colors:
-                f *= w0 * colors[a, k] + w1 * colors[b, k] + w2 * colors[c, k]
+                f *= _barycentric(colors, a, b, c, w0, w1, w2, k)
             alb[i, k] = f
             emi[i, k] = emissive[m, k]
     return pos, nrm, alb, emi
@@ -1538,12 +1558,11 @@ def split_hits(
         t = prim[i]
         if t < 0:
             continue
-        d = (tri_normals[t, 0] * directions[i, 0] + tri_normals[t, 1] * directions[i, 1]
-             + tri_normals[t, 2] * directions[i, 2])
-        if d > 0 and not double_sided[t]:
-            kind[i] = 2
+        side, d = _hit_side(tri_normals, t, directions[i, 0], directions[i, 1],
+                            directions[i, 2], double_sided)
+        kind[i] = side
+        if side == 2:
             continue
-        kind[i] = 1
         rows[f] = i
         flip[f] = d > 0
         emits[f] = d < 0
@@ -1600,12 +1619,11 @@ def shade_hits(
             distance[i] = max_distance
             continue
         distance[i] = min(t_hit[i], max_distance)
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        d = tri_normals[t, 0] * dx + tri_normals[t, 1] * dy + tri_normals[t, 2] * dz
-        if d > 0 and not double_sided[t]:
-            kind[i] = 2
+        side, d = _hit_side(tri_normals, t, directions[i, 0], directions[i, 1],
+                            directions[i, 2], double_sided)
+        kind[i] = side
+        if side == 2:
             continue
-        kind[i] = 1
         rows[f] = i
         sign = -1.0 if d > 0 else 1.0
         w1, w2 = u[i], v[i]
@@ -1613,7 +1631,7 @@ def shade_hits(
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         m = material[t]
         for j in range(3):
-            pj = w0 * vertices[a, j] + w1 * vertices[b, j] + w2 * vertices[c, j]
+            pj = _barycentric(vertices, a, b, c, w0, w1, w2, j)
             nj = sign * tri_normals[t, j]
             pts[f, j] = pj
             nrm[f, j] = nj
@@ -1622,7 +1640,7 @@ def shade_hits(
             normal[i, j] = nj
             al = base_color[m, j]
             if has_colors:
-                al *= w0 * colors[a, j] + w1 * colors[b, j] + w2 * colors[c, j]
+                al *= _barycentric(colors, a, b, c, w0, w1, w2, j)
             albedo[i, j] = al
             emission[i, j] = emissive[m, j] if d < 0 else 0.0
         f += 1

@@ -210,7 +210,7 @@ class EnvironmentLight:
         d = (FACE_NORMALS[face] + u[..., None] * FACE_U[face] + v[..., None] * FACE_V[face])
         q = 1.0 + u * u + v * v
         d /= np.sqrt(q)[..., None]
-        pdf = self._prob[t] * (0.25 * m * m) * q ** 1.5
+        pdf = self._density(t, q ** 1.5)
         if self._rotation is not None:
             d = d @ self._rotation.T
         return d, self.radiance[t], pdf
@@ -228,15 +228,11 @@ class EnvironmentLight:
         row = np.clip(((v + 1.0) * 0.5 * m).astype(np.int64), 0, m - 1)
         return (face * m + row) * m + col, (1.0 + u * u + v * v) ** 1.5
 
-    def density(self, directions: NDArray[np.float64]) -> NDArray[np.float64]:
-        """:meth:`sample`'s density over solid angle at unit world ``directions (..., 3)``."""
-        t, factor = self._texels(directions)
-        return self._prob[t] * (0.25 * self.size * self.size) * factor
-
-    def radiance_of(self, directions: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The sampled (piecewise-constant) environment's radiance at unit world
-        ``directions (..., 3)``."""
-        return self.radiance[self._texels(directions)[0]]
+    def _density(self, texels: NDArray[np.int64], factor: NDArray[np.float64]
+                 ) -> NDArray[np.float64]:
+        """:meth:`sample`'s density over solid angle in ``texels`` at points whose
+        ``(1 + u^2 + v^2)^(3/2)`` is ``factor``: ``P_texel (m^2 / 4) factor``."""
+        return self._prob[texels] * (0.25 * self.size * self.size) * factor
 
     def sample_above(self, random: NDArray[np.float64], normals: NDArray[np.float64]
                      ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -249,10 +245,11 @@ class EnvironmentLight:
         nrm = np.asarray(normals, dtype=np.float64)[:, None, :]
         cos = np.sum(d * nrm, axis=-1, keepdims=True)
         mirror = d - 2.0 * cos * nrm
-        total = pdf + self.density(mirror)
+        t, factor = self._texels(mirror)
+        total = pdf + self._density(t, factor)
         below = cos < 0
         up = np.where(below, mirror, d)
-        rad = np.where(below, self.radiance_of(mirror), rad)
+        rad = np.where(below, self.radiance[t], rad)
         return up, rad, np.where(cos[..., 0] == 0, 0.0, total)
 
     def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64],

@@ -173,6 +173,16 @@ def gather_depth(records: dict[str, NDArray[Any]]) -> int:
 Draw = Callable[[NDArray[np.int64]], NDArray[np.float64]]
 
 
+def _light_draw(draw: Callable[[int, int, int, NDArray[np.int64]], NDArray[np.float64]],
+                purpose: int, per: int, samples: int) -> Draw | None:
+    """The random numbers of ``samples`` light samples per ray (3 each: :meth:`RecordTracer.trace`'s
+    ``draw`` of one purpose, ``per`` rays per probe) as a :data:`Draw` of ``(k, samples, 3)``;
+    None for no sample."""
+    if not samples:
+        return None
+    return lambda rows: draw(purpose, per, samples * 3, rows).reshape(-1, samples, 3)
+
+
 def _new_records(k: int) -> dict[str, NDArray[Any]]:
     """Empty records (:data:`_RECORD_KEYS`) of ``k`` rays: misses."""
     return {
@@ -336,20 +346,26 @@ def _hold(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
             _held_bytes[0] -= old[1]
         size = _nbytes(records)
         if size > RECORDS_MEMORY:  # larger than all it may hold: not held
-            if _memory_only.get(key[0]) == key[1]:
-                _write_block(Path(key[0]), records, key[1])
-                del _memory_only[key[0]]
+            _spill(key, records)
             return
         _held[key] = (records, size)
         _held_bytes[0] += size
         while _held_bytes[0] > RECORDS_MEMORY and _held:  # the least recently used go first
-            (where, token), (gone, nbytes) = _held.popitem(last=False)
+            gone, (old_records, nbytes) = _held.popitem(last=False)
             _held_bytes[0] -= nbytes
-            if _memory_only.get(where) == token:
-                del _memory_only[where]
-                if Path(where).parent.parent.is_dir():  # (else its bake's files are gone)
-                    shutil.rmtree(where, ignore_errors=True)  # (files of an earlier bake)
-                    _write_block(Path(where), gone, token)
+            _spill(gone, old_records)
+
+
+def _spill(key: tuple[str, str], records: dict[str, NDArray[Any]]) -> None:
+    """A block leaving this process's memory (``_held_lock`` held): if it was held without
+    files, written to its directory now (unless its bake's directory is gone)."""
+    where, token = key
+    if _memory_only.get(where) != token:
+        return  # (its files are the reference)
+    del _memory_only[where]
+    if Path(where).parent.parent.is_dir():
+        shutil.rmtree(where, ignore_errors=True)  # (files of an earlier bake)
+        _write_block(Path(where), records, token)
 
 
 def _drop(path: Path) -> None:
@@ -584,15 +600,10 @@ class RecordTracer:
         per = rays_per_probe * kg
         org, dirs = gather_rays(above["position"], above["normal"], arriving, parents,
                                 draw(purposes[0], per, 2, rows), eps)
-
-        def draw_e(r: NDArray[np.int64]) -> NDArray[np.float64]:
-            return draw(purposes[1], per, 3, r).reshape(-1, 1, 3)
-
-        def draw_s(r: NDArray[np.int64]) -> NDArray[np.float64]:
-            return draw(purposes[2], per, 3, r).reshape(-1, 1, 3)
-
-        rec, _, rays = self._shade_all(org, dirs, rows, draw_e if emitters else None,
-                                       draw_s if sky else None, sky_at_misses=False)
+        rec, _, rays = self._shade_all(org, dirs, rows,
+                                       _light_draw(draw, purposes[1], per, int(emitters)),
+                                       _light_draw(draw, purposes[2], per, int(sky)),
+                                       sky_at_misses=False)
         return rec, dirs, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
@@ -629,14 +640,8 @@ class RecordTracer:
                 keys[purpose] = _stream_keys(st.seed, idx, purpose)
             return stream_uniforms(keys[purpose], per, rows, width)
 
-        def draw_e(r: NDArray[np.int64]) -> NDArray[np.float64]:
-            return draw(1, nr, ls * 3, r).reshape(-1, ls, 3)
-
-        def draw_s(r: NDArray[np.int64]) -> NDArray[np.float64]:
-            return draw(2, nr, ks * 3, r).reshape(-1, ks, 3)
-
         rec, t, rays = self._shade_all(origins, flat, np.arange(b * nr),
-                                       draw_e if ls else None, draw_s if ks else None,
+                                       _light_draw(draw, 1, nr, ls), _light_draw(draw, 2, nr, ks),
                                        sky_at_misses=True)
         if kg:
             # final gather (module docstring): kg rays from every front hit, one more from each
