@@ -48,7 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from probegrid.kernels import embree_hits, embree_rays, segment_rays
 
-__all__ = ["Hits", "RayTracer"]
+__all__ = ["EmbreeRays", "Hits", "RayTracer"]
 
 _DEFAULT_CHUNK: Final[int] = 1 << 16
 _MAX_CHUNK: Final[int] = 1 << 22
@@ -61,6 +61,20 @@ class Hits(NamedTuple):
     t: NDArray[np.float64]
     u: NDArray[np.float64]
     v: NDArray[np.float64]
+
+
+class EmbreeRays(NamedTuple):
+    """Rays already as Embree takes them (:meth:`RayTracer.occluded_rays`): written by the
+    compiled kernels that make them (:func:`probegrid.kernels._embree_ray`, the one rounding
+    rule, the same as :meth:`RayTracer.occluded`'s), so no float64 copy is made and converted.
+
+    ``origins (k, 3) float32``: ``(origin - tracer.centre) + tmin direction`` in float64,
+    rounded once; ``directions (k, 3) float32``; ``lengths (k,) float32``: ``tmax - tmin``
+    (inf: no end)."""
+
+    origins: NDArray[np.float32]
+    directions: NDArray[np.float32]
+    lengths: NDArray[np.float32]
 
 
 class RayTracer:
@@ -82,6 +96,9 @@ class RayTracer:
     triangles : (T, 3) int64, read-only
     normals : (T, 3) float64, read-only
         Unit geometric normals ``(b - a) x (c - a)``; zero for degenerate triangles.
+    centre : (3,) float64, read-only
+        The bounding box's centre, on which the float32 geometry and rays are re-centred
+        (:class:`EmbreeRays`).
     """
 
     def __init__(
@@ -113,7 +130,8 @@ class RayTracer:
         self.vertices: NDArray[np.float64] = v
         self.triangles: NDArray[np.int64] = t
         self.chunk_size = int(chunk_size)
-        self._centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        self.centre: NDArray[np.float64] = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        self.centre.setflags(write=False)
         p = v[t]
         n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         length = np.linalg.norm(n, axis=1, keepdims=True)
@@ -124,7 +142,7 @@ class RayTracer:
         self._scene = rtcore_scene.EmbreeScene()
         TriangleMesh(
             scene=self._scene,
-            vertices=np.ascontiguousarray(v - self._centre, dtype=np.float32),
+            vertices=np.ascontiguousarray(v - self.centre, dtype=np.float32),
             indices=np.ascontiguousarray(t, dtype=np.int32),
         )
 
@@ -205,7 +223,7 @@ class RayTracer:
         org, dir32, far, ok = embree_rays(
             o if len(o) == 1 else o[s:e], d[s:e],
             lo.reshape(1) if lo.ndim == 0 else lo[s:e],
-            hi.reshape(1) if hi.ndim == 0 else hi[s:e], self._centre)
+            hi.reshape(1) if hi.ndim == 0 else hi[s:e], self.centre)
         if not ok:
             raise ValueError("ray origins and directions must be finite (and within float32).")
         # (tmax = inf stays inf; tmax <= tmin never hits)
@@ -279,6 +297,24 @@ class RayTracer:
             out[s:e] = self._scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
         return out.reshape(shape)
 
+    def occluded_rays(self, rays: EmbreeRays, ok: bool = True) -> NDArray[np.bool_]:
+        """:meth:`occluded` of rays already as Embree takes them (:class:`EmbreeRays`, from
+        this tracer's :attr:`centre`), ``chunk_size`` at a time; ``ok``: the flag their kernel
+        returned, False when one is not finite in float32 (refused as :meth:`occluded` refuses
+        it). Returns ``(k,) bool``."""
+        if not ok:
+            raise ValueError("ray origins and directions must be finite (and within float32).")
+        org, dirs, far = rays
+        n = len(far)
+        if n <= self.chunk_size:  # the common case: one call
+            return self._scene.run(org, dirs, dists=far.copy(), query="OCCLUDED") >= 0
+        out = np.empty(n, dtype=bool)
+        for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, n)
+            out[s:e] = self._scene.run(org[s:e], dirs[s:e], dists=far[s:e].copy(),
+                                       query="OCCLUDED") >= 0
+        return out
+
     def segments_occluded(
         self, starts: ArrayLike, ends: ArrayLike, *, margin: float = 0.0
     ) -> NDArray[np.bool_]:
@@ -313,7 +349,7 @@ class RayTracer:
                              f"(1, 3)), got {a.shape} and {b.shape}.")
         if not (math.isfinite(margin) and 0 <= margin < 1e30):
             raise ValueError(f"margin must be finite and >= 0, got {margin!r}.")
-        org, dirs, far, ok = segment_rays(a, b, float(margin), self._centre)
+        org, dirs, far, ok = segment_rays(a, b, float(margin), self.centre)
         if not ok:
             raise ValueError("segment end points must be finite (and within float32).")
         live = far > 0

@@ -111,6 +111,18 @@ def test_split_hits_sorts_misses_fronts_and_one_sided_backs() -> None:
     assert emits.tolist() == [True, False, True, False]  # (edge-on: neither flipped nor lit)
 
 
+def _assert_embree_rays(rays, origins, directions, tmin, tmax, centre) -> None:
+    """Rays written as Embree takes them (raytrace.EmbreeRays: float32, re-centred on
+    ``centre``, moved to ``tmin``) are the float64 rays ``origins + t directions``,
+    ``tmin <= t <= tmax``, to float32 rounding."""
+    org, dirs, length = rays
+    assert org.dtype == dirs.dtype == length.dtype == np.float32
+    want = (origins - centre) + np.reshape(tmin, (-1, 1)) * directions
+    np.testing.assert_allclose(org, want, rtol=0, atol=4e-7 * max(1.0, np.abs(want).max()))
+    np.testing.assert_allclose(dirs, directions, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(length, np.broadcast_to(tmax - tmin, length.shape), rtol=1e-6)
+
+
 def test_light_rays_match_incident_many() -> None:
     """The shadow-ray set-up equals lights.incident_many plus the renderer's selection rule."""
     from probegrid.core.lights import (
@@ -136,9 +148,11 @@ def test_light_rays_match_incident_many() -> None:
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     eps = 1e-3
     pk = pack_lights(lights)
-    which, org, dirs, tmax, irr = light_rays(
+    centre = np.array([0.3, -0.2, 0.5])
+    which, org, dirs, length, irr, ok = light_rays(
         pts, nrm, pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
-        pk.angle_scale, pk.angle_offset, eps)
+        pk.angle_scale, pk.angle_offset, eps, centre)
+    assert ok
 
     d_ref, e_ref, dist_ref = incident_many(lights, pts)
     cos = np.einsum("pli,pi->pl", d_ref, nrm)
@@ -146,10 +160,9 @@ def test_light_rays_match_incident_many() -> None:
     pi, li = np.nonzero(lit)  # the same (point, light) order as the kernel's loops
     assert len(which) == len(pi) > n // 4
     np.testing.assert_array_equal(which, pi)
-    np.testing.assert_allclose(dirs, d_ref[pi, li], rtol=0, atol=1e-14)
-    np.testing.assert_allclose(org, pts[pi] + eps * nrm[pi], rtol=0, atol=1e-14)
     ref_tmax = np.where(np.isfinite(dist_ref[pi, li]), dist_ref[pi, li] - eps, np.inf)
-    np.testing.assert_allclose(tmax, ref_tmax, rtol=1e-14)
+    _assert_embree_rays((org, dirs, length), pts[pi] + eps * nrm[pi], d_ref[pi, li], eps,
+                        ref_tmax, centre)
     np.testing.assert_allclose(irr, cos[pi, li, None] * e_ref[pi, li], rtol=1e-12, atol=1e-300)
     assert not lit[0, 0]  # at the light: neither the reference nor the kernel lights it
 
@@ -327,6 +340,57 @@ def test_replay_kernel_matches_numpy() -> None:
         np.testing.assert_allclose(rad, ref_r, rtol=1e-5)
 
 
+def test_angle_is_atan2_to_the_last_bits() -> None:
+    """kernels._angle (the polygon integrals' atan2 for y >= 0) against numpy.arctan2 over 24
+    decades of both arguments, both signs of x, the reduction's branch points and the zeros:
+    within 1e-15 and 16 units in the last place everywhere, exact at 0, pi / 2 and pi."""
+    import numba
+
+    from probegrid.kernels import _TAN_PI_8, _angle
+
+    @numba.njit
+    def angles(y, x):
+        out = np.empty(y.shape[0])
+        for i in range(y.shape[0]):
+            out[i] = _angle(y[i], x[i])
+        return out
+
+    rng = np.random.default_rng(3)
+    n = 400_000
+    y = np.abs(rng.normal(size=n)) * 10.0 ** rng.uniform(-12, 12, n)
+    x = rng.normal(size=n) * 10.0 ** rng.uniform(-12, 12, n)
+    t = _TAN_PI_8
+    edge_y = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1e-300, 1.0, t, 1.0, t, 1.0, 1.0, 2.0])
+    edge_x = np.array([1.0, -1.0, 0.0, 0.0, -0.0, 1.0, -1e-300, 1.0, t, -1.0, 1.0, -1.0, 3.0])
+    y, x = np.concatenate([y, edge_y]), np.concatenate([x, edge_x])
+    got, ref = angles(y, x), np.arctan2(y, x)
+    assert np.abs(got - ref).max() <= 1e-15
+    assert np.all(np.abs(got - ref) <= 16 * np.spacing(np.maximum(ref, 1e-300)))
+    assert angles(np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, -1.0])).tolist() == [
+        0.0, np.pi / 2, np.pi]
+
+
+def test_turn_is_cos_and_sin_of_the_azimuth() -> None:
+    """kernels._turn (the gather's azimuths) against numpy's cos and sin of 2 pi r: within
+    1e-15 over 10^6 uniform numbers, the quarter turns and the ends of [0, 1)."""
+    import numba
+
+    from probegrid.kernels import _turn
+
+    @numba.njit
+    def turns(r):
+        out = np.empty((r.shape[0], 2))
+        for i in range(r.shape[0]):
+            out[i, 0], out[i, 1] = _turn(r[i])
+        return out
+
+    r = np.concatenate([np.random.default_rng(4).random(1_000_000),
+                        [0.0, 0.125, 0.25, 0.5, 0.75, 1 - 2.0**-53, 1e-300]])
+    got = turns(r)
+    assert np.abs(got[:, 0] - np.cos(2 * np.pi * r)).max() <= 1e-15
+    assert np.abs(got[:, 1] - np.sin(2 * np.pi * r)).max() <= 1e-15
+
+
 def test_emitter_irradiance_is_the_exact_form_factor() -> None:
     """Lambert's edge formula against the closed form of a parallel rectangle, and a triangle
     crossing the receiver's horizon (clipped) against a fine quadrature."""
@@ -493,17 +557,17 @@ def test_environment_samples_match_the_numpy_sampler() -> None:
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     r = rng.random((n, ls, 3))
     pts = rng.normal(size=(n, 3))
-    which, org, dirs, contrib = environment_samples(pts, nrm, r, light._accept, light._alias,
-                                                    light._prob, light.radiance, light.size,
-                                                    light._rotation, FACE_NORMALS, FACE_U,
-                                                    FACE_V)
-    np.testing.assert_array_equal(org, pts[which])
+    centre = np.array([-0.4, 0.1, 0.9])
+    which, org, dirs, length, contrib, ok = environment_samples(
+        pts, nrm, r, light._accept, light._alias, light._prob, light.radiance, light.size,
+        light._rotation, FACE_NORMALS, FACE_U, FACE_V, 1e-3, centre)
+    assert ok
     d, rad, pdf = light.sample_above(r, nrm)
     cos = np.einsum("nlk,nk->nl", d, nrm)
     i, k = np.nonzero((cos > 0) & (pdf > 0))
     assert len(i) > 0.95 * n * ls  # (draws below the horizon are folded above it, not lost)
     np.testing.assert_array_equal(which, i)
-    np.testing.assert_allclose(dirs, d[i, k], rtol=0, atol=1e-14)
+    _assert_embree_rays((org, dirs, length), pts[i], d[i, k], 1e-3, np.inf, centre)
     np.testing.assert_allclose(contrib, rad[i, k] * (cos[i, k] / (pdf[i, k] * ls))[:, None],
                                rtol=1e-12)
 
@@ -534,8 +598,9 @@ def test_emitter_samples_match_surface_sampling() -> None:
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     r = rng.random((n, ls, 3))
     cdf, inv_pdf = em._selection
+    centre = np.array([0.2, 1.0, -0.3])
     got = emitter_samples(pts, nrm, r, cdf, em._guide, inv_pdf, em.vertices, em.normals,
-                          em.factor, em.control, 1e-4)
+                          em.factor, em.control, 1e-4, centre)
     e = np.minimum(np.searchsorted(cdf, r[..., 0], side="right"), len(em) - 1)
     r1 = np.sqrt(r[..., 1])
     surf = em.scene.surface_at(em.triangles[e], r1 * (1 - r[..., 2]), r1 * r[..., 2])
@@ -543,11 +608,18 @@ def test_emitter_samples_match_surface_sampling() -> None:
                                np.ascontiguousarray(em.normals[e]),
                                np.ascontiguousarray(surf.emission),
                                np.ascontiguousarray(em.control[e]),
-                               np.ascontiguousarray(inv_pdf[e]), 1e-4)
+                               np.ascontiguousarray(inv_pdf[e]), 1e-4, centre)
     assert len(got[0]) > n // 2
-    for g, w in zip(got, want, strict=True):
-        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-15)
-    which, _, _, _, vis, occ = got
+    assert got[6][0] and want[6][0]  # every ray finite
+    for g, w in zip(got[:6], want[:6], strict=True):  # (float32 rays: one rounding apart)
+        np.testing.assert_allclose(g, w, rtol=1e-13 if g.dtype == np.float64 else 1e-6,
+                                   atol=1e-15 if g.dtype == np.float64 else 1e-6)
+    which, org, dirs, length, vis, occ, _ = got
+    # each ray leaves its point eps off the surface, a unit direction toward an emitter
+    _assert_embree_rays((org, dirs, length), pts[which] + 1e-4 * nrm[which],
+                        dirs.astype(np.float64), 1e-4, 1e-4 + length.astype(np.float64), centre)
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, rtol=1e-6)
+    assert np.all(np.einsum("ki,ki->k", dirs, nrm[which]) > 0) and np.all(length > 0)
     blocked = rng.random(len(which)) < 0.3
     plain = sum_rows(which, np.where(blocked[:, None], 0.0, vis - occ), n)
     whole = sum_rows(which, -occ, n)

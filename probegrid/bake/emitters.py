@@ -65,7 +65,7 @@ from probegrid.kernels import (
     polygon_irradiance,
     texel_emitter_coverage,
 )
-from probegrid.raytrace import RayTracer
+from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
 __all__ = ["MAX_ANALYTIC", "VIEW_SUBDIVISION", "Emitters", "emitter_outlines"]
@@ -246,14 +246,16 @@ class Emitters:
             rays = emitter_shadow_rays(
                 points, normals, np.ascontiguousarray(surf.position),
                 np.ascontiguousarray(self.normals[e]), np.ascontiguousarray(surf.emission),
-                np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps)
+                np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps,
+                tracer.centre)
         else:  # the same, in one compiled pass
             rays = emitter_samples(points, normals, np.ascontiguousarray(random), cdf,
                                    self._guide, inv_pdf,
-                                   self.vertices, self.normals, self.factor, self.control, eps)
-        which, org, dirs, tmax, vis, occ = rays
-        blocked = (tracer.occluded(org, dirs, tmax, tmin=eps) if len(which)
-                   else np.zeros(0, np.bool_))
+                                   self.vertices, self.normals, self.factor, self.control, eps,
+                                   tracer.centre)
+        which, org, dirs, lengths, vis, occ, ok = rays
+        blocked = (tracer.occluded_rays(EmbreeRays(org, dirs, lengths), bool(ok[0]))
+                   if len(which) else np.zeros(0, np.bool_))
         # with the exact unoccluded integral: it, scaled by the samples' visible share (ratio
         # estimator); where no sample saw the control (all on the point's own plane, say), the
         # control variate's estimate, A + sum of the contributions

@@ -56,7 +56,7 @@ from probegrid.core.cubemap import (
 from probegrid.core.sampling import CubeSampler, resample
 from probegrid.core.sh import rotation_y
 from probegrid.kernels import alias_table, environment_samples, sum_unblocked
-from probegrid.raytrace import RayTracer
+from probegrid.raytrace import EmbreeRays, RayTracer
 
 __all__ = ["LIGHT_SIZE", "Environment", "EnvironmentLight"]
 
@@ -263,11 +263,12 @@ class EnvironmentLight:
         out = np.zeros((n, 3))
         if n == 0 or self.is_black:
             return out, 0
-        which, org, dirs, contrib = environment_samples(
+        which, org, dirs, lengths, contrib, ok = environment_samples(
             np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
             np.ascontiguousarray(random, np.float64), self._accept, self._alias, self._prob,
-            self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V)
+            self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V, float(eps),
+            tracer.centre)
         if not which.size:
             return out, 0
-        blocked = tracer.occluded(org, dirs, np.inf, tmin=eps)
+        blocked = tracer.occluded_rays(EmbreeRays(org, dirs, lengths), ok)
         return sum_unblocked(n, which, blocked, contrib), len(which)

@@ -125,7 +125,7 @@ from probegrid.kernels import (
     sum_unblocked,
     texel_means,
 )
-from probegrid.raytrace import RayTracer
+from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
 __all__ = [
@@ -549,9 +549,10 @@ class RecordTracer:
                 rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
         if not rows.size:
             return rays
-        which, s_org, s_dir, s_tmax, s_irr = light_rays(p, nrm, *rd._lights, eps)
+        which, s_org, s_dir, s_len, s_irr, ok = light_rays(p, nrm, *rd._lights, eps,
+                                                           self.tracer.centre)
         if len(which):
-            occluded = self.tracer.occluded(s_org, s_dir, s_tmax, tmin=eps)
+            occluded = self.tracer.occluded_rays(EmbreeRays(s_org, s_dir, s_len), ok)
             rays += len(which)
             scatter_divided(rec["light_punctual"], rows,
                             sum_unblocked(len(rows), which, occluded, s_irr), np.pi, False)
