@@ -139,6 +139,34 @@ def test_chunking_is_invisible(shared_data: Path) -> None:
     )
 
 
+def test_rays_as_embree_takes_them_are_occluded_as_the_float64_rays(shared_data: Path) -> None:
+    """occluded_rays of rays a kernel wrote as Embree takes them (kernels.embree_rays, the
+    rounding rule of the bake's shadow-ray kernels) answers as occluded does for the same
+    float64 rays, chunked or not, with and without an end; a kernel's not-finite flag is
+    refused with occluded's error."""
+    from probegrid.kernels import embree_rays
+    from probegrid.raytrace import EmbreeRays
+
+    s = load_gltf(shared_data / "gltf" / "CornellBox.glb")
+    rng = np.random.default_rng(5)
+    o = rng.uniform(s.bounds[0] + 1, s.bounds[1] - 1, (2000, 3))
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tmax = np.where(rng.random(2000) < 0.2, np.inf, rng.uniform(0.1, 300.0, 2000))
+    for chunk in (65536, 13):
+        rt = RayTracer.from_scene(s, chunk_size=chunk)
+        org, dirs, far, ok = embree_rays(o, d, np.array([0.01]), tmax, rt.centre)
+        rays = EmbreeRays(org, dirs, far)
+        kept = far.copy()
+        got = rt.occluded_rays(rays, ok)
+        np.testing.assert_array_equal(got, rt.occluded(o, d, tmax, tmin=0.01))
+        assert 0.2 < got.mean() < 0.95
+        np.testing.assert_array_equal(rays.lengths, kept)  # the caller's rays are left as given
+    with pytest.raises(ValueError, match="finite"):
+        rt.occluded_rays(rays, False)
+    assert rt.occluded_rays(EmbreeRays(org[:0], dirs[:0], far[:0])).shape == (0,)
+
+
 def test_pickle_rebuilds(shared_data: Path) -> None:
     s = load_gltf(shared_data / "gltf" / "Cubes.glb")
     rt = RayTracer.from_scene(s)
