@@ -342,6 +342,29 @@ def test_resume_after_a_kill_inside_finish_keeps_the_quality_figures(tmp_path):
     assert "energy" in again.summary()
 
 
+def test_sh_min_is_the_minimum_irradiance_of_the_stored_sh(tmp_path):
+    """The store's sh_min (the quality figure sh_min_irradiance_over_pi) is each probe's
+    minimum of SH irradiance / pi over the sphere: a lower bound of a dense scan (16 384
+    directions) of the stored coefficients, tight to the scan's resolution, per channel."""
+    from probegrid.core import sh
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 2, 2))
+    s = bake(_room_scene(), grid, tmp_path / "m.probes",
+             settings=BakeSettings(bounces=1, **FAST)).store
+    coeffs = np.asarray(s["sh"], np.float64)  # (P, 9, 3)
+    k = np.arange(16384) + 0.5
+    y = 1 - 2 * k / 16384
+    phi = k * np.pi * (3 - np.sqrt(5))
+    r = np.sqrt(1 - y * y)
+    dirs = np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
+    irr = sh.irradiance_coefficients(np.moveaxis(coeffs, 1, 0))  # (9, P, 3)
+    dense = np.einsum("nk,kpc->npc", sh.sh_basis(dirs), irr).min(axis=0) / np.pi
+    got = np.asarray(s["sh_min"], np.float64)
+    scale = np.abs(coeffs[:, 0]).max()
+    assert np.all(got <= dense + 1e-6 * scale)
+    np.testing.assert_allclose(got, dense, rtol=0, atol=2e-3 * scale)
+
+
 class _StopInFinalStage(InlineExecutor):
     """Runs the bake in this process and raises KeyboardInterrupt after the first batch of the
     final stage (the third map of a one-bounce bake), as a Ctrl-C would."""
