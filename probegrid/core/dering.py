@@ -60,7 +60,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.core.sh import A_HAT, BAND_OF, _quadratic_form
+from probegrid.core.sh import A_HAT, BAND_OF, _quadratic_form, dual_maximiser
 
 __all__ = ["DEFAULT_MARGIN", "dering", "irradiance_minimum", "window_path"]
 
@@ -71,7 +71,6 @@ DEFAULT_MARGIN: Final = 1e-4
 #: steps of the dual variable.
 _T_STEPS: Final = 60
 _T_TOL: Final = 1e-10
-_MU_STEPS: Final = 64
 
 
 def _irradiance_forms(coeffs: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
@@ -88,17 +87,7 @@ def _dual_minimum(c: NDArray, beta: NDArray, s: NDArray) -> NDArray[np.float64]:
     """Certified lower bound of ``min_d c + beta . d + sum s_i d_i^2`` on the unit sphere
     (eigenbasis form; see the module docstring), ``(K,)``; tight to rounding."""
     b2 = beta * beta
-    s1 = s[:, 0]
-    lo = s1 - 0.5 * np.sqrt(b2.sum(axis=1))  # D'(lo) >= 0
-    hi = s1.copy()
-    for _ in range(_MU_STEPS):  # bisection on the sign of D'(mu); D'(lo) >= 0 throughout
-        mid = 0.5 * (lo + hi)
-        gap = s - mid[:, None]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            terms = np.where(b2 > 0, b2 / (4.0 * gap * gap), 0.0)
-        up = terms.sum(axis=1) <= 1.0  # D'(mid) >= 0: the maximiser lies above
-        lo = np.where(up, mid, lo)
-        hi = np.where(up, hi, mid)
+    lo = dual_maximiser(beta, s)
     gap = s - lo[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         terms = np.where(b2 > 0, b2 / (4.0 * gap), 0.0)

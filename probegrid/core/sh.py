@@ -132,6 +132,7 @@ __all__ = [
     "WindowKind",
     "auto_window",
     "diffuse_cube",
+    "dual_maximiser",
     "evaluate",
     "irradiance",
     "irradiance_coefficients",
@@ -645,6 +646,50 @@ def _quadratic_form(
     return c, b, s
 
 
+#: Bisection steps of :func:`dual_maximiser` (the interval halves each step: 64 reach float64).
+_MU_STEPS: Final = 64
+
+
+def dual_maximiser(beta: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The maximiser ``mu`` of the Lagrangian dual ``D(mu) = c + mu - sum_i beta_i^2 /
+    (4 (s_i - mu))`` of ``min c + beta . d + sum_i s_i d_i^2`` over unit ``d`` (the quadratic
+    form in the eigenbasis of its matrix, eigenvalues ``s (K, 3)`` ascending, ``beta (K, 3)``):
+    bisection on the sign of ``D'`` over ``[s_1 - |beta| / 2, s_1)``, from the left, so ``D``
+    at the result is a certified lower bound of the minimum, tight to rounding (strong duality:
+    Moré & Sorensen 1983; :mod:`probegrid.core.dering`). ``(K,)``."""
+    b2 = beta * beta
+    s1 = s[:, 0]
+    lo = s1 - 0.5 * np.sqrt(b2.sum(axis=1))  # D'(lo) >= 0
+    hi = s1.copy()
+    for _ in range(_MU_STEPS):  # bisection on the sign of D'(mu); D'(lo) >= 0 throughout
+        mid = 0.5 * (lo + hi)
+        gap = s - mid[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            terms = np.where(b2 > 0, b2 / (4.0 * gap * gap), 0.0)
+        up = terms.sum(axis=1) <= 1.0  # D'(mid) >= 0: the maximiser lies above
+        lo = np.where(up, mid, lo)
+        hi = np.where(up, hi, mid)
+    return lo
+
+
+def _dual_direction(b: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A unit direction near the global minimiser of ``b . d + d^T S d`` (``b (K, 3)``,
+    ``S (K, 3, 3)``) from the dual: ``d_i = -beta_i / (2 (s_i - mu))`` in the eigenbasis at
+    :func:`dual_maximiser`'s ``mu``, completed along the first eigenvector where it is shorter
+    than 1 (the "hard case"), normalised. ``(K, 3)``."""
+    evals, evecs = np.linalg.eigh(s)  # ascending
+    beta = np.einsum("kij,ki->kj", evecs, b)
+    mu = dual_maximiser(beta, evals)
+    gap = evals - mu[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.where(gap > 0, -beta / (2.0 * gap), 0.0)
+    short = np.maximum(0.0, 1.0 - np.sum(x * x, axis=1))
+    x[:, 0] += np.where(x[:, 0] < 0, -1.0, 1.0) * np.sqrt(short)
+    d = np.einsum("kij,kj->ki", evecs, x)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    return np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), evecs[:, :, 0])
+
+
 def _band2_from_matrix(s: NDArray[np.float64]) -> NDArray[np.float64]:
     """Band-2 coefficients (5, K) of traceless symmetric matrices ``s`` (K, 3, 3)."""
     return np.stack(
@@ -722,9 +767,12 @@ def _refine_minimum(
 def min_over_sphere(coeffs: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Minimum over all directions of a band-0-2 SH function, per channel.
 
-    The function is sampled at 4096 Fibonacci directions; the 32 lowest samples of each channel
-    are refined by damped Riemannian Newton steps on the quadratic form the function is on the
-    unit sphere (converging quadratically), and the best result is kept. Pass
+    The function is sampled at 4096 Fibonacci directions; the 32 lowest samples of each channel,
+    and the direction the Lagrangian dual points to (:func:`dual_maximiser`), are refined by
+    damped Riemannian Newton steps on the quadratic form the function is on the unit sphere
+    (converging quadratically), and the best result is kept. (Without the dual's start the
+    search missed the global minimum of 9 in 36 000 ringing probes, by up to 1e-4 of their
+    scale: ``tests/test_sh.py``.) Pass
     :func:`irradiance_coefficients` of ``L`` for the minimum irradiance.
 
     Parameters
@@ -765,12 +813,15 @@ def min_over_sphere(coeffs: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.
             vals += basis[:, i:i + 1] * blk[i]
         best = np.argpartition(vals, m - 1, axis=0)[:m]  # (m, k) sample indices
         c, b, s = _quadratic_form(blk)
-        # One refinement per (channel, candidate), laid out channel-major as (k * m).
-        start = dirs[best.T.reshape(-1)]
+        # One refinement per (channel, candidate), laid out channel-major as (k * (m + 1)):
+        # the m lowest samples and the dual's direction (a narrow global minimum can lie
+        # between the samples, all of the lowest of them in another basin)
+        start = np.concatenate([dirs[best.T], _dual_direction(b, s)[:, None]], axis=1)
         val, d = _refine_minimum(
-            np.repeat(c, m), np.repeat(b, m, axis=0), np.repeat(s, m, axis=0), start
+            np.repeat(c, m + 1), np.repeat(b, m + 1, axis=0), np.repeat(s, m + 1, axis=0),
+            start.reshape(-1, 3)
         )
-        val, d = val.reshape(k, m), d.reshape(k, m, 3)
+        val, d = val.reshape(k, m + 1), d.reshape(k, m + 1, 3)
         pick = np.argmin(val, axis=1)
         vmin[j : j + k] = val[np.arange(k), pick]
         dmin[j : j + k] = d[np.arange(k), pick]
