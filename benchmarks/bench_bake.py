@@ -48,6 +48,7 @@ from probegrid.bake.driver import BakeSettings, bake
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import InlineExecutor, LocalExecutor
 from probegrid.jobs.bake import grid_for, load_environment
+from probegrid.kernels import embree_rays
 from probegrid.scene import Material, Scene, load_gltf
 
 SCENE = REPO / "data" / "sample_room.glb"
@@ -90,14 +91,10 @@ class Recorder:
          raytrace.RayTracer.occluded_rays) = self._orig  # type: ignore
 
     def _keep(self, kind, tr, origins, directions, tmin, tmax) -> None:
-        d = np.asarray(directions, np.float64).reshape(-1, 3)
-        o = np.broadcast_to(np.asarray(origins, np.float64), (*np.shape(directions)[:-1], 3))
-        o = o.reshape(-1, 3)
-        lo = np.broadcast_to(np.asarray(tmin, np.float64), (len(d),))
-        hi = np.broadcast_to(np.asarray(tmax, np.float64), (len(d),))
-        org = (o + lo[:, None] * d - tr.centre).astype(np.float32)
-        far = (hi - lo).astype(np.float32)
-        self.batches.append((kind, org, d.astype(np.float32), far))
+        """The batch as the tracer hands it to Embree (kernels.embree_rays: the same bits)."""
+        _, o, d, lo, hi = tr._rays(origins, directions, tmin, tmax)
+        org, d32, far, _ = embree_rays(o, d, lo.reshape(-1), hi.reshape(-1), tr.centre)
+        self.batches.append((kind, org, d32, far))
 
     @property
     def rays(self) -> int:
