@@ -422,8 +422,8 @@ def _embree_ray(org: NDArray[np.float32], d32: NDArray[np.float32], far: NDArray
     """Ray ``k`` as Embree takes it (:class:`probegrid.raytrace.EmbreeRays`): the origin
     ``(o - centre) + lo d`` in float64, rounded to float32 once, the direction rounded, the
     length ``hi - lo``. Returns whether the origin and direction are finite in float32. The one
-    rounding rule of every ray the bake casts (:func:`embree_rays`, :func:`light_rays`,
-    :func:`emitter_samples`, :func:`environment_samples`)."""
+    rounding rule of every ray cast (:func:`embree_rays`, :func:`light_rays`,
+    :func:`emitter_samples`, :func:`environment_samples`, :func:`segment_rays`)."""
     a0 = np.float32((ox - centre[0]) + lo * dx)
     a1 = np.float32((oy - centre[1]) + lo * dy)
     a2 = np.float32((oz - centre[2]) + lo * dz)
@@ -531,14 +531,10 @@ def segment_rays(
         d1 = ends[i, 1] - starts[j, 1]
         d2 = ends[i, 2] - starts[j, 2]
         lo = margin / max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-30)
-        for k, dk in ((0, d0), (1, d1), (2, d2)):
-            a = np.float32((starts[j, k] - centre[k]) + lo * dk)
-            b = np.float32(dk)
-            org[i, k] = a
-            d32[i, k] = b
-            if not (math.isfinite(a) and math.isfinite(b)):
-                ok = False
-        far[i] = np.float32(1.0 - 2.0 * lo)
+        if not _embree_ray(org, d32, far, i, starts[j, 0], starts[j, 1], starts[j, 2],
+                           d0, d1, d2, lo, 1.0 - lo, centre):
+            ok = False
+        far[i] = np.float32(1.0 - 2.0 * lo)  # (the length as stated above, rounded once)
     return org, d32, far, ok
 # ------------------------------------------------------------------------------ trace once
 @numba.njit(**_JIT)

@@ -304,14 +304,14 @@ class RayTracer:
         it). Returns ``(k,) bool``."""
         if not ok:
             raise ValueError("ray origins and directions must be finite (and within float32).")
-        org, dirs, far = rays
+        org, dirs, far = rays  # (OCCLUDED leaves dists as they are: no copy, as segments_occluded)
         n = len(far)
         if n <= self.chunk_size:  # the common case: one call
-            return self._scene.run(org, dirs, dists=far.copy(), query="OCCLUDED") >= 0
+            return self._scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
         out = np.empty(n, dtype=bool)
         for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
             e = min(s + self.chunk_size, n)
-            out[s:e] = self._scene.run(org[s:e], dirs[s:e], dists=far[s:e].copy(),
+            out[s:e] = self._scene.run(org[s:e], dirs[s:e], dists=far[s:e],
                                        query="OCCLUDED") >= 0
         return out
 

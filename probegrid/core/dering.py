@@ -60,7 +60,7 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.core.sh import A_HAT, BAND_OF, _quadratic_form, dual_maximiser
+from probegrid.core.sh import A_HAT, BAND_OF, _quadratic_form, dual_maximiser, eigen_form
 
 __all__ = ["DEFAULT_MARGIN", "dering", "irradiance_minimum", "window_path"]
 
@@ -78,8 +78,7 @@ def _irradiance_forms(coeffs: NDArray[np.float64]) -> tuple[NDArray, NDArray, ND
     eigenbasis of its band-2 matrix (eigenvalues ascending)."""
     irr = coeffs * A_HAT  # radiance -> irradiance coefficients
     c, b, s = _quadratic_form(np.ascontiguousarray(irr.T))
-    evals, evecs = np.linalg.eigh(s)  # ascending
-    beta = np.einsum("kij,ki->kj", evecs, b)
+    beta, evals, _ = eigen_form(b, s)
     return c, beta, evals
 
 

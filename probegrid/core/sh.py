@@ -133,6 +133,7 @@ __all__ = [
     "auto_window",
     "diffuse_cube",
     "dual_maximiser",
+    "eigen_form",
     "evaluate",
     "irradiance",
     "irradiance_coefficients",
@@ -672,13 +673,21 @@ def dual_maximiser(beta: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray
     return lo
 
 
+def eigen_form(b: NDArray[np.float64], s: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """``b . d + d^T S d`` (``b (K, 3)``, symmetric ``S (K, 3, 3)``) in the eigenbasis of ``S``:
+    ``beta = V^T b (K, 3)``, the eigenvalues ``(K, 3)`` ascending and the eigenvectors ``V``
+    ``(K, 3, 3)`` (columns), the form :func:`dual_maximiser` takes."""
+    evals, evecs = np.linalg.eigh(s)  # ascending
+    return np.einsum("kij,ki->kj", evecs, b), evals, evecs
+
+
 def _dual_direction(b: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
     """A unit direction near the global minimiser of ``b . d + d^T S d`` (``b (K, 3)``,
     ``S (K, 3, 3)``) from the dual: ``d_i = -beta_i / (2 (s_i - mu))`` in the eigenbasis at
     :func:`dual_maximiser`'s ``mu``, completed along the first eigenvector where it is shorter
     than 1 (the "hard case"), normalised. ``(K, 3)``."""
-    evals, evecs = np.linalg.eigh(s)  # ascending
-    beta = np.einsum("kij,ki->kj", evecs, b)
+    beta, evals, evecs = eigen_form(b, s)
     mu = dual_maximiser(beta, evals)
     gap = evals - mu[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
