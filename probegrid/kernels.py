@@ -431,8 +431,10 @@ def _embree_ray(org: NDArray[np.float32], d32: NDArray[np.float32], far: NDArray
     org[k, 0], org[k, 1], org[k, 2] = a0, a1, a2
     d32[k, 0], d32[k, 1], d32[k, 2] = b0, b1, b2
     far[k] = hi - lo
-    return (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2)
-            and math.isfinite(b0) and math.isfinite(b1) and math.isfinite(b2))
+    # finite iff their float64 sum is (six float32 magnitudes cannot overflow it; an inf or
+    # a nan among them makes it inf or nan): one test, no branch per component
+    return math.isfinite((np.float64(a0) + np.float64(a1) + np.float64(a2))
+                         + (np.float64(b0) + np.float64(b1) + np.float64(b2)))
 
 
 @numba.njit(**_JIT)
@@ -812,6 +814,18 @@ _ATAN_P = (-0.33333333333256987, 0.19999999982203043, -0.14285712845711665,
            0.11111053636467254, -0.0908960261715069, 0.07674200140399653,
            -0.06509586311864264, 0.05035419831218217, -0.02544895846987845)
 _TAN_PI_8 = math.tan(math.pi / 8)
+_TAN2_PI_8 = _TAN_PI_8 * _TAN_PI_8
+
+
+@numba.njit(inline="always", **_JIT)
+def _atan_poly(z: float) -> float:
+    """:data:`_ATAN_P`'s ``P(z)`` (``atan(t) = t + t^3 P(t^2)``, ``z = t^2 <= tan(pi / 8)^2``) by
+    Estrin's scheme."""
+    p0, p1, p2, p3, p4, p5, p6, p7, p8 = _ATAN_P
+    z2 = z * z
+    z4 = z2 * z2
+    return (((p0 + p1 * z) + (p2 + p3 * z) * z2) + ((p4 + p5 * z) + (p6 + p7 * z) * z2) * z4
+            + p8 * (z4 * z4))
 
 
 @numba.njit(**_JIT)
@@ -832,13 +846,8 @@ def _angle(y: float, x: float) -> float:
     else:
         t = (y - ax) / (y + ax)
         base = 0.25 * math.pi
-    p0, p1, p2, p3, p4, p5, p6, p7, p8 = _ATAN_P
     z = t * t
-    z2 = z * z
-    z4 = z2 * z2
-    p = (((p0 + p1 * z) + (p2 + p3 * z) * z2) + ((p4 + p5 * z) + (p6 + p7 * z) * z2) * z4
-         + p8 * (z4 * z4))
-    r = base + (t + t * z * p)
+    r = base + (t + t * z * _atan_poly(z))
     return math.pi - r if x < 0 else r
 
 
@@ -859,8 +868,17 @@ def _edge_sum(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: flo
         l2 = cx * cx + cy * cy + cz * cz
         if not l2 > 0:  # (a vertex at the receiver, or a degenerate edge: no area)
             continue
+        d = ax * bx + ay * by + az * bz
+        if l2 <= _TAN2_PI_8 * (d * d) and d > 0:
+            # an edge within pi / 8 of its own start (most, away from the emitter):
+            # theta / |c| = atan(t) / (t d), t^2 = |c|^2 / d^2, is _angle's polynomial in t^2:
+            # no square root, one division
+            inv = 1.0 / d
+            z = l2 * (inv * inv)
+            total += (1.0 + z * _atan_poly(z)) * inv * (cx * nx + cy * ny + cz * nz)
+            continue
         lc = math.sqrt(l2)
-        theta = _angle(lc, ax * bx + ay * by + az * bz)
+        theta = _angle(lc, d)
         total += theta * (cx * nx + cy * ny + cz * nz) / lc
     return total
 
@@ -1438,6 +1456,7 @@ def environment_samples(
     face_normals: NDArray[np.float64],
     face_u: NDArray[np.float64],
     face_v: NDArray[np.float64],
+    mirrors: NDArray[np.int64],
     eps: float,
     centre: NDArray[np.float64],
 ) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32],
@@ -1456,7 +1475,11 @@ def environment_samples(
     horizon is mirrored in its tangent plane, ``w - 2 (n . w) n`` (a reflection: it keeps solid
     angle), so every sample lands above it with density ``p(w) + p(mirror of w)``, and
     contributes ``radiance[texel of w] cos / (density L)`` and a shadow ray toward ``w``
-    (unless ``cos = 0`` or the density is 0).
+    (unless ``cos = 0`` or the density is 0). Where the normal lies along an axis of the
+    environment frame (floors, walls and ceilings, mostly) the mirror is the reflection in a
+    coordinate plane, a symmetry of the cube: the mirror's texel is ``mirrors[axis, t]``
+    (:func:`probegrid.core.cubemap.texel_permutation`, ``(3, 6 size^2)``) and its
+    ``1 + u^2 + v^2`` is the sample's, with no lookup.
 
     ``points (n, 3)`` and their ``normals``, ``random (n, L, 3)``. Returns ``point (k,)``, the
     shadow rays from the points toward the directions (``tmin = eps``, no end) as Embree takes
@@ -1482,6 +1505,18 @@ def environment_samples(
     k = 0
     for i in range(n):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        ex, ey, ez = nx, ny, nz  # the normal in the environment frame (rotation^T)
+        if rotated:
+            ex = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
+            ey = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
+            ez = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
+        axis = -1  # the coordinate plane the mirror reflects in, if any
+        if ey == 0.0 and ez == 0.0:
+            axis = 0
+        elif ex == 0.0 and ez == 0.0:
+            axis = 1
+        elif ex == 0.0 and ey == 0.0:
+            axis = 2
         for s in range(ns):
             x = random[i, s, 0] * nt
             t = min(int(x), nt - 1)
@@ -1510,12 +1545,15 @@ def environment_samples(
             pdf = prob[t] * area * q * sq  # the drawn direction's density
             # its mirror in the tangent plane, in the environment frame (rotation^T)
             rx, ry, rz = wx - 2.0 * cos * nx, wy - 2.0 * cos * ny, wz - 2.0 * cos * nz
-            ex, ey, ez = rx, ry, rz
-            if rotated:
-                ex = rotation[0, 0] * rx + rotation[1, 0] * ry + rotation[2, 0] * rz
-                ey = rotation[0, 1] * rx + rotation[1, 1] * ry + rotation[2, 1] * rz
-                ez = rotation[0, 2] * rx + rotation[1, 2] * ry + rotation[2, 2] * rz
-            tr, qr = _environment_texel(ex, ey, ez, m, face_u, face_v)
+            if axis >= 0:
+                tr, qr = mirrors[axis, t], q * sq
+            else:
+                ex, ey, ez = rx, ry, rz
+                if rotated:
+                    ex = rotation[0, 0] * rx + rotation[1, 0] * ry + rotation[2, 0] * rz
+                    ey = rotation[0, 1] * rx + rotation[1, 1] * ry + rotation[2, 1] * rz
+                    ez = rotation[0, 2] * rx + rotation[1, 2] * ry + rotation[2, 2] * rz
+                tr, qr = _environment_texel(ex, ey, ez, m, face_u, face_v)
             pdf += prob[tr] * area * qr
             if cos < 0.0:  # below the horizon: the mirror is the sample
                 wx, wy, wz, t, cos = rx, ry, rz, tr, -cos

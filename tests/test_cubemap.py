@@ -133,3 +133,28 @@ def test_property_texel_round_trip(face, n, data):
     col = data.draw(st.integers(0, n - 1))
     d = cm.face_uv_to_direction(face, cm.texel_to_uv(col, n), cm.texel_to_uv(row, n))
     assert tuple(int(a) for a in cm.direction_to_texel(d, n)) == (face, row, col)
+
+
+def test_face_symmetries_carry_face_zero_onto_each_face():
+    """S[f] maps +X's frame (normal, u, v) onto face f's, so texel (0, row, col) onto
+    (f, row, col); its texel permutation is one (every texel hit once) and moves each centre
+    to the mapped direction."""
+    from probegrid.core.cubemap import face_symmetries, texel_permutation
+
+    sym = face_symmetries()
+    n = 8
+    d = cm.texel_directions(n).reshape(-1, 3)
+    for f in range(6):
+        s = sym[f]
+        assert np.array_equal(s @ cm.FACE_NORMALS[0], cm.FACE_NORMALS[f])
+        assert np.array_equal(s @ cm.FACE_U[0], cm.FACE_U[f])
+        assert np.array_equal(s @ cm.FACE_V[0], cm.FACE_V[f])
+        perm = texel_permutation(s, n)
+        assert np.array_equal(np.sort(perm), np.arange(6 * n * n))
+        np.testing.assert_allclose(d[perm], d @ s.T, atol=1e-15)
+        assert np.array_equal(perm[:n * n], np.arange(f * n * n, (f + 1) * n * n))
+    mirror = np.diag([1.0, -1.0, 1.0])  # a reflection: +Y and -Y swap, v flips on the sides
+    perm = texel_permutation(mirror, n)
+    np.testing.assert_allclose(d[perm], d @ mirror, atol=1e-15)
+    with pytest.raises(ValueError, match="signed permutation"):
+        texel_permutation(np.eye(3) * 0.5, n)

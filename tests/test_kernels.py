@@ -541,9 +541,11 @@ def test_gather_rays_start_off_their_parents_and_follow_the_cosine() -> None:
     np.testing.assert_allclose(dirs, cosine_directions(n64, r), rtol=0, atol=1e-15)
 
 
-def test_environment_samples_match_the_numpy_sampler() -> None:
+@pytest.mark.parametrize("rotation", [0.7, 0.0])
+def test_environment_samples_match_the_numpy_sampler(rotation: float) -> None:
     """The compiled environment samples are EnvironmentLight.sample_above's directions with
-    the estimator's contributions radiance cos / (p L), for a rotated sky."""
+    the estimator's contributions radiance cos / (p L), for a rotated sky and an unrotated
+    one, with normals along the axes (the mirror by texel permutation) among others."""
     from probegrid.bake.environment import Environment, EnvironmentLight
     from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V
     from probegrid.kernels import environment_samples
@@ -551,16 +553,17 @@ def test_environment_samples_match_the_numpy_sampler() -> None:
     rng = np.random.default_rng(6)
     faces = (rng.random((6, 8, 8, 3)) ** 3).astype(np.float32)
     faces[3] = 0.0  # a black ground: zero-probability texels
-    light = EnvironmentLight(Environment(faces=faces, intensity=2.0, rotation=0.7), 8)
+    light = EnvironmentLight(Environment(faces=faces, intensity=2.0, rotation=rotation), 8)
     n, ls = 400, 3
     nrm = rng.normal(size=(n, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm[::3] = np.repeat(np.vstack([np.eye(3), -np.eye(3)]), 23, axis=0)[:len(nrm[::3])]
     r = rng.random((n, ls, 3))
     pts = rng.normal(size=(n, 3))
     centre = np.array([-0.4, 0.1, 0.9])
     which, org, dirs, length, contrib, ok = environment_samples(
         pts, nrm, r, light._accept, light._alias, light._prob, light.radiance, light.size,
-        light._rotation, FACE_NORMALS, FACE_U, FACE_V, 1e-3, centre)
+        light._to_world, FACE_NORMALS, FACE_U, FACE_V, light._mirrors, 1e-3, centre)
     assert ok
     d, rad, pdf = light.sample_above(r, nrm)
     cos = np.einsum("nlk,nk->nl", d, nrm)

@@ -79,10 +79,26 @@ def test_matrix_is_cached_read_only_and_sized() -> None:
     assert m is probefilter.filter_matrix(16, 4, 5)[0]
     assert not m.flags.writeable and m.dtype == np.float32
     assert sizes == (4, 8, 4, 2, 1)
-    assert m.shape == (6 * (16 + 64 + 16 + 4 + 1), 6 * 16 * 16)
-    ggx = m[6 * 16:]
+    assert m.shape == (16 + 64 + 16 + 4 + 1, 6 * 16 * 16)  # face 0's rows
+    ggx = m[16:]
     np.testing.assert_allclose(ggx.sum(axis=1, dtype=np.float64), 1.0, rtol=1e-6)
     assert np.all(m >= 0)
+
+
+def test_every_face_is_face_zero_after_its_symmetry() -> None:
+    """The six faces come from face 0's rows through the cube's symmetries: a cube that is
+    bright only in one texel lights each face's outputs as a direct sum over the texels would,
+    for every face (the diffuse rows straight from their definition)."""
+    n = 8
+    w = texel_directions(n).reshape(-1, 3)
+    from probegrid.core.cubemap import texel_solid_angles
+    om = texel_solid_angles(n).reshape(-1)
+    rng = np.random.default_rng(3)
+    cube = rng.random((6, n, n, 2)).astype(np.float32)
+    dif, _ = probefilter.filter_cube(cube, 4, 4)
+    d = texel_directions(4).reshape(-1, 3)
+    direct = (np.maximum(d @ w.T, 0.0) * om / np.pi) @ cube.reshape(-1, 2).astype(np.float64)
+    np.testing.assert_allclose(dif.reshape(-1, 2), direct, rtol=1e-5)
 
 
 def test_limits_and_bad_input() -> None:

@@ -51,6 +51,7 @@ from probegrid.core.cubemap import (
     FACE_V,
     check_cube,
     direction_to_face_uv,
+    texel_permutation,
     texel_solid_angles,
 )
 from probegrid.core.sampling import CubeSampler, resample
@@ -185,6 +186,10 @@ class EnvironmentLight:
         prob = power / total if total > 0 else power
         self._prob = prob
         self._accept, self._alias = alias_table(prob)
+        # the texels' mirrors in the three coordinate planes of the environment frame
+        self._mirrors = np.stack([texel_permutation(np.diag(np.where(np.arange(3) == a, -1.0,
+                                                                             1.0)), m)
+                                  for a in range(3)])
         # environment frame -> world
         self._rotation = rotation_y(env.rotation) if env.rotation else None
         self._to_world = np.eye(3) if self._rotation is None else self._rotation  # (kernel's)
@@ -266,8 +271,8 @@ class EnvironmentLight:
         which, org, dirs, lengths, contrib, ok = environment_samples(
             np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
             np.ascontiguousarray(random, np.float64), self._accept, self._alias, self._prob,
-            self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V, float(eps),
-            tracer.centre)
+            self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V,
+            self._mirrors, float(eps), tracer.centre)
         if not which.size:
             return out, 0
         blocked = tracer.occluded_rays(EmbreeRays(org, dirs, lengths), ok)

@@ -65,11 +65,13 @@ __all__ = [
     "direction_to_face_uv",
     "direction_to_texel",
     "downsample",
+    "face_symmetries",
     "face_uv_to_direction",
     "mip_sizes",
     "normalization_cube",
     "solid_angle_integral",
     "texel_directions",
+    "texel_permutation",
     "texel_solid_angles",
     "texel_to_uv",
     "texel_uv",
@@ -196,6 +198,48 @@ def direction_to_texel(
     row = np.clip(np.floor((v + 1.0) * (0.5 * n)), 0, n - 1).astype(np.intp)
     return face, row, col
 
+
+
+@lru_cache(maxsize=1)
+def face_symmetries() -> NDArray[np.float64]:
+    """The symmetries of the cube that carry face 0 (``+X``) onto each face, frame and all.
+
+    Returns
+    -------
+    (6, 3, 3) float64, read-only
+        ``S[f]`` maps face 0's normal, ``u`` and ``v`` axes onto face ``f``'s
+        (``S[f] @ FACE_NORMALS[0] = FACE_NORMALS[f]``, likewise ``FACE_U``, ``FACE_V``): a
+        signed permutation matrix (a rotation or a reflection), so it maps the texel
+        ``(0, row, col)`` of any cube onto the texel ``(f, row, col)`` and the texel grid onto
+        itself (:func:`texel_permutation`). A filter whose weights depend only on the angle
+        between directions acts on face ``f`` as it acts on face 0 after ``S[f]``
+        (:mod:`probegrid.core.probefilter`).
+    """
+    frames = np.stack([FACE_NORMALS, FACE_U, FACE_V], axis=-1)  # (6, 3, 3): columns n, u, v
+    out = np.einsum("fij,kj->fik", frames, frames[0])  # frames[f] @ frames[0].T
+    out.setflags(write=False)
+    return out
+
+
+def texel_permutation(symmetry: ArrayLike, n: int) -> NDArray[np.int64]:
+    """Where a symmetry of the cube sends each texel of an ``n``-cube.
+
+    ``symmetry``: a ``(3, 3)`` signed permutation matrix ``S``. Returns ``(6 n^2,)`` int64:
+    entry ``c`` is the flat index (face-major ``(face, row, col)``) of the texel whose centre is
+    ``S`` applied to texel ``c``'s centre. Raises ``ValueError`` when ``S`` is not a signed
+    permutation (it would not map texels onto texels).
+    """
+    s = np.asarray(symmetry, dtype=np.float64)
+    if (s.shape != (3, 3) or not np.all(np.isin(s, (-1.0, 0.0, 1.0)))
+            or not np.array_equal(np.abs(s).sum(axis=0), np.ones(3))
+            or not np.array_equal(np.abs(s).sum(axis=1), np.ones(3))):
+        raise ValueError(f"a symmetry of the cube is a signed permutation matrix, got {s!r}")
+    d = texel_directions(n).reshape(-1, 3) @ s.T
+    face, row, col = direction_to_texel(d, n)  # texel centres land on texel centres
+    out = ((face * n + row) * n + col).astype(np.int64)
+    if not np.array_equal(np.sort(out), np.arange(6 * n * n)):  # (the float maths must agree)
+        raise AssertionError("the texel map of a cube symmetry is not a permutation")
+    return out
 
 def _check_size(n: int) -> None:
     if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:

@@ -11,19 +11,26 @@ Every probe of a bake goes through the same linear filters at the same face size
   the cube itself.
 
 Both are sums over every input texel ``q`` (centre ``w_q``, exact solid angle ``dOmega_q``), i.e.
-rows of one fixed ``(rows, 6 n^2)`` matrix. For the small faces of probes it pays to compute that
-matrix once per process (float64, each row's GGX weights normalised in float64, then rounded to
-float32; read-only, ``lru_cache``) and to filter ``G`` probes with one matrix product against their
-``(6 n^2, 3 G)`` texels (BLAS sgemm). Measured at ``n = 32`` (8^2 diffuse, 6 levels) on this
-project's 2-core machine: about 1 ms per probe in groups of 8, against about 3.7 ms for
-:func:`~probegrid.core.diffuse.diffuse_exact` plus the tiered :func:`~probegrid.core.specular.ggx_prefilter`
--- and exact (the references themselves, to float32 rounding of the weights and sums) where the
-tiered sum approximates the reference to a few 1e-3. A constant cube comes out constant to float32
-rounding (the GGX rows sum to 1).
+rows of one fixed matrix over the ``6 n^2`` input texels. Their weights depend only on the angle
+between the output and the input direction, so the symmetry of the cube that carries face 0 onto
+face ``f`` (:func:`probegrid.core.cubemap.face_symmetries`, a signed permutation of the axes)
+carries face 0's rows onto face ``f``'s: ``row(f, r)[q] = row(0, r)[pi_f^-1(q)]`` with
+``pi_f`` the texel permutation of that symmetry (:func:`probegrid.core.cubemap.texel_permutation`).
+So only face 0's rows are kept (float64, each row's GGX weights normalised in float64, then
+rounded to float32; computed once per process, read-only, ``lru_cache``), and ``G`` probes are
+filtered by one matrix product of those rows against their texels gathered six ways,
+``(6 n^2, 6 x 3 G)`` (BLAS sgemm): face ``f``'s outputs are face 0's rows applied to the input
+permuted by ``pi_f``. Measured at ``n = 32`` (8^2 diffuse, 6 levels) on this project's 2-core
+machine: about 1 ms per probe in groups of 8 with the full six-face matrix, which streamed 60 MB
+per group and was bound by memory; 0.65 ms with face 0's rows (10 MB) -- against about 3.7 ms
+for :func:`~probegrid.core.diffuse.diffuse_exact` plus the tiered
+:func:`~probegrid.core.specular.ggx_prefilter` -- and exact (the references themselves, to
+float32 rounding of the weights and sums) where the tiered sum approximates the reference to a
+few 1e-3. A constant cube comes out constant to float32 rounding (the GGX rows sum to 1).
 
-Memory: ``(6 d^2 + sum_k 6 (n >> k)^2) x 6 n^2 x 4`` bytes: 60 MB at ``n = 32`` with ``d = 8`` and the
-full chain, 3.8 MB at 16. Larger faces keep the per-call filters (a 64^2 matrix would take about
-1 GB): :func:`supported` says which.
+Memory: ``(d^2 + sum_k (n >> k)^2) x 6 n^2 x 4`` bytes: 10 MB at ``n = 32`` with ``d = 8`` and the
+full chain, 0.6 MB at 16. Larger faces keep the per-call filters (a 64^2 matrix would take about
+170 MB, its six-fold gather per group as much again): :func:`supported` says which.
 """
 
 from __future__ import annotations
@@ -35,7 +42,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from probegrid.core import lobes
 from probegrid.core.arrays import one_blas_thread
-from probegrid.core.cubemap import check_cube, mip_sizes, texel_directions, texel_solid_angles
+from probegrid.core.cubemap import (
+    check_cube,
+    face_symmetries,
+    mip_sizes,
+    texel_directions,
+    texel_permutation,
+    texel_solid_angles,
+)
 
 __all__ = ["MATRIX_VERSION", "MAX_FACE", "describe", "filter_cube", "filter_matrix",
            "filter_matrix_shape", "filter_sizes", "supported"]
@@ -44,7 +58,7 @@ __all__ = ["MATRIX_VERSION", "MAX_FACE", "describe", "filter_cube", "filter_matr
 MAX_FACE = 32
 
 #: Bumped whenever :func:`filter_matrix` would return other bits (keys the per-machine cache).
-MATRIX_VERSION = 1
+MATRIX_VERSION = 2  # 2: face 0's rows alone (the others by symmetry)
 
 #: Rows of the matrix computed together (bounded float64 temporaries: rows x 6 n^2 x 8 bytes).
 _ROWS = 256
@@ -58,7 +72,8 @@ def supported(n: int, diffuse_size: int) -> bool:
 def describe(n: int, diffuse_size: int) -> dict[str, str]:
     """How a bake with face size ``n`` filters its probes (for the store's manifest)."""
     if supported(n, diffuse_size):
-        how = "exact sum over every incoming texel (one cached float32 matrix, probegrid.core.probefilter)"
+        how = ("exact sum over every incoming texel (one cached float32 matrix of face 0's rows,"
+               " the other faces by the cube's symmetry, probegrid.core.probefilter)")
         return {"diffuse": how, "specular": how}
     return {"diffuse": "exact sum over every incoming texel (probegrid.core.diffuse.diffuse_exact)",
             "specular": "tiered multi-resolution sum (probegrid.core.specular.ggx_prefilter)"}
@@ -71,22 +86,23 @@ def filter_sizes(n: int, diffuse_size: int, levels: int) -> tuple[int, ...]:
 
 
 def filter_matrix_shape(n: int, diffuse_size: int, levels: int) -> tuple[int, int]:
-    """Shape of :func:`filter_matrix`'s matrix: its rows (every output texel, face-major) and
-    columns (the ``n``-cube's texels)."""
-    return (sum(6 * s * s for s in filter_sizes(n, diffuse_size, levels)), 6 * int(n) * int(n))
+    """Shape of :func:`filter_matrix`'s matrix: its rows (face 0's output texels of every
+    block) and columns (the ``n``-cube's texels)."""
+    return (sum(s * s for s in filter_sizes(n, diffuse_size, levels)), 6 * int(n) * int(n))
 
 
 @lru_cache(maxsize=2)
 def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.float32],
                                                                      tuple[int, ...]]:
-    """The diffuse and GGX rows for ``n``-cubes; cached, read-only.
+    """Face 0's diffuse and GGX rows for ``n``-cubes; cached, read-only.
 
     Returns
     -------
-    matrix : (6 d^2 + sum_k 6 s_k^2, 6 n^2) float32
-        Rows: the ``d = diffuse_size`` diffuse map, then GGX levels ``k = 1 .. levels - 1``
-        (face ``s_k = n >> k``), each face-major ``(6, s, s)``. Columns: the input texels,
-        face-major.
+    matrix : (d^2 + sum_k s_k^2, 6 n^2) float32
+        Rows: face 0 (``+X``) of the ``d = diffuse_size`` diffuse map, then of GGX levels
+        ``k = 1 .. levels - 1`` (face ``s_k = n >> k``), each ``(s, s)`` row-major. Columns:
+        the input texels, face-major. The other faces' rows are these after
+        :func:`_face_gathers` (module docstring).
     sizes : tuple of int
         ``(d, s_1, ..., s_{levels-1})``.
     """
@@ -101,7 +117,7 @@ def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.fl
     out = np.empty((rows, w.shape[0]), dtype=np.float32)
     r0 = 0
     for k, s in enumerate(sizes):
-        d = texel_directions(s).reshape(-1, 3)
+        d = texel_directions(s)[0].reshape(-1, 3)  # face 0's output texels
         alpha = (0.0 if k == 0 else
                  float(lobes.roughness_to_alpha(lobes.level_roughness(k, len(chain)))))
         for i in range(0, len(d), _ROWS):  # chunks of output texels (bounded temporaries)
@@ -117,6 +133,15 @@ def filter_matrix(n: int, diffuse_size: int, levels: int) -> tuple[NDArray[np.fl
         r0 += len(d)
     out.setflags(write=False)
     return out, sizes
+
+
+@lru_cache(maxsize=4)
+def _face_gathers(n: int) -> NDArray[np.int64]:
+    """``(6 n^2, 6)`` input rows that give face ``f``'s outputs from face 0's rows: column
+    ``f`` is the texel permutation of the symmetry carrying face 0 onto face ``f``."""
+    out = np.stack([texel_permutation(s, n) for s in face_symmetries()], axis=1)
+    out.setflags(write=False)
+    return out
 
 
 def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
@@ -147,11 +172,13 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
         matrix = filter_matrix(n, int(diffuse_size), int(levels))[0]
     elif matrix.shape != (shape := filter_matrix_shape(n, int(diffuse_size), int(levels))):
         raise ValueError(f"the filter matrix has shape {matrix.shape}, expected {shape}")
+    # face f's outputs: face 0's rows applied to the input permuted by face f's symmetry
+    gathered = np.ascontiguousarray(src.reshape(-1, c), dtype=np.float32)[_face_gathers(n)]
     with one_blas_thread():  # workers are processes (cf. specular)
-        y = matrix @ np.ascontiguousarray(src.reshape(-1, c), dtype=np.float32)
+        y = (matrix @ gathered.reshape(-1, 6 * c)).reshape(-1, 6, c)
     parts = []
     r0 = 0
     for s in sizes:
-        parts.append(np.ascontiguousarray(y[r0:r0 + 6 * s * s].reshape(6, s, s, c)))
-        r0 += 6 * s * s
+        parts.append(np.ascontiguousarray(y[r0:r0 + s * s].reshape(s, s, 6, c).transpose(2, 0, 1, 3)))
+        r0 += s * s
     return parts[0], [src.copy(), *parts[1:]]
