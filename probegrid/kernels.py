@@ -30,9 +30,9 @@ documentation of the maths; ``tests/test_kernels.py`` compares the two on random
   :class:`probegrid.raytrace.EmbreeRays`): no float64 copy of them is made and converted.
 * :func:`emitter_samples`, :func:`emitter_estimate`, :func:`environment_samples`,
   :func:`sum_unblocked`, :func:`cosine_directions`, :func:`gather_rays` -- the light sampled at
-  hits (:class:`probegrid.bake.emitters.Emitters`: ``searchsorted`` through a cut-point table,
-  :func:`guide_table`; :class:`probegrid.bake.environment.EnvironmentLight`: an alias table,
-  :func:`alias_table`) and the final gather's rays.
+  hits (:class:`probegrid.bake.emitters.Emitters` and
+  :class:`probegrid.bake.environment.EnvironmentLight` draw from alias tables,
+  :func:`alias_table`, :func:`alias_draw`) and the final gather's rays.
 
 Floating point: float64 throughout (float32 only where the data is, and the rays handed to
 Embree), with FMA contraction and
@@ -54,9 +54,10 @@ import math
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
+    "alias_draw",
     "alias_table",
     "cosine_directions",
     "cube_sample_directions",
@@ -68,7 +69,6 @@ __all__ = [
     "emitter_samples",
     "environment_samples",
     "gather_rays",
-    "guide_table",
     "hit_surfaces",
     "light_rays",
     "mean_per_parent",
@@ -1281,40 +1281,15 @@ def texel_emitter_coverage(
     return count, tex, tri, omega, dirs, dist
 
 
-def guide_table(cdf: NDArray[np.float64]) -> NDArray[np.int64]:
-    """The cut-point table of a cumulative distribution ``cdf (N,)`` (Chen & Asau, 1974):
-    ``guide[j] = searchsorted(cdf, j / N, "right")`` for ``j = 0 .. N``, so that the first
-    index whose cumulative probability exceeds ``x`` lies in ``[guide[j], guide[j + 1]]`` for
-    ``j = floor(x N)``, a range of about one entry (:func:`_search_right`)."""
-    c = np.asarray(cdf, dtype=np.float64)
-    return np.searchsorted(c, np.arange(len(c) + 1) / max(len(c), 1), side="right").astype(
-        np.int64)
-
-
-@numba.njit(**_JIT)
-def _bisect_right(cdf: NDArray[np.float64], x: float, lo: int, hi: int) -> int:
-    """The first index in ``[lo, hi)`` whose value exceeds ``x`` (``hi`` when none does)."""
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if cdf[mid] <= x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@numba.njit(**_JIT)
-def _search_right(cdf: NDArray[np.float64], guide: NDArray[np.int64], x: float) -> int:
-    """``min(searchsorted(cdf, x, side="right"), len(cdf) - 1)`` for ``x`` in [0, 1): the
-    first index whose cumulative probability exceeds ``x``, by bisection within the range
-    :func:`guide_table` gives (a step or two), checked, and over the whole table when the
-    check fails (``x N`` rounded across a cut point): always searchsorted's index."""
-    n = cdf.shape[0]
-    j = min(max(int(x * n), 0), n - 1)
-    i = _bisect_right(cdf, x, guide[j], guide[j + 1])
-    if not ((i == 0 or cdf[i - 1] <= x) and (i == n or cdf[i] > x)):
-        i = _bisect_right(cdf, x, 0, n)
-    return min(i, n - 1)
+def alias_draw(accept: NDArray[np.float64], alias: NDArray[np.int64], random: ArrayLike
+               ) -> NDArray[np.int64]:
+    """The entries an :func:`alias_table` ``(accept, alias)`` draws for uniform ``random`` in
+    [0, 1) (any shape): ``i = floor(r N)``, then ``i`` if ``frac(r N) < accept[i]`` else
+    ``alias[i]`` -- the rule :func:`emitter_samples` and :func:`environment_samples` draw by."""
+    n = len(accept)
+    x = np.asarray(random, dtype=np.float64) * n
+    t = np.minimum(x.astype(np.int64), n - 1)
+    return np.where(x - t < accept[t], t, alias[t])
 
 
 @numba.njit(**_JIT)
@@ -1322,8 +1297,8 @@ def emitter_samples(
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
     random: NDArray[np.float64],
-    cdf: NDArray[np.float64],
-    guide: NDArray[np.int64],
+    accept: NDArray[np.float64],
+    alias: NDArray[np.int64],
     inverse_pdf: NDArray[np.float64],
     tri_vertices: NDArray[np.float64],
     tri_normals: NDArray[np.float64],
@@ -1334,11 +1309,12 @@ def emitter_samples(
 ) -> _ShadowRays:
     """:func:`emitter_shadow_rays` of points sampled on untextured emitters, from uniform
     numbers: :meth:`probegrid.bake.emitters.Emitters.irradiance`'s choice of a triangle
-    (``searchsorted(cdf, random[..., 0], "right")``), its uniform point
-    (``sqrt(r1) (1 - r2), sqrt(r1) r2`` as barycentrics ``u, v``; position
-    ``(1 - u - v) a + u b + v c``) and radiance ``tri_radiance[e]``, in one pass.
+    (drawn by ``random[..., 0]`` from the selection's :func:`alias_table` ``(accept, alias)``,
+    :func:`alias_draw`'s rule), its uniform point (``sqrt(r1) (1 - r2), sqrt(r1) r2`` as
+    barycentrics ``u, v``; position ``(1 - u - v) a + u b + v c``) and radiance
+    ``tri_radiance[e]``, in one pass.
 
-    ``random (n, L, 3)``; ``guide`` the cdf's :func:`guide_table`; ``inverse_pdf (E,)`` area over the selection probability;
+    ``random (n, L, 3)``; ``inverse_pdf (E,)`` area over the selection probability;
     ``tri_vertices (E, 3, 3)``, ``tri_normals``, ``tri_radiance``, ``tri_control (E, 3)``.
     Returns what :func:`emitter_shadow_rays` returns.
     """
@@ -1347,9 +1323,13 @@ def emitter_samples(
     which, org, dirs, far, vis, occ, ok = out
     k = 0
     inv_l = 1.0 / ns
+    ne = accept.shape[0]
     for i in range(n):
         for s in range(ns):
-            e = _search_right(cdf, guide, random[i, s, 0])
+            x = random[i, s, 0] * ne  # the alias table's column, then its coin
+            e = min(int(x), ne - 1)
+            if not x - e < accept[e]:
+                e = alias[e]
             r1 = math.sqrt(random[i, s, 1])
             w1 = r1 * (1.0 - random[i, s, 2])
             w2 = r1 * random[i, s, 2]

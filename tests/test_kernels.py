@@ -453,27 +453,6 @@ def test_texel_coverage_adds_up_to_the_triangle_solid_angle() -> None:
         np.testing.assert_allclose((hit - a) @ nrm, 0, atol=1e-9)
 
 
-def test_guided_search_is_searchsorted() -> None:
-    """The cut-point search gives searchsorted's index everywhere: runs of zero probability,
-    values on the cut points and on the table's own entries, and a single entry."""
-    from probegrid.kernels import _search_right, guide_table
-
-    rng = np.random.default_rng(2)
-    p = rng.random(500) ** 4
-    p[100:300] = 0.0  # a long run of empty bins (a black ground)
-    p[-20:] = 0.0
-    for prob in (p, np.array([1.0]), np.array([0.0, 1.0, 0.0])):
-        cdf = np.cumsum(prob / prob.sum())
-        cdf[-1] = 1.0
-        guide = guide_table(cdf)
-        xs = np.concatenate([rng.random(4000), np.arange(len(cdf)) / len(cdf), cdf[:-1],
-                             np.nextafter(cdf[:-1], 0), [0.0, np.nextafter(1.0, 0)]])
-        xs = xs[(xs >= 0) & (xs < 1)]
-        want = np.minimum(np.searchsorted(cdf, xs, side="right"), len(cdf) - 1)
-        got = np.array([_search_right(cdf, guide, float(x)) for x in xs])
-        np.testing.assert_array_equal(got, want)
-
-
 def test_cosine_directions_match_numpy() -> None:
     """The compiled cosine-weighted directions against the array expression (Duff et al.'s
     basis), and their distribution: mean cosine 2/3, uniform azimuth."""
@@ -504,7 +483,7 @@ def test_alias_table_draws_each_entry_with_its_probability() -> None:
     """Walker's alias table (Vose): the probability it gives each entry, accept / N plus the
     refused shares aliased to it, is the distribution's; zero-probability entries (a black
     ground) are never drawn, also on a fine sweep of the uniform."""
-    from probegrid.kernels import alias_table
+    from probegrid.kernels import alias_draw, alias_table
 
     rng = np.random.default_rng(21)
     for prob in (rng.gamma(0.3, 1.0, 6 * 64 * 64), np.r_[np.zeros(7), 1.0, np.zeros(3)],
@@ -515,10 +494,13 @@ def test_alias_table_draws_each_entry_with_its_probability() -> None:
         got = accept / n
         np.add.at(got, alias, (1.0 - accept) / n)
         np.testing.assert_allclose(got, prob, rtol=0, atol=1e-15)
-        x = (np.arange(1_000_000) + 0.5) / 1_000_000 * n
-        t = np.minimum(x.astype(np.int64), n - 1)
-        t = np.where(x - t < accept[t], t, alias[t])
+        u = (np.arange(1_000_000) + 0.5) / 1_000_000
+        t = alias_draw(accept, alias, u)
         assert np.all(prob[t] > 0)
+        # a fine sweep of the uniform lands on each entry as often as its probability, to one
+        # sweep step per piece of a column it owns (its own and those aliased to it)
+        pieces = 1 + np.bincount(alias[accept < 1], minlength=n)
+        assert np.all(np.abs(np.bincount(t, minlength=n) / len(u) - prob) <= pieces / len(u))
 
 
 def test_gather_rays_start_off_their_parents_and_follow_the_cosine() -> None:
@@ -576,11 +558,12 @@ def test_environment_samples_match_the_numpy_sampler(rotation: float) -> None:
 
 
 def test_emitter_samples_match_surface_sampling() -> None:
-    """The fused emitter sampling against choosing triangles with searchsorted, points through
+    """The fused emitter sampling against choosing triangles with alias_draw, points through
     Scene.surface_at and emitter_shadow_rays; the estimate against sum_rows."""
     from probegrid.bake.emitters import Emitters
     from probegrid.core.arrays import sum_rows
     from probegrid.kernels import (
+        alias_draw,
         emitter_estimate,
         emitter_samples,
         emitter_shadow_rays,
@@ -600,11 +583,11 @@ def test_emitter_samples_match_surface_sampling() -> None:
     nrm = rng.normal(size=(n, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     r = rng.random((n, ls, 3))
-    cdf, inv_pdf = em._selection
+    accept, alias, inv_pdf = em._selection
     centre = np.array([0.2, 1.0, -0.3])
-    got = emitter_samples(pts, nrm, r, cdf, em._guide, inv_pdf, em.vertices, em.normals,
+    got = emitter_samples(pts, nrm, r, accept, alias, inv_pdf, em.vertices, em.normals,
                           em.factor, em.control, 1e-4, centre)
-    e = np.minimum(np.searchsorted(cdf, r[..., 0], side="right"), len(em) - 1)
+    e = alias_draw(accept, alias, r[..., 0])
     r1 = np.sqrt(r[..., 1])
     surf = em.scene.surface_at(em.triangles[e], r1 * (1 - r[..., 2]), r1 * r[..., 2])
     want = emitter_shadow_rays(pts, nrm, np.ascontiguousarray(surf.position),

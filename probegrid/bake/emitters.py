@@ -58,10 +58,11 @@ from numpy.typing import NDArray
 from probegrid.core.arrays import sum_rows
 from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, texel_solid_angles
 from probegrid.kernels import (
+    alias_draw,
+    alias_table,
     emitter_estimate,
     emitter_samples,
     emitter_shadow_rays,
-    guide_table,
     polygon_irradiance,
     texel_emitter_coverage,
 )
@@ -209,20 +210,15 @@ class Emitters:
         return self.factor
 
     @cached_property
-    def _selection(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Cumulative selection probabilities (power ``area * mean(factor)``) and
+    def _selection(self) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]]:
+        """The triangles' selection in proportion to their power ``area * mean(factor)``: its
+        alias table ``(accept, alias)`` (:func:`probegrid.kernels.alias_table`) and
         ``area / probability`` per triangle."""
         area = self.scene.triangle_areas[self.triangles]
         power = area * self.factor.mean(axis=1)
         prob = power / power.sum()
-        cdf = np.cumsum(prob)
-        cdf[-1] = 1.0
-        return cdf, area / prob
-
-    @cached_property
-    def _guide(self) -> NDArray[np.int64]:
-        """The selection's cut-point table (:func:`probegrid.kernels.guide_table`)."""
-        return guide_table(self._selection[0])
+        accept, alias = alias_table(prob)
+        return accept, alias, area / prob
 
     # -- light at surface points -----------------------------------------------------------
     def irradiance(self, points: NDArray[np.float64], normals: NDArray[np.float64],
@@ -237,9 +233,9 @@ class Emitters:
             return out, 0
         analytic = (polygon_irradiance(points, normals, *self.outlines) if self.analytic
                     else np.zeros((0, 3)))
-        cdf, inv_pdf = self._selection
+        accept, alias, inv_pdf = self._selection
         if self.textured.any():  # the points' radiance through the textures
-            e = np.minimum(np.searchsorted(cdf, random[..., 0], side="right"), len(self) - 1)
+            e = alias_draw(accept, alias, random[..., 0])
             r1 = np.sqrt(random[..., 1])
             bu, bv = r1 * (1.0 - random[..., 2]), r1 * random[..., 2]
             surf = self.scene.surface_at(self.triangles[e], bu, bv)
@@ -249,8 +245,8 @@ class Emitters:
                 np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps,
                 tracer.centre)
         else:  # the same, in one compiled pass
-            rays = emitter_samples(points, normals, np.ascontiguousarray(random), cdf,
-                                   self._guide, inv_pdf,
+            rays = emitter_samples(points, normals, np.ascontiguousarray(random), accept,
+                                   alias, inv_pdf,
                                    self.vertices, self.normals, self.factor, self.control, eps,
                                    tracer.centre)
         which, org, dirs, lengths, vis, occ, ok = rays

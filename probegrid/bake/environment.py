@@ -56,7 +56,7 @@ from probegrid.core.cubemap import (
 )
 from probegrid.core.sampling import CubeSampler, resample
 from probegrid.core.sh import rotation_y
-from probegrid.kernels import alias_table, environment_samples, sum_unblocked
+from probegrid.kernels import alias_draw, alias_table, environment_samples, sum_unblocked
 from probegrid.raytrace import EmbreeRays, RayTracer
 
 __all__ = ["LIGHT_SIZE", "Environment", "EnvironmentLight"]
@@ -204,10 +204,7 @@ class EnvironmentLight:
         """
         r = np.asarray(random, dtype=np.float64)
         m = self.size
-        nt = len(self._prob)
-        x = r[..., 0] * nt  # the alias table's column, then its coin
-        t = np.minimum(x.astype(np.int64), nt - 1)
-        t = np.where(x - t < self._accept[t], t, self._alias[t])
+        t = alias_draw(self._accept, self._alias, r[..., 0])
         face, rest = np.divmod(t, m * m)
         row, col = np.divmod(rest, m)
         u = -1.0 + (col + r[..., 1]) * (2.0 / m)
