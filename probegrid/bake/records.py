@@ -824,10 +824,11 @@ def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
     """:func:`probegrid.kernels.replay_radiance` of one level's records (``prefix``, with its
     probe weights where it has them): the ``grid`` read at its hits, or the light ``gathered``
     below them."""
-    rows = len(records[prefix + "kind"])
     wi, ww = records.get(prefix + "weight_index"), records.get(prefix + "weight")
-    if wi is None or ww is None:
-        wi, ww = np.zeros((rows, 8), np.int32), np.zeros((rows, 8), np.float32)
+    if wi is None or ww is None:  # a level that reads no grid (the kernel reads no weights)
+        if grid.shape[0]:
+            raise ValueError(f"records {prefix or 'of the probes'} read the grid without weights")
+        wi, ww = np.zeros((0, 8), np.int32), np.zeros((0, 8), np.float32)
     none = np.zeros((0, 3), np.float32)  # (a gather level keeps no emission, and normals
     return replay_radiance(records[prefix + "kind"],  # only where its hits read the grid)
                            records.get(prefix + "emission", none),
