@@ -21,16 +21,16 @@ rounded to float32; computed once per process, read-only, ``lru_cache``), and ``
 filtered by one matrix product of those rows against their texels gathered six ways,
 ``(6 n^2, 6 x 3 G)`` (BLAS sgemm): face ``f``'s outputs are face 0's rows applied to the input
 permuted by ``pi_f``. Measured at ``n = 32`` (8^2 diffuse, 6 levels) on this project's 2-core
-machine: about 1 ms per probe in groups of 8 with the full six-face matrix, which streamed 60 MB
-per group and was bound by memory; 0.65 ms with face 0's rows (10 MB) -- against about 3.7 ms
-for :func:`~probegrid.core.diffuse.diffuse_exact` plus the tiered
+machine, a group of 8 probes: 13 ms with the full six-face matrix, which streamed 60 MB per
+group and was bound by memory, 8.3 ms with face 0's rows (10 MB; the same flops), against about
+30 ms for :func:`~probegrid.core.diffuse.diffuse_exact` plus the tiered
 :func:`~probegrid.core.specular.ggx_prefilter` -- and exact (the references themselves, to
 float32 rounding of the weights and sums) where the tiered sum approximates the reference to a
 few 1e-3. A constant cube comes out constant to float32 rounding (the GGX rows sum to 1).
 
 Memory: ``(d^2 + sum_k (n >> k)^2) x 6 n^2 x 4`` bytes: 10 MB at ``n = 32`` with ``d = 8`` and the
 full chain, 0.6 MB at 16. Larger faces keep the per-call filters (a 64^2 matrix would take about
-170 MB, its six-fold gather per group as much again): :func:`supported` says which.
+170 MB): :func:`supported` says which.
 """
 
 from __future__ import annotations
