@@ -870,8 +870,8 @@ def _edge_sum(px: NDArray[np.float64], count: int, nx: float, ny: float, nz: flo
             continue
         d = ax * bx + ay * by + az * bz
         if l2 <= _TAN2_PI_8 * (d * d) and d > 0:
-            # an edge within pi / 8 of its own start (most, away from the emitter):
-            # theta / |c| = atan(t) / (t d), t^2 = |c|^2 / d^2, is _angle's polynomial in t^2:
+            # an edge that subtends at most pi / 8 (most do, away from the emitter):
+            # theta / |c| = atan(t) / (t d) with t = |c| / d, _angle's polynomial in t^2:
             # no square root, one division
             inv = 1.0 / d
             z = l2 * (inv * inv)
@@ -1485,17 +1485,17 @@ def environment_samples(
     k = 0
     for i in range(n):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        ex, ey, ez = nx, ny, nz  # the normal in the environment frame (rotation^T)
+        mx, my, mz = nx, ny, nz  # the normal in the environment frame (rotation^T)
         if rotated:
-            ex = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
-            ey = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
-            ez = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
-        axis = -1  # the coordinate plane the mirror reflects in, if any
-        if ey == 0.0 and ez == 0.0:
+            mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
+            my = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
+            mz = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
+        axis = -1  # the axis whose coordinate plane the mirror reflects in, if any
+        if my == 0.0 and mz == 0.0:
             axis = 0
-        elif ex == 0.0 and ez == 0.0:
+        elif mx == 0.0 and mz == 0.0:
             axis = 1
-        elif ex == 0.0 and ey == 0.0:
+        elif mx == 0.0 and my == 0.0:
             axis = 2
         for s in range(ns):
             x = random[i, s, 0] * nt

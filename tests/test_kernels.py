@@ -392,20 +392,23 @@ def test_turn_is_cos_and_sin_of_the_azimuth() -> None:
 
 
 def test_emitter_irradiance_is_the_exact_form_factor() -> None:
-    """Lambert's edge formula against the closed form of a parallel rectangle, and a triangle
-    crossing the receiver's horizon (clipped) against a fine quadrature."""
+    """Lambert's edge formula against the closed form of a parallel rectangle (near: edges
+    wider than pi/8, through the arctangent; far: narrower, through its series in t^2 alone),
+    and a triangle crossing the receiver's horizon (clipped) against a fine quadrature."""
     from probegrid.kernels import emitter_irradiance
 
-    a, b, c = 1.3, 0.7, 0.9  # rectangle centred above the point, facing down
-    v = np.array([[-a / 2, c, -b / 2], [a / 2, c, -b / 2], [a / 2, c, b / 2], [-a / 2, c, b / 2]])
-    tris = np.array([v[[0, 2, 1]], v[[0, 3, 2]]])
-    nrm = np.tile([0.0, -1.0, 0.0], (2, 1))
-    e = emitter_irradiance(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), tris, nrm,
-                           np.ones((2, 3)))
-    x, y = a / 2 / c, b / 2 / c
-    ff = 4 * (x / np.hypot(1, x) * np.arctan(y / np.hypot(1, x))
-              + y / np.hypot(1, y) * np.arctan(x / np.hypot(1, y))) / (2 * np.pi)
-    np.testing.assert_allclose(e[0], np.pi * ff, rtol=1e-12)
+    a, b = 1.3, 0.7  # rectangle centred above the point, facing down
+    for c in (0.2, 0.9, 3.0, 40.0):
+        v = np.array([[-a / 2, c, -b / 2], [a / 2, c, -b / 2], [a / 2, c, b / 2],
+                      [-a / 2, c, b / 2]])
+        tris = np.array([v[[0, 2, 1]], v[[0, 3, 2]]])
+        nrm = np.tile([0.0, -1.0, 0.0], (2, 1))
+        e = emitter_irradiance(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), tris, nrm,
+                               np.ones((2, 3)))
+        x, y = a / 2 / c, b / 2 / c
+        ff = 4 * (x / np.hypot(1, x) * np.arctan(y / np.hypot(1, x))
+                  + y / np.hypot(1, y) * np.arctan(x / np.hypot(1, y))) / (2 * np.pi)
+        np.testing.assert_allclose(e[0], np.pi * ff, rtol=1e-12)
     # a vertical triangle beside a tilted receiver: quadrature of cos_x cos_y / d^2 dA
     tri = np.array([[[1.0, -0.5, -0.5], [1.0, 0.8, -0.5], [1.0, -0.5, 0.9]]])
     tn = np.array([[-1.0, 0.0, 0.0]])

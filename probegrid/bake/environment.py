@@ -186,9 +186,10 @@ class EnvironmentLight:
         prob = power / total if total > 0 else power
         self._prob = prob
         self._accept, self._alias = alias_table(prob)
-        # the texels' mirrors in the three coordinate planes of the environment frame
-        self._mirrors = np.stack([texel_permutation(np.diag(np.where(np.arange(3) == a, -1.0,
-                                                                             1.0)), m)
+        # the texels' mirrors in the three coordinate planes of the environment frame (the
+        # reflection negating axis a: environment_samples' mirror for normals along it)
+        self._mirrors = np.stack([texel_permutation(np.diag([-1.0 if i == a else 1.0
+                                                             for i in range(3)]), m)
                                   for a in range(3)])
         # environment frame -> world
         self._rotation = rotation_y(env.rotation) if env.rotation else None

@@ -826,8 +826,9 @@ def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
     below them."""
     wi, ww = records.get(prefix + "weight_index"), records.get(prefix + "weight")
     if wi is None or ww is None:  # a level that reads no grid (the kernel reads no weights)
-        if grid.shape[0]:
-            raise ValueError(f"records {prefix or 'of the probes'} read the grid without weights")
+        if grid.shape[0]:  # (a bug, not bad input)
+            raise RuntimeError(f"records {prefix or 'of the probes'} read the grid without "
+                               "their probe weights")
         wi, ww = np.zeros((0, 8), np.int32), np.zeros((0, 8), np.float32)
     none = np.zeros((0, 3), np.float32)  # (a gather level keeps no emission, and normals
     return replay_radiance(records[prefix + "kind"],  # only where its hits read the grid)

@@ -199,7 +199,6 @@ def direction_to_texel(
     return face, row, col
 
 
-
 @lru_cache(maxsize=1)
 def face_symmetries() -> NDArray[np.float64]:
     """The symmetries of the cube that carry face 0 (``+X``) onto each face, frame and all.
@@ -240,6 +239,7 @@ def texel_permutation(symmetry: ArrayLike, n: int) -> NDArray[np.int64]:
     if not np.array_equal(np.sort(out), np.arange(6 * n * n)):  # (the float maths must agree)
         raise AssertionError("the texel map of a cube symmetry is not a permutation")
     return out
+
 
 def _check_size(n: int) -> None:
     if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 1:

@@ -178,7 +178,8 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
         y = (matrix @ gathered.reshape(-1, 6 * c)).reshape(-1, 6, c)
     parts = []
     r0 = 0
-    for s in sizes:
-        parts.append(np.ascontiguousarray(y[r0:r0 + s * s].reshape(s, s, 6, c).transpose(2, 0, 1, 3)))
+    for s in sizes:  # (s, s, face, C) rows -> (face, s, s, C)
+        block = y[r0:r0 + s * s].reshape(s, s, 6, c)
+        parts.append(np.ascontiguousarray(block.transpose(2, 0, 1, 3)))
         r0 += s * s
     return parts[0], [src.copy(), *parts[1:]]
