@@ -7,8 +7,11 @@
    *distinct* rays, casts each of them once through ``embreex`` directly (float32 arrays,
    ``INTERSECT`` / ``OCCLUDED``), and divides that CPU time by the CPU time of the same bake run
    again uninstrumented. Both are CPU times of this process, so a busy machine changes them
-   less than wall time, and both are the best of 3 runs (one timed bake of the same code
-   varied by up to 15 % from run to run here; the raw casts were always the best of 3). Two scenes (the bundled room, 44 triangles, and the same room with a
+   less than wall time, and both are the best of 3 runs, taken in turns (bake, casts, bake,
+   casts, ...): a slow spell of this shared machine (one timed bake of the same code varied
+   by up to 15 % from run to run here) then slows both alike, where timing the 3 bakes first
+   and the casts after compared one spell with another. Two scenes (the bundled room, 44
+   triangles, and the same room with a
    327,680-triangle sculpture), 1 and 4 rays per texel, 2 bounces and ``converge``; and the
    converged bake's time over the 2-bounce bake's. A third run of each bake times its compiled
    kernels and filter products alone (:class:`KernelClock`): ``raw / (raw + kernels)`` bounds
@@ -137,14 +140,21 @@ class KernelClock:
             setattr(mod, attr, fn)
 
 
-def raw_embree_seconds(scene, batches, chunk: int = 1 << 16) -> float:
-    """CPU time to cast the recorded batches with embreex alone (best of 3)."""
+def embree_scene(scene: Scene) -> rtcore_scene.EmbreeScene:
+    """The scene in embreex alone (float32 vertices re-centred as the tracer's)."""
     centre = 0.5 * (scene.vertices.min(0) + scene.vertices.max(0))
     es = rtcore_scene.EmbreeScene()
     TriangleMesh(scene=es, vertices=(scene.vertices - centre).astype(np.float32),
                  indices=scene.triangles.astype(np.int32))
+    return es
+
+
+def raw_embree_seconds(es: rtcore_scene.EmbreeScene, batches, chunk: int = 1 << 16,
+                       repeats: int = 3) -> float:
+    """CPU time to cast the recorded batches with embreex alone, into :func:`embree_scene`
+    (best of ``repeats``)."""
     best = np.inf
-    for _ in range(3):  # CPU time of this process: the machine may be shared
+    for _ in range(repeats):  # CPU time of this process: the machine may be shared
         t = time.process_time()
         for kind, org, d, far in batches:
             for s in range(0, len(d), chunk):
@@ -281,6 +291,21 @@ def distinct_batches(batches: list) -> tuple[list, int, int]:
     return out, kept, total
 
 
+def save_batches(batches: list, path: Path) -> None:
+    """:func:`distinct_batches`' rays into the directory ``path`` (one ``.npy`` per array)."""
+    path.mkdir(parents=True, exist_ok=True)
+    for kind, org, d, far in batches:
+        for name, a in (("org", org), ("dir", d), ("far", far)):
+            np.save(path / f"{kind}.{name}.npy", a)
+
+
+def load_batches(path: Path) -> list:
+    """The rays :func:`save_batches` wrote, read whole into memory (not mapped: the casts
+    timed must not page them in)."""
+    return [(kind, *(np.load(path / f"{kind}.{name}.npy") for name in ("org", "dir", "far")))
+            for kind in ("intersect", "occluded") if (path / f"{kind}.org.npy").is_file()]
+
+
 def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
     """Part 1: distinct-ray efficiency (issue 10, 13a): the time raw embreex needs for the
     bake's distinct rays, each cast once, over the bake's CPU time."""
@@ -306,25 +331,33 @@ def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
                 st = BakeSettings(face_size=32, bounces=bounces, samples=samples)
                 run = InlineExecutor(check_pickle=False)
                 tag = f"{samples}{bounces}{len(label)}"
-                # the bake, timed, uninstrumented, best of 3 as raw; first, while this process
-                # holds none of the recorded rays (gigabytes at 4 rays/texel), as a bake's own
-                # process would not
-                cpu = np.inf
+                with Recorder() as rec:  # the rays first (recording costs time: not timed)
+                    bake(sc, grid, tmp / f"r{tag}.probes", settings=st, environment=env,
+                         executor=run)
+                batches, distinct, total = distinct_batches(rec.batches)
+                del rec
+                rays = tmp / f"rays{tag}"
+                save_batches(batches, rays)
+                del batches
+                # the bake, timed, uninstrumented, and the raw casts of its rays, each the best
+                # of 3, interleaved: a slow spell of this shared machine slows both alike. The
+                # bake runs while this process holds none of the rays (gigabytes at 4
+                # rays/texel), as a bake's own process would not; they are read back after it
+                cpu, t_raw = np.inf, np.inf
+                es = embree_scene(sc)  # (built once, as the bake's tracer is)
                 for _ in range(3):
                     c = time.process_time()
                     rep = bake(sc, grid, tmp / f"a{tag}.probes", settings=st, environment=env,
                                executor=run, overwrite=True)
                     cpu = min(cpu, time.process_time() - c)
+                    batches = load_batches(rays)
+                    t_raw = min(t_raw, raw_embree_seconds(es, batches, repeats=1))
+                    del batches
+                del es
+                shutil.rmtree(rays, ignore_errors=True)
                 with KernelClock() as kc:  # the same bake again, its kernels timed
                     bake(sc, grid, tmp / f"k{tag}.probes", settings=st, environment=env,
                          executor=run)
-                with Recorder() as rec:  # the rays (recording costs time: not the timed run)
-                    bake(sc, grid, tmp / f"r{tag}.probes", settings=st, environment=env,
-                         executor=run)
-                batches, distinct, total = distinct_batches(rec.batches)
-                del rec
-                t_raw = raw_embree_seconds(sc, batches)
-                del batches
                 times[(label, samples, str(bounces))] = cpu
                 print(f"   {label:<25} {sc.n_triangles:9,d} {samples:3d} {bounces!s:>8} "
                       f"{rep.quality['bounces']:8d}  {distinct / 1e6:7.2f} M ({total / 1e6:5.2f} M)"
