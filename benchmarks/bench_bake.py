@@ -149,23 +149,18 @@ def embree_scene(scene: Scene) -> rtcore_scene.EmbreeScene:
     return es
 
 
-def raw_embree_seconds(es: rtcore_scene.EmbreeScene, batches, chunk: int = 1 << 16,
-                       repeats: int = 3) -> float:
-    """CPU time to cast the recorded batches with embreex alone, into :func:`embree_scene`
-    (best of ``repeats``)."""
-    best = np.inf
-    for _ in range(repeats):  # CPU time of this process: the machine may be shared
-        t = time.process_time()
-        for kind, org, d, far in batches:
-            for s in range(0, len(d), chunk):
-                dist = far[s:s + chunk].copy()
-                if kind == "intersect":
-                    es.run(org[s:s + chunk], d[s:s + chunk], dists=dist, output=1)
-                else:
-                    es.run(org[s:s + chunk], d[s:s + chunk], dists=dist,
-                           query="OCCLUDED")
-        best = min(best, time.process_time() - t)
-    return best
+def raw_embree_seconds(es: rtcore_scene.EmbreeScene, batches, chunk: int = 1 << 16) -> float:
+    """CPU time to cast the recorded batches once with embreex alone, into
+    :func:`embree_scene` (the caller takes the best of its runs)."""
+    t = time.process_time()
+    for kind, org, d, far in batches:
+        for s in range(0, len(d), chunk):
+            dist = far[s:s + chunk].copy()
+            if kind == "intersect":
+                es.run(org[s:s + chunk], d[s:s + chunk], dists=dist, output=1)
+            else:
+                es.run(org[s:s + chunk], d[s:s + chunk], dists=dist, query="OCCLUDED")
+    return time.process_time() - t
 
 
 class DescendantMemory:
@@ -351,7 +346,7 @@ def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
                                executor=run, overwrite=True)
                     cpu = min(cpu, time.process_time() - c)
                     batches = load_batches(rays)
-                    t_raw = min(t_raw, raw_embree_seconds(es, batches, repeats=1))
+                    t_raw = min(t_raw, raw_embree_seconds(es, batches))
                     del batches
                 del es
                 shutil.rmtree(rays, ignore_errors=True)

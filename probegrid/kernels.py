@@ -1281,11 +1281,42 @@ def texel_emitter_coverage(
     return count, tex, tri, omega, dirs, dist
 
 
+@numba.njit(inline="always", **_JIT)
+def _alias_pick(accept: NDArray[np.float64], alias: NDArray[np.int64], r: float) -> int:
+    """One draw of :func:`alias_draw` (its rule, compiled): ``i = floor(r N)``, then ``i`` if
+    ``frac(r N) < accept[i]`` else ``alias[i]``."""
+    n = accept.shape[0]
+    x = r * n  # the alias table's column, then its coin
+    t = min(int(x), n - 1)
+    if not x - t < accept[t]:
+        t = alias[t]
+    return t
+
+
+@numba.njit(inline="always", **_JIT)
+def _rotate(rotation: NDArray[np.float64], x: float, y: float, z: float
+            ) -> tuple[float, float, float]:
+    """``rotation (3, 3) @ (x, y, z)``."""
+    return (rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z,
+            rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z,
+            rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z)
+
+
+@numba.njit(inline="always", **_JIT)
+def _rotate_back(rotation: NDArray[np.float64], x: float, y: float, z: float
+                 ) -> tuple[float, float, float]:
+    """``rotation^T (3, 3) @ (x, y, z)``."""
+    return (rotation[0, 0] * x + rotation[1, 0] * y + rotation[2, 0] * z,
+            rotation[0, 1] * x + rotation[1, 1] * y + rotation[2, 1] * z,
+            rotation[0, 2] * x + rotation[1, 2] * y + rotation[2, 2] * z)
+
+
 def alias_draw(accept: NDArray[np.float64], alias: NDArray[np.int64], random: ArrayLike
                ) -> NDArray[np.int64]:
     """The entries an :func:`alias_table` ``(accept, alias)`` draws for uniform ``random`` in
     [0, 1) (any shape): ``i = floor(r N)``, then ``i`` if ``frac(r N) < accept[i]`` else
-    ``alias[i]`` -- the rule :func:`emitter_samples` and :func:`environment_samples` draw by."""
+    ``alias[i]`` -- the rule :func:`emitter_samples` and :func:`environment_samples` draw by
+    (:func:`_alias_pick`)."""
     n = len(accept)
     x = np.asarray(random, dtype=np.float64) * n
     t = np.minimum(x.astype(np.int64), n - 1)
@@ -1323,13 +1354,9 @@ def emitter_samples(
     which, org, dirs, far, vis, occ, ok = out
     k = 0
     inv_l = 1.0 / ns
-    ne = accept.shape[0]
     for i in range(n):
         for s in range(ns):
-            x = random[i, s, 0] * ne  # the alias table's column, then its coin
-            e = min(int(x), ne - 1)
-            if not x - e < accept[e]:
-                e = alias[e]
+            e = _alias_pick(accept, alias, random[i, s, 0])
             r1 = math.sqrt(random[i, s, 1])
             w1 = r1 * (1.0 - random[i, s, 2])
             w2 = r1 * random[i, s, 2]
@@ -1477,7 +1504,6 @@ def environment_samples(
     ok = True
     m = size
     mm = m * m
-    nt = 6 * mm
     step = 2.0 / m
     area = 0.25 * m * m
     # (the identity, an unrotated environment, is skipped: a sample costs a third less)
@@ -1485,11 +1511,9 @@ def environment_samples(
     k = 0
     for i in range(n):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        mx, my, mz = nx, ny, nz  # the normal in the environment frame (rotation^T)
+        mx, my, mz = nx, ny, nz  # the normal in the environment frame
         if rotated:
-            mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
-            my = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
-            mz = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
+            mx, my, mz = _rotate_back(rotation, nx, ny, nz)
         axis = -1  # the axis whose coordinate plane the mirror reflects in, if any
         if my == 0.0 and mz == 0.0:
             axis = 0
@@ -1498,10 +1522,7 @@ def environment_samples(
         elif mx == 0.0 and my == 0.0:
             axis = 2
         for s in range(ns):
-            x = random[i, s, 0] * nt
-            t = min(int(x), nt - 1)
-            if not x - t < accept[t]:
-                t = alias[t]
+            t = _alias_pick(accept, alias, random[i, s, 0])
             face = t // mm
             rest = t - face * mm
             row = rest // m
@@ -1515,10 +1536,7 @@ def environment_samples(
             wy = (face_normals[face, 1] + u * face_u[face, 1] + v * face_v[face, 1]) * inv
             wz = (face_normals[face, 2] + u * face_u[face, 2] + v * face_v[face, 2]) * inv
             if rotated:
-                d0, d1, d2 = wx, wy, wz
-                wx = rotation[0, 0] * d0 + rotation[0, 1] * d1 + rotation[0, 2] * d2
-                wy = rotation[1, 0] * d0 + rotation[1, 1] * d1 + rotation[1, 2] * d2
-                wz = rotation[2, 0] * d0 + rotation[2, 1] * d1 + rotation[2, 2] * d2
+                wx, wy, wz = _rotate(rotation, wx, wy, wz)
             cos = wx * nx + wy * ny + wz * nz
             if cos == 0.0 or math.isnan(cos):
                 continue
@@ -1528,11 +1546,7 @@ def environment_samples(
             if axis >= 0:
                 tr, qr = mirrors[axis, t], q * sq
             else:
-                ex, ey, ez = rx, ry, rz
-                if rotated:
-                    ex = rotation[0, 0] * rx + rotation[1, 0] * ry + rotation[2, 0] * rz
-                    ey = rotation[0, 1] * rx + rotation[1, 1] * ry + rotation[2, 1] * rz
-                    ez = rotation[0, 2] * rx + rotation[1, 2] * ry + rotation[2, 2] * rz
+                ex, ey, ez = _rotate_back(rotation, rx, ry, rz) if rotated else (rx, ry, rz)
                 tr, qr = _environment_texel(ex, ey, ez, m, face_u, face_v)
             pdf += prob[tr] * area * qr
             if cos < 0.0:  # below the horizon: the mirror is the sample
