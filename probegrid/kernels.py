@@ -1296,19 +1296,10 @@ def _alias_pick(accept: NDArray[np.float64], alias: NDArray[np.int64], r: float)
 @numba.njit(inline="always", **_JIT)
 def _rotate(rotation: NDArray[np.float64], x: float, y: float, z: float
             ) -> tuple[float, float, float]:
-    """``rotation (3, 3) @ (x, y, z)``."""
+    """``rotation (3, 3) @ (x, y, z)`` (pass ``rotation.T`` to turn back)."""
     return (rotation[0, 0] * x + rotation[0, 1] * y + rotation[0, 2] * z,
             rotation[1, 0] * x + rotation[1, 1] * y + rotation[1, 2] * z,
             rotation[2, 0] * x + rotation[2, 1] * y + rotation[2, 2] * z)
-
-
-@numba.njit(inline="always", **_JIT)
-def _rotate_back(rotation: NDArray[np.float64], x: float, y: float, z: float
-                 ) -> tuple[float, float, float]:
-    """``rotation^T (3, 3) @ (x, y, z)``."""
-    return (rotation[0, 0] * x + rotation[1, 0] * y + rotation[2, 0] * z,
-            rotation[0, 1] * x + rotation[1, 1] * y + rotation[2, 1] * z,
-            rotation[0, 2] * x + rotation[1, 2] * y + rotation[2, 2] * z)
 
 
 def alias_draw(accept: NDArray[np.float64], alias: NDArray[np.int64], random: ArrayLike
@@ -1508,12 +1499,13 @@ def environment_samples(
     area = 0.25 * m * m
     # (the identity, an unrotated environment, is skipped: a sample costs a third less)
     rotated = not (rotation[0, 0] == 1.0 and rotation[1, 1] == 1.0 and rotation[2, 2] == 1.0)
+    to_env = rotation.T  # world -> environment frame
     k = 0
     for i in range(n):
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         mx, my, mz = nx, ny, nz  # the normal in the environment frame
         if rotated:
-            mx, my, mz = _rotate_back(rotation, nx, ny, nz)
+            mx, my, mz = _rotate(to_env, nx, ny, nz)
         axis = -1  # the axis whose coordinate plane the mirror reflects in, if any
         if my == 0.0 and mz == 0.0:
             axis = 0
@@ -1546,7 +1538,7 @@ def environment_samples(
             if axis >= 0:
                 tr, qr = mirrors[axis, t], q * sq
             else:
-                ex, ey, ez = _rotate_back(rotation, rx, ry, rz) if rotated else (rx, ry, rz)
+                ex, ey, ez = _rotate(to_env, rx, ry, rz) if rotated else (rx, ry, rz)
                 tr, qr = _environment_texel(ex, ey, ez, m, face_u, face_v)
             pdf += prob[tr] * area * qr
             if cos < 0.0:  # below the horizon: the mirror is the sample
