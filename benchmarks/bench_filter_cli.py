@@ -22,10 +22,11 @@ For each HDR in ``../shared/data/hdr`` it prints, in one run:
   i.e. the best any filter of that cube can do. Target: probegrid within 2x of the floor.
   RMS and max of the per-texel, per-channel relative error.
 * **SH diffuse at 3, 5, 7, 9 bands** against the same diffuse reference, beside the best that
-  band count allows (:func:`probegrid.core.shbands.project_equirect` of every input pixel).
+  band count allows (:func:`probegrid.core.sh.project_equirect` of every input pixel).
 
-Last, issue 13's second target: one of the HDRs resampled to 1500 x 750 and filtered with
-every default, against 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the same file.
+Last, the filter's speed and memory target: one of the HDRs resampled to 1500 x 750 and
+filtered with every default, against 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the
+same file.
 
 References are cached on disk (``--cache``). Usage::
 
@@ -54,11 +55,11 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from probegrid.core import lobes, shbands
-from probegrid.core.cubemap import texel_directions, texel_solid_angles
+from probegrid.core import lobes, sh
+from probegrid.core.cubemap import symmetry_permutations, texel_directions, texel_solid_angles
 from probegrid.core.diffuse import diffuse_exact, diffuse_sh
 from probegrid.core.layouts import to_cube
-from probegrid.core.specular import ZonalOutput, _group_permutations, symmetric_zonal_sums
+from probegrid.core.specular import ZonalOutput, symmetric_zonal_sums
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "hdr"
@@ -115,7 +116,7 @@ def to_ours(theirs: np.ndarray, k: int) -> np.ndarray:
     n = theirs.shape[1]
     flat = theirs.reshape(-1, 3)
     out = np.empty_like(flat)
-    out[_group_permutations(n)[k]] = flat
+    out[symmetry_permutations(n)[k]] = flat
     return out.reshape(theirs.shape)
 
 
@@ -174,7 +175,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
     cm_levels = sorted(int(m.group(1)) for p in (work / "ld" / hdr.stem).glob("m*_px.psd")
                        if (m := re.match(r"m(\d+)_px", p.stem)))
     theirs0 = np.stack([read_rgb(work / "ld" / hdr.stem / f"m0_{f}.psd") for f in FACES])
-    perm = _group_permutations(128)
+    perm = symmetry_permutations(128)
     sym = int(np.argmin([np.abs(theirs0.reshape(-1, 3) - cube.reshape(-1, 3)[perm[k]]).mean()
                          for k in range(48)]))
     cm_d = to_ours(np.stack([read_rgb(work / "irr" / hdr.stem / f"i_{f}.psd") for f in FACES]),
@@ -233,7 +234,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
           "count allows (exact projection of every input pixel):")
     for bands in (3, 5, 7, 9):
         d, info = diffuse_sh(cube, 32, bands=bands)
-        best_d = shbands.diffuse_cube(shbands.project_equirect(img, bands), 32)
+        best_d = sh.diffuse_cube(sh.project_equirect(img, bands=bands), 32, bands=bands)
         e = np.abs(d - diff_ref) / diff_ref
         eb = np.abs(best_d - diff_ref) / diff_ref
         print(f"  {bands} bands ({bands * bands:>2} coefficients): probegrid {e.mean():7.3%} / "

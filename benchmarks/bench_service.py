@@ -90,7 +90,7 @@ def scene_extras(path: Path, source: Path) -> Path:
     """A copy of the synthetic store ``source`` with the extras of a bake (format 2): the
     deringed SH and a scene of ~20000 triangles inside and around its grid box (module
     docstring), so that its queries take the exact segment visibility test."""
-    from probegrid.core.dering import dering
+    from probegrid.core.sh.dering import dering
     from probegrid.scene import box_mesh, quad_mesh
 
     store = open_store(source)

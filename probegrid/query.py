@@ -17,7 +17,7 @@ a normal (``"moments"``), nothing without (``"none"``).
 SH without ringing
 ------------------
 :meth:`ProbeField.sh` blends the *deringed* radiance SH by default (each probe windowed so that
-its irradiance is non-negative over the sphere, :mod:`probegrid.core.dering`; a blend with
+its irradiance is non-negative over the sphere, :mod:`probegrid.core.sh.dering`; a blend with
 non-negative weights of such probes stays non-negative) and the raw projection on request. A
 store without the ``sh_deringed`` extra (format 1) is deringed here, once, on first use.
 """
@@ -44,7 +44,7 @@ from probegrid.core.ddgi import (
     blend_lookup,
     probe_weights,
 )
-from probegrid.core.dering import dering
+from probegrid.core.sh.dering import dering
 from probegrid.core.grid import GridSpec
 from probegrid.core.lobes import roughness_to_lod
 from probegrid.core.shading import reflect, shade_split_sum

@@ -102,10 +102,10 @@ WALL_X = 0.5
 
 def walled_store(path: Path, grid: GridSpec = GRID) -> ProbeStore:
     """:func:`linear_arrays` with the extras a bake writes (format 2): the deringed SH and its
-    windows (:func:`probegrid.core.dering.dering` of the linear SH, which rings) and a scene of
+    windows (:func:`probegrid.core.sh.dering.dering` of the linear SH, which rings) and a scene of
     one large quad in the plane x = :data:`WALL_X`, so that the probes at x = 0 are hidden
     from points at x > 0.5 and the others from points at x < 0.5."""
-    from probegrid.core.dering import dering
+    from probegrid.core.sh.dering import dering
     from probegrid.scene import quad_mesh
 
     arrays = linear_arrays(grid)

@@ -158,3 +158,23 @@ def test_face_symmetries_carry_face_zero_onto_each_face():
     np.testing.assert_allclose(d[perm], d @ mirror, atol=1e-15)
     with pytest.raises(ValueError, match="signed permutation"):
         texel_permutation(np.eye(3) * 0.5, n)
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 8])
+def test_symmetry_group_permutes_texel_centres(n):
+    """The 48 symmetries are the distinct signed permutation matrices, identity first; each
+    one's texel map (index arithmetic) sends every texel centre to the mapped direction and is
+    the map :func:`texel_permutation` gives for it."""
+    group = cm.symmetry_group()
+    assert group.shape == (48, 3, 3) and np.array_equal(group[0], np.eye(3))
+    assert len({g.tobytes() for g in group}) == 48
+    assert all(np.array_equal(g @ g.T, np.eye(3)) for g in group)
+    perms = cm.symmetry_permutations(n)
+    assert perms.shape == (48, 6 * n * n) and perms.dtype == np.int32
+    d = cm.texel_directions(n).reshape(-1, 3)
+    for k, g in enumerate(group):
+        assert np.array_equal(np.sort(perms[k]), np.arange(6 * n * n))
+        np.testing.assert_allclose(d[perms[k]], d @ g.T, atol=1e-15)
+        assert np.array_equal(cm.texel_permutation(g, n), perms[k])
+    for g in cm.face_symmetries():  # the six that carry face 0 onto each face belong to it
+        assert any(np.array_equal(g, h) for h in group)

@@ -1,4 +1,4 @@
-"""Per-probe SH deringing (probegrid.core.dering): non-negative irradiance everywhere, raw SH
+"""Per-probe SH deringing (probegrid.core.sh.dering): non-negative irradiance everywhere, raw SH
 kept where it already was, the gentlest window on the path, and the exact minimum."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from probegrid.core import sh
-from probegrid.core.dering import DEFAULT_MARGIN, dering, irradiance_minimum, window_path
+from probegrid.core.sh.dering import DEFAULT_MARGIN, dering, irradiance_minimum, window_path
 
 
 def _fibonacci(n: int) -> np.ndarray:

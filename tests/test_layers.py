@@ -180,7 +180,7 @@ def test_the_layer_graph_has_no_cycle_and_at_most_six_levels():
 
 
 @pytest.mark.parametrize("plant, expect", [
-    ("probegrid/core/sh.py", "upward import (probegrid.core is layer 2, probegrid.bake layer 4)"),
+    ("probegrid/core/sh/projection.py", "upward import (probegrid.core is layer 2, probegrid.bake layer 4)"),
     ("probegrid/store/reader.py", "sideways import (probegrid.store is layer 3, probegrid.scene"),
     ("probegrid/kernels.py", "upward import"),
 ])

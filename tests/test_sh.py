@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from probegrid.core import cubemap as cm
 from probegrid.core import sh
+from probegrid.core.sh import projection
 
 # --------------------------------------------------------------------------------------------
 # Helpers
@@ -184,13 +185,14 @@ def test_face_symmetric_projection_matches_direct_sum(monkeypatch):
     direct = y.reshape(-1, 9).T @ cube.reshape(-1, 2)
     np.testing.assert_allclose(sh.project_cube(cube), direct, rtol=1e-12, atol=1e-14)
     blocks = np.concatenate(
-        [sh._local_weighted_basis(n, r, min(r + 5, n)) for r in range(0, n, 5)], 1
+        [projection._local_weighted_basis(n, r, min(r + 5, n)) for r in range(0, n, 5)], 1
     )
-    np.testing.assert_allclose(blocks, sh._cached_local_weighted_basis(n), rtol=1e-14, atol=1e-16)
+    np.testing.assert_allclose(blocks, projection._cached_local_weighted_basis(n), rtol=1e-14,
+                               atol=1e-16)
     np.testing.assert_allclose(blocks[0] / sh.K0, cm.texel_solid_angles(n)[0].ravel(), rtol=1e-13)
     # The uncached, block-by-block path of project_cube (faces > 512) on a small face.
-    monkeypatch.setattr(sh, "_CACHE_MAX_SIZE", 8)
-    monkeypatch.setattr(sh, "_BLOCK", 5 * n)
+    monkeypatch.setattr(projection, "_CACHE_VALUES_3", 9 * 8 * 8)
+    monkeypatch.setattr(projection, "_BLOCK_VALUES_3", 9 * 5 * n)
     np.testing.assert_allclose(sh.project_cube(cube), direct, rtol=1e-12, atol=1e-14)
 
 
@@ -336,12 +338,12 @@ def test_min_over_sphere_finds_narrow_global_minima():
     """The irradiance of ringing probes (a few coloured directional lights: tests/test_dering's
     probes) whose global minimum the sampled search alone missed (all 32 lowest of 4096 samples
     in another basin, up to 1e-4 of the probe's scale higher): with the dual's direction as a
-    start, the minimum equals the certified dual bound of probegrid.core.dering, and the
+    start, the minimum equals the certified dual bound of probegrid.core.sh.dering, and the
     direction returned reaches it."""
     import sys
     from pathlib import Path
 
-    from probegrid.core.dering import irradiance_minimum
+    from probegrid.core.sh.dering import irradiance_minimum
 
     sys.path.insert(0, str(Path(__file__).parent))
     from test_dering import _probes

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from probegrid.core import lobes, specular
-from probegrid.core.cubemap import texel_directions, texel_solid_angles
+from probegrid.core.cubemap import symmetry_permutations, texel_directions, texel_solid_angles
 from probegrid.core.layouts import to_cube
 from probegrid.core.specular import (
     ggx_prefilter,
@@ -192,7 +192,7 @@ def test_rotating_the_input_rotates_the_output() -> None:
     """The plans use the cube's symmetries: a symmetric input must give a symmetric output."""
     rng = np.random.default_rng(3)
     cube = rng.random((6, 16, 16, 2)).astype(np.float32) ** 4 * 10
-    perm = specular._group_permutations(16)
+    perm = symmetry_permutations(16)
     for k in (5, 17, 40):
         rotated = np.empty_like(cube).reshape(-1, 2)
         rotated[perm[k]] = cube.reshape(-1, 2)           # texel q moves to S_k(q)
@@ -201,7 +201,7 @@ def test_rotating_the_input_rotates_the_output() -> None:
         b = ggx_prefilter(rotated, levels=3)
         for lv, (x, y) in enumerate(zip(a, b)):
             n = x.shape[1]
-            px = specular._group_permutations(n)[k]
+            px = symmetry_permutations(n)[k]
             moved = np.empty_like(x).reshape(-1, 2)
             moved[px] = x.reshape(-1, 2)
             np.testing.assert_allclose(y, moved.reshape(x.shape), rtol=2e-5, atol=1e-6,

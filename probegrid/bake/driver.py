@@ -96,7 +96,7 @@ from probegrid.core import probefilter, sh
 from probegrid.core.conventions import conventions
 from probegrid.core.cubemap import solid_angle_integral
 from probegrid.core.ddgi import bordered_cubes
-from probegrid.core.dering import irradiance_minimum
+from probegrid.core.sh.dering import irradiance_minimum
 from probegrid.core.grid import GridSpec
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
@@ -437,7 +437,7 @@ def _padded_groups(items: NDArray[Any]) -> Iterator[tuple[int, int, NDArray[Any]
 
 def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
     """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``: the
-    certified minimum of :func:`probegrid.core.dering.irradiance_minimum` (what ``/sh``'s
+    certified minimum of :func:`probegrid.core.sh.dering.irradiance_minimum` (what ``/sh``'s
     deringing holds to; each probe's and channel's result does not depend on the others).
     It replaced :func:`probegrid.core.sh.min_over_sphere`'s sampled search, 25x slower here,
     which missed the global minimum of 9 in 36 000 ringing probes (``tests/test_dering.py``)."""

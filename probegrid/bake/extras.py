@@ -5,7 +5,7 @@
 
 ``sh_deringed (P, 9, 3) float32``
     Each probe's radiance SH windowed so that its irradiance is non-negative over the whole
-    sphere (:func:`probegrid.core.dering.dering`); equal to ``sh`` where that already holds.
+    sphere (:func:`probegrid.core.sh.dering.dering`); equal to ``sh`` where that already holds.
 ``sh_window (P, 3) float32``
     The band factors ``(1, h_1, h_2)`` of each probe's window (``(1, 1, 1)``: not windowed).
 ``scene_vertices (V, 3) float32``, ``scene_triangles (T, 3) int32``
@@ -14,7 +14,7 @@
     traces anyway; 12 bytes per vertex and per triangle.
 
 The windows are chosen from the float32 ``sh`` as stored (so "already non-negative" is decided
-on the values a reader sees), with :data:`probegrid.core.dering.DEFAULT_MARGIN` of headroom for
+on the values a reader sees), with :data:`probegrid.core.sh.dering.DEFAULT_MARGIN` of headroom for
 the float32 rounding of the deringed coefficients.
 """
 
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from probegrid.core.dering import dering
+from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
 

@@ -40,6 +40,15 @@ Geometry (directions, solid angles) is float64. The exact solid angle of the pat
 ``(1 + u^2 + v^2)^(-3/2) du dv`` of the unit cube projected onto the sphere (Girard; see also
 Driscoll, "Cubemap texel solid angle", 2012). The 6 n^2 solid angles sum to 4 pi.
 
+Symmetries
+----------
+The 48 symmetries of the cube (signed axis permutations, :func:`symmetry_group`) map the cube
+onto itself and texel centres onto texel centres, keeping angles and solid angles; each one
+permutes the texels of a cube (:func:`symmetry_permutations`, :func:`texel_permutation`) by index
+arithmetic. Filters whose weights depend only on angles compute a fundamental domain and reuse it
+through them (:mod:`probegrid.core.probefilter` with :func:`face_symmetries`,
+:mod:`probegrid.core.specular` with the whole group).
+
 Mip levels halve the face size (``n >> level``); a mip of a cube is the solid-angle-weighted mean
 of the 2 x 2 texels it covers, i.e. the mean radiance over the coarse texel's solid angle.
 """
@@ -70,6 +79,8 @@ __all__ = [
     "mip_sizes",
     "normalization_cube",
     "solid_angle_integral",
+    "symmetry_group",
+    "symmetry_permutations",
     "texel_directions",
     "texel_permutation",
     "texel_solid_angles",
@@ -200,6 +211,70 @@ def direction_to_texel(
 
 
 @lru_cache(maxsize=1)
+def symmetry_group() -> NDArray[np.float64]:
+    """The 48 symmetries of the cube (signed 3 x 3 permutation matrices), identity first.
+
+    Each maps the cube onto itself and, because texel centres are symmetric on a face
+    (``-u_k = u_{n-1-k}``), texel centres onto texel centres; it preserves angles and solid
+    angles (:func:`symmetry_permutations`). (48, 3, 3) float64, read-only.
+    """
+    mats = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = np.where(np.array(signs) == 0, 1.0, -1.0)
+            mats.append(m)
+    out = np.stack(mats)
+    out.setflags(write=False)
+    return out
+
+
+@lru_cache(maxsize=1)
+def _symmetry_face_table() -> NDArray[np.intp]:
+    """How each cube symmetry moves each face: ``(48, 6, 3)`` rows ``[g', column source,
+    row source]``, a source 0-3 meaning ``j, i, n - 1 - j, n - 1 - i`` of texel ``(i, j)`` (row,
+    column). ``S`` maps face ``g`` onto the face ``g'`` with normal ``S N_g`` and ``(u, v)`` onto
+    ``(+-u or +-v, +-v or +-u)``; ``-u`` of column ``j`` is column ``n - 1 - j``."""
+    group = symmetry_group()
+    table = np.empty((48, 6, 3), dtype=np.intp)
+    for k in range(48):
+        m = group[k]
+        for g in range(6):
+            ng, ug, vg = m @ FACE_NORMALS[g], m @ FACE_U[g], m @ FACE_V[g]
+            g2 = int(np.argmax(FACE_NORMALS @ ng))
+            table[k, g, 0] = g2
+            for t, axis in ((1, FACE_U[g2]), (2, FACE_V[g2])):  # u' = (S U_g).U_g' u + ...
+                a, c = float(ug @ axis), float(vg @ axis)
+                table[k, g, t] = (0 if a != 0 else 1) + (0 if (a if a != 0 else c) > 0 else 2)
+    table.setflags(write=False)
+    return table
+
+
+def _texel_maps(table: NDArray[np.intp], n: int, dtype: type) -> NDArray[np.integer]:
+    """Flat texel indices ``(..., 6, n, n)`` of rows ``(..., 6, 3)`` of
+    :func:`_symmetry_face_table`: texel ``(g, i, j)`` goes to ``(g', source 2, source 1)``."""
+    i, j = np.meshgrid(np.arange(n, dtype=dtype), np.arange(n, dtype=dtype), indexing="ij")
+    sources = np.stack([j, i, n - 1 - j, n - 1 - i])              # (4, n, n)
+    return ((table[..., 0, None, None].astype(dtype) * n + sources[table[..., 2]]) * n
+            + sources[table[..., 1]])
+
+
+@lru_cache(maxsize=16)
+def symmetry_permutations(n: int) -> NDArray[np.int32]:
+    """Where each cube symmetry sends each texel of an ``n``-cube.
+
+    ``perm[k, q]``: flat index (face-major ``(face, row, col)``) of the texel whose centre is
+    ``S_k w_q``, for the 48 symmetries ``S_k`` of :func:`symmetry_group`; by index arithmetic
+    (each symmetry moves whole faces and flips or swaps their rows and columns). (48, 6 n^2)
+    int32, read-only.
+    """
+    _check_size(n)
+    perm = _texel_maps(_symmetry_face_table(), n, np.int32).reshape(48, -1)
+    perm.setflags(write=False)
+    return perm
+
+
+@lru_cache(maxsize=1)
 def face_symmetries() -> NDArray[np.float64]:
     """The symmetries of the cube that carry face 0 (``+X``) onto each face, frame and all.
 
@@ -208,11 +283,11 @@ def face_symmetries() -> NDArray[np.float64]:
     (6, 3, 3) float64, read-only
         ``S[f]`` maps face 0's normal, ``u`` and ``v`` axes onto face ``f``'s
         (``S[f] @ FACE_NORMALS[0] = FACE_NORMALS[f]``, likewise ``FACE_U``, ``FACE_V``): a
-        signed permutation matrix (a rotation or a reflection), so it maps the texel
-        ``(0, row, col)`` of any cube onto the texel ``(f, row, col)`` and the texel grid onto
-        itself (:func:`texel_permutation`). A filter whose weights depend only on the angle
-        between directions acts on face ``f`` as it acts on face 0 after ``S[f]``
-        (:mod:`probegrid.core.probefilter`).
+        signed permutation matrix (a rotation or a reflection, one of :func:`symmetry_group`),
+        so it maps the texel ``(0, row, col)`` of any cube onto the texel ``(f, row, col)`` and
+        the texel grid onto itself (:func:`texel_permutation`). A filter whose weights depend
+        only on the angle between directions acts on face ``f`` as it acts on face 0 after
+        ``S[f]`` (:mod:`probegrid.core.probefilter`).
     """
     frames = np.stack([FACE_NORMALS, FACE_U, FACE_V], axis=-1)  # (6, 3, 3): columns n, u, v
     out = np.einsum("fij,kj->fik", frames, frames[0])  # frames[f] @ frames[0].T
@@ -225,20 +300,18 @@ def texel_permutation(symmetry: ArrayLike, n: int) -> NDArray[np.int64]:
 
     ``symmetry``: a ``(3, 3)`` signed permutation matrix ``S``. Returns ``(6 n^2,)`` int64:
     entry ``c`` is the flat index (face-major ``(face, row, col)``) of the texel whose centre is
-    ``S`` applied to texel ``c``'s centre. Raises ``ValueError`` when ``S`` is not a signed
-    permutation (it would not map texels onto texels).
+    ``S`` applied to texel ``c``'s centre (the row of :func:`symmetry_permutations` of ``S``,
+    computed alone). Raises ``ValueError`` when ``S`` is not a signed permutation (it would not
+    map texels onto texels).
     """
     s = np.asarray(symmetry, dtype=np.float64)
     if (s.shape != (3, 3) or not np.all(np.isin(s, (-1.0, 0.0, 1.0)))
             or not np.array_equal(np.abs(s).sum(axis=0), np.ones(3))
             or not np.array_equal(np.abs(s).sum(axis=1), np.ones(3))):
         raise ValueError(f"a symmetry of the cube is a signed permutation matrix, got {s!r}")
-    d = texel_directions(n).reshape(-1, 3) @ s.T
-    face, row, col = direction_to_texel(d, n)  # texel centres land on texel centres
-    out = ((face * n + row) * n + col).astype(np.int64)
-    if not np.array_equal(np.sort(out), np.arange(6 * n * n)):  # (the float maths must agree)
-        raise AssertionError("the texel map of a cube symmetry is not a permutation")
-    return out
+    _check_size(n)
+    k = int(np.flatnonzero(np.all(symmetry_group() == s, axis=(1, 2)))[0])
+    return _texel_maps(_symmetry_face_table()[k], n, np.int64).reshape(-1)
 
 
 def _check_size(n: int) -> None:

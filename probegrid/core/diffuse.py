@@ -28,7 +28,7 @@ softboxes) relative error, at a quarter of the cost; ``source_size=32``: mean 5e
 
 SH (:func:`diffuse_sh`)
 -----------------------
-Any band count with ``bands`` (:mod:`probegrid.core.shbands`). Each count's error is that of
+Any band count with ``bands`` (:mod:`probegrid.core.sh`). Each count's error is that of
 the exact projection (projecting the cube equals projecting every pixel of the lat-long input to
 1.001 x): against the exact sum on venice, 3 bands 1.85 % mean / 20 % max, 5 bands 0.56 % /
 8.6 %, 9 bands 0.14 % / 3.3 %; on studio (small bright softboxes in a dark room) 27 % / 700 %,
@@ -60,7 +60,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from probegrid._types import SHWindow
-from probegrid.core import shbands
+from probegrid.core import sh
 from probegrid.core.clampedcos import clamped_cosine_sum
 from probegrid.core.cubemap import check_cube, downsample, texel_directions
 from probegrid.core.specular import zonal_convolution
@@ -187,8 +187,8 @@ def diffuse_sh(
     width : float, optional
         Window width, required for "hanning", "lanczos" and "gauss"; must be None otherwise.
     bands : int
-        Number of SH bands (:mod:`probegrid.core.shbands`; ``bands^2`` coefficients). The
-        default 3 is the 9-coefficient basis of :mod:`probegrid.core.sh`.
+        Number of SH bands (``bands^2`` coefficients, :mod:`probegrid.core.sh`). The default
+        3 is the stored 9-coefficient basis.
 
     Returns
     -------
@@ -206,17 +206,19 @@ def diffuse_sh(
     src = _finite_faces(faces)
     if not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 1:
         raise ValueError(f"size must be a positive integer, got {size!r}.")
-    projected = shbands.project_cube(src, bands)
+    projected = sh.project_cube(src, bands=bands)
     if window == "auto":
-        coeffs, used = shbands.auto_window(projected, kind="hanning", quantity="irradiance")
+        coeffs, used = sh.auto_window(projected, kind="hanning", quantity="irradiance",
+                                      bands=bands)
         kind = "hanning"
     elif window == "none":
         coeffs, used, kind = projected, float("inf"), "none"
     else:
-        coeffs = shbands.window(projected, kind=window, width=float(width))
+        coeffs = sh.window(projected, kind=window, width=float(width), bands=bands)
         used, kind = float(width), window
-    cube = shbands.diffuse_cube(coeffs, int(size), window="none")
-    vmin, dmin = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
+    cube = sh.diffuse_cube(coeffs, int(size), window="none", bands=bands)
+    vmin, dmin = sh.min_over_sphere(sh.irradiance_coefficients(coeffs, bands=bands),
+                                    bands=bands)
     vmin = np.atleast_1d(vmin) / np.pi
     info = DiffuseSHInfo(
         coefficients=coeffs,

@@ -69,8 +69,9 @@ idea -- coarser mips where the lobe is smooth -- deterministically:
 * Plans. The weights depend only on geometry, so they are computed once per (input size, level
   size, alpha, beta, gamma) into padded *plans* (:func:`ggx_tier_plan`, ``lru_cache``,
   read-only arrays) and reused: a probe grid filters many cubes of one size. They are computed
-  only for a fundamental domain of the 48 cube symmetries (signed axis permutations, which map
-  texel centres onto texel centres and keep angles and solid angles): the texels
+  only for a fundamental domain of the 48 cube symmetries
+  (:func:`probegrid.core.cubemap.symmetry_group`: signed axis permutations, which map texel
+  centres onto texel centres and keep angles and solid angles): the texels
   ``i <= j <= (n - 1) / 2`` of face +X, 1/48 of the outputs. Every other output reuses its
   representative's row with permuted source indices. Candidate source texels of a windowed piece
   are found with tiles and bounding cones before the exact test.
@@ -115,11 +116,9 @@ from probegrid._types import GGXMethod
 from probegrid.core import lobes
 from probegrid.core.arrays import one_blas_thread
 from probegrid.core.cubemap import (
-    FACE_NORMALS,
-    FACE_U,
-    FACE_V,
     check_cube,
     mip_sizes,
+    symmetry_permutations,
     texel_directions,
     texel_solid_angles,
     texel_uv,
@@ -311,64 +310,6 @@ def _check_size(n: int, name: str) -> None:
         raise ValueError(f"{name} must be a positive integer, got {n!r}.")
 
 
-@lru_cache(maxsize=1)
-def _octahedral_group() -> NDArray[np.float64]:
-    """The 48 symmetries of the cube (signed 3 x 3 permutation matrices), identity first.
-
-    Each maps the cube onto itself and, because texel centres are symmetric on a face
-    (``-u_k = u_{n-1-k}``), texel centres onto texel centres; it preserves angles and solid
-    angles. (48, 3, 3) float64, read-only.
-    """
-    mats = []
-    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
-        for signs in np.ndindex(2, 2, 2):
-            m = np.zeros((3, 3))
-            m[np.arange(3), perm] = np.where(np.array(signs) == 0, 1.0, -1.0)
-            mats.append(m)
-    out = np.stack(mats)
-    out.setflags(write=False)
-    return out
-
-
-@lru_cache(maxsize=1)
-def _group_face_table() -> NDArray[np.intp]:
-    """How each cube symmetry moves each face: ``(48, 6, 3)`` rows ``[g', column source,
-    row source]``, a source 0-3 meaning ``j, i, n - 1 - j, n - 1 - i`` of texel ``(i, j)`` (row,
-    column). ``S`` maps face ``g`` onto the face ``g'`` with normal ``S N_g`` and ``(u, v)`` onto
-    ``(+-u or +-v, +-v or +-u)``; ``-u`` of column ``j`` is column ``n - 1 - j``."""
-    group = _octahedral_group()
-    table = np.empty((48, 6, 3), dtype=np.intp)
-    for k in range(48):
-        m = group[k]
-        for g in range(6):
-            ng, ug, vg = m @ FACE_NORMALS[g], m @ FACE_U[g], m @ FACE_V[g]
-            g2 = int(np.argmax(FACE_NORMALS @ ng))
-            table[k, g, 0] = g2
-            for t, axis in ((1, FACE_U[g2]), (2, FACE_V[g2])):  # u' = (S U_g).U_g' u + ...
-                a, c = float(ug @ axis), float(vg @ axis)
-                table[k, g, t] = (0 if a != 0 else 1) + (0 if (a if a != 0 else c) > 0 else 2)
-    table.setflags(write=False)
-    return table
-
-
-@lru_cache(maxsize=16)
-def _group_permutations(n: int) -> NDArray[np.int32]:
-    """``perm[k, q]``: flat index (face-major) of the texel whose centre is ``S_k w_q``, for the
-    48 cube symmetries ``S_k`` of :func:`_octahedral_group`. (48, 6 n^2) int32, read-only.
-
-    Computed by index arithmetic from :func:`_group_face_table`.
-    """
-    i, j = np.meshgrid(np.arange(n, dtype=np.int32), np.arange(n, dtype=np.int32),
-                       indexing="ij")                               # row (v), column (u)
-    sources = np.stack([j, i, n - 1 - j, n - 1 - i])              # (4, n, n)
-    table = _group_face_table()
-    perm = ((table[..., 0, None, None].astype(np.int32) * n + sources[table[..., 2]]) * n
-            + sources[table[..., 1]])                               # (48, 6, n, n)
-    perm = perm.reshape(48, -1)
-    perm.setflags(write=False)
-    return perm
-
-
 @lru_cache(maxsize=16)
 def _fundamental_domain(g: int) -> tuple[NDArray[np.intp], NDArray[np.int32], NDArray[np.int32]]:
     """A fundamental domain of the cube symmetries on the texels of a ``g``-cube.
@@ -385,7 +326,7 @@ def _fundamental_domain(g: int) -> tuple[NDArray[np.intp], NDArray[np.int32], ND
     """
     i, j = np.meshgrid(np.arange(g), np.arange(g), indexing="ij")
     rows = np.flatnonzero((i <= j) & (2 * j <= g - 1))
-    perm = _group_permutations(g)
+    perm = symmetry_permutations(g)
     owner_sym = np.full(6 * g * g, -1, dtype=np.int32)
     owner_row = np.full(6 * g * g, -1, dtype=np.int32)
     for k in range(47, -1, -1):  # identity last, so face 0's own texels keep k = 0
@@ -749,7 +690,7 @@ def _geometric_pyramid(n: int) -> NDArray[np.float64]:
 
 @lru_cache(maxsize=2)
 def _chain_permutations(n: int) -> NDArray[np.int32]:
-    """:func:`_group_permutations` of the concatenated mip chain of an ``n``-cube, flattened:
+    """:func:`symmetry_permutations` of the concatenated mip chain of an ``n``-cube, flattened:
     ``out[k * total + q]``. (48 total,) int32, read-only: 48 x 8 n^2 int32 (25 MB at n = 128,
     100 MB at 256), the main memory cost of the tiered filter."""
     sizes = mip_sizes(n)
@@ -757,7 +698,7 @@ def _chain_permutations(n: int) -> NDArray[np.int32]:
     perm = np.empty((48, total), dtype=np.int32)
     off = 0
     for m in sizes:
-        np.add(_group_permutations.__wrapped__(m), off, out=perm[:, off:off + 6 * m * m])
+        np.add(symmetry_permutations.__wrapped__(m), off, out=perm[:, off:off + 6 * m * m])
         off += 6 * m * m
     perm = perm.reshape(-1)
     perm.setflags(write=False)
@@ -821,8 +762,8 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
             # Dense stage, many outputs: permute the source mip once per symmetry, multiply.
             m = src_levels[st.level]
             block = pyramid[offsets[st.level]:offsets[st.level] + 6 * m * m]
-            src_perm = _group_permutations(m)
-            out_perm = _group_permutations(g)
+            src_perm = symmetry_permutations(m)
+            out_perm = symmetry_permutations(g)
             w0 = np.ascontiguousarray(st.weights[:, 0])
             w1 = np.ascontiguousarray(st.weights[:, 1]) if st.level > 0 else w0
             bp = np.ascontiguousarray(block[:, :c])
@@ -955,7 +896,7 @@ def prepare_zonal_sums(n: int, outputs: Sequence[ZonalOutput]) -> None:
     solid angles; cached per process), so that a caller can make them in one thread while the
     input is still being read or resampled in another. Calling it is optional."""
     _check_size(n, "cube size")
-    _group_permutations(n)
+    symmetry_permutations(n)
     texel_solid_angles(n)
     texel_directions(n)
     for o in outputs:
@@ -978,15 +919,15 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     :func:`zonal_convolution`), computed once per cube symmetry class.
 
     A zonal sum at output direction ``S R`` (``S`` one of the 48 cube symmetries,
-    :func:`_group_permutations`) equals the sum at ``R`` over the input permuted by ``S``. So the
-    kernel is evaluated only for the fundamental-domain outputs (:func:`_fundamental_domain`,
-    1/48 of them) against every input texel (float64 cosines, float32 kernel values), and one
-    matrix product per tile (float32 BLAS, sums accumulated in float32) applies it to the 48
-    permuted copies of ``L dOmega`` side by side (one more to ``dOmega``: the normaliser). A
-    block of rows reads only the input texels within 90 degrees of its cone (both kernels
-    vanish beyond). Cost: ``6 n^2 48 C`` floats for the permuted input and at most
-    ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 .. 1^2, 715 rows)
-    and a 32^2 diffuse map (136 rows) take ~0.4 s CPU here. The results equal
+    :func:`probegrid.core.cubemap.symmetry_permutations`) equals the sum at ``R`` over the input
+    permuted by ``S``. So the kernel is evaluated only for the fundamental-domain outputs
+    (:func:`_fundamental_domain`, 1/48 of them) against every input texel (float64 cosines,
+    float32 kernel values), and one matrix product per tile (float32 BLAS, sums accumulated in
+    float32) applies it to the 48 permuted copies of ``L dOmega`` side by side (one more to
+    ``dOmega``: the normaliser). A block of rows reads only the input texels within 90 degrees
+    of its cone (both kernels vanish beyond). Cost: ``6 n^2 48 C`` floats for the permuted input
+    and at most ``2 F 6 n^2 (48 C + 1)`` flops for ``F`` rows: a 128^2 chain (levels 64^2 ..
+    1^2, 715 rows) and a 32^2 diffuse map (136 rows) take ~0.4 s CPU here. The results equal
     :func:`reference_convolution` and :func:`probegrid.core.diffuse.diffuse_exact` to float32
     rounding of the weights and sums (relative 2e-6).
 
@@ -1022,7 +963,7 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
     if not isinstance(workers, (int, np.integer)) or isinstance(workers, bool) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}.")
     n, c = src.shape[1], src.shape[3]
-    perm = _group_permutations(n)                                  # (48, 6 n^2)
+    perm = symmetry_permutations(n)                                # (48, 6 n^2)
     om = texel_solid_angles(n).reshape(-1)
     lw = src.reshape(-1, c) * om[:, None].astype(np.float32)
     # column block k of row q holds L dOmega at S_k(q) (gathered by the threads, a share each)
@@ -1099,7 +1040,7 @@ def symmetric_zonal_sums(faces: ArrayLike, outputs: Sequence[ZonalOutput], *,
         vals = y.reshape(-1, 48, c)
         if o.kind == "ggx":
             vals /= norm[:, None, None]
-        targets = _group_permutations(o.size)[:, rows].T           # (r, 48)
+        targets = symmetry_permutations(o.size)[:, rows].T         # (r, 48)
         results[i][targets] = vals                                 # (texels on mirror planes
         # are written by several symmetries, with the same value)
 
@@ -1288,7 +1229,7 @@ def ggx_prefilter(
 def clear_caches() -> None:
     """Drop the cached geometry of the tiered filter (plans, symmetry tables: ~150 MB after a
     256^2 chain); the next call rebuilds what it needs."""
-    for f in (ggx_tier_plan, _chain_permutations, _geometric_pyramid, _group_permutations,
+    for f in (ggx_tier_plan, _chain_permutations, _geometric_pyramid, symmetry_permutations,
               _fundamental_domain):
         f.cache_clear()
 

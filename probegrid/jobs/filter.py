@@ -12,7 +12,7 @@ resample it to a cube without aliasing, and compute
   threads (:func:`probegrid.core.specular.symmetric_zonal_sums`; level 1's far field over
   2x2 merged texels, ``far_field``),
 * the radiance SH coefficients (9 by default, ``bands^2`` with ``sh_bands``;
-  :mod:`probegrid.core.sh`, :mod:`probegrid.core.shbands`) and the minimum irradiance they imply,
+  :mod:`probegrid.core.sh`) and the minimum irradiance they imply,
 * the split-sum DFG lookup table (:mod:`probegrid.core.dfg`, cached per machine by
   :mod:`probegrid.usercache`),
 
@@ -491,7 +491,7 @@ def _filter_into(
         resampled = pool.submit(layouts.to_cube, source, cast(Layout, in_layout), n)
         try:
             from probegrid import usercache
-            from probegrid.core import lobes, seams, sh, shbands, specular
+            from probegrid.core import lobes, seams, sh, specular
             from probegrid.export.shforms import sh_forms
 
             # the full chain by default; a cube that is not a power of two gets its level 0
@@ -542,10 +542,11 @@ def _filter_into(
         # --- compute everything (the staging folder gets the input's preview meanwhile) --
         t = time.perf_counter()
         bands = settings.sh_bands
-        coeffs = shbands.project_cube(cube, bands)
+        coeffs = sh.project_cube(cube, bands=bands)
         # band 2, what sh.json's consumers and the glTF light take (the same projection at 3 bands)
         sh9 = coeffs if bands == 3 else sh.project_cube(cube)
-        irr_min, irr_min_dir = shbands.min_over_sphere(shbands.irradiance_coefficients(coeffs))
+        irr_min, irr_min_dir = sh.min_over_sphere(sh.irradiance_coefficients(coeffs, bands=bands),
+                                                  bands=bands)
         timings["sh"] = time.perf_counter() - t
 
         say(f"diffuse {settings.diffuse_size}^2 ({settings.diffuse_method}"
@@ -675,11 +676,11 @@ def _filter_into(
         else:  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
             files += gltf_ibl.write_environment_gltf(out, spec_out, sh9)
 
-        band_factors = shbands.clamped_cosine_factors(bands)
+        band_factors = sh.clamped_cosine_factors(bands)
         sh_doc = {
             "coefficients": [[float(x) for x in row] for row in coeffs],
             "bands": bands,
-            "basis": conv["sh_basis"] if bands == 3 else shbands.basis_description(bands),
+            "basis": conv["sh_basis"] if bands == 3 else sh.basis_description(bands),
             "constants": dict(list(conv["sh_constants"].items())[:bands * bands]),
             "content": "radiance coefficients L_lm (RGB); irradiance E(n) = sum A_l L_lm "
                        "Y_lm(n), "

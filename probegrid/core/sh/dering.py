@@ -14,9 +14,9 @@ The window path
 ---------------
 On the unit sphere the irradiance is the quadratic ``E(d) = c + h_1 b . d + h_2 d^T S d``
 (``c = pi K0 L_00``, ``b`` from band 1, ``S`` traceless symmetric from band 2; see
-``probegrid.core.sh._quadratic_form``). With band 2 removed, ``min E = c - h_1 |b|``, so
-``a = min(1, (1 - margin) c / |b|)`` (smallest over the channels) is the most band 1 any
-non-negative window can keep. The window runs along the straight segment
+:func:`probegrid.core.sh.quadratic.quadratic_form`). With band 2 removed,
+``min E = c - h_1 |b|``, so ``a = min(1, (1 - margin) c / |b|)`` (smallest over the channels)
+is the most band 1 any non-negative window can keep. The window runs along the straight segment
 
     h(t) = (1, 1 - t (1 - a), 1 - t),   t in [0, 1]
 
@@ -60,7 +60,9 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.core.sh import A_HAT, BAND_OF, _quadratic_form, dual_maximiser, eigen_form
+from probegrid.core.sh.basis import BAND_OF
+from probegrid.core.sh.clampedcosine import A_HAT
+from probegrid.core.sh.quadratic import dual_maximiser, eigen_form, quadratic_form
 
 __all__ = ["DEFAULT_MARGIN", "dering", "irradiance_minimum", "window_path"]
 
@@ -77,7 +79,7 @@ def _irradiance_forms(coeffs: NDArray[np.float64]) -> tuple[NDArray, NDArray, ND
     """``c (K,)``, ``beta (K, 3)``, ``s (K, 3)``: the irradiance of ``coeffs (K, 9)`` in the
     eigenbasis of its band-2 matrix (eigenvalues ascending)."""
     irr = coeffs * A_HAT  # radiance -> irradiance coefficients
-    c, b, s = _quadratic_form(np.ascontiguousarray(irr.T))
+    c, b, s = quadratic_form(np.ascontiguousarray(irr.T))
     beta, evals, _ = eigen_form(b, s)
     return c, beta, evals
 
