@@ -62,6 +62,31 @@ def latlong_directions_and_solid_angles(h, w):
 # --------------------------------------------------------------------------------------------
 
 
+def test_the_package_re_exports_its_modules_public_names():
+    """One SH package: its face lists every public name of its modules once, sorted; the
+    former flat modules are gone, not shimmed."""
+    import importlib
+
+    from probegrid.core.sh import (
+        basis,
+        clampedcosine,
+        diffusemap,
+        minimum,
+        quadratic,
+        rotation,
+        windowing,
+    )
+
+    assert sh.__all__ == sorted(sh.__all__) and len(set(sh.__all__)) == len(sh.__all__)
+    for module in (basis, clampedcosine, diffusemap, minimum, projection, rotation, windowing):
+        for name in module.__all__:
+            assert getattr(sh, name) is getattr(module, name), (module.__name__, name)
+    assert sh.eigen_form is quadratic.eigen_form and sh.dual_maximiser is quadratic.dual_maximiser
+    for gone in ("probegrid.core.shbands", "probegrid.core.dering"):
+        with pytest.raises(ModuleNotFoundError):
+            importlib.import_module(gone)
+
+
 def test_constants_round_to_ramamoorthi_hanrahan():
     printed = {"K0": 0.282095, "K1": 0.488603, "K2": 1.092548, "K3": 0.315392, "K4": 0.546274}
     for name, value in printed.items():

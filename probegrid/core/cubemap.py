@@ -78,6 +78,7 @@ __all__ = [
     "face_uv_to_direction",
     "mip_sizes",
     "normalization_cube",
+    "solid_angle_corner",
     "solid_angle_integral",
     "symmetry_group",
     "symmetry_permutations",
@@ -354,7 +355,12 @@ def texel_directions(n: int, *, normalized: bool = True) -> NDArray[np.float64]:
     return _texel_directions(int(n), bool(normalized))
 
 
-def _solid_angle_corner(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+def solid_angle_corner(x: ArrayLike, y: ArrayLike) -> NDArray[np.float64]:
+    """``F(x, y) = atan2(x y, sqrt(x^2 + y^2 + 1))``: the solid angle of the face patch
+    ``[0, x] x [0, y]`` (signed), so a patch ``[u0, u1] x [v0, v1]`` subtends
+    ``F(u1, v1) - F(u0, v1) - F(u1, v0) + F(u0, v0)`` (module docstring)."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
     return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
 
 
@@ -364,10 +370,10 @@ def _texel_solid_angles(n: int) -> NDArray[np.float64]:
     x0, y0 = np.meshgrid(e[:-1], e[:-1], indexing="xy")
     x1, y1 = np.meshgrid(e[1:], e[1:], indexing="xy")
     w = (
-        _solid_angle_corner(x1, y1)
-        - _solid_angle_corner(x0, y1)
-        - _solid_angle_corner(x1, y0)
-        + _solid_angle_corner(x0, y0)
+        solid_angle_corner(x1, y1)
+        - solid_angle_corner(x0, y1)
+        - solid_angle_corner(x1, y0)
+        + solid_angle_corner(x0, y0)
     )
     out = np.broadcast_to(w, (6, n, n)).copy()
     out.setflags(write=False)

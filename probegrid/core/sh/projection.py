@@ -83,14 +83,14 @@ def _local_weighted_basis(n: int, row0: int, row1: int, bands: int = NUM_BANDS
     """``Y(l) * solid_angle`` for rows ``row0:row1`` of a face, ``(bands^2, (row1 - row0) n)``.
 
     ``l = (u, v, 1) / |(u, v, 1)|`` is the texel centre in the face's own frame; the solid angle
-    is the exact ``F(u1, v1) - F(u0, v1) - F(u1, v0) + F(u0, v0)``,
-    ``F(x, y) = atan2(x y, sqrt(x^2 + y^2 + 1))`` of :mod:`probegrid.core.cubemap` (computed here
-    per block so that huge faces need no full-size table).
+    is the exact ``F(u1, v1) - F(u0, v1) - F(u1, v0) + F(u0, v0)`` with ``F`` of
+    :func:`probegrid.core.cubemap.solid_angle_corner` (computed here per block so that huge faces
+    need no full-size table).
     """
     edges = np.linspace(-1.0, 1.0, n + 1)
     ue = edges[None, :]
     ve = edges[row0 : row1 + 1, None]
-    f = np.arctan2(ue * ve, np.sqrt(ue * ue + ve * ve + 1.0))  # (rows + 1, n + 1)
+    f = cm.solid_angle_corner(ue, ve)  # (rows + 1, n + 1)
     solid = f[1:, 1:] - f[:-1, 1:] - f[1:, :-1] + f[:-1, :-1]
     u = 0.5 * (ue[:, 1:] + ue[:, :-1])
     v = 0.5 * (ve[1:] + ve[:-1])
