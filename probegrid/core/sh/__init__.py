@@ -3,7 +3,8 @@
 This package *owns* the project's SH convention; every other module imports it from here
 (``from probegrid.core import sh``). One function per idea, for any band count: each takes
 ``bands`` (keyword, default 3: the 9-coefficient basis the bake and the store use, up to
-:data:`MAX_BANDS`) and computes the 3-band case on its own fast path (the explicit
+:data:`MAX_BANDS`; the coefficient array must have ``bands^2`` rows) and computes the 3-band
+case on its own fast path (the explicit
 Ramamoorthi-Hanrahan formulas, the exact quadratic form), whose numbers are those of every stored
 probe and filtered environment.
 

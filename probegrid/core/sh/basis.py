@@ -29,9 +29,10 @@ Directions are normalised inside :func:`sh_basis`, so any non-zero vector may be
 
 Any band count
 --------------
-Every function of the package takes ``bands`` (keyword, default :data:`NUM_BANDS` = 3, the
+The package's functions take ``bands`` (keyword, default :data:`NUM_BANDS` = 3, the
 9-coefficient basis the bake and the store use; up to :data:`MAX_BANDS`, tested up to 9): bands
-``l = 0 .. bands - 1``, ``bands^2`` coefficients. The same convention, extended: polar axis world
+``l = 0 .. bands - 1``, ``bands^2`` coefficients (the quadratic form and the per-probe deringing
+are band-0-2 ideas and take 9 coefficients). The same convention, extended: polar axis world
 ``+Z``, azimuth ``phi = atan2(y, x)``::
 
     Y_l0      = K_l0 P_l^0(z)
