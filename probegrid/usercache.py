@@ -100,7 +100,7 @@ def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArra
 
 
 def dfg_lut(size: int = 128, *, samples: int = 64) -> NDArray[np.float32]:
-    """:func:`probegrid.dfg.dfg_lut` through the cache (the same bits; ~1 s saved per run)."""
+    """:func:`probegrid.core.dfg.dfg_lut` through the cache (the same bits; ~1 s saved per run)."""
     from probegrid.core import dfg
 
     return cached_array("dfg_lut", {"size": int(size), "samples": int(samples),
