@@ -12,7 +12,7 @@ For each HDR in ``../shared/data/hdr`` it prints, in one run:
   target is probegrid <= 0.5 x cmgen's summed time. The DFG table comes from the user cache
   (filled by the first run, see probegrid.usercache).
 * **Errors against a converged reference.** Diffuse: the exact clamped-cosine sum over a 512^2
-  cube of the input (:func:`probegrid.diffuse.diffuse_exact`), 32^2; scored: probegrid's map
+  cube of the input (:func:`probegrid.core.diffuse.diffuse_exact`), 32^2; scored: probegrid's map
   (the same functions the command runs) and cmgen's irradiance map (cmgen writes its cube from a
   lat-long in another orientation: the cube symmetry that maps its level 0 onto probegrid's is
   found and undone; its map holds irradiance / pi like ours, checked by the ratio printed).
@@ -24,15 +24,15 @@ For each HDR in ``../shared/data/hdr`` it prints, in one run:
 * **SH diffuse at 3, 5, 7, 9 bands** against the same diffuse reference, beside the best that
   band count allows (:func:`probegrid.core.shbands.project_equirect` of every input pixel).
 
-Last, issue 13's second target: one of the HDRs resampled to 1500 x 750 and filtered with
-every default, against 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the same file.
+Last, a large input: one of the HDRs resampled to 1500 x 750 and filtered with every default,
+against targets of 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the same file.
 
 References are cached on disk (``--cache``). Usage::
 
     .venv/bin/python benchmarks/bench_filter_cli.py [--repeat 3] [--hdr venice studio] [--no-bytecode]
 
 probegrid runs with its modules' bytecode cached, as an installed package has it: a
-``PYTHONDONTWRITEBYTECODE`` in the environment (this development machine sets one) is left out
+``PYTHONDONTWRITEBYTECODE`` in the environment (a machine may set one) is left out
 of the runs' environment, so the warm-up run writes ``__pycache__`` and the timed runs read it.
 ``--no-bytecode`` keeps the environment as it is (each run then compiles the ~27 modules the
 filter loads: about 0.07 s CPU, 0.03-0.05 s wall).
@@ -266,7 +266,7 @@ def main() -> None:
 
 
 def bench_defaults(hdr: Path, work: Path, args: argparse.Namespace) -> None:
-    """Issue 13's second target: a 1500 x 750 lat-long (``hdr`` resampled bilinearly) with
+    """A large input: a 1500 x 750 lat-long (``hdr`` resampled bilinearly) with
     every default (the cube size chosen from the input: 256^2), against 5 s and 500 MB, beside
     cmgen's three runs at 256^2 on the same file."""
     img = read_rgb(hdr).astype(np.float64)

@@ -36,8 +36,8 @@ __all__ = ["CACHE_ENV", "CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut",
 CACHE_VERSION = 1
 
 
-#: Environment variable that names the cache's root directory instead (tests give each session
-#: a fresh one).
+#: Environment variable that names the cache's root directory instead (the test suite gives
+#: each run a fresh one).
 CACHE_ENV = "PROBEGRID_CACHE_DIR"
 
 
