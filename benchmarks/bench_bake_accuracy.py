@@ -1,4 +1,4 @@
-"""Bake accuracy and time against a converged path tracer (Mitsuba 3), in one run (issue 10, 13b).
+"""Bake accuracy and time against a converged path tracer (Mitsuba 3), in one run.
 
 For each scene -- the shared ``CornellBox.glb`` (a small emissive ceiling panel, no other light)
 and the bundled sample room (``data/sample_room.glb``, its point light and ``data/sample_sky.hdr``

@@ -24,9 +24,8 @@ For each HDR in ``../shared/data/hdr`` it prints, in one run:
 * **SH diffuse at 3, 5, 7, 9 bands** against the same diffuse reference, beside the best that
   band count allows (:func:`probegrid.core.sh.project_equirect` of every input pixel).
 
-Last, the filter's speed and memory target: one of the HDRs resampled to 1500 x 750 and
-filtered with every default, against 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the
-same file.
+Last, a large input: one of the HDRs resampled to 1500 x 750 and filtered with every default,
+against targets of 5 s and 500 MB peak RSS, beside cmgen at 256^2 on the same file.
 
 References are cached on disk (``--cache``). Usage::
 

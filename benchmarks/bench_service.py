@@ -17,13 +17,13 @@ sent in ``--rounds`` rounds that visit every endpoint in turn, so a change in th
 * ``sh[seg]``, ``sh+normal[seg]``, ``maps[seg]`` (synthetic store only): the same queries of a
   second grid, the synthetic store plus the extras a bake writes (format 2): a scene of about
   20000 triangles (a closed room, two inner walls with doorways, a tessellated floor) whose
-  point-to-probe segments every query casts through Embree (exact visibility, issue 10), and
+  point-to-probe segments every query casts through Embree (exact visibility), and
   the deringed SH. The ratio ``[seg]`` / plain is the cost of the exact visibility test.
 
 It prints p50 / p99 latency and requests per second per endpoint and their ratios to the bare
 endpoint (the figures; targets: ``sh`` p50 <= 1.5x and throughput >= 0.7x, ``maps`` p50 <= 2x),
 then the server's resident memory before and after ``--rss-requests`` more mixed requests
-(the issue's figure is 100000; the default is bounded for a shared machine).
+(100000 shows a slow leak better; the default is bounded for a shared machine).
 
 Every endpoint cycles through 512 random positions (and normals), so the figures are not those of
 one cached query. The header line names uvicorn's HTTP parser and event loop (``auto``: httptools

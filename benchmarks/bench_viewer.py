@@ -8,7 +8,7 @@ flag (grids listed, probes drawn, scene loaded, first ``/sh`` answered and drawn
 then the time the side-by-side toggle takes to show three.js' own ``LightProbeGridWebGL``
 (the grid's three.js export fetched, three's module loaded and its shader compiled).
 The first load is cold (server caches and the browser's shader cache empty); the figure to quote
-is the median of the warm loads, next to the issue's target of 2 s. The same page's wall time
+is the median of the warm loads, next to a target of 2 s. The same page's wall time
 from ``goto`` is printed as a check of the in-page clock.
 
 What the numbers measure on a machine without a GPU is mostly Chromium's WebGL start-up and

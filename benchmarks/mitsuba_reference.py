@@ -15,9 +15,9 @@ Conversion (what is the same, and what is refused rather than guessed)
   ``twosided`` BSDF (glTF: a double-sided back face is shaded with the flipped normal).
   Emission leaves the front only, whatever ``doubleSided`` (probegrid's convention,
   :mod:`probegrid.bake.emitters`, README "Conventions"), as Mitsuba's ``area`` emitter does.
-  (Converter 1 gave double-sided emitters a reversed copy that emitted backwards: its
-  references lit the Cornell box's ceiling behind the panel, 3 % of what the probes see of
-  light reflected once.)
+  (A backward-emitting copy of a double-sided emitter would light the Cornell box's ceiling
+  behind the panel, 3 % of what the probes see of light reflected once; ``CONVERTER_VERSION``
+  in the cache key keeps references converted otherwise out.)
 * Lambertian albedo ``baseColorFactor.rgb * baseColorTexture.rgb`` (the linear texture probegrid
   decoded, premultiplied by the factor, bilinear, its wrap mode; glTF UVs, whose (0, 0) is the
   image's first row, as Mitsuba's bitmap reads them); emission ``emissiveFactor *

@@ -23,6 +23,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from probegrid._version import __version__ as __version__
+from probegrid.errors import ProbegridError as ProbegridError
 
 if TYPE_CHECKING:
     from probegrid import imageio as imageio
@@ -62,6 +63,7 @@ __all__ = [
     "GridSpec",
     "LocalExecutor",
     "ProbeField",
+    "ProbegridError",
     "__version__",
     "diffuse",
     "imageio",

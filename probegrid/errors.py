@@ -11,6 +11,8 @@ that catches ``ValueError`` or ``RuntimeError`` keeps working::
           ├── ImageError(ValueError)            an image cannot be read or written
           ├── SettingsError(ValueError)         an option's value its settings refuse
           ├── ExecutorError(RuntimeError)       a batch failed, a worker died, no cluster
+          ├── NoLightError(ValueError)          probegrid.bake.nolight: a bake that can only be black
+          ├── KTX2Error(ValueError)             probegrid.export.ktx2: a KTX2 file or level refused
           └── ProbeGridError                    probegrid.client: every error of the HTTP client
                ├── InvalidArgumentError(ValueError)   bad arguments, caught before any request
                ├── ProbeGridResponseError             a body that is not the API's

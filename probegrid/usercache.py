@@ -36,8 +36,8 @@ __all__ = ["CACHE_ENV", "CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut",
 CACHE_VERSION = 1
 
 
-#: Environment variable that names the cache's root directory instead (tests give each session
-#: a fresh one).
+#: Environment variable that names the cache's root directory instead (the test suite gives
+#: each run a fresh one).
 CACHE_ENV = "PROBEGRID_CACHE_DIR"
 
 
@@ -100,7 +100,7 @@ def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArra
 
 
 def dfg_lut(size: int = 128, *, samples: int = 64) -> NDArray[np.float32]:
-    """:func:`probegrid.dfg.dfg_lut` through the cache (the same bits; ~1 s saved per run)."""
+    """:func:`probegrid.core.dfg.dfg_lut` through the cache (the same bits; ~1 s saved per run)."""
     from probegrid.core import dfg
 
     return cached_array("dfg_lut", {"size": int(size), "samples": int(samples),

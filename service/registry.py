@@ -6,7 +6,7 @@ names a grid, it never names a file: the name is only a key of this registry, so
 sends becomes a path.
 
 Each :class:`ServedGrid` keeps the open :class:`probegrid.store.ProbeStore` (read-only memory maps,
-shared between worker processes through the page cache), its :class:`probegrid.core.ddgi.ProbeField`
+shared between worker processes through the page cache), its :class:`probegrid.query.ProbeField`
 and the JSON-ready summary the ``/v1/grids`` routes return.
 
 A store is checked when it is opened as ``probegrid export`` checks it

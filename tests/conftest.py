@@ -1,4 +1,4 @@
-"""Shared fixtures: paths to the real test data in ``../shared/data``, and the test session's
+"""Shared fixtures: paths to the real test data in ``../shared/data``, and the test run's
 private cache directory.
 
 Markers (registered in ``pyproject.toml``): ``slow`` marks the few long physics and fuzzing
@@ -6,8 +6,8 @@ checks; the default run (``pytest -q``, the README's command) leaves them out an
 runs them in a second invocation (``pytest -q -m slow``); ``pytest -m ""`` runs everything.
 ``browser`` marks tests that drive a real browser.
 
-Expensive inputs shared by several test modules are session-scoped fixtures here, so each is
-made once per run.
+Expensive inputs shared by several test modules are fixtures scoped to the whole run here
+(pytest's ``scope="session"``), so each is made once per run.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ _CACHE: list[str] = []
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """A fresh cache directory (``PROBEGRID_CACHE_DIR``) for this session and the CLI processes
-    it starts: the DFG table a filter run caches is computed once per session, never read from
-    the user's cache."""
+    """A fresh cache directory (``PROBEGRID_CACHE_DIR``) for this test run and the CLI processes
+    it starts: the DFG table a filter run caches is computed once per run, never read from the
+    user's cache."""
     if not _CACHE and "PROBEGRID_CACHE_DIR" not in os.environ:
         _CACHE.append(tempfile.mkdtemp(prefix="probegrid-test-cache-"))
         os.environ["PROBEGRID_CACHE_DIR"] = _CACHE[0]

@@ -1,7 +1,7 @@
 """Independent readers from npm, run under node by the tests: ``ktx-parse`` (KTX2).
 
 They are looked for in ``tests/js/node_modules`` (``npm install --prefix tests/js``, which CI
-runs); otherwise, when node and npm are on PATH, installed once per test session into a
+runs); otherwise, when node and npm are on PATH, installed once per test run into a
 temporary directory (versions pinned in ``tests/js/package.json``). Tests that need them skip
 with the reason when neither works (no node, no npm, or no registry).
 """

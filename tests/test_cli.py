@@ -264,7 +264,7 @@ def _glb_mesh_count(path: Path) -> int:
 
 
 def _check_inputs_as_given(store: Path, info: str) -> None:
-    """The manifest and ``info`` record the scene and environment as given (issue 14, item 10):
+    """The manifest and ``info`` record the scene and environment as given:
     names without directories, sizes, the detected layout, the counts, each one's hash."""
     import hashlib
 

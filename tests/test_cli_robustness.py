@@ -1,6 +1,7 @@
-"""What a new user tripped over (issue 14): argument parsing (face files by name, negative comma
-lists, ``--environment`` and the scene), outputs staged into place (filter, export), options and
-the output location checked before any work, and the messages of quietly accepted input.
+"""The command line on the inputs users give it: argument parsing (face files by name,
+negative comma lists, ``--environment`` and the scene), outputs staged into place (filter,
+export), options and the output location checked before any work, and the messages of quietly
+accepted input.
 
 Everything runs in-process through :func:`probegrid.cli.main` (no subprocess start-up), on tiny
 inputs."""

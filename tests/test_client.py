@@ -364,7 +364,7 @@ def test_everything_the_client_raises_is_a_probegrid_error():
             ProbeGridClient(url)
 
 
-# ------------------------------------------------------------------------------ issue 10
+# ----------------------------------------------------------------------- visibility and deringed SH
 def test_results_say_which_visibility_test_and_which_sh(tmp_path):
     """Against a store with the scene's triangles (a wall at x = 0.5) and deringed SH, served
     in-process: SHSample and MapSample report 'segments', the probes behind the wall are

@@ -1,4 +1,4 @@
-"""Half-float map arrays (issue 14, item 11): ``--dtype half`` stores the diffuse, specular and
+"""Half-float map arrays: ``--dtype half`` stores the diffuse, specular and
 incoming maps as float16 (the float32 bake's values rounded to the nearest half, values beyond
 65504 clamped), records it in the manifest, reads back transparently in float32, and the bake
 says what each choice costs."""

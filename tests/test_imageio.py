@@ -316,7 +316,7 @@ def test_read_environment_of_venice_keeps_its_energy(shared_data):
     assert cube.shape == (6, 32, 32, 3) and cube.dtype == np.float32
     w = cm.texel_solid_angles(32)[..., None]
     mean = (cube * w).sum((0, 1, 2)) / (4 * np.pi)
-    np.testing.assert_allclose(mean, [0.51, 0.48, 0.61], atol=0.006)  # README figures
+    np.testing.assert_allclose(mean, [0.51, 0.48, 0.61], atol=0.006)  # ../shared/data/README.md
 
 
 def test_default_environment_size_from_the_source(tmp_path, venice_latlong):

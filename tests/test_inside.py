@@ -1,4 +1,4 @@
-"""Inside is inside (issue 10, item 5): probes inside closed solids are invalid whatever the
+"""Inside is inside: probes inside closed solids are invalid whatever the
 material's double-sidedness, by the authored winding (probegrid.bake.inside), with fallbacks for
 inconsistently wound and open meshes; relocation moves probes out; invalid probes give no light."""
 

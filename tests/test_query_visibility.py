@@ -1,4 +1,4 @@
-"""Leak-free probe queries (issue 10, item 6): a wall between a lit and a dark room, a room's
+"""Leak-free probe queries: a wall between a lit and a dark room, a room's
 corner, the exact point-to-probe segment test and the fallback of stores without triangles
 (probegrid.query, probegrid.core.ddgi, probegrid.raytrace, probegrid.bake.extras)."""
 

@@ -705,7 +705,7 @@ def test_example_usage_names_a_working_query(http, stores, server):
     assert "ProbeGridClient(" in text and ".sh_at('lin', (1, 0.5, 1))" in text
 
 
-# ------------------------------------------------------------------------------ issue 10
+# ----------------------------------------------------------------------- visibility and deringed SH
 def test_sh_and_maps_say_which_visibility_test_and_which_sh(tmp_path):
     """A store with the scene's triangles (a wall at x = 0.5) and deringed SH: the probes
     behind the wall get no weight, with or without a normal, and the responses say

@@ -1,4 +1,4 @@
-"""The service's trust in its stores and its OpenAPI document (issue 14, items 6, 8, 13).
+"""The service's trust in its stores and its OpenAPI document.
 
 Stores are checked at open as ``probegrid export`` checks them (a NaN is refused, not served as
 ``null``); a store replaced on disk while served is opened, checked and swapped in whole (or
@@ -247,7 +247,7 @@ def test_maps_and_light_maps_have_the_same_default_format(lin):
         "LightMapsRequest"]["anyOf"][0]["properties"]["format"]["default"] == "npy"
 
 
-# ------------------------------------------------------------------------------ issue 14, item 13
+# ------------------------------------------------------------------------- OpenAPI limits and rules
 def _params(doc: dict, path: str) -> dict[str, dict]:
     return {p["name"]: p for p in doc["paths"][path]["get"]["parameters"]}
 

@@ -13,7 +13,7 @@ from probegrid.core import dfg
 
 @pytest.fixture()
 def cache(tmp_path, monkeypatch):
-    monkeypatch.delenv(usercache.CACHE_ENV, raising=False)  # (the test session sets its own)
+    monkeypatch.delenv(usercache.CACHE_ENV, raising=False)  # (the test run sets its own)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     return tmp_path / "probegrid" / f"v{usercache.CACHE_VERSION}"
 

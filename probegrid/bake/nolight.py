@@ -1,4 +1,4 @@
-"""No silent black (issue 10, item 7): a bake with no light is refused, or says so.
+"""No silent black: a bake with no light is refused, or says so.
 
 Two checks and one rule:
 

@@ -1,6 +1,6 @@
 """The exact clamped-cosine sum of a cube map, computed hierarchically (same sum, less work).
 
-:func:`probegrid.diffuse.diffuse_exact` defines the diffuse map (irradiance / pi) at normal
+:func:`probegrid.core.diffuse.diffuse_exact` defines the diffuse map (irradiance / pi) at normal
 ``n`` as the midpoint rule over every source texel ``i`` (centre ``w_i``, exact solid angle
 ``dOmega_i``, radiance ``L_i``)::
 

@@ -14,7 +14,7 @@ power-of-two input of at least 8^2 the same sum is computed hierarchically
 their exact vector moment, blocks behind nothing, only blocks on the horizon texel by texel;
 equal to the dense sum to float64 rounding, about 30 x fewer operations at 128^2). Other sizes
 use the dense product in float64 chunks of output texels
-(:func:`probegrid.specular.zonal_convolution`), about three ``(rows, 6 n^2)`` float64 blocks of
+(:func:`probegrid.core.specular.zonal_convolution`), about three ``(rows, 6 n^2)`` float64 blocks of
 ``chunk_bytes`` alive; its cost is ``36 size^2 n^2`` multiply-adds.
 
 Option ``source_size``: box-filter the input down to ``source_size`` first (solid-angle-weighted

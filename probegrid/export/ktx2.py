@@ -59,6 +59,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from probegrid._version import __version__
+from probegrid.errors import ProbegridError
 
 __all__ = [
     "IDENTIFIER",
@@ -115,7 +116,7 @@ HALF_MAX: Final[float] = 65504.0
 Kind = Literal["2d", "cube", "3d"]
 
 
-class KTX2Error(ValueError):
+class KTX2Error(ProbegridError, ValueError):
     """A KTX2 file this module cannot read (or data it cannot write); one line."""
 
 

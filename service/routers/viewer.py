@@ -6,7 +6,7 @@
   a copy (``scene_file`` in its manifest, see :func:`probegrid.store.keepable_scene`). The file
   is the store's own fixed-name copy, mapped when the app starts (like the arrays: a store
   replaced on disk is still served whole from the old files); the request only names the grid.
-* ``GET /v1/dfg`` -- the split-sum DFG table ``/shade`` uses (:func:`probegrid.dfg.dfg_lut`):
+* ``GET /v1/dfg`` -- the split-sum DFG table ``/shade`` uses (:func:`probegrid.core.dfg.dfg_lut`):
   ``(n, n, 2)`` float32, rows perceptual roughness, columns N.V, channels (A, B).
 """
 
