@@ -66,15 +66,18 @@ from probegrid.bake.extras import write_store_extras
 from probegrid.bake.inputs import check_bake_inputs
 from probegrid.bake.maps import energy_ratio, incoming_integral_from_sh
 from probegrid.bake.nolight import light_quality, printable
-from probegrid.bake.records import irradiance_size, resolve_directory
+from probegrid.bake.records import resolve_directory
 from probegrid.bake.schedule import BounceSchedule
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.bake.stages import (
     StageContext,
     StageState,
+    bounce_arrays,
     bounce_task,
+    classify_arrays,
     classify_task,
     final_task,
+    trace_arrays,
     trace_task,
 )
 from probegrid.core import probefilter
@@ -159,7 +162,7 @@ def _bake_lock(work: Path, out: Path) -> AbstractContextManager[None]:
 
 
 @dataclass
-class _Stages:
+class _StageRunner:
     """Runs the bake's stages into (resumable) stores and counts their rays and seconds.
 
     Holds what every stage shares: the executor, the bake's plan and scene hash (a finished
@@ -271,19 +274,14 @@ def bake(
                     child.unlink()
             shutil.rmtree(partial_path(out), ignore_errors=True)
         stamp.write_text(fingerprint)
-        stages = _Stages(ex, plan, scene_hash, progress)
+        runner = _StageRunner(ex, plan, scene_hash, progress)
         t0 = time.perf_counter()
         base = StageContext(scene, env, render, st, grid,
                              key=hashlib.sha256((fingerprint + repr(render)).encode()).hexdigest())
 
         # 1. classify
-        cls_arrays = {
-            "positions": ArraySpec((3,), "float64", "probe position"),
-            "valid": ArraySpec((), "bool", "probe is outside geometry"),
-            "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
-        }
-        w, resumed = stages.run("classify", work / "classify.probes", cls_arrays, classify_task,
-                                base)
+        w, resumed = runner.run("classify", work / "classify.probes", classify_arrays(),
+                                classify_task, base)
         cls_store = w.finish() if isinstance(w, StoreWriter) else w
         positions = np.array(cls_store["positions"])
         valid = np.array(cls_store["valid"])
@@ -302,22 +300,14 @@ def bake(
         records = (str(work / "records") if files
                    else "probegrid-records-" + hashlib.sha256(
                        (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
-        m = render.moments_size
-        g = irradiance_size(st.gather_levels() > 0)
-        grid_arrays = {
-            "irradiance": ArraySpec((6, g, g, 3), "float32", "irradiance / pi of bounced light"),
-            "energy": ArraySpec((), "float64", "solid-angle integral of the bounced light"),
-        }
-        trace_arrays = {**grid_arrays,
-                        "moments": ArraySpec((6, m, m, 2), "float32", "distance moments"),
-                        "backface_fraction": ArraySpec((), "float64", "backface ray fraction")}
         schedule = BounceSchedule.of(st)
 
         # one worker process on this machine reads every block it wrote: its records stay in
         # its memory (written only if they outgrow it); several workers share them as files
         base = dataclasses.replace(base, record_files=not (files and ex.workers == 1))
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
-        w, _ = stages.run(schedule.label(0), work / "trace.probes", trace_arrays, trace_task, ctx)
+        w, _ = runner.run(schedule.label(0), work / "trace.probes", trace_arrays(st, render),
+                          trace_task, ctx)
         tstore = w.finish() if isinstance(w, StoreWriter) else w
         moments_all: NDArray[np.float32] | str = np.array(tstore["moments"])
         bordered = bordered_cubes(tstore["moments"])
@@ -341,7 +331,7 @@ def bake(
             ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                       records=records, level=k, moments_bordered=moments_b,
                                       cubes=cubes_at.get(schedule.reads(k)))
-            w, _ = stages.run(schedule.label(k), work / f"bounce{k}.probes", grid_arrays,
+            w, _ = runner.run(schedule.label(k), work / f"bounce{k}.probes", bounce_arrays(st),
                               bounce_task, ctx)
             bstore = w.finish() if isinstance(w, StoreWriter) else w
             cubes_at[k] = grid_cubes(bstore, k)
@@ -366,7 +356,7 @@ def bake(
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                   records=records, level=level, moments_bordered=moments_b,
                                   cubes=final_cubes, moments=moments_all)
-        w, resumed = stages.run(schedule.label(level, final=True), out, store_arrays(st),
+        w, resumed = runner.run(schedule.label(level, final=True), out, store_arrays(st),
                                 final_task, ctx, overwrite=overwrite, intermediate=False,
                                 extra=keep)
         assert isinstance(w, StoreWriter)
@@ -398,8 +388,8 @@ def bake(
             "bounce_residual": schedule.residual,
             "bounce_passes": schedule.passes,
             "bounce_energy": schedule.energies,
-            "rays": stages.rays,
-            "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
+            "rays": runner.rays,
+            "stage_seconds": {k: round(v, 3) for k, v in runner.seconds.items()},
         }
         if schedule.state.factor is not None:  # converged by extrapolation (bake.converge)
             quality["bounce_extrapolation"] = schedule.state.factor
@@ -412,4 +402,4 @@ def bake(
             shutil.rmtree(resolve_directory(records), ignore_errors=True)
 
         seconds = time.perf_counter() - t0
-        return BakeReport(store, seconds, stages.rays, grid.n_probes, resumed, quality)
+        return BakeReport(store, seconds, runner.rays, grid.n_probes, resumed, quality)

@@ -62,9 +62,11 @@ from probegrid.core.cubemap import solid_angle_integral
 from probegrid.core.grid import GridSpec
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
+from probegrid.store import ArraySpec
 
-__all__ = ["CLASSIFY_FACE_SIZE", "StageContext", "StageState", "bounce_task", "classify_task",
-           "final_task", "load_npy", "trace_task"]
+__all__ = ["CLASSIFY_FACE_SIZE", "StageContext", "StageState", "bounce_arrays", "bounce_task",
+           "classify_arrays", "classify_task", "final_task", "load_npy", "trace_arrays",
+           "trace_task"]
 
 
 def load_npy(path: str) -> NDArray[Any]:
@@ -179,6 +181,33 @@ class StageState:
 CLASSIFY_FACE_SIZE = 8
 
 
+def classify_arrays() -> dict[str, ArraySpec]:
+    """The per-probe arrays :func:`classify_task` returns (the classify stage's store)."""
+    return {
+        "positions": ArraySpec((3,), "float64", "probe position"),
+        "valid": ArraySpec((), "bool", "probe is outside geometry"),
+        "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
+    }
+
+
+def bounce_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
+    """The per-probe arrays :func:`bounce_task` returns: a level of the grid."""
+    g = irradiance_size(settings.gather_levels() > 0)
+    return {
+        "irradiance": ArraySpec((6, g, g, 3), "float32", "irradiance / pi of bounced light"),
+        "energy": ArraySpec((), "float64", "solid-angle integral of the bounced light"),
+    }
+
+
+def trace_arrays(settings: BakeSettings, render: RenderSettings) -> dict[str, ArraySpec]:
+    """The per-probe arrays :func:`trace_task` returns: level 0 of the grid, the distance
+    moments and the backface fraction."""
+    m = render.moments_size
+    return {**bounce_arrays(settings),
+            "moments": ArraySpec((6, m, m, 2), "float32", "distance moments"),
+            "backface_fraction": ArraySpec((), "float64", "backface ray fraction")}
+
+
 def classify_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     """Whether each probe of the batch is outside geometry (the backface fraction, the
     enclosure and the inside tests), and where: an invalid probe moves to the first nearby
@@ -278,7 +307,8 @@ def bounce_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
 
 
 def final_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
-    """What each probe of the batch sees at the final level, and the maps the store keeps."""
+    """What each probe of the batch sees at the final level, and the maps the store keeps
+    (:func:`probegrid.bake.settings.store_arrays`)."""
     from probegrid.core import seams
 
     ctx = state.ctx
