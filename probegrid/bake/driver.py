@@ -326,6 +326,7 @@ def bake(
         cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
         irradiance_at = {0: tstore["irradiance"]}
         schedule.passed(grid_energy(tstore))
+
         # 3. bounces: a pass over the records per level, as long as the schedule asks
         while (k := schedule.next_pass()) is not None:
             ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
