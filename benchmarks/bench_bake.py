@@ -50,7 +50,8 @@ from probegrid import raytrace
 from probegrid.bake.driver import BakeSettings, bake
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import InlineExecutor, LocalExecutor
-from probegrid.jobs.bake import grid_for, load_environment
+from probegrid.bake.placement import grid_for
+from probegrid.jobs.bake import load_environment
 from probegrid.kernels import embree_rays
 from probegrid.scene import Material, Scene, load_gltf
 

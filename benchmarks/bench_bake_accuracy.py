@@ -88,9 +88,14 @@ def _bake_main(spec_file: str) -> None:
         executor.start()
     import probegrid
     from probegrid.bake import BakeSettings, bake
-    from probegrid.jobs.bake import grid_for, load_environment
+    from probegrid.jobs.bake import load_environment
     from probegrid.scene import load_gltf
     from probegrid.store import open_store
+
+    try:
+        from probegrid.bake.placement import grid_for
+    except ImportError:  # (older checkouts kept it in the job)
+        from probegrid.jobs.bake import grid_for  # type: ignore[attr-defined,no-redef]
     scene = load_gltf(spec["scene"])
     scene = dataclasses.replace(scene, lights=() if spec.get("no_punctual") else tuple(
         dataclasses.replace(lt, range=None) if getattr(lt, "range", None) is not None else lt

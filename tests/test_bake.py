@@ -702,7 +702,7 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
 def test_a_process_builds_one_record_tracer_per_bake():
     """Every stage of a bake hands its workers the context anew; the record tracer (BVH,
     emitter and environment tables) is built once per process and bake fingerprint."""
-    from probegrid.bake import driver
+    from probegrid.bake import stages
 
     b = SceneBuilder()
     b.add_box((-1, 0, -1), (1, 2, 1), material=b.add_material(Material.diffuse(0.5)),
@@ -710,8 +710,8 @@ def test_a_process_builds_one_record_tracer_per_bake():
     scene = b.build()
     grid = GridSpec(bounds_min=(-0.5, 1, 0), bounds_max=(0.5, 1, 0), counts=(2, 1, 1))
     st = BakeSettings(face_size=8)
-    ctx = driver._Context(scene, Environment(color=np.array([1.0, 1.0, 1.0])),
-                          st.render_settings(scene, grid), st, grid, key="bake-a")
+    ctx = stages.StageContext(scene, Environment(color=np.array([1.0, 1.0, 1.0])),
+                              st.render_settings(scene, grid), st, grid, key="bake-a")
     first = ctx.setup().tracer
     assert dataclasses.replace(ctx, level=3).setup().tracer is first  # a later stage
     assert dataclasses.replace(ctx, key="bake-b").setup().tracer is not first

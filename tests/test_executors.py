@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from probegrid.bake import executors as ex
+from probegrid.bake.executors.base import Pipeline
 
 P = 37  # probes; not a multiple of the batch sizes used below
 SEED = 20240917
@@ -147,7 +148,7 @@ def test_pipeline_bounds_in_flight():
         assert len(submitted) - handed[0] <= 3
         return order
 
-    pipe = ex._Pipeline(
+    pipe = Pipeline(
         submit=submit,
         wait_first=lambda futs: futs[-1:],  # completes out of order
         fetch=lambda fut: fut * 10,

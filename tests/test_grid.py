@@ -188,7 +188,7 @@ def test_parse_helpers():
 def test_cli_grid_options_honour_spacing_and_refuse_huge_grids():
     """bakejob.grid_for: --spacing gives exactly that spacing (probes half a spacing in from the
     scene bounds), and a grid over the probe limit is refused before any integer overflows."""
-    from probegrid.jobs.bake import MAX_PROBES, grid_for
+    from probegrid.bake.placement import MAX_PROBES, grid_for
     from probegrid.scene import box_scene
 
     scene = box_scene((-2, 0, -2), (2, 3, 2), albedo=0.5, emission=0.0, inward=True)

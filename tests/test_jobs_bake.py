@@ -1,5 +1,6 @@
-"""The ``probegrid bake`` job (issue 10, items 7-9): no silent black, a default grid that fits
-the scene, and the estimate before work (probegrid.jobs.bake, probegrid.bake.nolight)."""
+"""The ``probegrid bake`` job: no silent black, the estimate before work, the refusals before
+any worker starts, the manifest's inputs (probegrid.jobs.bake, probegrid.bake.nolight,
+probegrid.bake.estimate)."""
 
 from __future__ import annotations
 
@@ -11,14 +12,13 @@ import numpy as np
 import pytest
 
 from probegrid.bake.environment import Environment
+from probegrid.bake.estimate import estimate
 from probegrid.bake.executors import InlineExecutor
-from probegrid.bake.inside import inside_solid
 from probegrid.bake.nolight import NO_LIGHT, light_sources
 from probegrid.bake.settings import BakeSettings
 from probegrid.cli import EXIT_BAD_INPUT, main
 from probegrid.core.lights import PointLight
-from probegrid.jobs.bake import BakeJob, estimate, grid_for, run_bake
-from probegrid.raytrace import RayTracer
+from probegrid.jobs.bake import BakeJob, run_bake
 from probegrid.scene import Material, SceneBuilder
 from probegrid.store import StoreError, open_store, partial_path
 
@@ -113,45 +113,6 @@ def test_an_all_black_bake_exits_non_zero_and_resumes_with_allow_black(tmp_path,
     assert q["light"] == "lit" and q["lit_probes"] == 8 and q["energy_max_error"] < 1e-2
 
 
-def _room_on_a_slab():
-    """An 8 x 3 x 8 room standing on a floor slab 1 unit thick that overhangs it."""
-    b = SceneBuilder()
-    m = b.add_material(Material.diffuse(0.5))
-    b.add_box((-4, 0, -4), (4, 3, 4), material=m, inward=True)
-    b.add_box((-4.5, -1.0, -4.5), (4.5, 0, 4.5), material=m)  # the slab, a closed solid
-    b.add_light(PointLight((0.0, 2.5, 0.0), (1.0, 1.0, 1.0), 10.0))
-    return b.build()
-
-
-def test_the_default_grid_puts_no_probe_in_a_floor_slab():
-    """With no --grid/--spacing the box is fitted to the free space: no probe inside the slab
-    (the old default, 8 along the longest side at cell centres of the scene's bounds, put its
-    lowest layer half a cell = 0.56 deep in it)."""
-    scene = _room_on_a_slab()
-    said = []
-    g = grid_for(scene, say=said.append)
-    p = g.positions()
-    assert p[:, 1].min() > 0.0  # above the slab's top
-    assert not inside_solid(RayTracer.from_scene(scene), scene, p).any()
-    assert len(said) == 1 and f"default grid {g.label}" in said[0] and "free space" in said[0]
-    # spacing: the longest side (9) / 8; two layers at least along every longer side
-    step = 9 / 8
-    extent = np.array([9.0, 3.0, 9.0])
-    assert all(c >= 2 for c, e in zip(g.counts, extent, strict=True) if e > step)
-
-
-def test_the_default_grid_has_two_layers_along_every_side_longer_than_the_spacing():
-    """A flat room 8 x 1.2 x 0.5: spacing 1; the 1.2 side gets 2 layers (the old default,
-    rint(8 e / longest) = 1, gave one), the 0.5 side one."""
-    b = SceneBuilder()
-    m = b.add_material(Material.diffuse(0.5))
-    b.add_box((0, 0, 0), (8, 1.2, 0.5), material=m, inward=True)
-    g = grid_for(b.build())
-    assert g.counts == (8, 2, 1)
-    np.testing.assert_allclose(np.unique(g.positions()[:, 1]), [0.3, 0.9])
-    np.testing.assert_allclose(np.unique(g.positions()[:, 2]), [0.25])
-
-
 def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
@@ -207,8 +168,8 @@ def test_the_job_refuses_a_dark_scene_from_python_too(tmp_path, monkeypatch, sce
 
 def test_the_manifest_records_six_faces_in_face_order_and_a_colour(tmp_path, scene_file,
                                                                     capsys):
-    """Issue 14, item 10: ``--environment-faces`` given in shell order is recorded in face
-    order (+X, -X, +Y, -Y, +Z, -Z) with its pixel size; ``--environment-color`` as a colour;
+    """``--environment-faces`` given in shell order is recorded in face order
+    (+X, -X, +Y, -Y, +Z, -Z) with its pixel size; ``--environment-color`` as a colour;
     a format-2 store written before ``inputs`` existed still opens and prints."""
     from probegrid.imageio import write_image
     from probegrid.jobs.export import describe_store

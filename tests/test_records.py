@@ -126,7 +126,7 @@ def test_record_bytes_bounds_the_records_of_a_closed_room(depth):
     """The bake's estimate of its records (record_bytes) against a block traced and weighted
     in a closed box, where every ray hits and each gather level is full: exact, the per-probe
     arrays aside; a gather level keeps no emission, the upper levels no position or normal."""
-    from probegrid.bake.driver import GridData
+    from probegrid.bake.records import GridData
     from probegrid.bake.environment import Environment
     from probegrid.bake.render import RenderSettings
     from probegrid.core.ddgi import bordered_cubes

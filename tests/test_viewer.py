@@ -78,7 +78,8 @@ sync_api = pytest.importorskip("playwright.sync_api",
 @pytest.fixture(scope="module")
 def stores(tmp_path_factory) -> dict[str, Path]:
     from probegrid.bake import BakeSettings, bake
-    from probegrid.jobs.bake import grid_for, load_environment
+    from probegrid.bake.placement import grid_for
+    from probegrid.jobs.bake import load_environment
     from probegrid.scene import load_gltf
 
     root = tmp_path_factory.mktemp("viewer")

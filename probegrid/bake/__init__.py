@@ -1,8 +1,12 @@
-"""Baking a probe grid: settings, environment, ray tracing, rendering, executors and the driver.
+"""Baking a probe grid, by pipeline stage.
 
-``settings`` (:class:`BakeSettings`), ``environment`` (the distant light), ``render`` (one
-probe's incoming light, traced through :mod:`probegrid.raytrace`), ``executors`` (local processes
-or Dask: the one dask importer) and ``driver`` (:func:`bake`: stages, work directory, store).
+``settings`` (:class:`BakeSettings`), ``inputs`` (the checks of a bake's inputs), ``placement``
+(the grid, relocation), ``estimate`` (what a bake will cost), ``environment`` and ``emitters``
+(the lights), ``render`` (one probe's incoming light, traced through :mod:`probegrid.raytrace`),
+``records`` (per-hit records, replayed per bounce), ``stages`` (the per-batch tasks),
+``schedule`` and ``converge`` (the bounce passes, convergence), ``maps`` (SH, diffuse and
+specular maps), ``executors`` (inline, local processes or Dask: one per module) and ``driver``
+(:func:`bake`: work directory, lock, resume, store).
 :func:`bake` and :class:`BakeReport` load the driver (Embree, numba) on first use, and
 :class:`BakeSettings` the settings (pydantic), so importing the executors stays cheap (a bake
 starts its worker processes first).

@@ -1,6 +1,7 @@
 """``probegrid bake``: a probe grid of a scene, multi-bounce, into a memory-mappable store.
 
-Stages (each a pass over the whole grid on the executor, each resumable):
+:func:`bake` runs the stages (:mod:`probegrid.bake.stages`; each a pass over the whole grid on
+the executor, each resumable) in its work directory ``NAME.probes.work/``, under a lock:
 
 1. **classify** -- every probe shoots ``6 x 8^2`` rays; a probe whose rays hit backfaces more
    than ``invalid_threshold`` of the time is inside geometry (the RTXGI classifier's test, 25 %
@@ -10,7 +11,8 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    turns the test off). So is a probe inside a closed solid by the geometry's authored winding,
    double-sided or not (:mod:`probegrid.bake.inside`). With ``relocate``, an invalid probe is
    moved to the nearest point of a small lattice within ``relocate_fraction`` of a cell that
-   passes the tests; otherwise it stays invalid and every reader gives it zero weight.
+   passes the tests (:func:`probegrid.bake.placement.relocation_offsets`); otherwise it stays
+   invalid and every reader gives it zero weight.
 2. **trace** (bounce 0) -- every probe's rays are cast once
    (:class:`probegrid.bake.records.RecordTracer`: primary rays, shadow rays toward the punctual
    lights and toward points sampled on the emitters at every hit, the probe's own rays toward
@@ -22,17 +24,14 @@ Stages (each a pass over the whole grid on the executor, each resumable):
    (:func:`probegrid.bake.records.replay`): each gather ray's hit (each hit, without gather
    rays) reads a lower level's irradiance cubes of its 8 probes (DDGI weights computed once, in
    the first pass, and kept with the records);
-   only the grid's per-probe irradiance cubes move between the driver and the workers. With
-   ``bounces="converge"`` the passes go on until the estimated limit of the grid's total energy
-   (over valid probes; :mod:`probegrid.bake.converge`) changes by less than ``tolerance``
-   (relative), at most ``max_bounces``; the final pass then reads the grid extrapolated to that
-   limit. With gather rays a pass at level ``k`` reads the grid of level ``k - 2``, so a
-   ``bounces = B`` bake makes the grids up to level ``B - 2`` only.
+   only the grid's per-probe irradiance cubes move between the driver and the workers. Which
+   passes run, and when ``bounces="converge"`` stops and extrapolates, is the bounce schedule's
+   (:mod:`probegrid.bake.schedule`, :mod:`probegrid.bake.converge`).
 4. **final** (bounce B) -- a last pass gives what each probe sees (emission, its exact direct
    view of the emitters, the punctual lights folded in), then per probe: SH coefficients, the
    diffuse cube (exact clamped-cosine convolution, irradiance / pi), the GGX specular chain, the
-   distance moments and, optionally, the raw incoming cube, written to the store. The block's
-   records are deleted after their last use.
+   distance moments and, optionally, the raw incoming cube (:mod:`probegrid.bake.maps`), written
+   to the store. The block's records are deleted after their last use.
 
 So ``bounces = B`` gives light from emitters and the environment that has bounced B times off
 the scene's surfaces (a furnace box reads ``Le (1 - rho^(B+1)) / (1 - rho)``; punctual lights,
@@ -50,10 +49,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -62,43 +60,30 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid import usercache
-from probegrid.bake.converge import Convergence, convergence
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
-from probegrid.bake.inside import DIRECTIONS as INSIDE_DIRECTIONS
-from probegrid.bake.inside import inside_solid
+from probegrid.bake.inputs import check_bake_inputs
+from probegrid.bake.maps import energy_ratio, incoming_integral_from_sh
 from probegrid.bake.nolight import light_quality, printable
-from probegrid.bake.precision import fit_map_dtype
-from probegrid.bake.records import (
-    GridData,
-    RecordTracer,
-    all_hit_weights,
-    gather_depth,
-    grid_level_read,
-    has_hit_weights,
-    hit_weights,
-    irradiance_cubes,
-    irradiance_size,
-    load_records,
-    records_file,
-    remove_records,
-    replay,
-    resolve_directory,
-    save_records,
-    select_probes,
-    weighted_positions,
-)
-from probegrid.bake.render import ProbeRenderer, RenderSettings
+from probegrid.bake.records import resolve_directory
+from probegrid.bake.schedule import BounceSchedule
 from probegrid.bake.settings import BakeSettings, store_arrays
-from probegrid.core import probefilter, sh
+from probegrid.bake.stages import (
+    StageContext,
+    StageState,
+    bounce_arrays,
+    bounce_task,
+    classify_arrays,
+    classify_task,
+    final_task,
+    trace_arrays,
+    trace_task,
+)
+from probegrid.core import probefilter
 from probegrid.core.conventions import conventions
-from probegrid.core.cubemap import solid_angle_integral
 from probegrid.core.ddgi import bordered_cubes
-from probegrid.core.sh.dering import irradiance_minimum
 from probegrid.core.grid import GridSpec
-from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 from probegrid.store import (
     ArraySpec,
@@ -107,11 +92,10 @@ from probegrid.store import (
     StoreWriter,
     create_npy,
     directory_lock,
-    keepable_scene,
     open_store,
     partial_path,
 )
-from probegrid.store.manifest import check_store_name, work_path
+from probegrid.store.manifest import work_path
 
 __all__ = ["BakeReport", "BakeSettings", "bake", "environment_hash", "store_arrays"]
 
@@ -128,11 +112,6 @@ def environment_hash(env: Environment) -> str:
 
 
 # ------------------------------------------------------------------------------ work files
-def _load(path: str) -> NDArray[Any]:
-    """The read-only memory map of an ``.npy`` file."""
-    return np.load(path, mmap_mode="r", allow_pickle=False)
-
-
 def _save_npy(path: Path, array: NDArray[Any]) -> Path:
     """Write ``array`` to ``path`` (disk blocks reserved first: a full disk is an OSError here,
     not a SIGBUS in a worker later)."""
@@ -141,349 +120,6 @@ def _save_npy(path: Path, array: NDArray[Any]) -> Path:
     out.flush()
     del out
     return path
-
-
-# ------------------------------------------------------------------------------ worker side
-@dataclass(frozen=True, eq=False)
-class _Context:
-    """Per-bake-stage worker context: pickled once per worker, ``setup`` builds the BVH.
-
-    The grid-sized arrays (probe positions and validity, the bordered distance moments, the
-    previous bounce's bordered irradiance cubes, the moments to store) travel either as arrays
-    (for Dask workers, which may not share this machine's files) or as ``.npy`` paths in the
-    bake's work directory that ``setup`` memory-maps, so that a local worker's memory is bounded
-    by its batch, not by the grid. They are the grid's small per-probe data; the per-hit records
-    stay with the workers (``records``: a directory, absolute for workers on this machine, else
-    a name under each worker's temporary directory; :mod:`probegrid.bake.records`).
-    """
-
-    scene: Scene
-    environment: Environment
-    render: RenderSettings
-    settings: BakeSettings
-    grid: GridSpec
-    positions: NDArray[np.float64] | str | None = None
-    valid: NDArray[np.bool_] | str | None = None
-    records: str = ""
-    record_files: bool = True  # False: one worker process, which keeps its records in memory
-    level: int = 0
-    moments_bordered: NDArray[np.float32] | str | None = None
-    cubes: NDArray[np.float32] | str | None = None
-    moments: NDArray[np.float32] | str | None = None
-    key: str = ""  # the bake's fingerprint (scene, environment, plan): what the tracer depends on
-
-    @property
-    def block_size(self) -> int:
-        """Probes per batch: the grid split into as few blocks of at most ``batch_size`` as it
-        takes, of (nearly) equal sizes (27 probes in 4 batches of 7, not 8, 8, 8 and 3: the
-        workers finish together). Each block's records are kept under its first probe."""
-        p, bs = self.grid.n_probes, self.settings.batch_size
-        return max(1, -(-p // max(1, -(-p // bs)))) if p else bs
-
-    def records_path(self, batch: NDArray[np.int64]) -> Path:
-        """The records directory of the block holding ``batch`` (a whole block or part of one)."""
-        bs = self.block_size
-        return records_file(resolve_directory(self.records), int(batch[0]) // bs * bs)
-
-    def setup(self) -> _State:
-        import multiprocessing
-
-        if multiprocessing.parent_process() is not None:
-            # a worker process: one BLAS thread, the executor already runs one task per core
-            from threadpoolctl import threadpool_limits
-
-            threadpool_limits(1)
-        positions, valid = _array(self.positions), _array(self.valid)
-        tracer = _TRACERS.get(self.key) if self.key else None
-        if tracer is None:  # built once per process and bake, not once per stage
-            tracer = RecordTracer(self.scene, self.environment, self.render,
-                                  light_samples=self.settings.light_samples,
-                                  gather_samples=(self.settings.gather_samples
-                                                  if self.settings.gather_levels() else 0),
-                                  gather_depth=max(self.settings.gather_levels(), 1),
-                                  tracer=RayTracer.shared(self.scene))
-            _TRACERS.clear()
-            if self.key:
-                _TRACERS[self.key] = tracer
-        data = None
-        if self.moments_bordered is not None:
-            assert positions is not None and valid is not None
-            mb = _array(self.moments_bordered)
-            assert mb is not None
-            cubes = _array(self.cubes)
-            data = GridData(self.grid, valid, positions,
-                            np.ascontiguousarray(mb).reshape(-1, mb.shape[-1]),
-                            mb.shape[2] - 2,
-                            None if cubes is None else np.ascontiguousarray(cubes).reshape(-1, 3))
-        return _State(tracer, self, data, positions, valid, _array(self.moments))
-
-
-#: The record tracer of the bake a process last worked for, by the bake's fingerprint
-#: (:attr:`_Context.key`): its stages then share the BVH, the emitters' tables and the
-#: environment's sampling tables.
-_TRACERS: dict[str, RecordTracer] = {}
-
-
-def _array(a: NDArray[Any] | str | None) -> NDArray[Any] | None:
-    """An array, or the read-only memory map of an ``.npy`` path."""
-    return _load(a) if isinstance(a, str) else a
-
-
-@dataclass
-class _State:
-    tracer: RecordTracer
-    ctx: _Context
-    data: GridData | None
-    positions: NDArray[np.float64] | None
-    valid: NDArray[np.bool_] | None
-    moments: NDArray[np.float32] | None
-
-    @property
-    def renderer(self) -> ProbeRenderer:
-        return self.tracer.renderer
-
-
-#: Face size of the texel-centre rays that classify a probe as inside geometry.
-CLASSIFY_FACE_SIZE = 8
-
-
-def _relocation_offsets(steps: int = 2) -> NDArray[np.float64]:
-    """Lattice offsets in [-1, 1]^3 (without 0), nearest first, ties in a fixed order."""
-    k = np.arange(-steps, steps + 1) / steps
-    g = np.stack(np.meshgrid(k, k, k, indexing="ij"), -1).reshape(-1, 3)
-    g = g[np.any(g != 0, axis=1)]
-    order = np.lexsort((g[:, 2], g[:, 1], g[:, 0], np.linalg.norm(g, axis=1)))
-    return g[order]
-
-
-def _classify_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
-    ctx = state.ctx
-    lattice = ctx.grid.positions()[batch]
-    # enclosed: every ray hits within this distance (inside a double-sided solid or a cavity
-    # smaller than the grid resolves); 0 (no cell, or the setting 0) disables the test
-    reach = ctx.settings.enclosure * ctx.grid.smallest_cell()
-
-    def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-        frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
-        return ((frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach)
-                & ~inside_solid(state.renderer.tracer, ctx.scene, points)), frac
-
-    valid, frac = usable(lattice)
-    pos = lattice.copy()
-    rays_per_point = 6 * CLASSIFY_FACE_SIZE**2 + INSIDE_DIRECTIONS
-    rays = len(batch) * rays_per_point
-    if ctx.settings.relocate and ctx.settings.relocate_fraction > 0:
-        cell = np.where(np.array(ctx.grid.counts) > 1, ctx.grid.cell_size, 0.0)
-        offsets = _relocation_offsets() * (ctx.settings.relocate_fraction * cell)
-        offsets = offsets[np.any(offsets != 0, axis=1)]
-        for j in np.flatnonzero(~valid):  # loop over invalid probes, not rays
-            cand = lattice[j] + offsets
-            good, f = usable(cand)
-            rays += len(cand) * rays_per_point
-            ok = np.flatnonzero(good)
-            if ok.size:
-                pos[j] = cand[ok[0]]
-                frac[j] = f[ok[0]]
-                valid[j] = True
-    return {"positions": pos, "valid": valid, "backface_fraction": frac, "rays": rays}
-
-
-def _block_records(state: _State, batch: NDArray[np.int64]
-                   ) -> tuple[dict[str, Any], Path | None, int]:
-    """The records of ``batch``: from its block's file, or traced again when it is missing
-    (deterministic: the same bits). Returns them, the block's file when they came from a whole
-    block, and the rays cast."""
-    ctx = state.ctx
-    path = ctx.records_path(batch)
-    rec = load_records(path)
-    if rec is not None:
-        whole = np.array_equal(rec["probes"], batch)
-        sel = select_probes(rec, batch)
-        if sel is not None:
-            return sel, (path if whole else None), 0
-    assert state.positions is not None
-    rec, _, rays = state.tracer.trace(state.positions[batch], batch)
-    return rec, None, rays
-
-
-def _bounced_outputs(rec: dict[str, Any], settings: RenderSettings, level: int,
-                     cubes: NDArray[np.float32] | None) -> dict[str, Any]:
-    """A bounce's per-probe outputs: the irradiance cube of the bounced light and its energy."""
-    cube, _ = replay(rec, settings, level, cubes, final=False)
-    irr = irradiance_cubes(cube, irradiance_size(gather_depth(rec) > 0))
-    energy = np.array([float(solid_angle_integral(c).sum()) for c in cube])
-    return {"irradiance": irr, "energy": energy}
-
-
-def _trace_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
-    """Cast every ray of the batch once, keep the records, return bounce 0's grid data."""
-    assert state.positions is not None
-    ctx = state.ctx
-    rec, moments, rays = state.tracer.trace(state.positions[batch], batch)
-    save_records(ctx.records_path(batch), rec, files=ctx.record_files)
-    out = _bounced_outputs(rec, ctx.render, 0, None)
-    out.update(moments=moments, backface_fraction=rec["backface_fraction"], rays=rays)
-    return out
-
-
-def _weighted_records(state: _State, batch: NDArray[np.int64], *, keep: bool = True
-                      ) -> tuple[dict[str, Any], Path | None, int]:
-    """The batch's records with each hit's probe weights (computed once, then kept when
-    ``keep``)."""
-    rec, path, rays = _block_records(state, batch)
-    if not has_hit_weights(rec):
-        assert state.data is not None
-        new = all_hit_weights(rec, state.data)
-        rec.update(new)
-        gone = weighted_positions(rec)
-        if path is not None and keep:
-            save_records(path, new, drop=gone)
-        for k in gone:
-            rec.pop(k, None)
-    return rec, path, rays
-
-
-def _bounce_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
-    """One bounce over the batch's records: the grid data of level ``ctx.level``."""
-    ctx = state.ctx
-    rec, _, rays = _weighted_records(state, batch)
-    assert state.data is not None
-    out = _bounced_outputs(rec, ctx.render, ctx.level, state.data.cubes)
-    out["rays"] = rays
-    return out
-
-
-def _final_task(state: _State, batch: NDArray[np.int64]) -> dict[str, Any]:
-    from probegrid.core import seams
-
-    ctx = state.ctx
-    st = ctx.settings
-    assert state.positions is not None and state.valid is not None
-    assert state.moments is not None
-    if ctx.level > 0:
-        rec, path, rays = _weighted_records(state, batch, keep=False)
-        cubes = None if state.data is None else state.data.cubes
-        if gather_depth(rec) and ctx.level >= 2 and state.data is not None:
-            # the rays' own probe weights: the final view spreads the gather's noise over
-            # blocks around the grid read at each hit (records._smooth_gathered)
-            rec = dict(rec)
-            rec["weight_index"], rec["weight"] = hit_weights(rec, state.data)
-    else:
-        rec, path, rays = _block_records(state, batch)
-        cubes = None
-    incoming, _ = replay(rec, ctx.render, ctx.level, cubes, final=True)
-    if path is not None:  # the block's last use: its records go (a retry traces them again)
-        remove_records(path)
-    levels = st.levels()
-    out: dict[str, Any] = {
-        "positions": state.positions[batch],
-        "valid": state.valid[batch],
-        "moments": np.asarray(state.moments[batch]),
-        "rays": rays,
-    }
-    energy, seam = [], []
-    # per probe: results must not depend on the batch
-    sh_l = [sh.project_cube(cube) for cube in incoming]
-    sh_min = _sh_minima(np.stack(sh_l))
-    dif, chains = _filter_groups(incoming, st.diffuse_size, levels)
-    spec = [[c[k] for c in chains] for k in range(levels)]
-    for cube, d in zip(incoming, dif, strict=True):
-        energy.append(_energy_ratio(d, float(solid_angle_integral(cube).sum())))
-        seam.append(seams.seam_score(d))
-    out["sh"] = np.stack(sh_l).astype(np.float32)
-    out["sh_min"] = sh_min.astype(np.float32)
-    out["diffuse"] = np.stack(dif)
-    for k in range(levels):
-        out[f"specular_{k}"] = np.stack(spec[k])
-    if st.store_incoming:
-        out["incoming"] = incoming
-    out["backface_fraction"] = np.asarray(rec["backface_fraction"]).astype(np.float32)
-    out["_energy"] = np.array(energy)
-    out["_seam"] = np.array(seam)
-    fit_map_dtype(out, st.dtype)
-    return out
-
-
-def _energy_ratio(diffuse: NDArray[np.float32], incoming_integral: float) -> float:
-    """Solid-angle integral of a diffuse map over that of its incoming cube (all channels):
-    1 for an energy-conserving filter, since the clamped cosine / pi integrates to 1 over the
-    normals. NaN for a probe that receives no light (nothing to conserve)."""
-    if not incoming_integral > 0:
-        return math.nan
-    return float(solid_angle_integral(diffuse).sum()) / incoming_integral
-
-
-def _incoming_integral_from_sh(sh_l: NDArray[Any]) -> float:
-    """The incoming cube's integral over the sphere from its stored SH, all channels:
-    ``integral L = L_00 / Y_00 = 2 sqrt(pi) L_00`` (the projection is the same discrete sum)."""
-    return float(2.0 * math.sqrt(math.pi) * np.asarray(sh_l, np.float64)[0].sum())
-
-
-#: Probes filtered together, as channels of one cube (a fixed shape, see _filter_groups).
-FILTER_GROUP = 8
-
-
-def _padded_groups(items: NDArray[Any]) -> Iterator[tuple[int, int, NDArray[Any]]]:
-    """``(start, count, group)`` for FILTER_GROUP items of ``items (B, ...)`` at a time, the
-    last group padded with zeros: every group has the same shape, so what is computed from an
-    item does not depend on which items share its group, i.e. on the batch."""
-    b = len(items)
-    for g0 in range(0, b, FILTER_GROUP):  # loop over groups of probes
-        k = min(FILTER_GROUP, b - g0)
-        group = np.zeros((FILTER_GROUP, *items.shape[1:]), items.dtype)
-        group[:k] = items[g0:g0 + k]
-        yield g0, k, group
-
-
-def _sh_minima(coeffs: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Minimum over the sphere of SH irradiance / pi of ``coeffs (B, 9, 3)``; ``(B, 3)``: the
-    certified minimum of :func:`probegrid.core.sh.dering.irradiance_minimum` (what ``/sh``'s
-    deringing holds to; each probe's and channel's result does not depend on the others).
-    It replaced :func:`probegrid.core.sh.min_over_sphere`'s sampled search, 25x slower here,
-    which missed the global minimum of 9 in 36 000 ringing probes (``tests/test_dering.py``)."""
-    return irradiance_minimum(np.moveaxis(coeffs, 1, 2)) / np.pi
-
-
-def _unstack_probes(cube: NDArray[np.float32], channels: int) -> NDArray[np.float32]:
-    """``(6, m, m, G * C)`` -> ``(G, 6, m, m, C)``: undo the probes-as-channels stacking."""
-    m = cube.shape[1]
-    return np.moveaxis(cube.reshape(6, m, m, -1, channels), 3, 0)
-
-
-def _filter_groups(cubes: NDArray[np.float32], diffuse_size: int, levels: int
-                   ) -> tuple[list[NDArray[np.float32]], list[list[NDArray[np.float32]]]]:
-    """Diffuse maps and GGX chains of ``cubes (B, 6, n, n, 3)``.
-
-    The filters are linear and act on each channel alike, so FILTER_GROUP probes go through one
-    call as the channels of a single cube, which amortises the per-call work
-    (:func:`_padded_groups`: every call has the same shape). Faces up to
-    :data:`probegrid.core.probefilter.MAX_FACE` go through the exact sums as one cached matrix
-    (:func:`probegrid.core.probefilter.filter_cube`); larger ones through
-    :func:`~probegrid.core.diffuse.diffuse_exact` and the tiered
-    :func:`~probegrid.core.specular.ggx_prefilter` (:func:`probegrid.core.probefilter.describe`, in the
-    manifest, says which).
-    """
-    from probegrid.core import diffuse, specular
-
-    _, _, n, _, c = cubes.shape
-    dense = probefilter.supported(n, diffuse_size)
-    dif: list[NDArray[np.float32]] = []
-    chains: list[list[NDArray[np.float32]]] = []
-    matrix = usercache.probe_filter_matrix(n, diffuse_size, levels) if dense else None
-    for _, k, group in _padded_groups(cubes):
-        stacked = np.ascontiguousarray(np.moveaxis(group, 0, 3).reshape(6, n, n, -1))
-        if dense:
-            d, chain = probefilter.filter_cube(stacked, diffuse_size, levels, matrix=matrix)
-        else:
-            d = diffuse.diffuse_exact(stacked, diffuse_size)
-            chain = specular.ggx_prefilter(stacked, levels=levels)
-
-        ds = _unstack_probes(d, c)
-        cs = [_unstack_probes(lv, c) for lv in chain]
-        for j in range(k):
-            dif.append(np.ascontiguousarray(ds[j]))
-            chains.append([np.ascontiguousarray(lv[j]) for lv in cs])
-    return dif, chains
 
 
 # ------------------------------------------------------------------------------ driver
@@ -526,7 +162,7 @@ def _bake_lock(work: Path, out: Path) -> AbstractContextManager[None]:
 
 
 @dataclass
-class _Stages:
+class _StageRunner:
     """Runs the bake's stages into (resumable) stores and counts their rays and seconds.
 
     Holds what every stage shares: the executor, the bake's plan and scene hash (a finished
@@ -545,8 +181,8 @@ class _Stages:
         name: str,
         path: Path,
         arrays: dict[str, ArraySpec],
-        fn: Callable[[_State, NDArray[np.int64]], dict[str, Any]],
-        ctx: _Context,
+        fn: Callable[[StageState, NDArray[np.int64]], dict[str, Any]],
+        ctx: StageContext,
         *,
         overwrite: bool = False,
         intermediate: bool = True,
@@ -610,13 +246,7 @@ def bake(
     st = settings or BakeSettings()
     env = environment or Environment()
     ex = executor or InlineExecutor(check_pickle=False)
-    out = Path(out)
-    check_store_name(out)
-    if out.exists() and not overwrite:
-        raise ValueError(f"{out} exists; pass --overwrite to replace it")
-    st.levels()  # validate
-    if scene_file is not None:
-        keepable_scene(scene_file)  # readable glTF, checked before any work
+    out = check_bake_inputs(out, settings=st, overwrite=overwrite, scene_file=scene_file)
     render = st.render_settings(scene, grid)
     scene_hash = hashlib.sha256(
         (scene.content_hash() + environment_hash(env)).encode()
@@ -644,19 +274,14 @@ def bake(
                     child.unlink()
             shutil.rmtree(partial_path(out), ignore_errors=True)
         stamp.write_text(fingerprint)
-        stages = _Stages(ex, plan, scene_hash, progress)
+        runner = _StageRunner(ex, plan, scene_hash, progress)
         t0 = time.perf_counter()
-        base = _Context(scene, env, render, st, grid,
-                        key=hashlib.sha256((fingerprint + repr(render)).encode()).hexdigest())
+        base = StageContext(scene, env, render, st, grid,
+                             key=hashlib.sha256((fingerprint + repr(render)).encode()).hexdigest())
 
         # 1. classify
-        cls_arrays = {
-            "positions": ArraySpec((3,), "float64", "probe position"),
-            "valid": ArraySpec((), "bool", "probe is outside geometry"),
-            "backface_fraction": ArraySpec((), "float64", "backface ray fraction"),
-        }
-        w, resumed = stages.run("classify", work / "classify.probes", cls_arrays, _classify_task,
-                                base)
+        w, resumed = runner.run("classify", work / "classify.probes", classify_arrays(),
+                                classify_task, base)
         cls_store = w.finish() if isinstance(w, StoreWriter) else w
         positions = np.array(cls_store["positions"])
         valid = np.array(cls_store["valid"])
@@ -664,7 +289,7 @@ def bake(
         relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
         # Workers on this machine memory-map the grid-sized arrays from the work directory; others
         # (a Dask cluster) receive them.
-        files = bool(getattr(ex, "shares_files", False))
+        files = ex.shares_files
         probe_pos: NDArray[np.float64] | str = positions
         probe_valid: NDArray[np.bool_] | str = valid
         if files:
@@ -675,32 +300,14 @@ def bake(
         records = (str(work / "records") if files
                    else "probegrid-records-" + hashlib.sha256(
                        (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
-        m = render.moments_size
-        g = irradiance_size(st.gather_levels() > 0)
-        grid_arrays = {
-            "irradiance": ArraySpec((6, g, g, 3), "float32", "irradiance / pi of bounced light"),
-            "energy": ArraySpec((), "float64", "solid-angle integral of the bounced light"),
-        }
-        trace_arrays = {**grid_arrays,
-                        "moments": ArraySpec((6, m, m, 2), "float32", "distance moments"),
-                        "backface_fraction": ArraySpec((), "float64", "backface ray fraction")}
-        converge = st.bounces == "converge"
-        cap = st.max_bounces if converge else int(st.bounces)
-
-        def label(k: int, residual: float | None, final: bool = False) -> str:
-            if not converge:
-                return f"bounce {k} of {cap}" + (" (final)" if final else
-                                                 " (tracing)" if k == 0 else "")
-            r = "-" if residual is None else f"{100 * residual:.2g} %"
-            if final:
-                return f"converged: bounce {k}, residual {r} (final)"
-            return "tracing: bounce 0" if k == 0 else f"converging: bounce {k}, residual {r}"
+        schedule = BounceSchedule.of(st)
 
         # one worker process on this machine reads every block it wrote: its records stay in
         # its memory (written only if they outgrow it); several workers share them as files
         base = dataclasses.replace(base, record_files=not (files and ex.workers == 1))
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
-        w, _ = stages.run(label(0, None), work / "trace.probes", trace_arrays, _trace_task, ctx)
+        w, _ = runner.run(schedule.label(0), work / "trace.probes", trace_arrays(st, render),
+                          trace_task, ctx)
         tstore = w.finish() if isinstance(w, StoreWriter) else w
         moments_all: NDArray[np.float32] | str = np.array(tstore["moments"])
         bordered = bordered_cubes(tstore["moments"])
@@ -716,53 +323,30 @@ def bake(
         def grid_energy(store: StoreWriter | ProbeStore) -> float:
             return float(np.sum(np.asarray(store["energy"])[valid]))
 
-        depth = st.gather_levels()
         cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
-
-        def cubes_for(k: int) -> NDArray[np.float32] | str | None:
-            """The grid a pass at bounce k reads (records.grid_level_read)."""
-            return cubes_at.get(grid_level_read(k, depth))
-
-        energies = [grid_energy(tstore)]
         irradiance_at = {0: tstore["irradiance"]}
-        residual: float | None = None
-        state = Convergence(False, None)
-        step = 1 + depth  # the final pass at level L reads the grid of level L - step
-        period = max(step, 2)  # increments that cycle together (probegrid.bake.converge)
-        k = 0
-        while True:  # bounce k: a pass over the records that makes the grid of level k
-            if not converge and k >= grid_level_read(cap, depth):
-                level = cap
-                break
-            if converge and k + step >= cap:
-                level = cap
-                break
-            k += 1
+        schedule.passed(grid_energy(tstore))
+
+        # 3. bounces: a pass over the records per level, as long as the schedule asks
+        while (k := schedule.next_pass()) is not None:
             ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                       records=records, level=k, moments_bordered=moments_b,
-                                      cubes=cubes_for(k))
-            w, _ = stages.run(label(k, residual), work / f"bounce{k}.probes", grid_arrays,
-                              _bounce_task, ctx)
+                                      cubes=cubes_at.get(schedule.reads(k)))
+            w, _ = runner.run(schedule.label(k), work / f"bounce{k}.probes", bounce_arrays(st),
+                              bounce_task, ctx)
             bstore = w.finish() if isinstance(w, StoreWriter) else w
             cubes_at[k] = grid_cubes(bstore, k)
             irradiance_at[k] = bstore["irradiance"]
-            energies.append(grid_energy(bstore))
-            if converge:
-                state = convergence(energies, st.tolerance, period)
-                residual = state.residual
-                if state.done:
-                    level = k + step
-                    break
-        final_cubes = cubes_for(level) if level > 0 else None
-        if state.factor is not None and k >= period:
-            # the final pass reads the extrapolated limit of the grid (bake.converge)
-            g_k = np.asarray(irradiance_at[k], dtype=np.float64)
-            limit = g_k + (g_k - np.asarray(irradiance_at[k - period], np.float64)) * state.factor
-            cubes = bordered_cubes(limit.astype(np.float32))
+            schedule.passed(grid_energy(bstore))
+        level = schedule.level
+        assert level is not None
+        final_cubes = cubes_at.get(schedule.reads(level)) if level > 0 else None
+        if schedule.extrapolates:  # the final pass reads the grid's extrapolated limit
+            cubes = bordered_cubes(schedule.limit(irradiance_at))
             final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
                            else cubes)
 
-        # 3. final
+        # 4. final
         energy = np.full(grid.n_probes, np.nan)
         seam = np.full(grid.n_probes, np.nan)
 
@@ -773,8 +357,8 @@ def bake(
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                                   records=records, level=level, moments_bordered=moments_b,
                                   cubes=final_cubes, moments=moments_all)
-        w, resumed = stages.run(label(level, residual, final=True), out, store_arrays(st),
-                                _final_task, ctx, overwrite=overwrite, intermediate=False,
+        w, resumed = runner.run(schedule.label(level, final=True), out, store_arrays(st),
+                                final_task, ctx, overwrite=overwrite, intermediate=False,
                                 extra=keep)
         assert isinstance(w, StoreWriter)
         # quality over every probe (resumed ones included): recompute from the stored arrays
@@ -789,7 +373,7 @@ def bake(
             for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
                 d = np.asarray(dif[i])
                 seam[i] = seams.seam_score(d)
-                energy[i] = _energy_ratio(d, _incoming_integral_from_sh(stored_sh[i]))
+                energy[i] = energy_ratio(d, incoming_integral_from_sh(stored_sh[i]))
         valid_e = energy[~np.isnan(energy)]
         quality = {
             "invalid_probes": int(np.count_nonzero(~valid)),
@@ -802,15 +386,15 @@ def bake(
             "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
             "seam_score_mean": float(np.nanmean(seam)),
             "bounces": level,
-            "bounce_residual": residual,
-            "bounce_passes": k,
-            "bounce_energy": energies,
-            "rays": stages.rays,
-            "stage_seconds": {k: round(v, 3) for k, v in stages.seconds.items()},
+            "bounce_residual": schedule.residual,
+            "bounce_passes": schedule.passes,
+            "bounce_energy": schedule.energies,
+            "rays": runner.rays,
+            "stage_seconds": {k: round(v, 3) for k, v in runner.seconds.items()},
         }
-        if state.factor is not None:  # converged by extrapolation (probegrid.bake.converge)
-            quality["bounce_extrapolation"] = state.factor
-            quality["bounce_energy_limit"] = state.limit
+        if schedule.state.factor is not None:  # converged by extrapolation (bake.converge)
+            quality["bounce_extrapolation"] = schedule.state.factor
+            quality["bounce_energy_limit"] = schedule.state.limit
         quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
         write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
         store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
@@ -819,4 +403,4 @@ def bake(
             shutil.rmtree(resolve_directory(records), ignore_errors=True)
 
         seconds = time.perf_counter() - t0
-        return BakeReport(store, seconds, stages.rays, grid.n_probes, resumed, quality)
+        return BakeReport(store, seconds, runner.rays, grid.n_probes, resumed, quality)

@@ -42,7 +42,7 @@ Method
    is inside when more than half the rays vote so (a majority, robust to the odd lost ray and to
    another object's faces poking into the solid).
 
-The classifier (:func:`probegrid.bake.driver._classify_task`) marks such a probe invalid, and its
+The classifier (:func:`probegrid.bake.stages.classify_task`) marks such a probe invalid, and its
 relocation tries the nearby lattice of points with the same test, so a probe inside a slab is
 moved out when a free point lies within the allowed distance; an invalid probe has zero weight
 in every bounce's indirect lookup and in every query.
