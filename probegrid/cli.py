@@ -130,8 +130,8 @@ def _given(args: argparse.Namespace, model: type) -> dict[str, Any]:
 
 
 def _add_filter(sub: argparse._SubParsersAction) -> None:
-    from probegrid.imageio import FACE_ORDER_HELP
     from probegrid.filter import FilterSettings
+    from probegrid.imageio import FACE_ORDER_HELP
 
     p = sub.add_parser(
         "filter",

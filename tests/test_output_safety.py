@@ -27,8 +27,8 @@ from probe_stores import linear_store
 from probegrid import imageio
 from probegrid.cli import main
 from probegrid.core.grid import GridSpec
-from probegrid.jobs.export import describe_store, export_probe
 from probegrid.filter import FilterSettings
+from probegrid.jobs.export import describe_store, export_probe
 from probegrid.jobs.filter import run_filter
 from probegrid.store import ArraySpec, StoreError, StoreWriter, open_store, partial_path
 

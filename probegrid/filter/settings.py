@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from functools import lru_cache
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+from typing import Any, Literal, cast, get_args, get_origin, get_type_hints
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from probegrid._types import (
     DiffuseMethod,
     GGXMethod,
     InputLayout,
+    Layout,
     MapFormat,
     SeamMode,
     SHWindow,
@@ -149,7 +150,7 @@ def default_cube_size(height: int, width: int, layout: str) -> int:
     else:
         exact = {"equirect": width / 4, "angular": width / np.pi, "hcross": width / 4,
                  "vcross": width / 3}[layout]
-        layouts.default_face_size(height, width, layout)  # checks the arguments
+        layouts.default_face_size(height, width, cast(Layout, layout))  # checks the arguments
     n = 1 << max(0, int(np.floor(np.log2(max(exact, 1.0)))))
     return min(n, DEFAULT_MAX_SIZE)
 

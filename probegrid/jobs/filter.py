@@ -30,13 +30,14 @@ from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._machine import available_cores
+from probegrid._types import ImageFormat
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
 from probegrid.filter import FilteredEnvironment, FilterSettings, Progress, check_settings
@@ -210,7 +211,7 @@ def _filter_into(
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Read the environment, filter it, then write everything into the (staging) directory
     ``out``; returns the manifest and its file list."""
-    from probegrid import imageio, usercache
+    from probegrid import usercache
     from probegrid.filter import filter_environment
 
     say: Progress = progress or (lambda _m: None)
@@ -313,10 +314,11 @@ def _write_maps(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment,
     from probegrid import imageio
 
     ext, layout = settings.format, settings.output_layout
+    fmt = cast(ImageFormat, ext)  # (ktx2 and gltf are written below, not by write_cube)
 
     def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> dict[str, Any]:
         written = imageio.write_cube(
-            out / stem, faces, layout=layout, fmt=ext, half=settings.half,
+            out / stem, faces, layout=layout, fmt=fmt, half=settings.half,
             metadata=_attributes(conv, meta["kind"]),
             durable=False,  # flushed here, and by staged_output before publishing
             parallel=False,  # (the pool writes several cubes at once)
