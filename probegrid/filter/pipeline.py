@@ -212,6 +212,7 @@ def filter_environment(
     t0 = time.perf_counter()
 
     source = np.asarray(environment, dtype=np.float32)
+    del environment  # (a caller that passes the image on keeps no copy alive: freed once resampled)
     in_layout = _input_layout(source, settings.layout)
     source, nonfinite, negative = _checked_radiance(source, settings, name, say)
     source_wh = (int(source.shape[-2]), int(source.shape[-3]))

@@ -182,27 +182,33 @@ def run_filter(
     return FilterResult(out, manifest, files)
 
 
-def _read_environment(paths: Sequence[Path], settings: FilterSettings
-                      ) -> tuple[NDArray[np.float32], Path]:
-    """The environment's pixels: one image, or six face files (ordered by their names, not the
-    shell's sort) stacked into ``(6, n, n, C)``; and the file messages name."""
+def _environment_files(paths: Sequence[Path], settings: FilterSettings) -> list[Path]:
+    """The environment's files: one image, or six face files ordered by their names (not the
+    shell's sort); a ``ValueError`` for any other count or for one file with layout faces."""
     from probegrid import imageio
 
     if len(paths) == 6 and settings.layout in ("auto", "faces"):
-        paths = imageio.order_face_files(paths)
-        images = [imageio.read_image(p) for p in paths]
-        shapes = {im.shape for im in images}
-        if len(shapes) != 1 or images[0].shape[0] != images[0].shape[1]:
-            raise ValueError(
-                "six face files must be square images of one size, got "
-                + ", ".join(f"{im.shape[1]}x{im.shape[0]}" for im in images)
-            )
-        return np.stack(images), paths[0]
+        return imageio.order_face_files(paths)
     if len(paths) == 1:
         if settings.layout == "faces":
             raise ValueError("layout 'faces' needs six face files (+X, -X, +Y, -Y, +Z, -Z)")
-        return imageio.read_image(paths[0]), paths[0]
+        return list(paths)
     raise ValueError(f"give one environment image or six face files, got {len(paths)} files")
+
+
+def _read_environment(files: Sequence[Path]) -> NDArray[np.float32]:
+    """The pixels of one image, or of six square face files of one size as ``(6, n, n, C)``."""
+    from probegrid import imageio
+
+    if len(files) == 1:
+        return imageio.read_image(files[0])
+    images = [imageio.read_image(p) for p in files]
+    if len({im.shape for im in images}) != 1 or images[0].shape[0] != images[0].shape[1]:
+        raise ValueError(
+            "six face files must be square images of one size, got "
+            + ", ".join(f"{im.shape[1]}x{im.shape[0]}" for im in images)
+        )
+    return np.stack(images)
 
 
 def _filter_into(
@@ -216,12 +222,18 @@ def _filter_into(
 
     say: Progress = progress or (lambda _m: None)
     t0 = time.perf_counter()
-    source, first = _read_environment([Path(p) for p in paths], settings)
-    read = time.perf_counter() - t0
-    env = filter_environment(source, settings=settings, progress=say, workers=workers,
-                             dfg_lut=usercache.dfg_lut, name=str(first))
-    del source
-    timings = {**env.timings, "read": read + env.timings["read"]}
+    files = _environment_files([Path(p) for p in paths], settings)
+    read = [0.0]
+
+    def source() -> NDArray[np.float32]:
+        pixels = _read_environment(files)
+        read[0] = time.perf_counter() - t0
+        return pixels
+
+    # (the image handed on, not kept here: the filter frees it once resampled)
+    env = filter_environment(source(), settings=settings, progress=say, workers=workers,
+                             dfg_lut=usercache.dfg_lut, name=str(files[0]))
+    timings = {**env.timings, "read": read[0] + env.timings["read"]}
 
     t = time.perf_counter()
     manifest_path = out / "manifest.json"
