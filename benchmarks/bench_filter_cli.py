@@ -166,7 +166,7 @@ def bench(name: str, hdr: Path, work: Path, cache: Path, args: argparse.Namespac
     diff_ref = cached(cache, f"diffuse512 {key}",
                       lambda: diffuse_exact(to_cube(img, "equirect", 512), 32))
     # what the command computes for a 128^2 cube: one pass of dense sums for the diffuse map
-    # and every GGX level (probegrid.jobs.filter)
+    # and every GGX level (probegrid.filter)
     ours_d, *chain_rest = symmetric_zonal_sums(
         cube, [ZonalOutput(32, "cosine")] + [ZonalOutput(128 >> k, "ggx", (k / 7) ** 2)
                                             for k in range(1, 8)], workers=2)

@@ -4,10 +4,11 @@ The package is layered; a module imports only the layers below its own (a test r
 import and fails on an upward or sideways one)::
 
     errors, _types, _version         the error tree, every option Literal, the version
-    _fs, kernels                     durable writes and locks; the numba kernels
+    _fs, _machine, kernels           durable writes and locks; the cores; the numba kernels
     core/                            pure math on numpy arrays, no I/O
     imageio | scene/ | store/ | raytrace   OpenImageIO; trimesh, glTF; the grid store; Embree
-    bake/ | query                    the baker (Embree, executors); the store-backed probe field
+    bake/ | query | filter/          the baker (Embree, executors); the store-backed probe field;
+                                     the environment filter on arrays
     jobs/                            bake, filter, export, samples, demo: options -> library
     cli, client                      the command line; the HTTP client
 
@@ -35,6 +36,8 @@ if TYPE_CHECKING:
     from probegrid.core import specular as specular
     from probegrid.core.cubemap import CubeMap as CubeMap
     from probegrid.core.grid import GridSpec as GridSpec
+    from probegrid.filter import FilterSettings as FilterSettings
+    from probegrid.filter import filter_environment as filter_environment
     from probegrid.query import ProbeField as ProbeField
     from probegrid.scene import load_gltf as load_gltf
     from probegrid.store import open_store as open_store
@@ -45,10 +48,12 @@ if TYPE_CHECKING:
 _PUBLIC: dict[str, tuple[str, str | None]] = {
     "BakeSettings": ("probegrid.bake", "BakeSettings"),
     "CubeMap": ("probegrid.core.cubemap", "CubeMap"),
+    "FilterSettings": ("probegrid.filter", "FilterSettings"),
     "GridSpec": ("probegrid.core.grid", "GridSpec"),
     "LocalExecutor": ("probegrid.bake.executors", "LocalExecutor"),
     "ProbeField": ("probegrid.query", "ProbeField"),
     "diffuse": ("probegrid.core.diffuse", None),
+    "filter_environment": ("probegrid.filter", "filter_environment"),
     "imageio": ("probegrid.imageio", None),
     "layouts": ("probegrid.core.layouts", None),
     "load_gltf": ("probegrid.scene", "load_gltf"),
@@ -60,12 +65,14 @@ _PUBLIC: dict[str, tuple[str, str | None]] = {
 __all__ = [
     "BakeSettings",
     "CubeMap",
+    "FilterSettings",
     "GridSpec",
     "LocalExecutor",
     "ProbeField",
     "ProbegridError",
     "__version__",
     "diffuse",
+    "filter_environment",
     "imageio",
     "layouts",
     "load_gltf",

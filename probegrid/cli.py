@@ -130,8 +130,8 @@ def _given(args: argparse.Namespace, model: type) -> dict[str, Any]:
 
 
 def _add_filter(sub: argparse._SubParsersAction) -> None:
+    from probegrid.filter import FilterSettings
     from probegrid.imageio import FACE_ORDER_HELP
-    from probegrid.jobs.filter import FilterSettings
 
     p = sub.add_parser(
         "filter",
@@ -184,7 +184,8 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_filter(args: argparse.Namespace) -> int:
-    from probegrid.jobs.filter import FilterSettings, run_filter
+    from probegrid.filter import FilterSettings
+    from probegrid.jobs.filter import run_filter
 
     settings = FilterSettings(**_given(args, FilterSettings))
     result = run_filter(args.env, args.out, settings, progress=_stderr_progress)

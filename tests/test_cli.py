@@ -132,7 +132,7 @@ def test_bad_input_gives_one_line_errors(tmp_path, cli):
 
 def test_filter_settings_check_every_field(tmp_path, cli):
     from probegrid.errors import SettingsError
-    from probegrid.jobs.filter import FilterSettings
+    from probegrid.filter import FilterSettings
 
     s = FilterSettings(size=np.int64(64), clamp=2, half=np.bool_(False))
     assert (s.size, s.clamp, s.half) == (64, 2.0, False)
@@ -364,7 +364,7 @@ def test_sh_diffuse_with_auto_window_reports_and_removes_negative_irradiance(tmp
 
 
 def test_default_cube_size_follows_the_input_with_a_cap():
-    from probegrid.jobs.filter import DEFAULT_MAX_SIZE, default_cube_size
+    from probegrid.filter import DEFAULT_MAX_SIZE, default_cube_size
 
     assert default_cube_size(512, 1024, "equirect") == 256
     assert default_cube_size(750, 1500, "equirect") == 256 == DEFAULT_MAX_SIZE

@@ -19,8 +19,9 @@ from probe_stores import GRID, linear_arrays, write_store
 from probegrid import imageio
 from probegrid.cli import build_parser, main
 from probegrid.core import specular
+from probegrid.filter import FilterSettings
 from probegrid.jobs import export as export_job
-from probegrid.jobs.filter import FilterSettings, run_filter
+from probegrid.jobs.filter import run_filter
 
 FACE_COLOURS = np.eye(6, 3, dtype=np.float32) + np.arange(6, dtype=np.float32)[:, None] / 8
 

@@ -401,7 +401,8 @@ def test_sh_forms_evaluate_to_the_same_irradiance_in_each_consumer():
 
 def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
     from probegrid import imageio
-    from probegrid.jobs.filter import FilterSettings, run_filter
+    from probegrid.filter import FilterSettings
+    from probegrid.jobs.filter import run_filter
 
     cube = _lopsided_cube(16)
     faces = []

@@ -4,11 +4,11 @@ Layers, bottom up (a module imports only layers below its own; modules of one su
 import each other)::
 
     0  probegrid.errors, probegrid._types, probegrid._version
-    1  probegrid._fs, probegrid.kernels
+    1  probegrid._fs, probegrid._machine, probegrid.kernels
     2  probegrid.core
     3  probegrid.imageio | probegrid.scene | probegrid.store | probegrid.raytrace | probegrid.export
        | probegrid.usercache
-    4  probegrid.bake | probegrid.query
+    4  probegrid.bake | probegrid.query | probegrid.filter
     5  probegrid.jobs | service
     6  probegrid.cli | probegrid.client
     7  probegrid (the package's face: nothing imports it)
@@ -36,16 +36,16 @@ REPO = Path(__file__).resolve().parents[1]
 
 RANKS: dict[str, int] = {
     "probegrid.errors": 0, "probegrid._types": 0, "probegrid._version": 0,
-    "probegrid._fs": 1, "probegrid.kernels": 1,
+    "probegrid._fs": 1, "probegrid._machine": 1, "probegrid.kernels": 1,
     "probegrid.core": 2,
     "probegrid.imageio": 3, "probegrid.scene": 3, "probegrid.store": 3, "probegrid.raytrace": 3,
     "probegrid.export": 3, "probegrid.usercache": 3,
-    "probegrid.bake": 4, "probegrid.query": 4,
+    "probegrid.bake": 4, "probegrid.query": 4, "probegrid.filter": 4,
     "probegrid.jobs": 5, "service": 5,
     "probegrid.cli": 6, "probegrid.client": 6,
     "probegrid": 7,
 }
-SUBPACKAGES = ("core", "scene", "store", "bake", "jobs", "export")
+SUBPACKAGES = ("core", "scene", "store", "bake", "filter", "jobs", "export")
 CLIENT_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
                      "probegrid.core", "probegrid.store.manifest")
 SERVICE_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
@@ -214,15 +214,19 @@ def test_the_package_face_hands_on_its_public_names():
     from probegrid.bake import bake
     from probegrid.core import sh
     from probegrid.core.grid import GridSpec
+    from probegrid.filter import FilterSettings, filter_environment
     from probegrid.query import ProbeField
 
     assert probegrid.__all__ == sorted(probegrid.__all__)
     assert set(probegrid.__all__) == {
-        "BakeSettings", "CubeMap", "GridSpec", "LocalExecutor", "ProbeField", "__version__",
-        "diffuse", "imageio", "layouts", "load_gltf", "open_store", "sh", "specular"}
+        "BakeSettings", "CubeMap", "FilterSettings", "GridSpec", "LocalExecutor", "ProbeField",
+        "__version__", "diffuse", "filter_environment", "imageio", "layouts", "load_gltf",
+        "open_store", "sh", "specular"}
     for name in probegrid.__all__:
         assert getattr(probegrid, name) is not None
     assert probegrid.GridSpec is GridSpec and probegrid.ProbeField is ProbeField
     assert probegrid.bake.bake is bake and probegrid.sh is sh
+    assert probegrid.FilterSettings is FilterSettings
+    assert probegrid.filter_environment is filter_environment
     with pytest.raises(AttributeError):
         probegrid.interpolate  # noqa: B018 (the old flat module is gone, not shimmed)

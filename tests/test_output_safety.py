@@ -27,8 +27,9 @@ from probe_stores import linear_store
 from probegrid import imageio
 from probegrid.cli import main
 from probegrid.core.grid import GridSpec
+from probegrid.filter import FilterSettings
 from probegrid.jobs.export import describe_store, export_probe
-from probegrid.jobs.filter import FilterSettings, run_filter
+from probegrid.jobs.filter import run_filter
 from probegrid.store import ArraySpec, StoreError, StoreWriter, open_store, partial_path
 
 REPO = Path(__file__).resolve().parents[1]

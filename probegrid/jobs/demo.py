@@ -39,8 +39,9 @@ def run_demo(out: str | os.PathLike[str], *, progress: Progress | None = None,
              workers: int | None = None, grid: str = "8x6x8", face_size: int = 16) -> str:
     """Run steps 1 and 2; returns a report of what was made and how to look at it."""
     from probegrid.bake import BakeSettings
+    from probegrid.filter import FilterSettings
     from probegrid.jobs.bake import BakeJob, run_bake
-    from probegrid.jobs.filter import FilterSettings, run_filter
+    from probegrid.jobs.filter import run_filter
     from probegrid.store import open_store
 
     say = progress or (lambda _m: None)
