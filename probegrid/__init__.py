@@ -4,9 +4,9 @@ The package is layered; a module imports only the layers below its own (a test r
 import and fails on an upward or sideways one)::
 
     errors, _types, _version         the error tree, every option Literal, the version
-    _fs, kernels                     durable writes and locks; the numba kernels
+    _fs, _jit                        durable writes and locks; the one numba importer
     core/                            pure math on numpy arrays, no I/O
-    imageio | scene/ | store/ | raytrace   OpenImageIO; trimesh, glTF; the grid store; Embree
+    imageio | scene/ | store/ | raytrace/  OpenImageIO; trimesh, glTF; the grid store; Embree
     bake/ | query                    the baker (Embree, executors); the store-backed probe field
     jobs/                            bake, filter, export, samples, demo: options -> library
     cli, client                      the command line; the HTTP client

@@ -685,16 +685,19 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
     its errors, so here its warm-up must run cleanly and leave the bake's kernels compiled."""
     import numba
 
-    from probegrid import kernels
     from probegrid.bake import preload
+    from probegrid.bake.kernels import cube, emitters, environment, grid, lights, sampling, surfaces
+    from probegrid.raytrace import kernels as rays
 
     preload._warm_up()  # raises if the tiny bake fails
-    used = ["shade_hits", "scatter_divided", "light_rays", "emitter_samples", "emitter_estimate",
-            "polygon_irradiance", "environment_samples", "gather_rays",
-            "hit_probe_weights", "replay_radiance", "distance_moments", "cube_sample_directions",
-            "texel_emitter_coverage", "embree_rays", "embree_hits"]
-    for name in used:
-        fn = getattr(kernels, name)
+    used = [(surfaces, "shade_hits"), (surfaces, "scatter_divided"), (lights, "light_rays"),
+            (emitters, "emitter_samples"), (emitters, "emitter_estimate"),
+            (emitters, "polygon_irradiance"), (environment, "environment_samples"),
+            (sampling, "gather_rays"), (grid, "hit_probe_weights"), (grid, "replay_radiance"),
+            (grid, "distance_moments"), (cube, "cube_sample_directions"),
+            (emitters, "texel_emitter_coverage"), (rays, "embree_rays"), (rays, "embree_hits")]
+    for module, name in used:
+        fn = getattr(module, name)
         assert isinstance(fn, numba.core.registry.CPUDispatcher)
         assert fn.signatures, f"{name} was not loaded by the warm-up bake"
 

@@ -19,15 +19,15 @@ ray is kept as a record:
 and, per probe, the correction of its direct view of the emitters (exact texel coverage) and
 the punctual lights it sees (folded in at the end, :func:`probegrid.core.lights.splat_delta`).
 Once every probe's distance moments are known, each hit's 8 surrounding probes and their DDGI
-weights are computed once (:func:`probegrid.kernels.hit_probe_weights`) and kept beside the
-records. A bounce is then a pass over the records (:func:`replay`,
-:func:`probegrid.kernels.replay_radiance`) that reads only the grid's small per-probe data: each
-probe's irradiance cube of the previous bounce.
+weights are computed once (:func:`probegrid.bake.kernels.grid.hit_probe_weights`) and kept
+beside the records. A bounce is then a pass over the records (:func:`replay`,
+:func:`probegrid.bake.kernels.grid.replay_radiance`) that reads only the grid's small per-probe
+data: each probe's irradiance cube of the previous bounce.
 
 Final gather
 ------------
 Each front hit also casts ``gather_samples`` cosine-weighted rays (``gather_*`` records,
-:func:`probegrid.kernels.gather_rays`), traced once and lit as the probe's rays are
+:func:`probegrid.bake.kernels.sampling.gather_rays`), traced once and lit as the probe's rays are
 (punctual lights, one emitter and one environment sample at their hits; their misses and
 emission count 0: the
 environment and the emitters reach the hit by sampling), and with ``gather_depth = 2`` (the
@@ -94,11 +94,24 @@ from numpy.typing import NDArray
 
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment, EnvironmentLight
+from probegrid.bake.kernels.cube import CUBE_AXES
+from probegrid.bake.kernels.grid import (
+    GridLattice,
+    ProbeTable,
+    ReplayRecords,
+    Weighting,
+    distance_moments,
+    hit_probe_weights,
+    mean_per_parent,
+    replay_radiance,
+    texel_means,
+)
+from probegrid.bake.kernels.lights import light_rays, sum_unblocked
+from probegrid.bake.kernels.sampling import gather_rays, stream_uniforms
+from probegrid.bake.kernels.surfaces import HitRecords, scatter_divided, shade_hits
 from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
 from probegrid.core.arrays import one_blas_thread, sum_rows
 from probegrid.core.cubemap import (
-    FACE_U,
-    FACE_V,
     direction_to_face,
     downsample,
     texel_directions,
@@ -112,19 +125,6 @@ from probegrid.core.ddgi import (
 )
 from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.lights import splat_delta
-from probegrid.kernels import (
-    distance_moments,
-    gather_rays,
-    hit_probe_weights,
-    light_rays,
-    mean_per_parent,
-    replay_radiance,
-    scatter_divided,
-    shade_hits,
-    stream_uniforms,
-    sum_unblocked,
-    texel_means,
-)
 from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
@@ -219,7 +219,7 @@ def record_bytes(primary: int, gather_samples: int, depth: int) -> int:
 def _stream_keys(seed: int, indices: NDArray[np.int64], purpose: int) -> NDArray[np.uint64]:
     """The keys of the probes' random streams for one purpose (independent of the sample
     pattern's): 64 bits of ``SeedSequence(seed, spawn_key=(index, purpose))`` each, for
-    :func:`probegrid.kernels.stream_uniforms`."""
+    :func:`probegrid.bake.kernels.sampling.stream_uniforms`."""
     return np.array([np.random.SeedSequence(int(seed), spawn_key=(int(i), purpose))
                      .generate_state(1, np.uint64)[0] for i in indices], np.uint64)
 
@@ -533,15 +533,13 @@ class RecordTracer:
         hits = self.tracer.intersect(origins, dirs)
         rays = k
         sc = self.scene
-        vertices, triangles, tri_normals, material = sc._kernel_tables
-        base, emis = sc._factor_tables
         # the records of the chunk in one pass: kind, distance, and at each front hit its
         # surface (the normal turned toward the ray: the side it sees is shaded; emission leaves
         # the front as wound only)
         rows, p, nrm, back_off = shade_hits(
-            dirs, hits.prim_id, hits.u, hits.v, hits.t, float(st.max_distance), eps, vertices,
-            triangles, tri_normals, material, base, emis, sc._kernel_colors, rd._double_sided,
-            rec["kind"], t, rec["position"], rec["normal"], rec["albedo"], rec["emission"])
+            dirs, hits, (float(st.max_distance), eps), sc.surface_tables, rd._double_sided,
+            HitRecords(rec["kind"], t, rec["position"], rec["normal"], rec["albedo"],
+                       rec["emission"]))
         sc._apply_textures(hits.prim_id, hits.u, hits.v, rec["albedo"], rec["emission"], rows)
         if sky_at_misses and not rd.environment.is_black:
             miss = np.flatnonzero(rec["kind"] == 0)
@@ -549,7 +547,7 @@ class RecordTracer:
                 rec["light_punctual"][miss] = rd._env.radiance(dirs[miss])
         if not rows.size:
             return rays
-        which, s_org, s_dir, s_len, s_irr, ok = light_rays(p, nrm, *rd._lights, eps,
+        which, s_org, s_dir, s_len, s_irr, ok = light_rays(p, nrm, rd._lights, eps,
                                                            self.tracer.centre)
         if len(which):
             occluded = self.tracer.occluded_rays(EmbreeRays(s_org, s_dir, s_len), ok)
@@ -759,10 +757,11 @@ def hit_weights(records: dict[str, NDArray[Any]], data: GridData
     return hit_probe_weights(
         np.ascontiguousarray(records["position"], dtype=np.float64),
         np.ascontiguousarray(records["normal"]), np.flatnonzero(records["kind"] == 1),
-        g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS,
-        np.ascontiguousarray(data.valid, dtype=bool),
-        np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
-        data.moments_n, bias, FACE_U, FACE_V, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD)
+        GridLattice(g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS),
+        ProbeTable(np.ascontiguousarray(data.valid, dtype=bool),
+                   np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
+                   data.moments_n),
+        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES)
 
 
 #: Side, in texels, of the blocks of a probe's faces over which :func:`_smooth_gathered`
@@ -791,9 +790,10 @@ def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
     kind = records["kind"]
     total = len(kind)
     zeros = np.zeros((total, 3), np.float32)
-    _, at_hit = replay_radiance(kind, zeros, zeros, zeros, records["albedo"], records["normal"],
-                                records["weight_index"], records["weight"], cubes, g, FACE_U,
-                                FACE_V, 1, np.zeros((0, 3), np.float32))  # albedo * G alone
+    _, at_hit = replay_radiance(  # albedo * G alone
+        ReplayRecords(kind, zeros, zeros, zeros, records["albedo"], records["normal"],
+                      records["weight_index"], records["weight"]),
+        (cubes, g), CUBE_AXES, 1, np.zeros((0, 3), np.float32))
     front = kind == 1
     corr = np.where(front[:, None], records["albedo"].astype(np.float64) * gathered
                     - at_hit.astype(np.float64), 0.0)
@@ -821,9 +821,9 @@ def _smooth_gathered(records: dict[str, NDArray[Any]], settings: RenderSettings,
 def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
                   grid: NDArray[np.float32], gathered: NDArray[np.float32], g: int
                   ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """:func:`probegrid.kernels.replay_radiance` of one level's records (``prefix``, with its
-    probe weights where it has them): the ``grid`` read at its hits, or the light ``gathered``
-    below them."""
+    """:func:`probegrid.bake.kernels.grid.replay_radiance` of one level's records (``prefix``,
+    with its probe weights where it has them): the ``grid`` read at its hits, or the light
+    ``gathered`` below them."""
     wi, ww = records.get(prefix + "weight_index"), records.get(prefix + "weight")
     if wi is None or ww is None:  # a level that reads no grid (the kernel reads no weights)
         if grid.shape[0]:  # (a bug, not bad input)
@@ -831,11 +831,11 @@ def _replay_level(records: dict[str, NDArray[Any]], prefix: str, level: int,
                                "their probe weights")
         wi, ww = np.zeros((0, 8), np.int32), np.zeros((0, 8), np.float32)
     none = np.zeros((0, 3), np.float32)  # (a gather level keeps no emission, and normals
-    return replay_radiance(records[prefix + "kind"],  # only where its hits read the grid)
-                           records.get(prefix + "emission", none),
-                           records[prefix + "light_punctual"], records[prefix + "light_emitters"],
-                           records[prefix + "albedo"], records.get(prefix + "normal", none), wi,
-                           ww, grid, g, FACE_U, FACE_V, level, gathered)
+    return replay_radiance(  # only where its hits read the grid)
+        ReplayRecords(records[prefix + "kind"], records.get(prefix + "emission", none),
+                      records[prefix + "light_punctual"], records[prefix + "light_emitters"],
+                      records[prefix + "albedo"], records.get(prefix + "normal", none), wi, ww),
+        (grid, g), CUBE_AXES, level, gathered)
 
 
 def replay(records: dict[str, NDArray[Any]], settings: RenderSettings, level: int,

@@ -33,17 +33,10 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import probe_rng
-from probegrid.core.cubemap import (
-    FACE_NORMALS,
-    FACE_U,
-    FACE_V,
-    texel_directions,
-    texel_solid_angles,
-)
-from probegrid.core.lights import incident_many, pack_lights
-from probegrid.kernels import (
-    cube_sample_directions,
-)
+from probegrid.bake.kernels.cube import CUBE_AXES, cube_sample_directions
+from probegrid.bake.kernels.lights import PunctualLights
+from probegrid.core.cubemap import texel_directions, texel_solid_angles
+from probegrid.core.lights import incident_many
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
@@ -163,8 +156,7 @@ def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
     jitter = _jitter(settings, probe_index)
     # sample k of texel (row, col) at continuous texel coordinates (col - 0.5 + jitter_x,
     # row - 0.5 + jitter_y), weighted by the area element (1 + u^2 + v^2)^(-3/2)
-    return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64),
-                                  FACE_NORMALS, FACE_U, FACE_V)
+    return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64), CUBE_AXES)
 
 
 class ProbeRenderer:
@@ -222,10 +214,8 @@ class ProbeRenderer:
         return dirs, e_perp, visible, len(pi)
 
     @cached_property
-    def _lights(self) -> tuple:
-        pk = pack_lights(self.scene.lights)
-        return (pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
-                pk.angle_scale, pk.angle_offset)
+    def _lights(self) -> PunctualLights:
+        return PunctualLights.of(self.scene.lights)
 
     # -- classification -------------------------------------------------------------------
 
