@@ -56,7 +56,7 @@ def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
 
 
 def test_textures_apply_to_the_given_rows_only() -> None:
-    """Scene._apply_textures with rows (what the records pass uses): the same products as on
+    """Scene.apply_textures with rows (what the records pass uses): the same products as on
     the rows' own arrays, other rows (misses, prim -1) untouched."""
     from probegrid.scene import Material, SceneBuilder
 
@@ -74,9 +74,9 @@ def test_textures_apply_to_the_given_rows_only() -> None:
     rows = np.flatnonzero(prim >= 0)
     alb, emi = rng.random((n, 3)), rng.random((n, 3))
     alb_r, emi_r = alb[rows].copy(), emi[rows].copy()
-    scene._apply_textures(prim[rows], u[rows], v[rows], alb_r, emi_r)
+    scene.apply_textures(prim[rows], u[rows], v[rows], alb_r, emi_r)
     before_a, before_e = alb.copy(), emi.copy()
-    scene._apply_textures(prim, u, v, alb, emi, rows)
+    scene.apply_textures(prim, u, v, alb, emi, rows)
     np.testing.assert_array_equal(alb[rows], alb_r)
     np.testing.assert_array_equal(emi[rows], emi_r)
     miss = prim < 0

@@ -15,10 +15,11 @@ light sampling, scaled to the exact unoccluded integral (a ratio estimator, as H
 with ``A`` the exact unoccluded irradiance of the emitters at their uniform radiance ``Lc``
 (the emitters' outlines clipped to the point's upper half-space and integrated by Lambert's edge
 formula, :func:`probegrid.bake.kernels.emitters.polygon_irradiance`; coplanar triangles of one
-radiance are merged into their outlines first, :func:`emitter_outlines`, so a quad costs one clipped 4-gon, not
-two triangles, and a fan-tessellated disc its rim), ``L`` points sampled on the emitters (a triangle
-picked in proportion to its power ``area * mean(Le)``, a uniform point on it),
-``g = cos_x cos_y / d^2``, ``V`` the shadow ray's visibility and ``p`` the area density. It is
+radiance are merged into their outlines first, :func:`emitter_outlines`, so a quad costs one
+clipped 4-gon, not two triangles, and a fan-tessellated disc its rim), ``L`` points sampled on
+the emitters (a triangle picked in proportion to its power ``area * mean(Le)``, a uniform point
+on it), ``g = cos_x cos_y / d^2``, ``V`` the shadow ray's visibility and ``p`` the area
+density. It is
 exact wherever nothing occludes the emitters (the ratio is 1: a furnace box is exact) and
 wherever everything does (0), never negative, and biased only in penumbrae, where it
 is consistent. (An additive control variate, ``A + sum [V (Le - Lc) - (1 - V) Lc] g / (L p)``,
@@ -36,8 +37,9 @@ A probe's rays leave through texel centres (or a few jittered points), and would
 smaller than a texel whole or not at all. Instead, each emitting triangle facing the probe is
 clipped to every cube texel it overlaps (on the face plane, where its edges stay straight) and
 the exact solid angle of each piece is computed
-(:func:`probegrid.bake.kernels.emitters.texel_emitter_coverage`, on sub-texels, :data:`VIEW_SUBDIVISION` per texel side); one shadow ray toward each piece's
-centroid gives its visibility. A texel's emission is then
+(:func:`probegrid.bake.kernels.emitters.texel_emitter_coverage`, on sub-texels,
+:data:`VIEW_SUBDIVISION` per texel side); one shadow ray toward each piece's centroid gives its
+visibility. A texel's emission is then
 ``sum Le * Omega_piece * V / Omega_texel``: a panel keeps its exact energy whatever its size,
 and the texel's own rays supply the rest (the light reflected by the surfaces they hit).
 
@@ -160,7 +162,7 @@ class Emitters:
 
     @classmethod
     def from_scene(cls, scene: Scene) -> Emitters:
-        _, emis = scene._factor_tables
+        emis = scene.surface_tables.emissive
         tri = np.flatnonzero((emis[scene.material].max(axis=1) > 0)
                              & (scene.triangle_areas > 0)).astype(np.int64)
         return cls(scene, tri)
@@ -182,7 +184,7 @@ class Emitters:
     @cached_property
     def factor(self) -> NDArray[np.float64]:
         """(E, 3) emissive factor (the radiance without textures)."""
-        return np.ascontiguousarray(self.scene._factor_tables[1][self.scene.material[
+        return np.ascontiguousarray(self.scene.surface_tables.emissive[self.scene.material[
             self.triangles]])
 
     @cached_property

@@ -378,7 +378,7 @@ class Scene:
                          if m.base_color_texture is not None or m.emissive_texture is not None],
                         dtype=np.int64)
 
-    def _apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
+    def apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
                         v: NDArray[np.float64], albedo: NDArray[Any],
                         emission: NDArray[Any], rows: NDArray[np.int64] | None = None
                         ) -> None:
@@ -438,7 +438,7 @@ class Scene:
             )
         position, normal, albedo, emission = hit_surfaces(
             pid, np.ascontiguousarray(uu), np.ascontiguousarray(vv), self.surface_tables)
-        self._apply_textures(pid, uu, vv, albedo, emission)
+        self.apply_textures(pid, uu, vv, albedo, emission)
         return Surface(
             position.reshape(*shape, 3),
             normal.reshape(*shape, 3),
