@@ -52,7 +52,7 @@ from probegrid.bake.environment import Environment
 from probegrid.bake.executors import InlineExecutor, LocalExecutor
 from probegrid.bake.placement import grid_for
 from probegrid.jobs.bake import load_environment
-from probegrid.kernels import embree_rays
+from probegrid.raytrace.kernels import embree_rays
 from probegrid.scene import Material, Scene, load_gltf
 
 SCENE = REPO / "data" / "sample_room.glb"
@@ -95,7 +95,8 @@ class Recorder:
          raytrace.RayTracer.occluded_rays) = self._orig  # type: ignore
 
     def _keep(self, kind, tr, origins, directions, tmin, tmax) -> None:
-        """The batch as the tracer hands it to Embree (kernels.embree_rays: the same bits)."""
+        """The batch as the tracer hands it to Embree (raytrace.kernels.embree_rays: the same
+        bits)."""
         _, o, d, lo, hi = tr._rays(origins, directions, tmin, tmax)
         org, d32, far, _ = embree_rays(o, d, lo.reshape(-1), hi.reshape(-1), tr.centre)
         self.batches.append((kind, org, d32, far))

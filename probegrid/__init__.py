@@ -4,9 +4,9 @@ The package is layered; a module imports only the layers below its own (a test r
 import and fails on an upward or sideways one)::
 
     errors, _types, _version         the error tree, every option Literal, the version
-    _fs, _machine, kernels           durable writes and locks; the cores; the numba kernels
+    _fs, _jit, _machine              durable writes and locks; the one numba importer; the cores
     core/                            pure math on numpy arrays, no I/O
-    imageio | scene/ | store/ | raytrace   OpenImageIO; trimesh, glTF; the grid store; Embree
+    imageio | scene/ | store/ | raytrace/  OpenImageIO; trimesh, glTF; the grid store; Embree
     bake/ | query | filter/          the baker (Embree, executors); the store-backed probe field;
                                      the environment filter on arrays
     jobs/                            bake, filter, export, samples, demo: options -> library

@@ -487,7 +487,7 @@ def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold
     blocks' mean gather correction: two seeds differ by 1.8 % per texel (9 % with the raw
     gather), and each probe's solid-angle integral over the hits facing each side (floor,
     ceiling, each wall) is what the raw gather gives: no light moves between surfaces."""
-    from probegrid.bake import records as rc
+    from probegrid.bake.records import replay as rc
     from probegrid.core.arrays import sum_rows
     from probegrid.core.cubemap import texel_solid_angles
 
@@ -503,13 +503,14 @@ def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold
     def checked(records, settings, rad, *args):
         out = original(records, settings, rad, *args)
         n = settings.face_size
-        sa = np.tile(texel_solid_angles(n).reshape(-1), len(records["probes"]))
+        sa = np.tile(texel_solid_angles(n).reshape(-1), len(records.probes))
         probe = np.arange(len(sa)) // (6 * n * n)
-        nrm = records["normal"]
+        rays = records.levels[0]
+        nrm = rays.normal
         axis = np.argmax(np.abs(nrm), axis=1)
         side = 2 * axis + (nrm[np.arange(len(nrm)), axis] > 0)
-        key = probe * 6 + np.where(records["kind"] == 1, side, 0)
-        assert len(np.unique(side[records["kind"] == 1])) == 6  # all six sides seen
+        key = probe * 6 + np.where(rays.kind == 1, side, 0)
+        assert len(np.unique(side[rays.kind == 1])) == 6  # all six sides seen
         integrals.append((sum_rows(key, sa[:, None] * rad, 6 * (probe.max() + 1)),
                           sum_rows(key, sa[:, None] * out, 6 * (probe.max() + 1))))
         return out
@@ -685,16 +686,19 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
     its errors, so here its warm-up must run cleanly and leave the bake's kernels compiled."""
     import numba
 
-    from probegrid import kernels
     from probegrid.bake import preload
+    from probegrid.bake.kernels import cube, emitters, environment, grid, lights, sampling, surfaces
+    from probegrid.raytrace import kernels as rays
 
     preload._warm_up()  # raises if the tiny bake fails
-    used = ["shade_hits", "scatter_divided", "light_rays", "emitter_samples", "emitter_estimate",
-            "polygon_irradiance", "environment_samples", "gather_rays",
-            "hit_probe_weights", "replay_radiance", "distance_moments", "cube_sample_directions",
-            "texel_emitter_coverage", "embree_rays", "embree_hits"]
-    for name in used:
-        fn = getattr(kernels, name)
+    used = [(surfaces, "shade_hits"), (surfaces, "scatter_divided"), (lights, "light_rays"),
+            (emitters, "emitter_samples"), (emitters, "emitter_estimate"),
+            (emitters, "polygon_irradiance"), (environment, "environment_samples"),
+            (sampling, "gather_rays"), (grid, "hit_probe_weights"), (grid, "replay_radiance"),
+            (grid, "distance_moments"), (cube, "cube_sample_directions"),
+            (emitters, "texel_emitter_coverage"), (rays, "embree_rays"), (rays, "embree_hits")]
+    for module, name in used:
+        fn = getattr(module, name)
         assert isinstance(fn, numba.core.registry.CPUDispatcher)
         assert fn.signatures, f"{name} was not loaded by the warm-up bake"
 

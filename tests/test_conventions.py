@@ -82,7 +82,7 @@ def test_surfaces_emit_from_the_front_only_and_double_sided_backs_reflect(conv):
     import dataclasses
 
     from probegrid.bake.emitters import Emitters
-    from probegrid.kernels import split_hits
+    from probegrid.bake.kernels.surfaces import split_hits
     from probegrid.raytrace import RayTracer
     from probegrid.scene import Material, SceneBuilder
 

@@ -32,7 +32,7 @@ def _estimate(scene, points, samples=2, seed=0):
 
 
 def test_unoccluded_points_get_the_exact_integral():
-    from probegrid.kernels import emitter_irradiance
+    from probegrid.bake.kernels.emitters import emitter_irradiance
 
     pts = np.column_stack([np.linspace(-2, 2, 50), np.zeros(50), np.linspace(-1, 1, 50)])
     em, e = _estimate(_scene(False), pts)
@@ -82,7 +82,7 @@ def test_merged_outlines_integrate_as_their_triangles():
     radiance) equals the per-triangle sum at points all around, receivers tilted so the
     horizon clips the regions (non-convex loops included), and has only the outlines' edges."""
     from probegrid.bake.emitters import emitter_outlines
-    from probegrid.kernels import emitter_irradiance, polygon_irradiance
+    from probegrid.bake.kernels.emitters import emitter_irradiance, polygon_irradiance
 
     quad = np.array([[[0, 2, 0], [1, 2, 1], [1, 2, 0]], [[0, 2, 0], [0, 2, 1], [1, 2, 1]]],
                     float)
@@ -109,7 +109,7 @@ def test_merged_outlines_integrate_as_their_triangles():
     n = rng.normal(size=(400, 3)) + [0, 1.5, 0]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     ref = emitter_irradiance(pts, n, tris, nrm, rad)
-    got = polygon_irradiance(pts, n, *outlines)
+    got = polygon_irradiance(pts, n, outlines)
     assert (ref > 0).mean() > 0.8
     np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-13 * ref.max())
 

@@ -4,7 +4,7 @@ Layers, bottom up (a module imports only layers below its own; modules of one su
 import each other)::
 
     0  probegrid.errors, probegrid._types, probegrid._version
-    1  probegrid._fs, probegrid._machine, probegrid.kernels
+    1  probegrid._fs, probegrid._jit, probegrid._machine
     2  probegrid.core
     3  probegrid.imageio | probegrid.scene | probegrid.store | probegrid.raytrace | probegrid.export
        | probegrid.usercache
@@ -36,7 +36,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 RANKS: dict[str, int] = {
     "probegrid.errors": 0, "probegrid._types": 0, "probegrid._version": 0,
-    "probegrid._fs": 1, "probegrid._machine": 1, "probegrid.kernels": 1,
+    "probegrid._fs": 1, "probegrid._jit": 1, "probegrid._machine": 1,
     "probegrid.core": 2,
     "probegrid.imageio": 3, "probegrid.scene": 3, "probegrid.store": 3, "probegrid.raytrace": 3,
     "probegrid.export": 3, "probegrid.usercache": 3,
@@ -45,7 +45,7 @@ RANKS: dict[str, int] = {
     "probegrid.cli": 6, "probegrid.client": 6,
     "probegrid": 7,
 }
-SUBPACKAGES = ("core", "scene", "store", "bake", "filter", "jobs", "export")
+SUBPACKAGES = ("core", "scene", "store", "raytrace", "bake", "filter", "jobs", "export")
 CLIENT_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
                      "probegrid.core", "probegrid.store.manifest")
 SERVICE_MAY_IMPORT = ("probegrid.errors", "probegrid._types", "probegrid._version",
@@ -182,13 +182,13 @@ def test_the_layer_graph_has_no_cycle_and_at_most_six_levels():
 @pytest.mark.parametrize("plant, expect", [
     ("probegrid/core/sh/projection.py", "upward import (probegrid.core is layer 2, probegrid.bake layer 4)"),
     ("probegrid/store/reader.py", "sideways import (probegrid.store is layer 3, probegrid.scene"),
-    ("probegrid/kernels.py", "upward import"),
+    ("probegrid/_jit.py", "upward import"),
 ])
 def test_a_planted_upward_or_sideways_import_is_named(tmp_path, plant, expect):
     for part in ("probegrid", "service"):
         shutil.copytree(REPO / part, tmp_path / part,
                         ignore=shutil.ignore_patterns("__pycache__", "static"))
-    target = "probegrid.bake.driver" if "core" in plant or "kernels" in plant else "probegrid.scene"
+    target = "probegrid.bake.driver" if "core" in plant or "_jit" in plant else "probegrid.scene"
     file = tmp_path / plant
     file.write_text(file.read_text() + f"\n\ndef _planted():\n    import {target}\n")
     found = violations(tmp_path)

@@ -238,7 +238,7 @@ def test_baked_store_keeps_raw_and_deringed_sh(field, old_field):
 
 
 def test_segment_rays_kernel_restates_its_array_expression():
-    from probegrid.kernels import segment_rays
+    from probegrid.raytrace.kernels import segment_rays
 
     rng = np.random.default_rng(11)
     a = rng.uniform(-5, 5, (200, 3))

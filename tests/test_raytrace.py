@@ -140,12 +140,12 @@ def test_chunking_is_invisible(shared_data: Path) -> None:
 
 
 def test_rays_as_embree_takes_them_are_occluded_as_the_float64_rays(shared_data: Path) -> None:
-    """occluded_rays of rays a kernel wrote as Embree takes them (kernels.embree_rays, the
-    rounding rule of the bake's shadow-ray kernels) answers as occluded does for the same
+    """occluded_rays of rays a kernel wrote as Embree takes them (raytrace.kernels.embree_rays,
+    the rounding rule of the bake's shadow-ray kernels) answers as occluded does for the same
     float64 rays, chunked or not, with and without an end; a kernel's not-finite flag is
     refused with occluded's error."""
-    from probegrid.kernels import embree_rays
     from probegrid.raytrace import EmbreeRays
+    from probegrid.raytrace.kernels import embree_rays
 
     s = load_gltf(shared_data / "gltf" / "CornellBox.glb")
     rng = np.random.default_rng(5)

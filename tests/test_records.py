@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from probegrid.bake import records as rc
+from probegrid.bake.records import schema, storage
 
 
 def test_held_records_are_the_files_and_never_stale(tmp_path):
@@ -19,7 +20,7 @@ def test_held_records_are_the_files_and_never_stale(tmp_path):
     extra = {"weight": np.ones((4, 8), np.float32)}
     rc.save_records(path, extra)  # arrays added later join the held block and the files
     assert "weight" in rc.load_records(path)
-    rc._drop(path)  # another process: reads the files
+    storage._drop(path)  # another process: reads the files
     again = rc.load_records(path)
     assert again is not first and set(again) == {"kind", "probes", "weight"}
     # the same store baked again: new files under the same name are not taken for the old
@@ -27,7 +28,7 @@ def test_held_records_are_the_files_and_never_stale(tmp_path):
     assert rc.load_records(path) is None
     second = {"kind": np.ones(4, np.uint8), "probes": np.arange(2)}
     rc.save_records(path, second)
-    rc._drop(path)
+    storage._drop(path)
     assert rc.load_records(path)["kind"].tolist() == [1, 1, 1, 1]
     stale = rc.load_records(path)
     rc.remove_records(path)  # ... and a third bake in another process writes the same name
@@ -36,16 +37,16 @@ def test_held_records_are_the_files_and_never_stale(tmp_path):
     for k, v in third.items():
         np.save(path / f"{k}.npy", v)
     (path / "complete").write_text("another token")
-    rc._hold(("x", "y"), stale)  # (whatever this process still holds)
+    storage._hold(("x", "y"), stale)  # (whatever this process still holds)
     assert rc.load_records(path)["kind"].tolist() == [2, 2, 2, 2]
 
 
 def test_memory_held_is_bounded(tmp_path, monkeypatch):
-    monkeypatch.setattr(rc, "RECORDS_MEMORY", 3000)
+    monkeypatch.setattr(storage, "RECORDS_MEMORY", 3000)
     for i in range(5):  # 5 blocks of 1,000 bytes: only the last 3 stay in memory
         rc.save_records(rc.records_file(tmp_path, i), {"a": np.zeros(1000, np.uint8)})
-    held = [k for k in rc._held if k[0].startswith(str(tmp_path))]
-    assert len(held) == 3 and rc._held_bytes[0] <= 3000
+    held = [k for k in storage._held if k[0].startswith(str(tmp_path))]
+    assert len(held) == 3 and storage._held_bytes[0] <= 3000
     assert rc.load_records(rc.records_file(tmp_path, 0))["a"].nbytes == 1000  # from its files
 
 
@@ -55,7 +56,7 @@ def test_records_kept_in_memory_alone_are_written_when_they_must_leave_it(tmp_pa
     block is held, its added arrays and drops in memory; a block pushed out of memory by the
     bound is written first, complete, and read back from its files; stale files of an earlier
     bake under the same name are never taken for it."""
-    monkeypatch.setattr(rc, "RECORDS_MEMORY", 3000)
+    monkeypatch.setattr(storage, "RECORDS_MEMORY", 3000)
     stale = rc.records_file(tmp_path, 0)
     stale.mkdir(parents=True)
     np.save(stale / "a.npy", np.full(1000, 9, np.uint8))
@@ -67,7 +68,7 @@ def test_records_kept_in_memory_alone_are_written_when_they_must_leave_it(tmp_pa
     for i in range(1, 5):  # 4 more blocks of 1,000 bytes: block 0 and 1 must leave memory
         rc.save_records(rc.records_file(tmp_path, i), {"a": np.full(1000, i, np.uint8)},
                         files=False)
-    assert rc._held_bytes[0] <= 3000
+    assert storage._held_bytes[0] <= 3000
     for i in range(5):
         path = rc.records_file(tmp_path, i)
         assert path.exists() == (i < 2), i  # written only once pushed out
@@ -80,7 +81,7 @@ def test_records_kept_in_memory_alone_are_written_when_they_must_leave_it(tmp_pa
     for i in range(5):
         rc.remove_records(rc.records_file(tmp_path, i))
         assert rc.load_records(rc.records_file(tmp_path, i)) is None
-    assert not rc._memory_only
+    assert not storage._memory_only
     # a block whose bake directory was deleted meanwhile is dropped, not written back
     gone = tmp_path / "deleted-bake" / "records"
     gone.mkdir(parents=True)
@@ -142,10 +143,10 @@ def test_record_bytes_bounds_the_records_of_a_closed_room(depth):
     pos = np.array([[0.0, 1.0, 0.0], [0.3, 0.5, -0.2]])
     rec, moments, _ = tracer.trace(pos, np.array([0, 1]))
     assert "gather_emission" not in rec and "gather_position" not in rec
-    deepest = rc._LEVELS[depth]
+    deepest = schema.LEVEL_PREFIXES[depth]
     assert rc.gather_depth(rec) == depth
     assert deepest + "position" in rec and deepest + "normal" in rec
-    assert all(rc._LEVELS[d] + "position" not in rec for d in range(1, depth))
+    assert all(schema.LEVEL_PREFIXES[d] + "position" not in rec for d in range(1, depth))
     grid = GridSpec(bounds_min=(0.0, 1.0, 0.0), bounds_max=(0.3, 1.0, 0.0), counts=(2, 1, 1))
     mb = bordered_cubes(moments)
     data = GridData(grid, np.ones(2, bool), pos, np.ascontiguousarray(mb).reshape(-1, 2),
@@ -153,7 +154,7 @@ def test_record_bytes_bounds_the_records_of_a_closed_room(depth):
     rec.update(rc.all_hit_weights(rec, data))
     primary = 2 * 6 * 4 * 4
     for d in range(1, depth + 1):  # (every gather ray hit the box)
-        assert len(rec[rc._LEVELS[d] + "kind"]) == 2 * primary
+        assert len(rec[schema.LEVEL_PREFIXES[d] + "kind"]) == 2 * primary
     per_ray = sum(v.nbytes for k, v in rec.items() if not k.startswith(("view", "lights"))
                   and np.ndim(v) and len(v) in (primary, 2 * primary))
     assert per_ray == rc.record_bytes(primary, 2, depth)

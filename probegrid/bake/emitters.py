@@ -14,11 +14,12 @@ light sampling, scaled to the exact unoccluded integral (a ratio estimator, as H
 
 with ``A`` the exact unoccluded irradiance of the emitters at their uniform radiance ``Lc``
 (the emitters' outlines clipped to the point's upper half-space and integrated by Lambert's edge
-formula, :func:`probegrid.kernels.polygon_irradiance`; coplanar triangles of one radiance are
-merged into their outlines first, :func:`emitter_outlines`, so a quad costs one clipped 4-gon, not
-two triangles, and a fan-tessellated disc its rim), ``L`` points sampled on the emitters (a triangle
-picked in proportion to its power ``area * mean(Le)``, a uniform point on it),
-``g = cos_x cos_y / d^2``, ``V`` the shadow ray's visibility and ``p`` the area density. It is
+formula, :func:`probegrid.bake.kernels.emitters.polygon_irradiance`; coplanar triangles of one
+radiance are merged into their outlines first, :func:`emitter_outlines`, so a quad costs one
+clipped 4-gon, not two triangles, and a fan-tessellated disc its rim), ``L`` points sampled on
+the emitters (a triangle picked in proportion to its power ``area * mean(Le)``, a uniform point
+on it), ``g = cos_x cos_y / d^2``, ``V`` the shadow ray's visibility and ``p`` the area
+density. It is
 exact wherever nothing occludes the emitters (the ratio is 1: a furnace box is exact) and
 wherever everything does (0), never negative, and biased only in penumbrae, where it
 is consistent. (An additive control variate, ``A + sum [V (Le - Lc) - (1 - V) Lc] g / (L p)``,
@@ -35,9 +36,10 @@ What a probe sees of the emitters (:meth:`Emitters.texel_view`)
 A probe's rays leave through texel centres (or a few jittered points), and would catch a panel
 smaller than a texel whole or not at all. Instead, each emitting triangle facing the probe is
 clipped to every cube texel it overlaps (on the face plane, where its edges stay straight) and
-the exact solid angle of each piece is computed (:func:`probegrid.kernels.texel_emitter_coverage`,
-on sub-texels, :data:`VIEW_SUBDIVISION` per texel side); one shadow ray toward each piece's
-centroid gives its visibility. A texel's emission is then
+the exact solid angle of each piece is computed
+(:func:`probegrid.bake.kernels.emitters.texel_emitter_coverage`, on sub-texels,
+:data:`VIEW_SUBDIVISION` per texel side); one shadow ray toward each piece's centroid gives its
+visibility. A texel's emission is then
 ``sum Le * Omega_piece * V / Omega_texel``: a panel keeps its exact energy whatever its size,
 and the texel's own rays supply the rest (the light reflected by the surfaces they hit).
 
@@ -55,17 +57,19 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid.core.arrays import sum_rows
-from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, texel_solid_angles
-from probegrid.kernels import (
-    alias_draw,
-    alias_table,
+from probegrid.bake.kernels.cube import CUBE_AXES
+from probegrid.bake.kernels.emitters import (
+    EmitterOutlines,
+    EmitterTriangles,
     emitter_estimate,
     emitter_samples,
     emitter_shadow_rays,
     polygon_irradiance,
     texel_emitter_coverage,
 )
+from probegrid.bake.kernels.sampling import alias_draw, alias_table
+from probegrid.core.arrays import sum_rows
+from probegrid.core.cubemap import texel_solid_angles
 from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
@@ -84,11 +88,9 @@ MAX_OUTLINED = 16384
 
 
 def emitter_outlines(vertices: NDArray[np.float64], normals: NDArray[np.float64],
-                     radiance: NDArray[np.float64]
-                     ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64],
-                                NDArray[np.float64], NDArray[np.float64]]:
+                     radiance: NDArray[np.float64]) -> EmitterOutlines:
     """Uniformly emitting triangles as planar regions bounded by closed loops, the input of
-    :func:`probegrid.kernels.polygon_irradiance` (same integral, fewer edges).
+    :func:`probegrid.bake.kernels.emitters.polygon_irradiance` (same integral, fewer edges).
 
     Triangles ``vertices (E, 3, 3)`` (unit ``normals (E, 3)`` as wound) with the same
     ``radiance (E, 3)`` (bit for bit) and the same plane (normal and offset within 1e-9 of the
@@ -97,7 +99,8 @@ def emitter_outlines(vertices: NDArray[np.float64], normals: NDArray[np.float64]
     directed edges are chained into closed loops (outlines, holes). Triangles that only look
     alike stay apart, which costs edges, never accuracy.
 
-    Returns ``loop_vertices (V, 3)``, ``loop_start (L + 1,)``, ``group_loops (G + 1,)``,
+    Returns the :class:`~probegrid.bake.kernels.emitters.EmitterOutlines`
+    ``loop_vertices (V, 3)``, ``loop_start (L + 1,)``, ``group_loops (G + 1,)``,
     ``group_normals (G, 3)`` and ``group_radiance (G, 3)``.
     """
     v = np.asarray(vertices, np.float64).reshape(-1, 3, 3)
@@ -136,10 +139,11 @@ def emitter_outlines(vertices: NDArray[np.float64], normals: NDArray[np.float64]
         g_normals.append(nrm[first])
         g_radiance.append(rad[first])
     starts = np.cumsum([0] + [len(lp) for lp in loops]).astype(np.int64)
-    return (np.ascontiguousarray(np.concatenate(loops) if loops else np.zeros((0, 3))),
-            starts, np.array(group_loops, np.int64),
-            np.ascontiguousarray(np.reshape(g_normals, (-1, 3)), dtype=np.float64),
-            np.ascontiguousarray(np.reshape(g_radiance, (-1, 3)), dtype=np.float64))
+    return EmitterOutlines(
+        np.ascontiguousarray(np.concatenate(loops) if loops else np.zeros((0, 3))),
+        starts, np.array(group_loops, np.int64),
+        np.ascontiguousarray(np.reshape(g_normals, (-1, 3)), dtype=np.float64),
+        np.ascontiguousarray(np.reshape(g_radiance, (-1, 3)), dtype=np.float64))
 
 
 @dataclass(frozen=True, eq=False)
@@ -158,7 +162,7 @@ class Emitters:
 
     @classmethod
     def from_scene(cls, scene: Scene) -> Emitters:
-        _, emis = scene._factor_tables
+        emis = scene.surface_tables.emissive
         tri = np.flatnonzero((emis[scene.material].max(axis=1) > 0)
                              & (scene.triangle_areas > 0)).astype(np.int64)
         return cls(scene, tri)
@@ -180,7 +184,7 @@ class Emitters:
     @cached_property
     def factor(self) -> NDArray[np.float64]:
         """(E, 3) emissive factor (the radiance without textures)."""
-        return np.ascontiguousarray(self.scene._factor_tables[1][self.scene.material[
+        return np.ascontiguousarray(self.scene.surface_tables.emissive[self.scene.material[
             self.triangles]])
 
     @cached_property
@@ -190,8 +194,7 @@ class Emitters:
         return flags[self.scene.material[self.triangles]]
 
     @cached_property
-    def outlines(self) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64],
-                                NDArray[np.float64], NDArray[np.float64]]:
+    def outlines(self) -> EmitterOutlines:
         """The emitters at their uniform radiance (the factor) as :func:`emitter_outlines`."""
         return emitter_outlines(self.vertices, self.normals, self.factor)
 
@@ -212,7 +215,7 @@ class Emitters:
     @cached_property
     def _selection(self) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]]:
         """The triangles' selection in proportion to their power ``area * mean(factor)``: its
-        alias table ``(accept, alias)`` (:func:`probegrid.kernels.alias_table`) and
+        alias table ``(accept, alias)`` (:func:`probegrid.bake.kernels.sampling.alias_table`) and
         ``area / probability`` per triangle."""
         area = self.scene.triangle_areas[self.triangles]
         power = area * self.factor.mean(axis=1)
@@ -231,7 +234,7 @@ class Emitters:
         out = np.zeros((n, 3))
         if n == 0 or len(self) == 0:
             return out, 0
-        analytic = (polygon_irradiance(points, normals, *self.outlines) if self.analytic
+        analytic = (polygon_irradiance(points, normals, self.outlines) if self.analytic
                     else np.zeros((0, 3)))
         accept, alias, inv_pdf = self._selection
         if self.textured.any():  # the points' radiance through the textures
@@ -245,10 +248,10 @@ class Emitters:
                 np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps,
                 tracer.centre)
         else:  # the same, in one compiled pass
-            rays = emitter_samples(points, normals, np.ascontiguousarray(random), accept,
-                                   alias, inv_pdf,
-                                   self.vertices, self.normals, self.factor, self.control, eps,
-                                   tracer.centre)
+            rays = emitter_samples(points, normals, np.ascontiguousarray(random),
+                                   (accept, alias, inv_pdf),
+                                   EmitterTriangles(self.vertices, self.normals, self.factor,
+                                                    self.control), eps, tracer.centre)
         which, org, dirs, lengths, vis, occ, ok = rays
         blocked = (tracer.occluded_rays(EmbreeRays(org, dirs, lengths), bool(ok[0]))
                    if len(which) else np.zeros(0, np.bool_))
@@ -279,7 +282,7 @@ class Emitters:
             cap = 24 * n * n  # (room for what the sub-texel pass keeps: one call, not two)
             while True:
                 count, tex, tri, omega, dirs, dist = texel_emitter_coverage(
-                    o, self.vertices, self.normals, m, FACE_NORMALS, FACE_U, FACE_V, cap)
+                    o, self.vertices, self.normals, m, CUBE_AXES, cap)
                 if count <= cap or count > limit:
                     break
                 cap = count

@@ -17,7 +17,7 @@ The environment as a light (:class:`EnvironmentLight`)
 Surface points are lit by the environment through explicit sampling, as they are by the
 emitters: directions are drawn from the environment itself (a texel of its
 :data:`LIGHT_SIZE`-face box-filtered cube picked in proportion to ``luminance * solid angle``
-through an alias table (:func:`probegrid.kernels.alias_table`),
+through an alias table (:func:`probegrid.bake.kernels.sampling.alias_table`),
 a uniform point in that texel's face square), each tested by a shadow ray, and
 
     E = (1 / L) sum_i L_i max(0, n . w_i) V_i / p(w_i),
@@ -44,6 +44,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid.bake.kernels.cube import CUBE_AXES
+from probegrid.bake.kernels.environment import SkyTable, environment_samples
+from probegrid.bake.kernels.lights import sum_unblocked
+from probegrid.bake.kernels.sampling import alias_draw, alias_table
 from probegrid.core.color import luminance
 from probegrid.core.cubemap import (
     FACE_NORMALS,
@@ -56,7 +60,6 @@ from probegrid.core.cubemap import (
 )
 from probegrid.core.sampling import CubeSampler, resample
 from probegrid.core.sh import rotation_y
-from probegrid.kernels import alias_draw, alias_table, environment_samples, sum_unblocked
 from probegrid.raytrace import EmbreeRays, RayTracer
 
 __all__ = ["LIGHT_SIZE", "Environment", "EnvironmentLight"]
@@ -194,6 +197,8 @@ class EnvironmentLight:
         # environment frame -> world
         self._rotation = rotation_y(env.rotation) if env.rotation else None
         self._to_world = np.eye(3) if self._rotation is None else self._rotation  # (kernel's)
+        self._table = SkyTable(self._accept, self._alias, prob, radiance, m, self._to_world,
+                               self._mirrors)
 
     def sample(self, random: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                             NDArray[np.float64],
@@ -221,7 +226,8 @@ class EnvironmentLight:
     def _texels(self, directions: NDArray[np.float64]
                 ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """The sampled cube's texels at unit world ``directions (..., 3)`` (flat index) and
-        ``(1 + u^2 + v^2)^(3/2)`` there (:func:`probegrid.kernels._environment_texel`)."""
+        ``(1 + u^2 + v^2)^(3/2)`` there
+        (:func:`probegrid.bake.kernels.environment._environment_texel`)."""
         d = np.asarray(directions, dtype=np.float64)
         if self._rotation is not None:
             d = d @ self._rotation  # world -> environment frame
@@ -261,16 +267,15 @@ class EnvironmentLight:
         """Direct irradiance (lux, RGB) from the environment at ``points (n, 3)`` with unit
         ``normals (n, 3)``, from ``random (n, L, 3)`` uniform numbers (L samples per point).
         Returns ``(n, 3)`` and the shadow rays cast (:meth:`sample_above` and the estimator in
-        one compiled pass, :func:`probegrid.kernels.environment_samples`)."""
+        one compiled pass, :func:`probegrid.bake.kernels.environment.environment_samples`)."""
         n = len(points)
         out = np.zeros((n, 3))
         if n == 0 or self.is_black:
             return out, 0
         which, org, dirs, lengths, contrib, ok = environment_samples(
             np.asarray(points, dtype=np.float64), np.asarray(normals, dtype=np.float64),
-            np.ascontiguousarray(random, np.float64), self._accept, self._alias, self._prob,
-            self.radiance, self.size, self._to_world, FACE_NORMALS, FACE_U, FACE_V,
-            self._mirrors, float(eps), tracer.centre)
+            np.ascontiguousarray(random, np.float64), self._table, CUBE_AXES, float(eps),
+            tracer.centre)
         if not which.size:
             return out, 0
         blocked = tracer.occluded_rays(EmbreeRays(org, dirs, lengths), ok)

@@ -60,10 +60,10 @@ import weakref
 from dataclasses import dataclass
 from typing import Final
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._jit import strict_kernel
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
@@ -97,7 +97,7 @@ def vote_directions(n: int = DIRECTIONS) -> NDArray[np.float64]:
     return d @ (ry @ rx).T
 
 
-@numba.njit(cache=True)
+@strict_kernel
 def _find(parent: NDArray[np.int64], parity: NDArray[np.int8], x: int) -> tuple[int, int]:
     """Root of ``x`` and ``x``'s orientation parity relative to it; compresses the path."""
     root, p = x, 0
@@ -115,7 +115,7 @@ def _find(parent: NDArray[np.int64], parity: NDArray[np.int8], x: int) -> tuple[
     return root, p
 
 
-@numba.njit(cache=True)
+@strict_kernel
 def _union_parity(n: int, fa: NDArray[np.int64], fb: NDArray[np.int64],
                   rel: NDArray[np.int8]) -> tuple[NDArray[np.int64], NDArray[np.int8],
                                                   NDArray[np.bool_]]:

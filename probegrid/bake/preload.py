@@ -3,9 +3,9 @@
 ``probegrid bake`` starts its local worker processes while it loads the scene
 (:meth:`probegrid.bake.executors.LocalExecutor.start`) and names this module as their
 ``preload``: the fork server imports it once, and every worker forks from it with the bake
-imported and its compiled kernels (:mod:`probegrid.kernels`, numba's per-machine cache) loaded,
-instead of each worker loading them at its first batch (about 0.4 s of imports and 0.3 s of
-kernels per process on the reference machine).
+imported and its compiled kernels (:mod:`probegrid.bake.kernels`, numba's per-machine cache)
+loaded, instead of each worker loading them at its first batch (about 0.4 s of imports and
+0.3 s of kernels per process on the reference machine).
 
 Importing this module:
 

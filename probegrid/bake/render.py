@@ -33,17 +33,10 @@ from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import probe_rng
-from probegrid.core.cubemap import (
-    FACE_NORMALS,
-    FACE_U,
-    FACE_V,
-    texel_directions,
-    texel_solid_angles,
-)
-from probegrid.core.lights import incident_many, pack_lights
-from probegrid.kernels import (
-    cube_sample_directions,
-)
+from probegrid.bake.kernels.cube import CUBE_AXES, cube_sample_directions
+from probegrid.bake.kernels.lights import PunctualLights
+from probegrid.core.cubemap import texel_directions, texel_solid_angles
+from probegrid.core.lights import incident_many
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
@@ -163,8 +156,7 @@ def _sample_pattern(settings: RenderSettings, probe_index: int) -> tuple[
     jitter = _jitter(settings, probe_index)
     # sample k of texel (row, col) at continuous texel coordinates (col - 0.5 + jitter_x,
     # row - 0.5 + jitter_y), weighted by the area element (1 + u^2 + v^2)^(-3/2)
-    return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64),
-                                  FACE_NORMALS, FACE_U, FACE_V)
+    return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64), CUBE_AXES)
 
 
 class ProbeRenderer:
@@ -184,18 +176,23 @@ class ProbeRenderer:
         self.environment = environment or Environment()
         self.settings = settings or RenderSettings()
         self.tracer = tracer or RayTracer.from_scene(scene)
-        self._env = self.environment.sampler(self.settings.environment_footprint)
-        self._double_sided = scene.double_sided
+        #: The environment as the probes' rays see it (box-filtered to their texels).
+        self.environment_view = self.environment.sampler(self.settings.environment_footprint)
+        #: ``(T,)`` whether each triangle's back reflects too (the scene's).
+        self.double_sided = scene.double_sided
         n, m = self.settings.face_size, self.settings.moments_size
         f, r, c = np.meshgrid(np.arange(6), np.arange(n), np.arange(n), indexing="ij")
         k = n // m
         bins = (f * m + r // k) * m + c // k  # moments texel of every incoming texel
-        self._moment_bins = np.repeat(bins.reshape(-1), self.settings.samples)
-        self._texel_sa = np.repeat(texel_solid_angles(n).reshape(-1), self.settings.samples)
+        #: The moments texel of each of a probe's rays (texel by texel, ``samples`` each).
+        self.moment_bins = np.repeat(bins.reshape(-1), self.settings.samples)
+        #: The solid angle of each of a probe's rays' texels (texel by texel).
+        self.ray_solid_angles = np.repeat(texel_solid_angles(n).reshape(-1),
+                                          self.settings.samples)
 
     # -- lights ---------------------------------------------------------------------------
 
-    def _visible_lights(
+    def visible_lights(
         self, points: NDArray[np.float64], normals: NDArray[np.float64] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], int]:
         """Which punctual lights reach which points, by shadow rays.
@@ -222,10 +219,9 @@ class ProbeRenderer:
         return dirs, e_perp, visible, len(pi)
 
     @cached_property
-    def _lights(self) -> tuple:
-        pk = pack_lights(self.scene.lights)
-        return (pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
-                pk.angle_scale, pk.angle_offset)
+    def punctual_lights(self) -> PunctualLights:
+        """The scene's punctual lights as the kernels take them."""
+        return PunctualLights.of(self.scene.lights)
 
     # -- classification -------------------------------------------------------------------
 
@@ -252,6 +248,6 @@ class ProbeRenderer:
         dirs = np.tile(d, (len(pos), 1))
         hits = self.tracer.intersect(np.repeat(pos, len(d), axis=0), dirs)
         prim = hits.prim_id
-        back = self.tracer.backface(prim, dirs) & ~self._double_sided[np.maximum(prim, 0)]
+        back = self.tracer.backface(prim, dirs) & ~self.double_sided[np.maximum(prim, 0)]
         farthest = np.where(prim < 0, np.inf, hits.t).reshape(len(pos), -1).max(axis=1)
         return back.reshape(len(pos), -1).mean(axis=1), farthest

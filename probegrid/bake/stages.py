@@ -49,12 +49,12 @@ from probegrid.bake.records import (
     load_records,
     records_file,
     remove_records,
-    replay,
     resolve_directory,
     save_records,
     select_probes,
     weighted_positions,
 )
+from probegrid.bake.records.replay import replay
 from probegrid.bake.render import ProbeRenderer, RenderSettings
 from probegrid.bake.settings import BakeSettings
 from probegrid.core import sh

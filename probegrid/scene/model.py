@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import SceneError
-from probegrid.kernels import hit_surfaces, multiply_texture
+from probegrid.scene.kernels import SurfaceTables, hit_surfaces, multiply_texture
 from probegrid.scene.textures import _WRAPS, Wrap, _check_wrap
 
 __all__ = ['Material', 'Scene', 'SceneError', 'Surface']
@@ -360,6 +360,13 @@ class Scene:
         return np.ascontiguousarray(self.colors[:, :3], dtype=np.float64)
 
     @cached_property
+    def surface_tables(self) -> SurfaceTables:
+        """The triangles and material factors as the compiled kernels read them
+        (:class:`probegrid.scene.kernels.SurfaceTables`: contiguous, built once)."""
+        base, emis = self._factor_tables
+        return SurfaceTables(*self._kernel_tables, base, emis, self._kernel_colors)
+
+    @cached_property
     def _kernel_uvs(self) -> NDArray[np.float64]:
         if self.uvs is None:
             return np.zeros((0, 2))
@@ -371,13 +378,13 @@ class Scene:
                          if m.base_color_texture is not None or m.emissive_texture is not None],
                         dtype=np.int64)
 
-    def _apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
+    def apply_textures(self, pid: NDArray[np.int64], u: NDArray[np.float64],
                         v: NDArray[np.float64], albedo: NDArray[Any],
                         emission: NDArray[Any], rows: NDArray[np.int64] | None = None
                         ) -> None:
         """Multiply ``albedo``/``emission (n, 3)`` in place by the textures sampled at the
         interpolated UV of the hits (:func:`sample_texture`'s bilinear filter and wrap modes,
-        compiled as :func:`probegrid.kernels.multiply_texture`); only ``rows`` of them when
+        compiled as :func:`probegrid.scene.kernels.multiply_texture`); only ``rows`` of them when
         given (the other entries of ``pid``, misses say, are not read)."""
         if not self._textured_materials.size or not pid.size:
             return
@@ -392,9 +399,9 @@ class Scene:
             for tex, wrap, target in ((m.base_color_texture, m.base_color_wrap, albedo),
                                       (m.emissive_texture, m.emissive_wrap, emission)):
                 if tex is not None:
-                    multiply_texture(target, sel, pid, u, v, tris, uvs,
+                    multiply_texture(target, sel, (pid, u, v), tris, uvs,
                                      np.ascontiguousarray(tex, dtype=np.float32),
-                                     _WRAPS.index(wrap[0]), _WRAPS.index(wrap[1]))
+                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])))
 
     def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
         """Position, geometric normal, albedo and emission at barycentric points of triangles.
@@ -429,11 +436,9 @@ class Scene:
                 f"prim_ids must be triangle indices in [0, {self.n_triangles}); filter misses "
                 "(-1) out first."
             )
-        base, emis = self._factor_tables
         position, normal, albedo, emission = hit_surfaces(
-            pid, np.ascontiguousarray(uu), np.ascontiguousarray(vv), *self._kernel_tables,
-            base, emis, self._kernel_colors)
-        self._apply_textures(pid, uu, vv, albedo, emission)
+            pid, np.ascontiguousarray(uu), np.ascontiguousarray(vv), self.surface_tables)
+        self.apply_textures(pid, uu, vv, albedo, emission)
         return Surface(
             position.reshape(*shape, 3),
             normal.reshape(*shape, 3),

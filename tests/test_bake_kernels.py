@@ -1,4 +1,5 @@
-"""The compiled bake kernels against the numpy expressions they restate."""
+"""The compiled bake kernels (:mod:`probegrid.bake.kernels`) against the numpy expressions they
+restate."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from meshes import triangle_soup
 
 from probegrid.core.grid import GridSpec
 
@@ -52,32 +54,8 @@ def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-15)
 
 
-@pytest.mark.parametrize("wrap", [("repeat", "repeat"), ("clamp", "mirror"), ("mirror", "clamp")])
-def test_texture_kernel_matches_sample_texture(wrap) -> None:
-    from probegrid.kernels import multiply_texture
-    from probegrid.scene.textures import _WRAPS, sample_texture
-
-    rng = np.random.default_rng(5)
-    tex = rng.random((5, 7, 4)).astype(np.float32)
-    tris = np.array([[0, 1, 2], [1, 3, 2]], dtype=np.int64)
-    uvs = rng.uniform(-2.0, 3.0, (4, 2))
-    n = 500
-    prim = rng.integers(0, 2, n).astype(np.int64)
-    bu = rng.random(n)
-    bv = rng.random(n) * (1 - bu)
-    w = np.stack([1 - bu - bv, bu, bv], axis=1)[:, :, None]
-    uv = np.sum(w * uvs[tris[prim]], axis=1)
-    target = rng.random((n, 3)) + 0.5
-    rows = np.flatnonzero(rng.random(n) < 0.7)
-    expect = target.copy()
-    expect[rows] *= sample_texture(tex, uv[rows], wrap=wrap)[:, :3]
-    multiply_texture(target, rows, prim, bu, bv, tris, uvs, tex, _WRAPS.index(wrap[0]),
-                     _WRAPS.index(wrap[1]))
-    np.testing.assert_allclose(target, expect, rtol=1e-12)
-
-
 def test_texel_means_and_distance_moments_match_numpy() -> None:
-    from probegrid.kernels import distance_moments, texel_means
+    from probegrid.bake.kernels.grid import distance_moments, texel_means
 
     rng = np.random.default_rng(2)
     s, texels = 5, 96
@@ -98,7 +76,7 @@ def test_texel_means_and_distance_moments_match_numpy() -> None:
 
 
 def test_split_hits_sorts_misses_fronts_and_one_sided_backs() -> None:
-    from probegrid.kernels import split_hits
+    from probegrid.bake.kernels.surfaces import split_hits
 
     tri_n = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # triangle 1 is double-sided
     dirs = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [9.0, 9.0, 9.0], [0.0, 1.0, 0.0],
@@ -125,14 +103,13 @@ def _assert_embree_rays(rays, origins, directions, tmin, tmax, centre) -> None:
 
 def test_light_rays_match_incident_many() -> None:
     """The shadow-ray set-up equals lights.incident_many plus the renderer's selection rule."""
+    from probegrid.bake.kernels.lights import PunctualLights, light_rays
     from probegrid.core.lights import (
         DirectionalLight,
         PointLight,
         SpotLight,
         incident_many,
-        pack_lights,
     )
-    from probegrid.kernels import light_rays
 
     lights = [
         PointLight((0.0, 2.0, 0.0), (1.0, 0.8, 0.6), 40.0, range=3.0),
@@ -147,11 +124,9 @@ def test_light_rays_match_incident_many() -> None:
     nrm = rng.normal(size=(n, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
     eps = 1e-3
-    pk = pack_lights(lights)
     centre = np.array([0.3, -0.2, 0.5])
-    which, org, dirs, length, irr, ok = light_rays(
-        pts, nrm, pk.kind.astype(np.int64), pk.position, pk.axis, pk.power, pk.range,
-        pk.angle_scale, pk.angle_offset, eps, centre)
+    which, org, dirs, length, irr, ok = light_rays(pts, nrm, PunctualLights.of(lights), eps,
+                                                   centre)
     assert ok
 
     d_ref, e_ref, dist_ref = incident_many(lights, pts)
@@ -167,48 +142,16 @@ def test_light_rays_match_incident_many() -> None:
     assert not lit[0, 0]  # at the light: neither the reference nor the kernel lights it
 
 
-def _triangle_soup(rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """30 random vertices, 40 triangles of them, their unit normals as wound and one of 3
-    materials each."""
-    verts = rng.normal(size=(30, 3))
-    tris = np.stack([rng.permutation(30)[:3] for _ in range(40)]).astype(np.int64)
-    p = verts[tris]
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    return verts, tris, nrm, rng.integers(0, 3, 40).astype(np.int64)
-
-
-def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:
-    from probegrid.kernels import hit_surfaces
-
-    rng = np.random.default_rng(6)
-    verts, tris, nrm, material = _triangle_soup(rng)
-    base = rng.random((3, 3))
-    emis = rng.random((3, 3))
-    colors = rng.random((30, 4))
-    n = 500
-    prim = rng.integers(0, 40, n).astype(np.int64)
-    u = rng.random(n)
-    v = rng.random(n) * (1 - u)
-    pos, nn, alb, em = hit_surfaces(prim, u, v, verts, tris, nrm, material, base, emis,
-                                    np.ascontiguousarray(colors[:, :3]))
-    w = np.stack([1 - u - v, u, v], axis=1)[:, :, None]
-    np.testing.assert_allclose(pos, np.sum(w * verts[tris[prim]], axis=1), rtol=1e-13,
-                               atol=1e-14)
-    np.testing.assert_array_equal(nn, nrm[prim])
-    np.testing.assert_allclose(alb, base[material[prim]]
-                               * np.sum(w * colors[tris[prim]][:, :, :3], axis=1), rtol=1e-13)
-    np.testing.assert_array_equal(em, emis[material[prim]])
-
-
 def test_shade_hits_is_split_hits_then_hit_surfaces() -> None:
     """The fused records pass against the two kernels it fuses: kinds, distances, the front
     hits' surfaces (normals turned toward the ray, emission from the front only, albedo and
     emission rounded to the records' float32), and the points eps back along the ray."""
-    from probegrid.kernels import hit_surfaces, shade_hits, split_hits
+    from probegrid.bake.kernels.surfaces import HitRecords, shade_hits, split_hits
+    from probegrid.raytrace import Hits
+    from probegrid.scene.kernels import SurfaceTables, hit_surfaces
 
     rng = np.random.default_rng(16)
-    verts, tris, nrm, material = _triangle_soup(rng)
+    verts, tris, nrm, material = triangle_soup(rng)
     base, emis = rng.random((3, 3)), rng.random((3, 3))
     colors = np.ascontiguousarray(rng.random((30, 3)))
     double = rng.random(40) < 0.5
@@ -224,17 +167,16 @@ def test_shade_hits_is_split_hits_then_hit_surfaces() -> None:
     dist = np.empty(n)
     rec = {k: np.zeros((n, 3), np.float64 if k == "position" else np.float32)
            for k in ("position", "normal", "albedo", "emission")}
-    rows, pts, turned, back = shade_hits(dirs, prim, u, v, t_hit, 20.0, eps, verts, tris, nrm,
-                                         material, base, emis, colors, double, kind, dist,
-                                         rec["position"], rec["normal"], rec["albedo"],
-                                         rec["emission"])
+    surfaces = SurfaceTables(verts, tris, nrm, material, base, emis, colors)
+    rows, pts, turned, back = shade_hits(
+        dirs, Hits(prim, t_hit, u, v), (20.0, eps), surfaces, double,
+        HitRecords(kind, dist, rec["position"], rec["normal"], rec["albedo"], rec["emission"]))
     kind_r, rows_r, flip, emits = split_hits(dirs, prim, nrm, double)
     np.testing.assert_array_equal(kind, kind_r)
     np.testing.assert_array_equal(rows, rows_r)
     assert 0 < len(rows) < n and (kind == 2).any()
     np.testing.assert_array_equal(dist, np.where(prim < 0, 20.0, np.minimum(t_hit, 20.0)))
-    pos, nn, alb, em = hit_surfaces(prim[rows], u[rows], v[rows], verts, tris, nrm, material,
-                                    base, emis, colors)
+    pos, nn, alb, em = hit_surfaces(prim[rows], u[rows], v[rows], surfaces)
     nn[flip] *= -1.0
     em[~emits] = 0.0
     np.testing.assert_array_equal(pts, pos)
@@ -246,37 +188,6 @@ def test_shade_hits_is_split_hits_then_hit_surfaces() -> None:
         np.testing.assert_array_equal(rec[name], expect)
 
 
-def test_textures_apply_to_the_given_rows_only() -> None:
-    """Scene._apply_textures with rows (what the records pass uses): the same products as on
-    the rows' own arrays, other rows (misses, prim -1) untouched."""
-    from probegrid.scene import Material, SceneBuilder
-
-    rng = np.random.default_rng(17)
-    b = SceneBuilder()
-    tex = rng.random((4, 4, 4)).astype(np.float32)
-    m = b.add_material(Material(base_color=(0.8, 0.7, 0.6, 1.0), base_color_texture=tex,
-                                emissive=(0.5, 0.5, 0.5), emissive_texture=tex[..., :3]))
-    b.add_quad((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), material=m)
-    scene = b.build()
-    n = 50
-    prim = np.where(rng.random(n) < 0.3, -1, rng.integers(0, scene.n_triangles, n))
-    u = rng.random(n)
-    v = rng.random(n) * (1 - u)
-    rows = np.flatnonzero(prim >= 0)
-    alb, emi = rng.random((n, 3)), rng.random((n, 3))
-    alb_r, emi_r = alb[rows].copy(), emi[rows].copy()
-    scene._apply_textures(prim[rows], u[rows], v[rows], alb_r, emi_r)
-    before_a, before_e = alb.copy(), emi.copy()
-    scene._apply_textures(prim, u, v, alb, emi, rows)
-    np.testing.assert_array_equal(alb[rows], alb_r)
-    np.testing.assert_array_equal(emi[rows], emi_r)
-    miss = prim < 0
-    np.testing.assert_array_equal(alb[miss], before_a[miss])
-    np.testing.assert_array_equal(emi[miss], before_e[miss])
-    assert not np.array_equal(alb_r, before_a[rows])
-
-
-# ------------------------------------------------------------------------------ bake v2 kernels
 @pytest.mark.parametrize("counts", [(4, 3, 5), (2, 1, 1)])
 def test_hit_probe_weights_match_probe_weights(counts) -> None:
     """The trace-once weights are :func:`probegrid.core.ddgi.probe_weights`' (normals and
@@ -308,9 +219,9 @@ def test_replay_kernel_matches_numpy() -> None:
     """One bounce from records: ``emission + albedo * (lp + le + sum_c w_c G_c(n))`` with the
     bilinear bordered-cube lookup of :class:`probegrid.core.ddgi.BorderedCubes`, or with the
     gathered irradiance in the grid's place."""
-    from probegrid.core.cubemap import FACE_U, FACE_V
+    from probegrid.bake.kernels.cube import CUBE_AXES
+    from probegrid.bake.kernels.grid import ReplayRecords, replay_radiance
     from probegrid.core.ddgi import BorderedCubes
-    from probegrid.kernels import replay_radiance
 
     rng = np.random.default_rng(5)
     n, p, g = 2000, 7, 4
@@ -325,8 +236,8 @@ def test_replay_kernel_matches_numpy() -> None:
     gathered = f32(n, 3)
     none = np.zeros((0, 3), np.float32)
     for level, indirect in ((0, none), (2, none), (0, gathered), (2, gathered)):
-        rad, bnc = replay_radiance(kind, em, lp, le, alb, nrm, idx, w, cubes.data, g,
-                                   FACE_U, FACE_V, level, indirect)
+        rad, bnc = replay_radiance(ReplayRecords(kind, em, lp, le, alb, nrm, idx, w),
+                                   (cubes.data, g), CUBE_AXES, level, indirect)
         grid = np.zeros((n, 3))
         if level and len(indirect):  # gathered irradiance takes the grid's place
             grid = indirect.astype(np.float64)
@@ -341,12 +252,13 @@ def test_replay_kernel_matches_numpy() -> None:
 
 
 def test_angle_is_atan2_to_the_last_bits() -> None:
-    """kernels._angle (the polygon integrals' atan2 for y >= 0) against numpy.arctan2 over 24
-    decades of both arguments, both signs of x, the reduction's branch points and the zeros:
-    within 1e-15 and 16 units in the last place everywhere, exact at 0, pi / 2 and pi."""
+    """bake.kernels.emitters._angle (the polygon integrals' atan2 for y >= 0) against
+    numpy.arctan2 over 24 decades of both arguments, both signs of x, the reduction's branch
+    points and the zeros: within 1e-15 and 16 units in the last place everywhere, exact at 0,
+    pi / 2 and pi."""
     import numba
 
-    from probegrid.kernels import _TAN_PI_8, _angle
+    from probegrid.bake.kernels.emitters import _TAN_PI_8, _angle
 
     @numba.njit
     def angles(y, x):
@@ -371,11 +283,11 @@ def test_angle_is_atan2_to_the_last_bits() -> None:
 
 
 def test_turn_is_cos_and_sin_of_the_azimuth() -> None:
-    """kernels._turn (the gather's azimuths) against numpy's cos and sin of 2 pi r: within
-    1e-15 over 10^6 uniform numbers, the quarter turns and the ends of [0, 1)."""
+    """bake.kernels.sampling._turn (the gather's azimuths) against numpy's cos and sin of
+    2 pi r: within 1e-15 over 10^6 uniform numbers, the quarter turns and the ends of [0, 1)."""
     import numba
 
-    from probegrid.kernels import _turn
+    from probegrid.bake.kernels.sampling import _turn
 
     @numba.njit
     def turns(r):
@@ -395,7 +307,7 @@ def test_emitter_irradiance_is_the_exact_form_factor() -> None:
     """Lambert's edge formula against the closed form of a parallel rectangle (near: edges
     wider than pi/8, through the arctangent; far: narrower, through its series in t^2 alone),
     and a triangle crossing the receiver's horizon (clipped) against a fine quadrature."""
-    from probegrid.kernels import emitter_irradiance
+    from probegrid.bake.kernels.emitters import emitter_irradiance
 
     a, b = 1.3, 0.7  # rectangle centred above the point, facing down
     for c in (0.2, 0.9, 3.0, 40.0):
@@ -431,8 +343,9 @@ def test_emitter_irradiance_is_the_exact_form_factor() -> None:
 def test_texel_coverage_adds_up_to_the_triangle_solid_angle() -> None:
     """The pieces of a triangle clipped to every texel it covers (across cube faces) add up to
     its solid angle (Van Oosterom-Strackee), each piece inside its texel."""
-    from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V, texel_solid_angles
-    from probegrid.kernels import texel_emitter_coverage
+    from probegrid.bake.kernels.cube import CUBE_AXES
+    from probegrid.bake.kernels.emitters import texel_emitter_coverage
+    from probegrid.core.cubemap import texel_solid_angles
 
     rng = np.random.default_rng(11)
     for _ in range(5):
@@ -448,7 +361,7 @@ def test_texel_coverage_adds_up_to_the_triangle_solid_angle() -> None:
                              la * lb * lc + np.dot(a, b) * lc + np.dot(a, c) * lb
                              + np.dot(b, c) * la)
         count, tex, _, om, dirs, dist = texel_emitter_coverage(
-            np.zeros(3), tri, nrm[None], 8, FACE_NORMALS, FACE_U, FACE_V, 4096)
+            np.zeros(3), tri, nrm[None], 8, CUBE_AXES, 4096)
         assert 0 < count <= 4096
         assert om[:count].sum() == pytest.approx(ref, rel=1e-10)
         assert np.all(om[:count] <= texel_solid_angles(8).reshape(-1)[tex[:count]] * (1 + 1e-9))
@@ -459,7 +372,7 @@ def test_texel_coverage_adds_up_to_the_triangle_solid_angle() -> None:
 def test_cosine_directions_match_numpy() -> None:
     """The compiled cosine-weighted directions against the array expression (Duff et al.'s
     basis), and their distribution: mean cosine 2/3, uniform azimuth."""
-    from probegrid.kernels import cosine_directions
+    from probegrid.bake.kernels.sampling import cosine_directions
 
     rng = np.random.default_rng(4)
     nrm = rng.normal(size=(3000, 3))
@@ -486,7 +399,7 @@ def test_alias_table_draws_each_entry_with_its_probability() -> None:
     """Walker's alias table (Vose): the probability it gives each entry, accept / N plus the
     refused shares aliased to it, is the distribution's; zero-probability entries (a black
     ground) are never drawn, also on a fine sweep of the uniform."""
-    from probegrid.kernels import alias_draw, alias_table
+    from probegrid.bake.kernels.sampling import alias_draw, alias_table
 
     rng = np.random.default_rng(21)
     for prob in (rng.gamma(0.3, 1.0, 6 * 64 * 64), np.r_[np.zeros(7), 1.0, np.zeros(3)],
@@ -509,7 +422,7 @@ def test_alias_table_draws_each_entry_with_its_probability() -> None:
 def test_gather_rays_start_off_their_parents_and_follow_the_cosine() -> None:
     """The gather's rays from chosen parent hits: origins ``p - eps arriving + eps n`` and the
     cosine directions about the parents' (float32) normals, row by row."""
-    from probegrid.kernels import cosine_directions, gather_rays
+    from probegrid.bake.kernels.sampling import cosine_directions, gather_rays
 
     rng = np.random.default_rng(14)
     m = 200
@@ -532,8 +445,8 @@ def test_environment_samples_match_the_numpy_sampler(rotation: float) -> None:
     the estimator's contributions radiance cos / (p L), for a rotated sky and an unrotated
     one, with normals along the axes (the mirror by texel permutation) among others."""
     from probegrid.bake.environment import Environment, EnvironmentLight
-    from probegrid.core.cubemap import FACE_NORMALS, FACE_U, FACE_V
-    from probegrid.kernels import environment_samples
+    from probegrid.bake.kernels.cube import CUBE_AXES
+    from probegrid.bake.kernels.environment import SkyTable, environment_samples
 
     rng = np.random.default_rng(6)
     faces = (rng.random((6, 8, 8, 3)) ** 3).astype(np.float32)
@@ -546,9 +459,10 @@ def test_environment_samples_match_the_numpy_sampler(rotation: float) -> None:
     r = rng.random((n, ls, 3))
     pts = rng.normal(size=(n, 3))
     centre = np.array([-0.4, 0.1, 0.9])
-    which, org, dirs, length, contrib, ok = environment_samples(
-        pts, nrm, r, light._accept, light._alias, light._prob, light.radiance, light.size,
-        light._to_world, FACE_NORMALS, FACE_U, FACE_V, light._mirrors, 1e-3, centre)
+    sky = SkyTable(light._accept, light._alias, light._prob, light.radiance, light.size,
+                   light._to_world, light._mirrors)
+    which, org, dirs, length, contrib, ok = environment_samples(pts, nrm, r, sky, CUBE_AXES,
+                                                                1e-3, centre)
     assert ok
     d, rad, pdf = light.sample_above(r, nrm)
     cos = np.einsum("nlk,nk->nl", d, nrm)
@@ -565,13 +479,14 @@ def test_emitter_samples_match_surface_sampling() -> None:
     Scene.surface_at and emitter_shadow_rays; the estimate against sum_rows."""
     from probegrid.bake.emitters import Emitters
     from probegrid.core.arrays import sum_rows
-    from probegrid.kernels import (
-        alias_draw,
+    from probegrid.bake.kernels.emitters import (
+        EmitterTriangles,
         emitter_estimate,
         emitter_samples,
         emitter_shadow_rays,
-        sum_unblocked,
     )
+    from probegrid.bake.kernels.lights import sum_unblocked
+    from probegrid.bake.kernels.sampling import alias_draw
     from probegrid.scene import Material, SceneBuilder
 
     b = SceneBuilder()
@@ -588,8 +503,9 @@ def test_emitter_samples_match_surface_sampling() -> None:
     r = rng.random((n, ls, 3))
     accept, alias, inv_pdf = em._selection
     centre = np.array([0.2, 1.0, -0.3])
-    got = emitter_samples(pts, nrm, r, accept, alias, inv_pdf, em.vertices, em.normals,
-                          em.factor, em.control, 1e-4, centre)
+    got = emitter_samples(pts, nrm, r, (accept, alias, inv_pdf),
+                          EmitterTriangles(em.vertices, em.normals, em.factor, em.control), 1e-4,
+                          centre)
     e = alias_draw(accept, alias, r[..., 0])
     r1 = np.sqrt(r[..., 1])
     surf = em.scene.surface_at(em.triangles[e], r1 * (1 - r[..., 2]), r1 * r[..., 2])

@@ -1,34 +1,8 @@
-"""Batched ray casting against a triangle soup through Embree (the ``embreex`` binding).
+"""The Embree acceleration structure over one triangle soup (:class:`RayTracer`): closest hits,
+occlusion of rays and of segments, built once per process.
 
-This is the only module of the project that imports ``embreex``; no ray tracer of our own.
-
-Conventions
------------
-* Rays are ``origin + t * direction`` for ``t in [tmin, tmax]``. Directions need not be unit
-  length; ``t`` is measured in units of the given direction's length (so it is a distance when
-  directions are unit vectors).
-* ``prim_id`` is the triangle's row in the ``triangles`` array, ``-1`` for a miss (then
-  ``t = inf`` and ``u = v = 0``).
-* Barycentrics: the hit point is ``(1 - u - v) a + u b + v c`` for triangle ``(a, b, c)``
-  (Embree's convention), matching :meth:`probegrid.scene.Scene.surface_at`.
-* Back face: a hit is on the back of its triangle when the ray travels along the geometric
-  normal ``(b - a) x (c - a)``, i.e. ``dot(normal, direction) > 0`` (the winding rule of
-  :mod:`probegrid.scene`). Embree itself reports both sides (no culling).
-
-Precision
----------
-Embree works in float32. As trimesh's ``ray_pyembree`` does, the float64 geometry is re-centred
-on its bounding-box centre before the cast, and ray origins get the same shift in float64, so the
-float32 error is relative to the scene's extent, not to its distance from the world origin.
-``tmin`` is applied by moving the origin to ``origin + tmin * direction`` in float64 (embreex
-fixes Embree's ``tnear`` at 0) and adding ``tmin`` back to ``t``.
-
-Batches and processes
----------------------
-Any number of rays per call; they are passed to Embree in chunks of ``chunk_size`` to bound the
-temporary float32 buffers. An Embree scene cannot be pickled, so a :class:`RayTracer` pickles as
-its arrays and rebuilds its acceleration structure where it is unpickled: one per worker
-process.
+This is the only module of the project that imports ``embreex``. Conventions (rays, barycentrics,
+back faces, float32 precision, batches) are the package's, :mod:`probegrid.raytrace`.
 
 Reference: Wald et al., "Embree: A Kernel Framework for Efficient CPU Ray Tracing", ACM TOG 33(4),
 2014; embreex ``EmbreeScene.run`` (query ``INTERSECT`` with ``output=1`` returns ``primID``,
@@ -39,42 +13,20 @@ from __future__ import annotations
 
 import hashlib
 import math
-from typing import Final, NamedTuple
+from typing import Final
 
 import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.kernels import embree_hits, embree_rays, segment_rays
+from probegrid.raytrace.kernels import embree_hits, embree_rays, segment_rays
+from probegrid.raytrace.rays import EmbreeRays, Hits
 
-__all__ = ["EmbreeRays", "Hits", "RayTracer"]
+__all__ = ["RayTracer"]
 
 _DEFAULT_CHUNK: Final[int] = 1 << 16
 _MAX_CHUNK: Final[int] = 1 << 22
-
-
-class Hits(NamedTuple):
-    """Closest hits of a batch of rays (see :meth:`RayTracer.intersect`)."""
-
-    prim_id: NDArray[np.int64]
-    t: NDArray[np.float64]
-    u: NDArray[np.float64]
-    v: NDArray[np.float64]
-
-
-class EmbreeRays(NamedTuple):
-    """Rays already as Embree takes them (:meth:`RayTracer.occluded_rays`): written by the
-    compiled kernels that make them (:func:`probegrid.kernels._embree_ray`, the one rounding
-    rule, the same as :meth:`RayTracer.occluded`'s), so no float64 copy is made and converted.
-
-    ``origins (k, 3) float32``: ``(origin - tracer.centre) + tmin direction`` in float64,
-    rounded once; ``directions (k, 3) float32``; ``lengths (k,) float32``: ``tmax - tmin``
-    (inf: no end)."""
-
-    origins: NDArray[np.float32]
-    directions: NDArray[np.float32]
-    lengths: NDArray[np.float32]
 
 
 class RayTracer:
@@ -218,7 +170,7 @@ class RayTracer:
         """float32 origins (shifted to tmin, re-centred), directions and tfar of rays s:e.
 
         The shift and the re-centring are done in float64, each value rounded to float32 once
-        (:func:`probegrid.kernels.embree_rays`).
+        (:func:`probegrid.raytrace.kernels.embree_rays`).
         """
         org, dir32, far, ok = embree_rays(
             o if len(o) == 1 else o[s:e], d[s:e],
@@ -262,12 +214,13 @@ class RayTracer:
         t = np.empty(n, np.float64)
         u = np.empty(n, np.float64)
         v = np.empty(n, np.float64)
+        out = Hits(prim, t, u, v)
         for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
             e = min(s + self.chunk_size, n)
             org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
             res = self._scene.run(org, dirs, dists=far, output=1)
-            embree_hits(res["primID"], res["tfar"], res["u"], res["v"],
-                        lo.reshape(1) if lo.ndim == 0 else lo, s, prim, t, u, v)
+            embree_hits((res["primID"], res["tfar"], res["u"], res["v"]),
+                        lo.reshape(1) if lo.ndim == 0 else lo, s, out)
         return Hits(prim.reshape(shape), t.reshape(shape), u.reshape(shape), v.reshape(shape))
 
     def occluded(
@@ -322,7 +275,7 @@ class RayTracer:
 
         The lean any-hit query of a probe field's exact visibility test (a few segments per
         point, microseconds each): the segments are re-centred and rounded to float32 in one
-        compiled loop (:func:`probegrid.kernels.segment_rays`; float64 first, as
+        compiled loop (:func:`probegrid.raytrace.kernels.segment_rays`; float64 first, as
         :meth:`occluded` does) and handed to Embree's ``OCCLUDED`` query directly,
         ``chunk_size`` at a time.
 
