@@ -1,6 +1,6 @@
 """Bake accuracy and time against a converged path tracer (Mitsuba 3), in one run.
 
-For each scene -- the shared ``CornellBox.glb`` (a small emissive ceiling panel, no other light)
+For each scene -- ``tests/data/gltf/CornellBox.glb`` (a small emissive ceiling panel, no other light)
 and the bundled sample room (``data/sample_room.glb``, its point light and ``data/sample_sky.hdr``
 as the environment) -- a 3x3x3 probe grid (``grid_for(scene, grid="3x3x3")``: probes at the
 cell centres of the scene's bounds; relocated and invalid probes as the bake decides) is baked
@@ -67,7 +67,7 @@ from numpy.typing import NDArray
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-SHARED = REPO.parent / "shared" / "data"
+SHARED = REPO / "tests" / "data"
 
 
 # ------------------------------------------------------------------------------ bake (subprocess)
@@ -404,7 +404,7 @@ def main(argv: list[str] | None = None) -> None:
     args.direct_spp = args.direct_spp or (64 if args.quick else 512)
     cornell = SHARED / "gltf" / "CornellBox.glb"
     if args.scene != "room" and not cornell.exists():
-        p.error(f"{cornell} not found (the shared data sits beside the checkout)")
+        p.error(f"{cornell} not found (the test inputs live in tests/data)")
     try:
         import mitsuba  # noqa: F401
     except ImportError:

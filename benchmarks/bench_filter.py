@@ -2,7 +2,7 @@
 
 GGX prefiltered chain
 ---------------------
-Both tools get the *same* cube: a real HDR from ``../shared/data/hdr`` resampled to a 128^2 cube
+Both tools get the *same* cube: a real HDR from ``tests/data/hdr`` resampled to a 128^2 cube
 with :func:`probegrid.core.layouts.to_cube`, written as a float32 horizontal-cross EXR, which cmgen
 reads as a cube (its cross layout and face orientation are the project's: checked here, its
 level 0 must equal the input exactly). Both produce the full chain 128 -> 1 (8 levels):
@@ -67,7 +67,7 @@ from probegrid.core.layouts import faces_to_cross, to_cube
 from probegrid.core.specular import ggx_filter, ggx_prefilter, reference_convolution
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "hdr"
+DATA = REPO / "tests" / "data" / "hdr"
 HDRS = {"venice": "venice_sunset_1k.hdr", "studio": "studio_small_03_1k.hdr"}
 FACES = ("px", "nx", "py", "ny", "pz", "nz")
 CMGEN = shutil.which("cmgen") or "/usr/bin/cmgen"

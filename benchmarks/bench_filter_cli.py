@@ -1,6 +1,6 @@
 """Benchmark of the whole ``probegrid filter`` command against Filament's ``cmgen`` (not a test).
 
-For each HDR in ``../shared/data/hdr`` it prints, in one run:
+For each HDR in ``tests/data/hdr`` it prints, in one run:
 
 * **Times.** The whole ``probegrid filter HDR --out DIR --size 128`` process (32^2 exact
   diffuse, the full GGX chain 128 -> 1, SH, DFG table, previews; wall and peak RSS from
@@ -61,7 +61,7 @@ from probegrid.core.layouts import to_cube
 from probegrid.core.specular import ZonalOutput, symmetric_zonal_sums
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "hdr"
+DATA = REPO / "tests" / "data" / "hdr"
 FACES = ("px", "nx", "py", "ny", "pz", "nz")
 CMGEN = shutil.which("cmgen") or "/usr/bin/cmgen"
 PROBEGRID = str(Path(sys.executable).with_name("probegrid"))
@@ -249,7 +249,7 @@ def main() -> None:
     ap.add_argument("--texels", type=int, default=1024)
     ap.add_argument("--cache", type=Path,
                     default=Path(tempfile.gettempdir()) / "probegrid-bench-cli")
-    ap.add_argument("--hdr", nargs="*", default=None, help="stems of files in ../shared/data/hdr")
+    ap.add_argument("--hdr", nargs="*", default=None, help="stems of files in tests/data/hdr")
     ap.add_argument("--no-bytecode", action="store_true",
                     help="keep PYTHONDONTWRITEBYTECODE if the environment sets it (every run then "
                          "compiles probegrid's modules from source, ~0.07 s CPU)")

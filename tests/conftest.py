@@ -1,4 +1,4 @@
-"""Shared fixtures: paths to the real test data in ``../shared/data``, and the test run's
+"""Shared fixtures: the real test inputs in ``tests/data`` (see its README), and the test run's
 private cache directory.
 
 Markers (registered in ``pyproject.toml``): ``slow`` marks the few long physics and fuzzing
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+REAL_DATA = REPO / "tests" / "data"
 _CACHE: list[str] = []
 
 
@@ -41,11 +41,11 @@ def pytest_unconfigure(config: pytest.Config) -> None:
 
 
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """``../shared/data`` (the real HDRs and glTF scenes, see its README)."""
-    if not SHARED_DATA.is_dir():
-        pytest.fail(f"real test data not found at {SHARED_DATA}")
-    return SHARED_DATA
+def real_data() -> Path:
+    """``tests/data``: the real HDRs and glTF scenes (origins and licences in its README)."""
+    if not REAL_DATA.is_dir():
+        pytest.fail(f"real test data not found at {REAL_DATA}")
+    return REAL_DATA
 
 
 def _read_hdr(path: Path) -> np.ndarray:
@@ -58,15 +58,15 @@ def _read_hdr(path: Path) -> np.ndarray:
 
 
 @pytest.fixture(scope="session")
-def venice_latlong(shared_data: Path) -> np.ndarray:
+def venice_latlong(real_data: Path) -> np.ndarray:
     """Venice sunset, (512, 1024, 3) float32 lat-long, linear radiance."""
-    return _read_hdr(shared_data / "hdr" / "venice_sunset_1k.hdr")
+    return _read_hdr(real_data / "hdr" / "venice_sunset_1k.hdr")
 
 
 @pytest.fixture(scope="session")
-def studio_latlong(shared_data: Path) -> np.ndarray:
+def studio_latlong(real_data: Path) -> np.ndarray:
     """Studio small 03, (512, 1024, 3) float32 lat-long, linear radiance."""
-    return _read_hdr(shared_data / "hdr" / "studio_small_03_1k.hdr")
+    return _read_hdr(real_data / "hdr" / "studio_small_03_1k.hdr")
 
 
 @pytest.fixture(scope="session", autouse=True)

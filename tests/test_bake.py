@@ -579,13 +579,11 @@ def test_a_panel_smaller_than_a_texel_keeps_its_energy_at_one_ray_per_texel(tmp_
     assert e_over_pi == pytest.approx(le * _rectangle_form_factor(a, a, c), rel=0.02)
 
 
-def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path):
+def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path, real_data):
     """The CornellBox's ceiling sits behind its emitting panel's plane: after one bounce (light
     reflected once) it is black. Light from the panel reaches the walls by next-event
     estimation, the grid carries no emission and cannot ring, so nothing leaks onto it."""
-    glb = Path(__file__).resolve().parents[2] / "shared" / "data" / "gltf" / "CornellBox.glb"
-    if not glb.is_file():
-        pytest.skip("../shared/data/gltf/CornellBox.glb is not available")
+    glb = real_data / "gltf" / "CornellBox.glb"
     from probegrid.core.cubemap import texel_directions
     from probegrid.raytrace import RayTracer
     from probegrid.scene import load_gltf

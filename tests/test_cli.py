@@ -348,8 +348,8 @@ def test_an_unreachable_scheduler_is_a_one_line_error(tmp_path):
 
 
 def test_sh_diffuse_with_auto_window_reports_and_removes_negative_irradiance(tmp_path,
-                                                                             shared_data):
-    studio = shared_data / "hdr" / "studio_small_03_1k.hdr"
+                                                                             real_data):
+    studio = real_data / "hdr" / "studio_small_03_1k.hdr"
     r = run_cli("filter", studio, "--out", tmp_path, "--size", "32", "--diffuse-size", "8",
                 "--diffuse-method", "sh", "--sh-window", "auto", "--no-previews")
     assert r.returncode == 0, r.stderr

@@ -285,7 +285,7 @@ def test_export_refuses_half_hdr_and_leaves_nothing_on_failure(small_store, caps
 
 
 # ------------------------------------------------------------------------------ 1: SIGINT
-def test_sigint_tests_do_not_depend_on_the_inherited_handler(tmp_path, shared_data):
+def test_sigint_tests_do_not_depend_on_the_inherited_handler(tmp_path, real_data):
     """The interrupt test of test_scene installs Python's handler itself: run with SIGINT
     ignored (as ``&``, nohup and CI runners start the suite) it still passes, and it leaves
     the handler it found."""
@@ -295,7 +295,7 @@ def test_sigint_tests_do_not_depend_on_the_inherited_handler(tmp_path, shared_da
     try:
         with pytest.MonkeyPatch.context() as mp:
             test_scene.test_an_interrupt_during_trimesh_loading_is_not_swallowed(
-                tmp_path, mp, shared_data)
+                tmp_path, mp, real_data)
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)

@@ -213,8 +213,8 @@ def test_half_is_ignored_by_formats_without_half(tmp_path, name, expected):
 # ---------------------------------------------------------------- errors
 
 
-def test_truncated_real_hdr_is_detected(tmp_path, shared_data):
-    src = shared_data / "hdr" / "venice_sunset_1k.hdr"
+def test_truncated_real_hdr_is_detected(tmp_path, real_data):
+    src = real_data / "hdr" / "venice_sunset_1k.hdr"
     for fraction in (0.999, 0.5, 0.01):
         bad = _truncate(src, tmp_path / f"venice_{fraction}.hdr", fraction)
         with pytest.raises(io.ImageError, match="truncated|cannot read") as exc:
@@ -311,12 +311,12 @@ def test_nonfinite_pixels_are_counted_and_rejected_unless_clamped(tmp_path):
 # ---------------------------------------------------------------- real data, atomicity
 
 
-def test_read_environment_of_venice_keeps_its_energy(shared_data):
-    cube = io.read_environment(shared_data / "hdr" / "venice_sunset_1k.hdr", size=32)
+def test_read_environment_of_venice_keeps_its_energy(real_data):
+    cube = io.read_environment(real_data / "hdr" / "venice_sunset_1k.hdr", size=32)
     assert cube.shape == (6, 32, 32, 3) and cube.dtype == np.float32
     w = cm.texel_solid_angles(32)[..., None]
     mean = (cube * w).sum((0, 1, 2)) / (4 * np.pi)
-    np.testing.assert_allclose(mean, [0.51, 0.48, 0.61], atol=0.006)  # ../shared/data/README.md
+    np.testing.assert_allclose(mean, [0.51, 0.48, 0.61], atol=0.006)  # tests/data/README.md
 
 
 def test_default_environment_size_from_the_source(tmp_path, venice_latlong):

@@ -197,7 +197,7 @@ def test_constant_environment_stays_constant(layout, size):
 
 def test_to_cube_preserves_venice_energy(venice_latlong):
     ref = _equirect_mean(venice_latlong)
-    assert ref == pytest.approx([0.51, 0.48, 0.61], abs=0.006)  # ../shared/data/README.md
+    assert ref == pytest.approx([0.51, 0.48, 0.61], abs=0.006)  # tests/data/README.md
     for n in (8, 32):
         got = _solid_angle_mean(L.to_cube(venice_latlong, "equirect", n))
         np.testing.assert_allclose(got, ref, rtol=0.005)

@@ -124,8 +124,8 @@ def test_broadcasting_and_empty_batches() -> None:
     ).shape == (0,)
 
 
-def test_chunking_is_invisible(shared_data: Path) -> None:
-    s = load_gltf(shared_data / "gltf" / "CornellBox.glb")
+def test_chunking_is_invisible(real_data: Path) -> None:
+    s = load_gltf(real_data / "gltf" / "CornellBox.glb")
     rng = np.random.default_rng(4)
     o = rng.uniform(s.bounds[0] + 1, s.bounds[1] - 1, (1000, 3))
     d = rng.normal(size=(1000, 3))
@@ -139,7 +139,7 @@ def test_chunking_is_invisible(shared_data: Path) -> None:
     )
 
 
-def test_rays_as_embree_takes_them_are_occluded_as_the_float64_rays(shared_data: Path) -> None:
+def test_rays_as_embree_takes_them_are_occluded_as_the_float64_rays(real_data: Path) -> None:
     """occluded_rays of rays a kernel wrote as Embree takes them (raytrace.kernels.embree_rays,
     the rounding rule of the bake's shadow-ray kernels) answers as occluded does for the same
     float64 rays, chunked or not, with and without an end; a kernel's not-finite flag is
@@ -147,7 +147,7 @@ def test_rays_as_embree_takes_them_are_occluded_as_the_float64_rays(shared_data:
     from probegrid.raytrace import EmbreeRays
     from probegrid.raytrace.kernels import embree_rays
 
-    s = load_gltf(shared_data / "gltf" / "CornellBox.glb")
+    s = load_gltf(real_data / "gltf" / "CornellBox.glb")
     rng = np.random.default_rng(5)
     o = rng.uniform(s.bounds[0] + 1, s.bounds[1] - 1, (2000, 3))
     d = rng.normal(size=(2000, 3))
@@ -167,8 +167,8 @@ def test_rays_as_embree_takes_them_are_occluded_as_the_float64_rays(shared_data:
     assert rt.occluded_rays(EmbreeRays(org[:0], dirs[:0], far[:0])).shape == (0,)
 
 
-def test_pickle_rebuilds(shared_data: Path) -> None:
-    s = load_gltf(shared_data / "gltf" / "Cubes.glb")
+def test_pickle_rebuilds(real_data: Path) -> None:
+    s = load_gltf(real_data / "gltf" / "Cubes.glb")
     rt = RayTracer.from_scene(s)
     blob = pickle.dumps(rt)
     assert len(blob) < 20_000  # arrays only, no acceleration structure
@@ -180,8 +180,8 @@ def test_pickle_rebuilds(shared_data: Path) -> None:
         np.testing.assert_array_equal(x, y)
 
 
-def test_hits_agree_with_surface_positions(shared_data: Path) -> None:
-    s = load_gltf(shared_data / "gltf" / "CornellBox.glb")
+def test_hits_agree_with_surface_positions(real_data: Path) -> None:
+    s = load_gltf(real_data / "gltf" / "CornellBox.glb")
     rt = RayTracer.from_scene(s)
     rng = np.random.default_rng(6)
     o = rng.uniform(s.bounds[0] + 5, s.bounds[1] - 5, (5000, 3))

@@ -113,8 +113,8 @@ def _one_line_error(excinfo: pytest.ExceptionInfo) -> str:
 # real scenes
 
 
-def test_cornell_box(shared_data: Path) -> None:
-    s = load_gltf(shared_data / "gltf" / "CornellBox.glb")
+def test_cornell_box(real_data: Path) -> None:
+    s = load_gltf(real_data / "gltf" / "CornellBox.glb")
     assert s.n_triangles == 36
     assert s.lights == ()
     lo, hi = s.bounds
@@ -148,8 +148,8 @@ def test_cornell_box(shared_data: Path) -> None:
     np.testing.assert_allclose(surf.albedo, 0.8, rtol=1e-6)
 
 
-def test_cubes_point_light_and_transforms(shared_data: Path) -> None:
-    s = load_gltf(shared_data / "gltf" / "Cubes.glb")
+def test_cubes_point_light_and_transforms(real_data: Path) -> None:
+    s = load_gltf(real_data / "gltf" / "Cubes.glb")
     assert s.n_triangles == 36
     assert len(s.lights) == 1
     (light,) = s.lights
@@ -181,10 +181,10 @@ def test_cubes_point_light_and_transforms(shared_data: Path) -> None:
         assert np.all(np.einsum("ij,ij->i", s.triangle_normals[tris], centroids - t) > 0)
 
 
-def test_hash_stable_across_loads(shared_data: Path) -> None:
-    a = load_gltf(shared_data / "gltf" / "CornellBox.glb")
-    b = load_gltf(shared_data / "gltf" / "CornellBox.glb")
-    c = load_gltf(shared_data / "gltf" / "Cubes.glb")
+def test_hash_stable_across_loads(real_data: Path) -> None:
+    a = load_gltf(real_data / "gltf" / "CornellBox.glb")
+    b = load_gltf(real_data / "gltf" / "CornellBox.glb")
+    c = load_gltf(real_data / "gltf" / "Cubes.glb")
     assert a.content_hash() == b.content_hash() != c.content_hash()
     np.testing.assert_array_equal(a.vertices, b.vertices)
     assert len(a.content_hash()) == 64
@@ -290,8 +290,8 @@ def test_missing_file(tmp_path: Path) -> None:
     assert "not found" in _one_line_error(e)
 
 
-def test_truncated_glb(tmp_path: Path, shared_data: Path) -> None:
-    data = (shared_data / "gltf" / "Cubes.glb").read_bytes()
+def test_truncated_glb(tmp_path: Path, real_data: Path) -> None:
+    data = (real_data / "gltf" / "Cubes.glb").read_bytes()
     for cut in (8, 100, len(data) // 2, len(data) - 1):
         p = tmp_path / f"cut{cut}.glb"
         p.write_bytes(data[:cut])
@@ -517,7 +517,7 @@ def test_json_of_the_wrong_shape_is_a_scene_error(tmp_path: Path, change: dict) 
 
 
 def test_an_interrupt_during_trimesh_loading_is_not_swallowed(tmp_path: Path, monkeypatch,
-                                                              shared_data: Path) -> None:
+                                                              real_data: Path) -> None:
     """trimesh's loaders catch BaseException: a Ctrl-C that lands inside them must still stop
     the program once loading returns."""
     import os
@@ -541,6 +541,6 @@ def test_an_interrupt_during_trimesh_loading_is_not_swallowed(tmp_path: Path, mo
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
-            load_gltf(shared_data / "gltf" / "Cubes.glb")
+            load_gltf(real_data / "gltf" / "Cubes.glb")
     finally:
         signal.signal(signal.SIGINT, previous)
