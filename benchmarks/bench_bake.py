@@ -1,6 +1,6 @@
 """Bake throughput against the physical limit: raw embreex on the bake's own rays, same run.
 
-1. Distinct-ray efficiency (issue 10, 13a): bakes a 4x3x4 grid (32^2 faces, the bundled sky)
+1. Distinct-ray efficiency: bakes a 4x3x4 grid (32^2 faces, the bundled sky)
    in this process while recording every ray batch the bake hands to Embree (classification,
    primary rays, shadow rays toward the punctual lights and the emitters, the probes' rays
    toward the lights and emitter pieces), drops repeated rays (bit for bit) to keep the bake's
@@ -304,7 +304,7 @@ def load_batches(path: Path) -> list:
 
 
 def part_throughput(scene: Scene, env: Environment, tmp: Path) -> None:
-    """Part 1: distinct-ray efficiency (issue 10, 13a): the time raw embreex needs for the
+    """Part 1: distinct-ray efficiency: the time raw embreex needs for the
     bake's distinct rays, each cast once, over the bake's CPU time."""
     print("1. distinct-ray efficiency: raw embreex time for the bake's distinct rays / bake CPU")
     print("   time, each the best of 3 runs (1 process; grid 4x3x4, 32^2 faces, the bundled")

@@ -12,7 +12,7 @@ For each HDR in ``tests/data/hdr`` it prints, in one run:
   target is probegrid <= 0.5 x cmgen's summed time. The DFG table comes from the user cache
   (filled by the first run, see probegrid.usercache).
 * **Errors against a converged reference.** Diffuse: the exact clamped-cosine sum over a 512^2
-  cube of the input (:func:`probegrid.diffuse.diffuse_exact`), 32^2; scored: probegrid's map
+  cube of the input (:func:`probegrid.core.diffuse.diffuse_exact`), 32^2; scored: probegrid's map
   (the same functions the command runs) and cmgen's irradiance map (cmgen writes its cube from a
   lat-long in another orientation: the cube symmetry that maps its level 0 onto probegrid's is
   found and undone; its map holds irradiance / pi like ours, checked by the ratio printed).
@@ -266,7 +266,7 @@ def main() -> None:
 
 
 def bench_defaults(hdr: Path, work: Path, args: argparse.Namespace) -> None:
-    """Issue 13's second target: a 1500 x 750 lat-long (``hdr`` resampled bilinearly) with
+    """A large input with every default: a 1500 x 750 lat-long (``hdr`` resampled bilinearly) with
     every default (the cube size chosen from the input: 256^2), against 5 s and 500 MB, beside
     cmgen's three runs at 256^2 on the same file."""
     img = read_rgb(hdr).astype(np.float64)
