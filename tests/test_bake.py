@@ -545,7 +545,7 @@ def test_environment_rotation_rotates_the_probes(tmp_path):
     np.testing.assert_allclose(turned["sh"][0], expected, atol=0.02 * abs(expected[0]).max())
 
 
-# ------------------------------------------------------------------------------ bake v2 (#10)
+# ------------------------------------------------------------- emitters, gather, bounces, stages
 def _rectangle_form_factor(a: float, b: float, c: float) -> float:
     """Form factor from a point to a parallel ``a x b`` rectangle centred on its normal at
     distance ``c`` (four corner rectangles of the classic closed form, Howell's catalogue C-11)."""
