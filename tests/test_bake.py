@@ -1,5 +1,5 @@
 """Baking probe grids: furnace, inverse-square law, shadows, invalid probes, determinism across
-executors, and a killed bake that resumes (probegrid.bake.driver, probegrid.bake.render)."""
+executors, and a killed bake that resumes (probegrid.bake.driver, probegrid.bake.stages)."""
 
 from __future__ import annotations
 
@@ -545,7 +545,7 @@ def test_environment_rotation_rotates_the_probes(tmp_path):
     np.testing.assert_allclose(turned["sh"][0], expected, atol=0.02 * abs(expected[0]).max())
 
 
-# ------------------------------------------------------ emitters, gather and convergence
+# ------------------------------------------------------------- emitters, gather, bounces, stages
 def _rectangle_form_factor(a: float, b: float, c: float) -> float:
     """Form factor from a point to a parallel ``a x b`` rectangle centred on its normal at
     distance ``c`` (four corner rectangles of the classic closed form, Howell's catalogue C-11)."""
@@ -713,8 +713,33 @@ def test_a_process_builds_one_record_tracer_per_bake():
     grid = GridSpec(bounds_min=(-0.5, 1, 0), bounds_max=(0.5, 1, 0), counts=(2, 1, 1))
     st = BakeSettings(face_size=8)
     ctx = stages.StageContext(scene, Environment(color=np.array([1.0, 1.0, 1.0])),
-                              st.render_settings(scene, grid), st, grid, key="bake-a")
+                              st, grid, st.trace_geometry(scene, grid), key="bake-a")
     first = ctx.setup().tracer
     assert dataclasses.replace(ctx, level=3).setup().tracer is first  # a later stage
     assert dataclasses.replace(ctx, key="bake-b").setup().tracer is not first
     assert dataclasses.replace(ctx, key="").setup().tracer is not first  # no key: no sharing
+
+
+def test_trace_geometry_follows_the_extent_of_the_scene_and_grid():
+    """The rays' offset and a miss's distance come from the extent of the scene and grid
+    together (the offset setting overrides); a moments cube whose texels would not bin whole
+    incoming texels is refused, and one larger than the incoming cube is clamped to it."""
+    from probegrid.bake.settings import TraceGeometry
+
+    b = SceneBuilder()
+    b.add_box((-1, 0, -1), (1, 2, 1), material=b.add_material(Material.diffuse(0.5)),
+              inward=True)
+    scene = b.build()
+    grid = GridSpec(bounds_min=(-0.5, 1, 0), bounds_max=(3.0, 1, 0), counts=(2, 1, 1))
+    extent = float(np.sqrt(4.0**2 + 2.0**2 + 2.0**2))  # x from -1 (box) to 3 (grid)
+    geo = BakeSettings(face_size=8).trace_geometry(scene, grid)
+    assert geo.ray_offset == pytest.approx(extent * 1e-5, rel=1e-12)
+    assert geo.max_distance == pytest.approx(2.0 * extent, rel=1e-12)
+    assert BakeSettings(ray_offset=1e-3).trace_geometry(scene, grid).ray_offset == 1e-3
+    with pytest.raises(ValueError, match="moments_size 8 must divide face_size 12"):
+        BakeSettings(face_size=12).trace_geometry(scene, grid)
+    small = BakeSettings(face_size=4, moments_size=8)
+    assert small.moments_face_size == 4 and small.environment_footprint == 4
+    assert small.trace_geometry(scene, grid).max_distance == geo.max_distance
+    with pytest.raises(ValueError, match="ray_offset must be > 0"):
+        TraceGeometry(ray_offset=0.0)

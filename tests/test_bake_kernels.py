@@ -44,9 +44,10 @@ def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 @pytest.mark.parametrize("samples", [1, 5])
 def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
-    from probegrid.bake.render import RenderSettings, _jitter, sample_pattern
+    from probegrid.bake.pattern import _jitter, sample_pattern
+    from probegrid.bake.settings import BakeSettings
 
-    st = RenderSettings(face_size=8, samples=samples, seed=3, moments_size=8)
+    st = BakeSettings(face_size=8, samples=samples, seed=3, moments_size=8)
     d, w = sample_pattern(st, 11)
     rd, rw = _pattern_reference(8, _jitter(st, 11))
     np.testing.assert_allclose(d, rd, rtol=0, atol=1e-15)

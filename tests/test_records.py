@@ -102,15 +102,15 @@ def test_a_subset_of_a_blocks_records_is_what_tracing_the_subset_gives():
     trace of those probes alone."""
     from pathlib import Path
 
-    from probegrid.bake.render import RenderSettings
+    from probegrid.bake.settings import BakeSettings, TraceGeometry
     from probegrid.jobs.bake import load_environment
     from probegrid.scene import load_gltf
 
     data = Path(__file__).resolve().parents[1] / "data"
     scene = load_gltf(data / "sample_room.glb")
     env = load_environment(data / "sample_sky.hdr")
-    tracer = rc.RecordTracer(scene, env, RenderSettings(face_size=4, moments_size=4), gather_samples=2,
-                             gather_depth=2)
+    st = BakeSettings(face_size=4, moments_size=4, gather_samples=2, gather_depth=2)
+    tracer = rc.RecordTracer(scene, env, st, TraceGeometry())
     pos = np.array([[0.0, 1.0, 0.0], [0.5, 2.5, 0.2], [-1.0, 0.8, 1.0]])
     idx = np.array([3, 5, 9])
     block, _, _ = tracer.trace(pos, idx)
@@ -129,7 +129,7 @@ def test_record_bytes_bounds_the_records_of_a_closed_room(depth):
     arrays aside; a gather level keeps no emission, the upper levels no position or normal."""
     from probegrid.bake.records import GridData
     from probegrid.bake.environment import Environment
-    from probegrid.bake.render import RenderSettings
+    from probegrid.bake.settings import BakeSettings, TraceGeometry
     from probegrid.core.ddgi import bordered_cubes
     from probegrid.core.grid import GridSpec
     from probegrid.scene import Material, SceneBuilder
@@ -138,8 +138,8 @@ def test_record_bytes_bounds_the_records_of_a_closed_room(depth):
     b.add_box((-1, 0, -1), (1, 2, 1), material=b.add_material(Material.diffuse(0.5)),
               inward=True)
     scene = b.build()
-    st = RenderSettings(face_size=4, moments_size=4)
-    tracer = rc.RecordTracer(scene, Environment(), st, gather_samples=2, gather_depth=depth)
+    st = BakeSettings(face_size=4, moments_size=4, gather_samples=2, gather_depth=depth)
+    tracer = rc.RecordTracer(scene, Environment(), st, TraceGeometry())
     pos = np.array([[0.0, 1.0, 0.0], [0.3, 0.5, -0.2]])
     rec, moments, _ = tracer.trace(pos, np.array([0, 1]))
     assert "gather_emission" not in rec and "gather_position" not in rec

@@ -2,8 +2,8 @@
 
 ``settings`` (:class:`BakeSettings`), ``inputs`` (the checks of a bake's inputs), ``placement``
 (the grid, relocation), ``estimate`` (what a bake will cost), ``environment`` and ``emitters``
-(the lights), ``render`` (one probe's incoming light, traced through :mod:`probegrid.raytrace`),
-``records`` (per-hit records, replayed per bounce), ``stages`` (the per-batch tasks),
+(the lights), ``pattern`` (a probe's rays), ``view`` (the scene as the probes' rays see it,
+through :mod:`probegrid.raytrace`), ``records`` (per-hit records, traced once, replayed per bounce), ``stages`` (the per-batch tasks),
 ``schedule`` and ``converge`` (the bounce passes, convergence), ``maps`` (SH, diffuse and
 specular maps), ``executors`` (inline, local processes or Dask: one per module) and ``driver``
 (:func:`bake`: work directory, lock, resume, store).

@@ -247,17 +247,16 @@ def bake(
     env = environment or Environment()
     ex = executor or InlineExecutor(check_pickle=False)
     out = check_bake_inputs(out, settings=st, overwrite=overwrite, scene_file=scene_file)
-    render = st.render_settings(scene, grid)
+    geometry = st.trace_geometry(scene, grid)
     scene_hash = hashlib.sha256(
         (scene.content_hash() + environment_hash(env)).encode()
     ).hexdigest()
     # (the batch size is left out: it changes no bit of the result, so a bake may resume with
     # another one)
     plan = {"settings": st.model_dump(exclude={"batch_size"}), "environment": env.describe(),
-            "render": {"ray_offset": render.ray_offset, "max_distance": render.max_distance,
-                       "moments_size": render.moments_size,
-                       "environment_lookup_size": env.lookup_size(
-                           render.environment_footprint)},
+            "render": {"ray_offset": geometry.ray_offset, "max_distance": geometry.max_distance,
+                       "moments_size": st.moments_face_size,
+                       "environment_lookup_size": env.lookup_size(st.environment_footprint)},
             "filters": probefilter.describe(st.face_size, st.diffuse_size)}
     work = work_path(out)
     work.mkdir(parents=True, exist_ok=True)
@@ -276,8 +275,8 @@ def bake(
         stamp.write_text(fingerprint)
         runner = _StageRunner(ex, plan, scene_hash, progress)
         t0 = time.perf_counter()
-        base = StageContext(scene, env, render, st, grid,
-                             key=hashlib.sha256((fingerprint + repr(render)).encode()).hexdigest())
+        base = StageContext(scene, env, st, grid, geometry,
+                             key=hashlib.sha256((fingerprint + repr(geometry)).encode()).hexdigest())
 
         # 1. classify
         w, resumed = runner.run("classify", work / "classify.probes", classify_arrays(),
@@ -306,7 +305,7 @@ def bake(
         # its memory (written only if they outgrow it); several workers share them as files
         base = dataclasses.replace(base, record_files=not (files and ex.workers == 1))
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
-        w, _ = runner.run(schedule.label(0), work / "trace.probes", trace_arrays(st, render),
+        w, _ = runner.run(schedule.label(0), work / "trace.probes", trace_arrays(st),
                           trace_task, ctx)
         tstore = w.finish() if isinstance(w, StoreWriter) else w
         moments_all: NDArray[np.float32] | str = np.array(tstore["moments"])

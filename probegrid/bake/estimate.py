@@ -11,7 +11,7 @@ refuses a bake whose store and work files do not fit on the target's file system
 The figures follow the stages (:mod:`probegrid.bake.stages`): the classifier's rays
 (:data:`~probegrid.bake.stages.CLASSIFY_FACE_SIZE`, :data:`probegrid.bake.inside.DIRECTIONS`),
 the records the workers keep (:mod:`probegrid.bake.records`), the shading chunk
-(:data:`probegrid.bake.render.SHADE_CHUNK`), the filters' groups (:mod:`probegrid.bake.maps`)
+(:data:`probegrid.bake.records.tracer.SHADE_CHUNK`), the filters' groups (:mod:`probegrid.bake.maps`)
 and the store's arrays (:func:`probegrid.bake.settings.store_arrays`).
 """
 
@@ -29,7 +29,7 @@ from probegrid.bake.inside import DIRECTIONS
 from probegrid.bake.maps import FILTER_GROUP
 from probegrid.bake.nolight import light_sources
 from probegrid.bake.records import RECORDS_MEMORY, irradiance_size, record_bytes
-from probegrid.bake.render import SHADE_CHUNK
+from probegrid.bake.records.tracer import SHADE_CHUNK
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.bake.stages import CLASSIFY_FACE_SIZE
 from probegrid.core import probefilter

@@ -55,8 +55,8 @@ from probegrid.bake.records import (
     weighted_positions,
 )
 from probegrid.bake.records.replay import replay
-from probegrid.bake.render import ProbeRenderer, RenderSettings
-from probegrid.bake.settings import BakeSettings
+from probegrid.bake.settings import BakeSettings, TraceGeometry
+from probegrid.bake.view import ProbeView
 from probegrid.core import sh
 from probegrid.core.cubemap import solid_angle_integral
 from probegrid.core.grid import GridSpec
@@ -89,9 +89,9 @@ class StageContext:
 
     scene: Scene
     environment: Environment
-    render: RenderSettings
     settings: BakeSettings
     grid: GridSpec
+    geometry: TraceGeometry  # (BakeSettings.trace_geometry of the scene and grid)
     positions: NDArray[np.float64] | str | None = None
     valid: NDArray[np.bool_] | str | None = None
     records: str = ""
@@ -128,11 +128,7 @@ class StageContext:
         positions, valid = _array(self.positions), _array(self.valid)
         tracer = _TRACERS.get(self.key) if self.key else None
         if tracer is None:  # built once per process and bake, not once per stage
-            tracer = RecordTracer(self.scene, self.environment, self.render,
-                                  light_samples=self.settings.light_samples,
-                                  gather_samples=(self.settings.gather_samples
-                                                  if self.settings.gather_levels() else 0),
-                                  gather_depth=max(self.settings.gather_levels(), 1),
+            tracer = RecordTracer(self.scene, self.environment, self.settings, self.geometry,
                                   tracer=RayTracer.shared(self.scene))
             _TRACERS.clear()
             if self.key:
@@ -173,8 +169,9 @@ class StageState:
     moments: NDArray[np.float32] | None
 
     @property
-    def renderer(self) -> ProbeRenderer:
-        return self.tracer.renderer
+    def view(self) -> ProbeView:
+        """The scene as the probes' rays see it (the record tracer's)."""
+        return self.tracer.view
 
 
 #: Face size of the texel-centre rays that classify a probe as inside geometry.
@@ -199,10 +196,10 @@ def bounce_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
     }
 
 
-def trace_arrays(settings: BakeSettings, render: RenderSettings) -> dict[str, ArraySpec]:
+def trace_arrays(settings: BakeSettings) -> dict[str, ArraySpec]:
     """The per-probe arrays :func:`trace_task` returns: level 0 of the grid, the distance
     moments and the backface fraction."""
-    m = render.moments_size
+    m = settings.moments_face_size
     return {**bounce_arrays(settings),
             "moments": ArraySpec((6, m, m, 2), "float32", "distance moments"),
             "backface_fraction": ArraySpec((), "float64", "backface ray fraction")}
@@ -219,9 +216,9 @@ def classify_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]
     reach = ctx.settings.enclosure * ctx.grid.smallest_cell()
 
     def usable(points: NDArray[np.float64]) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
-        frac, farthest = state.renderer.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
+        frac, farthest = state.view.surroundings(points, face_size=CLASSIFY_FACE_SIZE)
         return ((frac <= ctx.settings.invalid_threshold) & ~(farthest <= reach)
-                & ~inside_solid(state.renderer.tracer, ctx.scene, points)), frac
+                & ~inside_solid(state.view.tracer, ctx.scene, points)), frac
 
     valid, frac = usable(lattice)
     pos = lattice.copy()
@@ -259,7 +256,7 @@ def _block_records(state: StageState, batch: NDArray[np.int64]
     return rec, None, rays
 
 
-def _bounced_outputs(rec: dict[str, Any], settings: RenderSettings, level: int,
+def _bounced_outputs(rec: dict[str, Any], settings: BakeSettings, level: int,
                      cubes: NDArray[np.float32] | None) -> dict[str, Any]:
     """A bounce's per-probe outputs: the irradiance cube of the bounced light and its energy."""
     cube, _ = replay(rec, settings, level, cubes, final=False)
@@ -274,7 +271,7 @@ def trace_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     ctx = state.ctx
     rec, moments, rays = state.tracer.trace(state.positions[batch], batch)
     save_records(ctx.records_path(batch), rec, files=ctx.record_files)
-    out = _bounced_outputs(rec, ctx.render, 0, None)
+    out = _bounced_outputs(rec, ctx.settings, 0, None)
     out.update(moments=moments, backface_fraction=rec["backface_fraction"], rays=rays)
     return out
 
@@ -301,7 +298,7 @@ def bounce_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     ctx = state.ctx
     rec, _, rays = _weighted_records(state, batch)
     assert state.data is not None
-    out = _bounced_outputs(rec, ctx.render, ctx.level, state.data.cubes)
+    out = _bounced_outputs(rec, ctx.settings, ctx.level, state.data.cubes)
     out["rays"] = rays
     return out
 
@@ -326,7 +323,7 @@ def final_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     else:
         rec, path, rays = _block_records(state, batch)
         cubes = None
-    incoming, _ = replay(rec, ctx.render, ctx.level, cubes, final=True)
+    incoming, _ = replay(rec, ctx.settings, ctx.level, cubes, final=True)
     if path is not None:  # the block's last use: its records go (a retry traces them again)
         remove_records(path)
     levels = st.levels()

@@ -33,6 +33,7 @@ from typing import Any, ClassVar, Final, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike
 
+from probegrid._machine import available_cores
 from probegrid._types import StartMethod
 from probegrid.bake.executors.base import (
     Batch,
@@ -54,11 +55,8 @@ START_METHODS: Final[tuple[str, ...]] = ("forkserver", "spawn")
 
 
 def default_workers() -> int:
-    """Cores this process may run on (its CPU affinity), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+    """Cores this process may run on (:func:`probegrid._machine.available_cores`), at least 1."""
+    return available_cores()
 
 
 class _ProcessSlot:

@@ -14,7 +14,7 @@ documentation of the maths; ``tests/test_bake_kernels.py`` compares the two on r
 The modules:
 
 * :mod:`~probegrid.bake.kernels.cube` -- the cube map's conversions (a direction's face and
-  ``(u, v)``, the render's sample pattern) and the :class:`~probegrid.bake.kernels.cube.CubeAxes`
+  ``(u, v)``, a probe's sample pattern) and the :class:`~probegrid.bake.kernels.cube.CubeAxes`
   table the other kernels read the faces' axes from;
 * :mod:`~probegrid.bake.kernels.surfaces` -- the backface rule and the records pass at hits;
 * :mod:`~probegrid.bake.kernels.lights` -- the punctual lights' shadow rays and the sums of

@@ -1,10 +1,10 @@
-"""The cube map's conversions, compiled: a direction's face and ``(u, v)``, and the render's
+"""The cube map's conversions, compiled: a direction's face and ``(u, v)``, and a probe's
 jittered sample directions of every texel.
 
 * :func:`_face_uv` -- :func:`probegrid.core.cubemap.direction_to_face_uv` of one direction (the
   same tie rules), the lookup of the grid's and the environment's kernels;
-* :func:`cube_sample_directions` -- the render's sample pattern
-  (:func:`probegrid.bake.render.sample_pattern`, :func:`probegrid.core.cubemap.texel_to_uv`'s
+* :func:`cube_sample_directions` -- a probe's sample pattern
+  (:func:`probegrid.bake.pattern.sample_pattern`, :func:`probegrid.core.cubemap.texel_to_uv`'s
   conversions).
 
 The faces' axes reach every kernel as one :class:`CubeAxes` (:data:`CUBE_AXES`, the arrays of

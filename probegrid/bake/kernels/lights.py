@@ -65,7 +65,7 @@ def light_rays(
     :func:`probegrid.core.lights.incident_many` (kinds 0 point, 1 spot, 2 directional; the spec's
     range window ``clamp(1 - (d / range)^4, 0, 1) / d^2`` and spot cone
     ``saturate(cos * scale + offset)^2``) fused with the selection of
-    :meth:`probegrid.bake.render.ProbeRenderer.visible_lights`: a (point, light) pair gets a shadow
+    :meth:`probegrid.bake.view.ProbeView.visible_lights`: a (point, light) pair gets a shadow
     ray when the light delivers ``E_perp > 0`` and lies in front of the surface
     (``cos = dot(l, n) > 0``). The ray starts ``eps`` along the normal, with ``tmin = eps`` and
     ``tmax = distance - eps`` (inf for directional lights), and is written as Embree takes it

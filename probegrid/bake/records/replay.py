@@ -59,7 +59,8 @@ from probegrid.bake.records.schema import (
     gather_depth,
     stored_name,
 )
-from probegrid.bake.render import RenderSettings, sample_pattern
+from probegrid.bake.pattern import sample_pattern
+from probegrid.bake.settings import BakeSettings
 from probegrid.core.arrays import one_blas_thread, sum_rows
 from probegrid.core.cubemap import (
     direction_to_face,
@@ -193,7 +194,7 @@ def _level_weights(level: Level, data: GridData
 GATHER_BLOCK = 8
 
 
-def _smooth_gathered(records: Records, settings: RenderSettings,
+def _smooth_gathered(records: Records, settings: BakeSettings,
                      rad: NDArray[np.float32], gathered: NDArray[np.float32],
                      cubes: NDArray[np.float32], g: int,
                      sample_weights: NDArray[np.float64] | None) -> NDArray[np.float32]:
@@ -264,7 +265,7 @@ def _replay_level(records: Level, depth: int, level: int, grid: NDArray[np.float
         (grid, g), CUBE_AXES, level, gathered)
 
 
-def replay(arrays: Mapping[str, NDArray[Any]], settings: RenderSettings, level: int,
+def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: int,
            cubes: NDArray[np.float32] | None, *, final: bool
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """A pass over a batch's records (their stored arrays) at bounce ``level`` with the

@@ -44,11 +44,19 @@ from probegrid.bake.kernels.lights import light_rays, sum_unblocked
 from probegrid.bake.kernels.sampling import gather_rays, stream_uniforms
 from probegrid.bake.kernels.surfaces import HitRecords, scatter_divided, shade_hits
 from probegrid.bake.records.schema import Level, RecordArrays, Records, gather_keys
-from probegrid.bake.render import SHADE_CHUNK, ProbeRenderer, RenderSettings, sample_pattern
+from probegrid.bake.pattern import sample_pattern
+from probegrid.bake.settings import BakeSettings, TraceGeometry
+from probegrid.bake.view import ProbeView
 from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
-__all__ = ["Draw", "RecordTracer"]
+__all__ = ["SHADE_CHUNK", "Draw", "RecordTracer"]
+
+
+#: Rays shaded together: every per-ray temporary of a chunk stays in cache-sized, reused memory
+#: (a whole batch of probes at once spends much of its time in page faults). Each ray's result
+#: does not depend on its chunk.
+SHADE_CHUNK = 1 << 15
 
 
 #: Random numbers for given rows (a probe stream's rows, see RecordTracer.trace).
@@ -74,20 +82,29 @@ def _stream_keys(seed: int, indices: NDArray[np.int64], purpose: int) -> NDArray
 
 
 class RecordTracer:
-    """Traces batches of probes into records (build once per worker: it owns the BVH)."""
+    """Traces batches of probes into records (build once per worker: it owns the BVH).
 
-    def __init__(self, scene: Scene, environment: Environment, settings: RenderSettings, *,
-                 light_samples: int = 2, gather_samples: int = 0, gather_depth: int = 1,
-                 tracer: RayTracer | None = None) -> None:
-        self.renderer = ProbeRenderer(scene, environment, settings, tracer=tracer)
+    The settings say the probes' rays (``face_size``, ``samples``, ``seed``), their light
+    (``light_samples``, ``direct``) and the gather levels (``gather_samples`` rays per hit,
+    :meth:`~probegrid.bake.settings.BakeSettings.gather_levels` deep); ``geometry`` the rays'
+    offset and the distance of a miss.
+    """
+
+    def __init__(self, scene: Scene, environment: Environment, settings: BakeSettings,
+                 geometry: TraceGeometry, *, tracer: RayTracer | None = None) -> None:
+        self.view = ProbeView(scene, environment, settings, geometry, tracer=tracer)
         self.scene = scene
         self.settings = settings
-        self.tracer = self.renderer.tracer
+        self.geometry = geometry
+        self.tracer = self.view.tracer
         self.emitters = Emitters.from_scene(scene)
         self.sky = EnvironmentLight(environment)
-        self.light_samples = int(light_samples)
-        self.gather_samples = int(gather_samples)
-        self.gather_depth = int(gather_depth)
+        levels = settings.gather_levels()
+        self.light_samples = int(settings.light_samples)
+        #: Gather rays per hit (0: the grid is read at the probes' own hits).
+        self.gather_samples = int(settings.gather_samples) if levels else 0
+        #: Gather levels traced when ``gather_samples`` is not 0.
+        self.gather_depth = max(levels, 1)
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None,
@@ -99,9 +116,9 @@ class RecordTracer:
         none; ray ``i``'s are row ``draw_rows[i]``, drawn for the front hits only). A miss keeps
         the environment's radiance when ``sky_at_misses`` (what a probe sees), else 0 (the
         environment reaches hits by sampling)."""
-        st = self.settings
-        rd = self.renderer
-        eps = st.ray_offset
+        geo = self.geometry
+        rd = self.view
+        eps = geo.ray_offset
         k = len(dirs)
         hits = self.tracer.intersect(origins, dirs)
         rays = k
@@ -111,7 +128,7 @@ class RecordTracer:
         # surface (the normal turned toward the ray: the side it sees is shaded; emission leaves
         # the front as wound only)
         rows, p, nrm, back_off = shade_hits(
-            dirs, hits, (float(st.max_distance), eps), sc.surface_tables, rd.double_sided,
+            dirs, hits, (float(geo.max_distance), eps), sc.surface_tables, rd.double_sided,
             HitRecords(rec.kind, t, rec.position, rec.normal, rec.albedo, rec.emission))
         sc.apply_textures(hits.prim_id, hits.u, hits.v, rec.albedo, rec.emission, rows)
         if sky_at_misses and not rd.environment.is_black:
@@ -167,7 +184,7 @@ class RecordTracer:
         probes' streams of ``purposes`` (directions, emitters, environment; ``rays_per_probe``
         primary rays of K gather rays each per probe, :meth:`trace`'s ``draw``). Returns the
         records, the directions and the rays cast."""
-        eps = self.settings.ray_offset
+        eps = self.geometry.ray_offset
         kg = self.gather_samples
         per = rays_per_probe * kg
         assert above.position is not None and above.normal is not None
@@ -187,8 +204,8 @@ class RecordTracer:
         moments ``(B, 6, m, m, 2)`` and the rays cast.
         """
         st = self.settings
-        rd = self.renderer
-        n, s, m = st.face_size, st.samples, st.moments_size
+        rd = self.view
+        n, s, m = st.face_size, st.samples, st.moments_face_size
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         idx = np.asarray(indices, dtype=np.int64).reshape(-1)
         b = len(pos)
@@ -198,7 +215,7 @@ class RecordTracer:
         nr = dirs.shape[1]
         flat = dirs.reshape(-1, 3)
         origins = np.repeat(pos, nr, axis=0)
-        eps = st.ray_offset
+        eps = self.geometry.ray_offset
         ls = self.light_samples if len(self.emitters) else 0
         ks = 0 if self.sky.is_black else self.light_samples
         kg = self.gather_samples

@@ -1,0 +1,78 @@
+"""A probe's sample pattern: the directions of its rays and their weights within their texels.
+
+For each probe, ``samples`` rays per texel of its ``face_size`` incoming cube leave the probe
+position (:class:`probegrid.bake.settings.BakeSettings`); the texel holds the mean radiance its
+rays bring back. The rays are jittered inside the texel by a seeded, deterministic pattern and
+weighted by the cube's area element ``(1 + u^2 + v^2)^(-3/2)``, so the texel value estimates the
+mean radiance over its solid angle (:func:`sample_pattern`). One sample shoots through the texel
+centre; more are an R2 low-discrepancy sequence (Roberts 2018) with a per-probe random shift
+(Cranley-Patterson rotation).
+
+Determinism
+-----------
+A probe's shift comes from :func:`probegrid.bake.executors.probe_rng` (the bake's seed and the
+probe's linear index), so its pattern does not depend on which batch or process traced it.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid.bake.executors import probe_rng
+from probegrid.bake.kernels.cube import CUBE_AXES, cube_sample_directions
+
+if TYPE_CHECKING:
+    from probegrid.bake.settings import BakeSettings
+
+__all__ = ["sample_pattern"]
+
+# R2 low-discrepancy sequence (Roberts 2018): the plastic number's inverse powers.
+_PLASTIC = 1.32471795724474602596
+_R2 = np.array([1.0 / _PLASTIC, 1.0 / _PLASTIC**2])
+
+
+def sample_pattern(settings: BakeSettings, probe_index: int) -> tuple[
+    NDArray[np.float64], NDArray[np.float64]
+]:
+    """Ray directions of one probe and their weights within their texels.
+
+    Returns
+    -------
+    directions : (6, n, n, s, 3) float64
+        Unit directions, ``n = settings.face_size``, ``s = settings.samples`` per texel.
+    weights : (6, n, n, s) float64
+        Area-element weights normalised to sum to 1 over each texel's samples.
+    """
+    if settings.samples == 1:  # texel centres: the same for every probe
+        return _centre_pattern(settings.face_size)
+    return _pattern(settings.face_size, _jitter(settings, probe_index))
+
+
+@lru_cache(maxsize=8)
+def _centre_pattern(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    d, w = _pattern(n, np.array([[0.5, 0.5]]))  # one sample at the texel centre
+    d.setflags(write=False)
+    w.setflags(write=False)
+    return d, w
+
+
+def _jitter(settings: BakeSettings, probe_index: int) -> NDArray[np.float64]:
+    """``(s, 2)`` positions of a probe's samples inside every texel, in ``[0, 1)^2``: the
+    centre for one sample, else the R2 sequence shifted by the probe's random offset."""
+    s = settings.samples
+    if s == 1:
+        return np.array([[0.5, 0.5]])
+    shift = probe_rng(settings.seed, probe_index).random(2)
+    return np.mod(0.5 + np.arange(1, s + 1)[:, None] * _R2[None, :] + shift, 1.0)
+
+
+def _pattern(n: int, jitter: NDArray[np.float64]) -> tuple[
+    NDArray[np.float64], NDArray[np.float64]
+]:
+    # sample k of texel (row, col) at continuous texel coordinates (col - 0.5 + jitter_x,
+    # row - 0.5 + jitter_y), weighted by the area element (1 + u^2 + v^2)^(-3/2)
+    return cube_sample_directions(n, np.ascontiguousarray(jitter, dtype=np.float64), CUBE_AXES)
