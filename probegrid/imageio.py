@@ -121,6 +121,7 @@ __all__ = [
     "clamp_radiance",
     "count_nonfinite",
     "cube_exposure",
+    "detect_file_layout",
     "face_of",
     "image_size",
     "linear_to_srgb",
@@ -320,6 +321,35 @@ def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
         return int(spec.width), int(spec.height)
     finally:
         inp.close()
+
+
+def detect_file_layout(path: str | os.PathLike[str], *, option: str = "--layout") -> Layout:
+    """The layout ``auto`` means for one image file, from its header alone (before its pixels
+    are read): :func:`probegrid.core.layouts.detect_layout` of its size, except that a square
+    *integer-coded* (LDR: PNG, JPEG) image is refused rather than taken as an angular map
+    (a photograph or a mirror ball is square too, and an 8-bit file holds no HDR light);
+    ``option angular`` (e.g. ``--layout angular``) states it is one. Raises
+    :class:`ImageError` (one line naming the file) for that and for an undetectable aspect
+    ratio."""
+    p = _check_readable(path)
+    inp = _open(p)
+    try:
+        spec = inp.spec()
+        w, h = int(spec.width), int(spec.height)
+        integer = spec.format.basetype not in (oiio.BASETYPE.HALF, oiio.BASETYPE.FLOAT,
+                                               oiio.BASETYPE.DOUBLE)
+        hdr = inp.format_name() == "hdr"
+    finally:
+        inp.close()
+    try:
+        lay = detect_layout(h, w)
+    except ValueError as exc:
+        raise ImageError(f"{p}: {exc}") from None
+    if lay == "angular" and integer and not hdr:
+        raise ImageError(f"{p}: a square {w}x{h} LDR (integer-coded) image is not taken as an angular "
+                         f"HDR environment by default (it may be a photograph or a mirror "
+                         f"ball); give {option} angular if it is an angular map")
+    return lay
 
 
 def read_metadata(path: str | os.PathLike[str]) -> dict[str, str]:

@@ -205,3 +205,27 @@ def check_settings(settings: FilterSettings) -> None:
         from probegrid.export.gltf_ibl import check_size
 
         check_size(settings.size)
+    if settings.size is not None:
+        _check_size(settings.size, settings)
+
+
+def _check_size(n: int, settings: FilterSettings) -> None:
+    """Refuse a ``--size`` the chosen chain cannot take, naming sizes that work: the tiered
+    GGX filter (the default) needs a power of two, and ``--specular-levels`` as many halvings."""
+    from probegrid.core.cubemap import mip_sizes
+
+    if n & (n - 1) and settings.specular_method == "tiered":
+        below = 1 << (n.bit_length() - 1)
+        raise ValueError(f"--size {n} is not a power of two, which the default GGX filter "
+                         f"(--specular-method tiered) needs: use --size {below} or --size "
+                         f"{2 * below} (the nearest powers of two), or --specular-method fis")
+    if settings.specular_levels is not None:
+        try:
+            mip_sizes(n, settings.specular_levels)
+        except ValueError:
+            most = (n & -n).bit_length()  # n's halvings down to an odd size, plus level 0
+            raise ValueError(f"--size {n} cannot be halved {settings.specular_levels - 1} "
+                             f"times for --specular-levels {settings.specular_levels}: use "
+                             f"--specular-levels {most} or less") from None
+    if settings.diffuse_source_size is not None:
+        diffuse_source_size(n, settings.diffuse_source_size)

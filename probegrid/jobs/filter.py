@@ -79,6 +79,13 @@ class FilterResult:
                 f"{min(q['energy']['specular']):.4f}..{max(q['energy']['specular']):.4f}"
             ),
         ]
+        low = min(q["sh_min_irradiance_over_pi"])
+        if low < 0:  # as the bake says of its raw SH
+            lines.append(
+                f"  warning:   the SH's irradiance is negative in some directions (min "
+                f"irradiance/pi {low:.4g}): ringing of the truncated projection; a consumer "
+                "that clamps it (three.js) shows black there. Window the coefficients "
+                "(probegrid.core.sh.dering) or light with the diffuse map")
         previews = [f["path"] for f in self.files if f["kind"] == "preview"]
         if previews:
             lines.append("  previews:  " + ", ".join(str(self.out_dir / p) for p in previews))
@@ -175,6 +182,10 @@ def run_filter(
     check_settings(settings)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
     out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    if len(paths) == 1 and settings.layout == "auto":  # from the header, before any pixel
+        from probegrid.imageio import detect_file_layout
+
+        detect_file_layout(paths[0], option="--layout")
     with staged_output(out, lambda final: prepare_output_dir(final, FILTER_FORMAT,
                                                              create=False)) as stage:
         manifest, files = _filter_into(stage, paths, settings, progress,
