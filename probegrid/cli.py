@@ -177,7 +177,11 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     _option(p, F, "cube_convention",
             help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table (glTF "
                  "Sample Viewer), mirrored in x (three.js) or z (Bevy)")
-    _option(p, F, "half", "--float", help="write float32 EXR instead of half")
+    _option(p, F, "vk_format", help="--format ktx2 texel format (default: "
+            "R16G16B16A16_SFLOAT, R32G32B32A32_SFLOAT with --float; E5B9G9R9_UFLOAT_PACK32: "
+            "4 bytes a texel, no negative values), as export --target ktx2 takes it")
+    _option(p, F, "zstd", help="Zstandard-supercompressed KTX2 (--format ktx2)")
+    _option(p, F, "half", "--float", help="write float32 EXR (or KTX2) instead of half")
     _option(p, F, "output_layout", help="layout of the written maps")
     _option(p, F, "seam", help="seam export mode for consumers without seamless cube filtering")
     _option(p, F, "clamp",

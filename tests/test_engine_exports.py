@@ -443,6 +443,37 @@ def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
         assert d["rewriteIdentical"] and d["faceCount"] == 6 and d["vkFormat"] == 97
 
 
+def test_filter_format_ktx2_takes_vk_format_and_zstd_as_export_does(tmp_path, capsys):
+    from probegrid import imageio
+
+    sky = tmp_path / "sky.exr"
+    imageio.write_image(sky, np.abs(np.sin(np.arange(16 * 32 * 3, dtype=np.float32))).reshape(
+        16, 32, 3) + 0.1, half=False)
+    small = ["--size", "8", "--diffuse-size", "4", "--lut-size", "4", "--no-previews"]
+    assert main(["filter", str(sky), "--out", str(tmp_path / "f"), "--format", "ktx2",
+                 "--float", *small]) == 0
+    assert main(["filter", str(sky), "--out", str(tmp_path / "e"), "--format", "ktx2",
+                 "--vk-format", "E5B9G9R9_UFLOAT_PACK32", "--zstd", *small]) == 0
+    for name in ("specular.ktx2", "diffuse.ktx2"):
+        full, packed = (ktx2.read_ktx2(tmp_path / d / name) for d in ("f", "e"))
+        assert full.vk_format == 109 and full.supercompression_scheme == 0
+        assert packed.vk_format == 123 and packed.supercompression_scheme == 2
+        assert packed.level_count == full.level_count
+        for a, b in zip(packed.levels, full.levels, strict=True):  # 9-bit shared exponent
+            np.testing.assert_allclose(a[..., :3], b[..., :3], rtol=2 ** -8, atol=1e-6)
+    man = json.loads((tmp_path / "e" / "manifest.json").read_text())
+    assert {f["dtype"] for f in man["files"] if f["path"].endswith(".ktx2")} == {
+        "E5B9G9R9_UFLOAT_PACK32"}
+    assert man["settings"]["zstd"] is True
+    for bad, words in [(["--vk-format", "R16G16B16A16_SFLOAT"], "apply to --format ktx2"),
+                       (["--zstd"], "apply to --format ktx2"),
+                       (["--format", "ktx2", "--float", "--vk-format",
+                         "R16G16B16A16_SFLOAT"], "not both")]:
+        assert main(["filter", str(sky), "--out", str(tmp_path / "x"), *bad, *small]) == 2
+        assert words in capsys.readouterr().err
+    capsys.readouterr()
+
+
 def test_service_maps_answer_format_ktx2(store):
     """``/maps?format=ktx2``: a one-level float32 cube equal to the npy answer; layout=cross is
     the cross as a 2D texture (the service's fast path and FastAPI agree on both)."""
@@ -608,6 +639,10 @@ def test_exports_carry_the_deringed_sh_by_default_and_raw_on_request(tmp_path, c
                  str(tmp_path / "p")]) == 0
     doc = json.loads((tmp_path / "p" / "sh.json").read_text())
     np.testing.assert_array_equal(doc["coefficients"], want[5])
+    # export's sh.json carries the consumers' forms too, as filter's does
+    from probegrid.export.shforms import sh_forms
+
+    assert doc["consumers"] == json.loads(json.dumps(sh_forms(want[5])))
     assert json.loads((tmp_path / "p" / "manifest.json").read_text())["sh"]["kind"] == "deringed"
     capsys.readouterr()
 

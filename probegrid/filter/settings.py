@@ -28,6 +28,7 @@ from probegrid._types import (
     MapFormat,
     SeamMode,
     SHWindow,
+    VkFormatName,
 )
 from probegrid.errors import SettingsError
 
@@ -72,6 +73,8 @@ class FilterSettings:
     sh_window_width: float | None = _option(None, gt=0)
     format: MapFormat = "exr"
     cube_convention: CubeConvention = "gltf"
+    vk_format: VkFormatName | None = None
+    zstd: bool = False
     half: bool = True
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
@@ -194,6 +197,11 @@ def check_settings(settings: FilterSettings) -> None:
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
+    if (settings.vk_format is not None or settings.zstd) and settings.format != "ktx2":
+        raise ValueError("--vk-format and --zstd apply to --format ktx2")
+    if settings.vk_format is not None and not settings.half:
+        raise ValueError("give --vk-format or --float, not both (--float is "
+                         "--vk-format R32G32B32A32_SFLOAT)")
     if settings.format == "gltf" and (settings.output_layout != "faces"
                                       or settings.seam == "border"
                                       or settings.specular_levels is not None

@@ -362,8 +362,10 @@ def _write_maps(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment,
     if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
         from probegrid.export.environment import write_environment_ktx2
 
+        vk_format = settings.vk_format or ("R16G16B16A16_SFLOAT" if settings.half
+                                           else "R32G32B32A32_SFLOAT")
         return write_environment_ktx2(out, env.diffuse_export, env.specular_export,
-                                      vk_format=97 if settings.half else 109,
+                                      vk_format=vk_format, zstd=settings.zstd,
                                       cube_convention=settings.cube_convention,
                                       key_values={"probegrid:conventions": json.dumps(conv)}), []
     if ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces
