@@ -63,7 +63,11 @@ Previews
 :func:`tonemap_preview` maps linear radiance to display sRGB bytes: scale by ``2**exposure``
 (default: automatic, the *key* 0.18 over the log-average luminance, Reinhard et al. 2002),
 apply Narkowicz's ACES filmic fit per channel, then the sRGB OETF. :func:`write_preview_png`
-writes with the quickest PNG compression (``fast``).
+tone-maps by the image's own statistics instead
+(:func:`probegrid.core.color.tonemap_adaptive`: that exposure, then a shoulder whose white
+point is the image's own near-brightest value, so that almost no pixel clips;
+:data:`PREVIEW_TONE_MAPPING` says it in words) and writes with the quickest PNG compression
+(``fast``).
 
 References
 ----------
@@ -89,9 +93,11 @@ from numpy.typing import ArrayLike, NDArray
 from probegrid._fs import fsync_dir, fsync_file
 from probegrid._types import CubeLayout, ImageFormat, PixelType
 from probegrid.core.color import (
+    PREVIEW_TONE_MAPPING,
     auto_exposure,
     linear_to_srgb,
     srgb_to_linear,
+    tonemap_adaptive,
     tonemap_preview,
 )
 from probegrid.core.cubemap import check_cube, texel_solid_angles
@@ -111,6 +117,7 @@ __all__ = [
     "FACE_SUFFIXES",
     "HALF_MAX",
     "PIXEL_TYPES",
+    "PREVIEW_TONE_MAPPING",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
     "CubeLayout",
@@ -826,7 +833,8 @@ def write_preview_png(
     exposure: float | None = None,
     durable: bool = True,
 ) -> Path:
-    """Write a tone-mapped 8-bit PNG preview of an image or a cube map (atomically).
+    """Write an 8-bit PNG preview of an image or a cube map (atomically), tone-mapped by its
+    own statistics (:func:`probegrid.core.color.tonemap_adaptive`).
 
     Parameters
     ----------
@@ -838,7 +846,8 @@ def write_preview_png(
     layout : {"hcross", "vcross", "equirect", "angular"}
         Layout of a cube's preview (ignored for an image).
     exposure : float, optional
-        Stops, as in :func:`tonemap_preview`; default automatic.
+        Stops (the radiance is multiplied by ``2**exposure`` before the shoulder); default
+        automatic, from the image's (the cube's texels', by solid angle) log-average.
     durable : bool
         As :func:`write_image`.
 
@@ -866,4 +875,4 @@ def write_preview_png(
         raise ValueError(
             f"a preview needs an (H, W, 3) image or a (6, n, n, 3) cube, got {a.shape}."
         )
-    return write_image(p, tonemap_preview(a, exposure=exposure), durable=durable, fast=True)
+    return write_image(p, tonemap_adaptive(a, exposure=exposure), durable=durable, fast=True)

@@ -324,9 +324,9 @@ def _write_probe(out: Path, store: ProbeStore, maps: list[tuple[str, str, int | 
     files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
                   "sh": sh_kind})
     written.append(out / "sh.json")
-    if previews:  # as filter's: one exposure (the incoming light's, else level 0's) for all
-        exposure = imageio.cube_exposure(data.get("incoming", data.get("specular_0",
-                                                                       data["diffuse"])))
+    if previews:  # as filter's: each tone-mapped by its own statistics
+        from probegrid.core.color import PREVIEW_TONE_MAPPING
+
         shown = [("diffuse", data["diffuse"])]
         if n_levels:
             shown.append(("specular", _specular_sheet([data[f"specular_{k}"]
@@ -335,9 +335,10 @@ def _write_probe(out: Path, store: ProbeStore, maps: list[tuple[str, str, int | 
             shown.append(("incoming", data["incoming"]))
         for what, img in shown:
             path = out / f"preview_{what}.png"
-            imageio.write_preview_png(path, img, exposure=exposure)
+            imageio.write_preview_png(path, img)
             files.append({"path": path.name, "kind": "preview", "of": what, "level": None,
                           "roughness": None, "format": "png",
+                          "tone_mapping": PREVIEW_TONE_MAPPING,
                           "layout": "hcross per level, level 0 at the top"
                           if what == "specular" else "hcross"})
             written.append(path)

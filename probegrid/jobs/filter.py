@@ -39,6 +39,7 @@ from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._machine import available_cores
 from probegrid._types import ImageFormat
 from probegrid._version import __version__
+from probegrid.core.color import PREVIEW_TONE_MAPPING
 from probegrid.core.conventions import conventions
 from probegrid.filter import FilteredEnvironment, FilterSettings, Progress, check_settings
 
@@ -293,6 +294,7 @@ def _filter_into(
             "energy": env.energy,
             "seam_score": env.seam_score,
         },
+        "previews": ({"tone_mapping": PREVIEW_TONE_MAPPING} if settings.previews else None),
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
         "files": files,
     }
@@ -308,18 +310,19 @@ def _attributes(conv: dict[str, Any], kind: str) -> dict[str, str]:
 
 def _submit_previews(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment
                      ) -> list[Future[dict[str, Any]]]:
-    """The PNG previews of the input, the specular chain and the diffuse map, one exposure for
-    all (so they compare), encoded by ``pool``; their manifest entries."""
+    """The PNG previews of the input, the specular chain and the diffuse map, each tone-mapped
+    by its own statistics (:data:`probegrid.imageio.PREVIEW_TONE_MAPPING`: a preview whose
+    exposure came from the input would show a bright studio's diffuse map a third white),
+    encoded by ``pool``; their manifest entries."""
     from probegrid import imageio
 
     def preview(name: str, faces: NDArray[np.float32], layout: str) -> dict[str, Any]:
-        path = imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
-                                         durable=False)
+        path = imageio.write_preview_png(out / f"preview_{name}.png", faces, durable=False)
         fsync_file(path)
         return {"path": path.name, "kind": "preview", "of": name, "level": None,
-                "roughness": None, "layout": layout, "format": "png"}
+                "roughness": None, "layout": layout, "format": "png",
+                "tone_mapping": PREVIEW_TONE_MAPPING}
 
-    exposure = imageio.cube_exposure(env.cube)
     return [
         pool.submit(preview, "input", env.cube, "hcross"),
         pool.submit(preview, "specular", _specular_sheet(env.specular),  # (the largest first)
