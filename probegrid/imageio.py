@@ -353,9 +353,9 @@ def detect_file_layout(path: str | os.PathLike[str], *, option: str = "--layout"
     except ValueError as exc:
         raise ImageError(f"{p}: {exc}") from None
     if lay == "angular" and integer and not hdr:
-        raise ImageError(f"{p}: a square {w}x{h} LDR (integer-coded) image is not taken as an angular "
-                         f"HDR environment by default (it may be a photograph or a mirror "
-                         f"ball); give {option} angular if it is an angular map")
+        raise ImageError(f"{p}: a square {w}x{h} LDR (integer-coded) image is not taken as "
+                         "an angular HDR environment by default (it may be a photograph or a "
+                         f"mirror ball); give {option} angular if it is an angular map")
     return lay
 
 

@@ -581,8 +581,9 @@ def test_export_probe_box_refusals_write_nothing(tmp_path, capsys):
 # ------------------------------------------------------------------------ which SH is exported
 def _ringing_store(path: Path, *, stored_deringed: bool) -> dict[str, np.ndarray]:
     """The linear store with probe 5's SH replaced by the projection of a light from +X (its
-    irradiance rings negative at 120 degrees from +X); with ``stored_deringed``, a bake's ``sh_deringed``
-    extra beside it (scaled by 0.5, so that a test sees which array an export read)."""
+    irradiance rings negative at 120 degrees from +X); with ``stored_deringed``, a bake's
+    ``sh_deringed`` extra beside it (scaled by 0.5, so that a test sees which array an export
+    read)."""
     from probe_stores import linear_arrays
 
     from probegrid.core.conventions import conventions

@@ -8,9 +8,9 @@ in the library, and every refusal there is a one-line error the CLI prints as it
 * the grid options (:func:`probegrid.bake.placement.check_grid_options`: syntax, and the
   probe count where the options alone fix it), the environment file's layout from its header
   (:func:`probegrid.imageio.detect_file_layout`: a square LDR image is not taken as an
-  angular map unless ``--environment-layout angular`` says so), the bake's inputs that need no scene
-  (:func:`probegrid.bake.inputs.check_bake_inputs`) and the scene file's header (:func:`probegrid.scene.gltf.check_scene_file`), before any worker
-  process starts;
+  angular map unless ``--environment-layout angular`` says so), the bake's inputs that need
+  no scene (:func:`probegrid.bake.inputs.check_bake_inputs`) and the scene file's header
+  (:func:`probegrid.scene.gltf.check_scene_file`), before any worker process starts;
 * **no silent black**: a scene with no emissive material, no punctual light and no
   environment is refused before any work (:func:`probegrid.bake.nolight.require_light`);
   ``--allow-black`` bakes it anyway. A bake none of whose valid probes received light stops

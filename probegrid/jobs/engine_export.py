@@ -21,8 +21,9 @@ Targets (layouts and conventions in :mod:`probegrid.export.engines`):
     roughness ``k / (levels - 1)``): cube-map arrays with one layer per probe in store order
     (``index = (i ny + j) nz + k``), or plain cube maps with ``probe=(i, j, k)``; ``sh.json``
     the radiance SH (deringed by default) and their consumer forms. Faces +X, -X, +Y, -Y, +Z,
-    -Z in the OpenGL/KTX2 table (``cube_convention="gltf"``), or mirrored for three.js (x) or Bevy (z) so that their lookups read each world
-    direction's light (:func:`probegrid.export.engines.mirror_cube`); ``RGBA16F`` by default.
+    -Z in the OpenGL/KTX2 table (``cube_convention="gltf"``), or mirrored for three.js (x) or
+    Bevy (z) so that their lookups read each world direction's light
+    (:func:`probegrid.export.engines.mirror_cube`); ``RGBA16F`` by default.
 
 Invalid probes are filled from their valid neighbours first (the manifest says how many).
 Everything is read and checked before the output directory is touched; the manifest is written
