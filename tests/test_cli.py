@@ -137,7 +137,7 @@ def test_filter_settings_check_every_field(tmp_path, cli):
     s = FilterSettings(size=np.int64(64), clamp=2, half=np.bool_(False))
     assert (s.size, s.clamp, s.half) == (64, 2.0, False)
     assert type(s.size) is int and type(s.clamp) is float and type(s.half) is bool
-    assert s.as_dict()["size"] == 64 and len(s.as_dict()) == 20
+    assert s.as_dict()["size"] == 64 and len(s.as_dict()) == 22
     for bad, reason in (({"size": 0}, "must be >= 1, got 0"),
                         ({"lut_size": 2000}, "must be <= 1024, got 2000"),
                         ({"clamp": 0}, "must be > 0, got 0.0"),
