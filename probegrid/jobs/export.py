@@ -1,7 +1,9 @@
 """Reading a grid store back out: ``probegrid info`` (the manifest in words) and
-``probegrid export`` (one probe's maps as image files with the conventions beside them, or
-many probes' at once: ``--probe all`` or a box ``I0,J0,K0:I1,J1,K1``, a folder per probe with
-PNG previews).
+``probegrid export`` (one probe's maps as image files with PNG previews and the conventions
+beside them, or many probes' at once: ``--probe all`` or a box ``I0,J0,K0:I1,J1,K1``, a folder
+per probe). Every ``sh.json`` holds the probe's deringed SH by default (:func:`read_sh`: the
+irradiance non-negative everywhere, as the service's ``/sh`` answers; ``sh="raw"`` the stored
+projection) with the consumers' forms (:func:`sh_document`); the manifest says which.
 
 Both trust nothing in the store beyond what :func:`probegrid.store.open_store` checks (manifest
 schema, file headers and sizes) and refuse, with a one-line :class:`~probegrid.store.StoreError`:
