@@ -27,6 +27,7 @@ __all__ = [
     "SHWindow",
     "SeamMode",
     "StartMethod",
+    "VkFormatName",
     "WindowKind",
     "Wrap",
     "choices",
@@ -57,6 +58,8 @@ CubeConvention = Literal["gltf", "threejs", "bevy"]
 EngineTarget = Literal["threejs", "bevy", "ktx2"]
 #: Which SH a query returns: deringed per probe (irradiance never negative) or as stored.
 SHKind = Literal["deringed", "raw"]
+#: KTX2 texel formats probegrid writes (Vulkan names without ``VK_FORMAT_``).
+VkFormatName = Literal["R16G16B16A16_SFLOAT", "R32G32B32A32_SFLOAT", "E5B9G9R9_UFLOAT_PACK32"]
 #: Pixel types of written image files.
 PixelType = Literal["half", "float", "rgbe", "uint8"]
 #: Seam handling of filtered cube maps (see :mod:`probegrid.core.seams`).

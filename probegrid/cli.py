@@ -20,7 +20,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Literal, NoReturn, get_args, get_origin
 
-from probegrid._types import CubeConvention, CubeLayout, EngineTarget, ImageFormat, choices
+from probegrid._types import (
+    CubeConvention,
+    CubeLayout,
+    EngineTarget,
+    ImageFormat,
+    SHKind,
+    choices,
+)
 
 __all__ = ["build_parser", "main"]
 
@@ -170,7 +177,11 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     _option(p, F, "cube_convention",
             help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table (glTF "
                  "Sample Viewer), mirrored in x (three.js) or z (Bevy)")
-    _option(p, F, "half", "--float", help="write float32 EXR instead of half")
+    _option(p, F, "vk_format", help="--format ktx2 texel format (default: "
+            "R16G16B16A16_SFLOAT, R32G32B32A32_SFLOAT with --float; E5B9G9R9_UFLOAT_PACK32: "
+            "4 bytes a texel, no negative values), as export --target ktx2 takes it")
+    _option(p, F, "zstd", help="Zstandard-supercompressed KTX2 (--format ktx2)")
+    _option(p, F, "half", "--float", help="write float32 EXR (or KTX2) instead of half")
     _option(p, F, "output_layout", help="layout of the written maps")
     _option(p, F, "seam", help="seam export mode for consumers without seamless cube filtering")
     _option(p, F, "clamp",
@@ -202,16 +213,19 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
             "store (unless it exists), print what was made, then serve the store."
         ),
     )
-    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
+    p.add_argument("--out", type=Path, default=Path("out/demo"),
+                   help="output directory (default: out/demo)")
     p.add_argument("--no-serve", action="store_true", help="stop after filtering and baking")
-    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--port", type=int, default=8000,
+                   help="TCP port the store is served on, at 127.0.0.1 (default: 8000)")
     p.set_defaults(handler=_run_demo)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from probegrid.jobs.demo import run_demo
+    from probegrid.jobs.demo import run_demo, stop_bake_processes
 
     print(run_demo(args.out, progress=_stderr_progress), flush=True)
+    stop_bake_processes()  # the bake's fork server is not needed to serve
     if not args.no_serve:
         print("\nServing the store (Ctrl-C stops):")
         _serve([args.out / "sample_room.probes"], "127.0.0.1", args.port, 1)
@@ -310,8 +324,15 @@ def _run_bake(args: argparse.Namespace) -> int:
 
 
 def _add_info(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("info", help="print a store's manifest in words")
-    p.add_argument("store", type=Path)
+    p = sub.add_parser(
+        "info", help="print a store's manifest in words",
+        description=("Print what a probe grid store holds: its grid (counts, box, spacing, how "
+                     "a probe's index and position follow from (i, j, k)), the valid probes, "
+                     "every array with its type, shape, size and meaning, the bake's settings "
+                     "and inputs, the specular levels' roughness, the conventions (world frame, "
+                     "cube faces, SH basis, units) and the bake's quality figures. An "
+                     "unfinished bake is named as such."))
+    p.add_argument("store", type=Path, help="the store directory (NAME.probes)")
     p.set_defaults(handler=_run_info)
 
 
@@ -323,11 +344,19 @@ def _run_info(args: argparse.Namespace) -> int:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="write one probe's maps as image files, or the grid for "
-                       "an engine (--target)")
-    p.add_argument("store", type=Path)
-    p.add_argument("--probe", help="I,J,K; or 'all', or a box I0,J0,K0:I1,J1,K1 (corners "
-                   "included): a folder I_J_K per probe, with PNG previews")
+    p = sub.add_parser(
+        "export", help="write one probe's maps as image files, or the grid for an engine "
+                       "(--target)",
+        description=("Write probes of a store as files other tools read: with --probe, each "
+                     "probe's diffuse map (irradiance / pi), GGX specular levels "
+                     "(specular_m<k>, roughness k / (levels - 1)), incoming light when stored, "
+                     "sh.json and PNG previews, named as 'probegrid filter' names them; with "
+                     "--target, the whole grid as an engine loads it. manifest.json lists the "
+                     "files with their conventions. Probe (i, j, k) is at index (i ny + j) nz "
+                     "+ k; 'probegrid info' shows the grid."))
+    p.add_argument("store", type=Path, help="the store directory (NAME.probes)")
+    p.add_argument("--probe", help="I,J,K (one probe, 0-based lattice indices); or 'all', or a "
+                   "box I0,J0,K0:I1,J1,K1 (corners included): a folder I_J_K per probe")
     p.add_argument("--target", choices=choices(EngineTarget),
                    help="the whole grid as an engine loads it (three.js LightProbeGrid atlas, "
                         "Bevy IrradianceVolume, KTX2 cube-map arrays); see manifest.json")
@@ -337,12 +366,24 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cube-convention", choices=choices(CubeConvention), default="gltf",
                    help="--target ktx2 cube faces for that consumer's lookup (default: the "
                         "OpenGL/KTX2 table, as glTF-IBL-Sampler writes)")
-    p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--layout", choices=choices(CubeLayout), default="faces")
-    p.add_argument("--format", choices=choices(ImageFormat), default="exr")
-    p.add_argument("--half", action="store_true", help="half-float EXR")
+    p.add_argument("--out", required=True, type=Path,
+                   help="output directory (new, or an earlier export of the same kind)")
+    p.add_argument("--layout", choices=choices(CubeLayout), default="faces",
+                   help="image layout of each cube map: six face files (_px, _nx, _py, _ny, "
+                        "_pz, _nz), one horizontal or vertical cross, or a lat-long "
+                        "(default: faces)")
+    p.add_argument("--format", choices=choices(ImageFormat), default="exr",
+                   help="image file format: OpenEXR (float) or Radiance HDR (RGBE) "
+                        "(default: exr)")
+    p.add_argument("--half", action="store_true",
+                   help="half-float EXR (16 bits: half the size, 11 significant bits) instead "
+                        "of 32-bit float")
     p.add_argument("--no-previews", dest="previews", action="store_false",
-                   help="no PNG previews with --probe all or a box")
+                   help="no PNG previews (written beside each probe's maps otherwise)")
+    p.add_argument("--sh", choices=choices(SHKind), default="deringed",
+                   help="which SH sh.json and the three.js atlas carry: deringed (each probe "
+                        "windowed so that its irradiance is >= 0 everywhere, as /sh answers) "
+                        "or raw (the stored projection, may ring negative) (default: deringed)")
     p.set_defaults(handler=_run_export)
 
 
@@ -358,7 +399,7 @@ def _run_export(args: argparse.Namespace) -> int:
 
         written = export_grid(args.store, args.out, target=args.target,
                               vk_format=args.vk_format, zstd=args.zstd, probe=args.probe,
-                              cube_convention=args.cube_convention)
+                              cube_convention=args.cube_convention, sh=args.sh)
         print(f"wrote {len(written)} files for {args.target} to {args.out}/ (manifest.json "
               "states the consumer and conventions)")
         return 0
@@ -371,10 +412,11 @@ def _run_export(args: argparse.Namespace) -> int:
         from probegrid.jobs.export import export_probes
 
         print(export_probes(args.store, args.probe, args.out, layout=args.layout,
-                            fmt=args.format, half=args.half, previews=args.previews).summary())
+                            fmt=args.format, half=args.half, previews=args.previews,
+                            sh=args.sh).summary())
         return 0
     written = export_probe(args.store, args.probe, args.out, layout=args.layout,
-                           fmt=args.format, half=args.half)
+                           fmt=args.format, half=args.half, previews=args.previews, sh=args.sh)
     print(f"wrote {len(written)} files to {args.out}/ (manifest.json lists them with the "
           "conventions)")
     if written.valid is False:
@@ -394,10 +436,15 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
             "/docs."
         ),
     )
-    p.add_argument("stores", nargs="+", type=Path, metavar="STORE")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
-    p.add_argument("--workers", type=_positive_int, default=1, help="uvicorn worker processes")
+    p.add_argument("stores", nargs="+", type=Path, metavar="STORE",
+                   help="store directories (NAME.probes), each served as /v1/grids/NAME")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on: 127.0.0.1 this machine only, 0.0.0.0 every "
+                        "interface (default: 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port (default: 8000)")
+    p.add_argument("--workers", type=_positive_int, default=1,
+                   help="uvicorn worker processes, each with its own memory maps of the "
+                        "stores (default: 1)")
     p.set_defaults(handler=_run_serve)
 
 
@@ -471,6 +518,9 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         description="Light-probe grids, cube-map environment filtering and a probe map service.",
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    from probegrid._version import __version__
+
+    parser.add_argument("--version", action="version", version=f"probegrid {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 parser_class=_Parser)
     for add in _SUBCOMMANDS if only is None else (_adder(only),):

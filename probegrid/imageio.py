@@ -63,7 +63,11 @@ Previews
 :func:`tonemap_preview` maps linear radiance to display sRGB bytes: scale by ``2**exposure``
 (default: automatic, the *key* 0.18 over the log-average luminance, Reinhard et al. 2002),
 apply Narkowicz's ACES filmic fit per channel, then the sRGB OETF. :func:`write_preview_png`
-writes with the quickest PNG compression (``fast``).
+tone-maps by the image's own statistics instead
+(:func:`probegrid.core.color.tonemap_adaptive`: that exposure, then a shoulder whose white
+point is the image's own near-brightest value, so that almost no pixel clips;
+:data:`PREVIEW_TONE_MAPPING` says it in words) and writes with the quickest PNG compression
+(``fast``).
 
 References
 ----------
@@ -89,9 +93,11 @@ from numpy.typing import ArrayLike, NDArray
 from probegrid._fs import fsync_dir, fsync_file
 from probegrid._types import CubeLayout, ImageFormat, PixelType
 from probegrid.core.color import (
+    PREVIEW_TONE_MAPPING,
     auto_exposure,
     linear_to_srgb,
     srgb_to_linear,
+    tonemap_adaptive,
     tonemap_preview,
 )
 from probegrid.core.cubemap import check_cube, texel_solid_angles
@@ -111,6 +117,7 @@ __all__ = [
     "FACE_SUFFIXES",
     "HALF_MAX",
     "PIXEL_TYPES",
+    "PREVIEW_TONE_MAPPING",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
     "CubeLayout",
@@ -121,6 +128,7 @@ __all__ = [
     "clamp_radiance",
     "count_nonfinite",
     "cube_exposure",
+    "detect_file_layout",
     "face_of",
     "image_size",
     "linear_to_srgb",
@@ -320,6 +328,35 @@ def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
         return int(spec.width), int(spec.height)
     finally:
         inp.close()
+
+
+def detect_file_layout(path: str | os.PathLike[str], *, option: str = "--layout") -> Layout:
+    """The layout ``auto`` means for one image file, from its header alone (before its pixels
+    are read): :func:`probegrid.core.layouts.detect_layout` of its size, except that a square
+    *integer-coded* (LDR: PNG, JPEG) image is refused rather than taken as an angular map
+    (a photograph or a mirror ball is square too, and an 8-bit file holds no HDR light);
+    ``option angular`` (e.g. ``--layout angular``) states it is one. Raises
+    :class:`ImageError` (one line naming the file) for that and for an undetectable aspect
+    ratio."""
+    p = _check_readable(path)
+    inp = _open(p)
+    try:
+        spec = inp.spec()
+        w, h = int(spec.width), int(spec.height)
+        integer = spec.format.basetype not in (oiio.BASETYPE.HALF, oiio.BASETYPE.FLOAT,
+                                               oiio.BASETYPE.DOUBLE)
+        hdr = inp.format_name() == "hdr"
+    finally:
+        inp.close()
+    try:
+        lay = detect_layout(h, w)
+    except ValueError as exc:
+        raise ImageError(f"{p}: {exc}") from None
+    if lay == "angular" and integer and not hdr:
+        raise ImageError(f"{p}: a square {w}x{h} LDR (integer-coded) image is not taken as "
+                         "an angular HDR environment by default (it may be a photograph or a "
+                         f"mirror ball); give {option} angular if it is an angular map")
+    return lay
 
 
 def read_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
@@ -796,7 +833,8 @@ def write_preview_png(
     exposure: float | None = None,
     durable: bool = True,
 ) -> Path:
-    """Write a tone-mapped 8-bit PNG preview of an image or a cube map (atomically).
+    """Write an 8-bit PNG preview of an image or a cube map (atomically), tone-mapped by its
+    own statistics (:func:`probegrid.core.color.tonemap_adaptive`).
 
     Parameters
     ----------
@@ -808,7 +846,8 @@ def write_preview_png(
     layout : {"hcross", "vcross", "equirect", "angular"}
         Layout of a cube's preview (ignored for an image).
     exposure : float, optional
-        Stops, as in :func:`tonemap_preview`; default automatic.
+        Stops (the radiance is multiplied by ``2**exposure`` before the shoulder); default
+        automatic, from the image's (the cube's texels', by solid angle) log-average.
     durable : bool
         As :func:`write_image`.
 
@@ -836,4 +875,4 @@ def write_preview_png(
         raise ValueError(
             f"a preview needs an (H, W, 3) image or a (6, n, n, 3) cube, got {a.shape}."
         )
-    return write_image(p, tonemap_preview(a, exposure=exposure), durable=durable, fast=True)
+    return write_image(p, tonemap_adaptive(a, exposure=exposure), durable=durable, fast=True)

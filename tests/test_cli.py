@@ -137,7 +137,7 @@ def test_filter_settings_check_every_field(tmp_path, cli):
     s = FilterSettings(size=np.int64(64), clamp=2, half=np.bool_(False))
     assert (s.size, s.clamp, s.half) == (64, 2.0, False)
     assert type(s.size) is int and type(s.clamp) is float and type(s.half) is bool
-    assert s.as_dict()["size"] == 64 and len(s.as_dict()) == 20
+    assert s.as_dict()["size"] == 64 and len(s.as_dict()) == 22
     for bad, reason in (({"size": 0}, "must be >= 1, got 0"),
                         ({"lut_size": 2000}, "must be <= 1024, got 2000"),
                         ({"clamp": 0}, "must be > 0, got 0.0"),
@@ -246,7 +246,13 @@ def test_bake_info_export_on_the_sample_room(tmp_path, cli_bake):
     assert r.returncode == 0, r.stderr
     m = json.loads((exp / "manifest.json").read_text())
     assert m["probe"]["ijk"] == [1, 1, 1] and m["probe"]["index"] == 1 * 6 + 1 * 3 + 1
-    assert {f["kind"] for f in m["files"]} == {"diffuse", "specular", "incoming", "sh"}
+    assert {f["kind"] for f in m["files"]} == {"diffuse", "specular", "incoming", "sh",
+                                                "preview"}
+    # one probe's export carries PNG previews too, as --probe all does
+    assert {f["of"] for f in m["files"] if f["kind"] == "preview"} == {
+        "diffuse", "specular", "incoming"}
+    n = next(f["face_size"] for f in m["files"] if f["kind"] == "diffuse")
+    assert imageio.read_image(exp / "preview_diffuse.png").shape[:2] == (3 * n, 4 * n)
     cross = imageio.read_image(exp / "diffuse.exr")
     assert cross.shape == (12, 16, 3)
     assert "outside the grid" in _one_error_line(run_cli("export", store, "--probe", "3,0,0",

@@ -378,6 +378,147 @@ def test_bake_refuses_an_unwritable_store_location_before_loading_the_scene(tmp_
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("args, words", [
+    (["--grid", "3x3"], "--grid: grid must be NXxNYxNZ"),
+    (["--grid", "0x2x2"], "--grid: grid counts must be >= 1"),
+    (["--grid", "9999x9999x9999"], "too large"),
+    (["--spacing", "0"], "--spacing: spacing must be > 0"),
+    (["--spacing", "1,2"], "--spacing: spacing must be one number or three"),
+    (["--bounds", "1,2,3"], "--bounds: bounds must be six numbers"),
+    (["--bounds", "1,0,0,0,1,1"], "--bounds: bounds are reversed on x"),
+    (["--spacing", "1e-4", "--bounds", "0,0,0,10,10,10"], "too large"),
+])
+def test_bad_grid_options_are_refused_before_the_scene_loads(tmp_path, capsys, monkeypatch,
+                                                             args, words):
+    import probegrid.bake.executors
+    import probegrid.scene
+
+    monkeypatch.setattr(probegrid.scene, "load_gltf", lambda *a, **k: pytest.fail("loaded"))
+    monkeypatch.setattr(probegrid.bake.executors, "make_executor",
+                        lambda *a, **k: pytest.fail("workers started"))
+    scene = Path(__file__).resolve().parents[1] / "data" / "sample_room.glb"
+    assert main(["bake", str(scene), "--out", str(tmp_path / "s.probes"), *args]) == 2
+    assert words in _error(capsys)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--size", "100"], "use --size 64 or --size 128 (the nearest powers of two)"),
+    (["--size", "48", "--specular-method", "fis", "--specular-levels", "6"],
+     "use --specular-levels 5 or less"),
+])
+def test_a_filter_size_the_chain_cannot_take_is_refused_before_reading(tmp_path, monkeypatch,
+                                                                       capsys, args, words):
+    monkeypatch.setattr(imageio, "read_image", lambda *a, **k: pytest.fail("read"))
+    sky = imageio.write_image(tmp_path / "sky.hdr", np.ones((16, 32, 3), np.float32))
+    assert main(["filter", str(sky), "--out", str(tmp_path / "o"), *args]) == 2
+    assert words in _error(capsys)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_square_ldr_image_is_not_taken_as_an_angular_hdr_unless_asked(tmp_path, capsys,
+                                                                       monkeypatch):
+    ldr = imageio.write_image(tmp_path / "photo.png", np.full((16, 16, 3), 0.5, np.float32))
+    small = ["--size", "4", "--diffuse-size", "2", "--lut-size", "4", "--no-previews"]
+    with monkeypatch.context() as m:  # refused from the header, before the pixels are read
+        m.setattr(imageio, "read_image", lambda *a, **k: pytest.fail("read"))
+        assert main(["filter", str(ldr), "--out", str(tmp_path / "o"), *small]) == 2
+        line = _error(capsys)
+        assert "photo.png" in line and "LDR" in line and "--layout angular" in line
+        assert not (tmp_path / "o").exists()
+        assert main(["bake", str(Path(__file__).resolve().parents[1] / "data" /
+                                 "sample_room.glb"), "--environment", str(ldr), "--out",
+                     str(tmp_path / "s.probes")]) == 2
+        assert "--environment-layout angular" in _error(capsys)
+    # said explicitly, it is filtered as an angular map; a square HDR still is by default
+    assert main(["filter", str(ldr), "--layout", "angular", "--out", str(tmp_path / "a"),
+                 *small]) == 0
+    hdr = imageio.write_image(tmp_path / "probe.hdr", np.full((16, 16, 3), 0.5, np.float32))
+    assert main(["filter", str(hdr), "--out", str(tmp_path / "h"), *small]) == 0
+    for out in ("a", "h"):
+        assert json.loads((tmp_path / out / "manifest.json").read_text())["input"][
+            "layout"] == "angular"
+    capsys.readouterr()
+
+
+def test_export_of_one_probe_writes_png_previews_like_all(small_store, capsys):
+    out = small_store.parent / "one"
+    assert main(["export", str(small_store), "--probe", "1,1,2", "--out", str(out)]) == 0
+    m = json.loads((out / "manifest.json").read_text())
+    shown = {f["of"]: f["path"] for f in m["files"] if f["kind"] == "preview"}
+    assert shown == {"diffuse": "preview_diffuse.png", "specular": "preview_specular.png",
+                     "incoming": "preview_incoming.png"}
+    assert imageio.read_image(out / "preview_diffuse.png").shape[:2] == (12, 16)
+    none = small_store.parent / "none"
+    assert main(["export", str(small_store), "--probe", "1,1,2", "--out", str(none),
+                 "--no-previews"]) == 0
+    assert not list(none.glob("preview_*"))
+    capsys.readouterr()
+
+
+def test_version_and_every_option_says_what_it_means(capsys):
+    from probegrid import __version__
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.strip() == f"probegrid {__version__}"
+    parser = build_parser()
+    commands = next(a for a in parser._actions if a.dest == "command").choices
+    for name, sub in commands.items():
+        assert sub.description, name
+        for action in sub._actions:
+            if action.dest != "help":
+                assert action.help and len(action.help) > 10, (name, action.dest)
+
+
+def test_filter_warns_when_the_sh_irradiance_is_negative(tmp_path, capsys):
+    small = ["--size", "8", "--diffuse-size", "2", "--lut-size", "4", "--no-previews"]
+    sun = np.full((16, 32, 3), 0.01, np.float32)
+    sun[4, 8] = 5000.0  # one small bright source: its 9-coefficient SH rings negative
+    sky = imageio.write_image(tmp_path / "sun.exr", sun, half=False)
+    assert main(["filter", str(sky), "--out", str(tmp_path / "o"), *small]) == 0
+    said = capsys.readouterr().out
+    low = min(json.loads((tmp_path / "o" / "manifest.json").read_text())["quality"][
+        "sh_min_irradiance_over_pi"])
+    assert low < 0 and "warning:" in said and f"{low:.4g}" in said
+    flat = imageio.write_image(tmp_path / "flat.exr", np.ones((16, 32, 3), np.float32),
+                               half=False)
+    assert main(["filter", str(flat), "--out", str(tmp_path / "f"), *small]) == 0
+    assert "warning" not in capsys.readouterr().out
+
+
+def test_the_demo_uses_the_repository_samples_and_stops_the_fork_server_before_serving(
+        tmp_path, monkeypatch, capsys):
+    import multiprocessing
+    from multiprocessing import forkserver
+
+    import probegrid.cli as cli
+    from probegrid.jobs import demo
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    assert demo.sample_data_dir() == Path(__file__).resolve().parents[1] / "data"
+    assert not (tmp_path / "cache").exists()  # nothing regenerated
+
+    def fake_demo(out, **_):  # a bake's local executor leaves a fork server running
+        ctx = multiprocessing.get_context("forkserver")
+        p = ctx.Process(target=int)
+        p.start()
+        p.join()
+        return "made"
+
+    seen = []
+
+    def fake_serve(*_):
+        pid = forkserver._forkserver._forkserver_pid
+        seen.append(pid)
+
+    monkeypatch.setattr(demo, "run_demo", fake_demo)
+    monkeypatch.setattr(cli, "_serve", fake_serve)
+    assert main(["demo", "--out", str(tmp_path / "d")]) == 0
+    assert seen == [None]  # no fork server while serving
+    capsys.readouterr()
+
+
 def test_os_errors_are_one_line_in_words():
     from probegrid.cli import _error_line
 

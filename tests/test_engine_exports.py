@@ -29,6 +29,7 @@ from probe_stores import GRID, linear_store, linear_values, write_store
 
 from probegrid.cli import main
 from probegrid.core import diffuse, sh
+from probegrid.core.sh.dering import dering
 from probegrid.core.cubemap import texel_directions
 from probegrid.core.grid import GridSpec
 from probegrid.export import engines, ktx2
@@ -152,7 +153,7 @@ def test_fill_invalid_grows_from_the_valid_probes():
 
 # ------------------------------------------------------------------------ three.js
 def test_threejs_atlas_packing_and_decoding(store, tmp_path):
-    export_grid(store, tmp_path / "t", target="threejs", vk_format=109)
+    export_grid(store, tmp_path / "t", target="threejs", vk_format=109, sh="raw")
     tex = ktx2.read_ktx2(tmp_path / "t" / "lightprobegrid.ktx2")
     header = json.loads((tmp_path / "t" / "lightprobegrid.json").read_text())
     nx, ny, nz = GRID.counts
@@ -176,7 +177,7 @@ def test_threejs_atlas_packing_and_decoding(store, tmp_path):
 
 
 def test_threejs_shader_lookup_between_probes_equals_the_affine_field(store, tmp_path):
-    export_grid(store, tmp_path / "t", target="threejs", vk_format=109)
+    export_grid(store, tmp_path / "t", target="threejs", vk_format=109, sh="raw")
     atlas = ktx2.read_ktx2(tmp_path / "t" / "lightprobegrid.ktx2").levels[0]
     header = json.loads((tmp_path / "t" / "lightprobegrid.json").read_text())
     spacing = np.asarray(GRID.spacing)
@@ -294,7 +295,7 @@ def test_lopsided_environment_lands_where_each_engine_looks(lopsided, tmp_path):
 def test_cli_exports_every_target_and_ktx_parse_reads_them(store, tmp_path, tmp_path_factory,
                                                            capsys):
     for target in ("threejs", "bevy", "ktx2"):
-        assert main(["export", str(store), "--target", target, "--out",
+        assert main(["export", str(store), "--target", target, "--sh", "raw", "--out",
                      str(tmp_path / target)]) == 0
         man = json.loads((tmp_path / target / "manifest.json").read_text())
         assert man["target"] == target and man["invalid_probes_filled"] == 0
@@ -340,7 +341,7 @@ def test_invalid_probes_are_filled_and_counted(tmp_path):
     arrays["sh"][[4, 7]] = np.nan  # whatever an invalid probe holds is replaced
     path = tmp_path / "v.probes"
     write_store(path, GRID, arrays).close()
-    export_grid(path, tmp_path / "t", target="threejs", vk_format=109)
+    export_grid(path, tmp_path / "t", target="threejs", vk_format=109, sh="raw")
     man = json.loads((tmp_path / "t" / "manifest.json").read_text())
     assert man["invalid_probes_filled"] == 2
     atlas = ktx2.read_ktx2(tmp_path / "t" / "lightprobegrid.ktx2").levels[0]
@@ -442,6 +443,37 @@ def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
         assert d["rewriteIdentical"] and d["faceCount"] == 6 and d["vkFormat"] == 97
 
 
+def test_filter_format_ktx2_takes_vk_format_and_zstd_as_export_does(tmp_path, capsys):
+    from probegrid import imageio
+
+    sky = tmp_path / "sky.exr"
+    imageio.write_image(sky, np.abs(np.sin(np.arange(16 * 32 * 3, dtype=np.float32))).reshape(
+        16, 32, 3) + 0.1, half=False)
+    small = ["--size", "8", "--diffuse-size", "4", "--lut-size", "4", "--no-previews"]
+    assert main(["filter", str(sky), "--out", str(tmp_path / "f"), "--format", "ktx2",
+                 "--float", *small]) == 0
+    assert main(["filter", str(sky), "--out", str(tmp_path / "e"), "--format", "ktx2",
+                 "--vk-format", "E5B9G9R9_UFLOAT_PACK32", "--zstd", *small]) == 0
+    for name in ("specular.ktx2", "diffuse.ktx2"):
+        full, packed = (ktx2.read_ktx2(tmp_path / d / name) for d in ("f", "e"))
+        assert full.vk_format == 109 and full.supercompression_scheme == 0
+        assert packed.vk_format == 123 and packed.supercompression_scheme == 2
+        assert packed.level_count == full.level_count
+        for a, b in zip(packed.levels, full.levels, strict=True):  # 9-bit shared exponent
+            np.testing.assert_allclose(a[..., :3], b[..., :3], rtol=2 ** -8, atol=1e-6)
+    man = json.loads((tmp_path / "e" / "manifest.json").read_text())
+    assert {f["dtype"] for f in man["files"] if f["path"].endswith(".ktx2")} == {
+        "E5B9G9R9_UFLOAT_PACK32"}
+    assert man["settings"]["zstd"] is True
+    for bad, words in [(["--vk-format", "R16G16B16A16_SFLOAT"], "apply to --format ktx2"),
+                       (["--zstd"], "apply to --format ktx2"),
+                       (["--format", "ktx2", "--float", "--vk-format",
+                         "R16G16B16A16_SFLOAT"], "not both")]:
+        assert main(["filter", str(sky), "--out", str(tmp_path / "x"), *bad, *small]) == 2
+        assert words in capsys.readouterr().err
+    capsys.readouterr()
+
+
 def test_service_maps_answer_format_ktx2(store):
     """``/maps?format=ktx2``: a one-level float32 cube equal to the npy answer; layout=cross is
     the cross as a 2D texture (the service's fast path and FastAPI agree on both)."""
@@ -508,8 +540,10 @@ def test_export_probe_all_and_box_write_every_probe_and_name_the_invalid(tmp_pat
         spec = np.stack([imageio.read_image(sub / f"specular_m2_{s}.exr") for s in
                          ("px", "nx", "py", "ny", "pz", "nz")])
         np.testing.assert_array_equal(spec, arrays["specular_2"][index])
-        sh_doc = json.loads((sub / "sh.json").read_text())
-        np.testing.assert_array_equal(sh_doc["coefficients"], arrays["sh"][index])
+        sh_doc = json.loads((sub / "sh.json").read_text())  # deringed by default
+        np.testing.assert_array_equal(sh_doc["coefficients"], dering(
+            arrays["sh"][index:index + 1].astype(np.float64))[0][0])
+        assert sh_doc["sh"] == "deringed"
         prev = imageio.read_image(sub / "preview_diffuse.png")
         assert prev.shape[:2] == (12, 16)  # hcross of 4^2 faces
         assert (sub / "preview_specular.png").is_file()
@@ -542,3 +576,84 @@ def test_export_probe_box_refusals_write_nothing(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert words in err and len(err.splitlines()) == 1, (sel, err)
         assert not out.exists()
+
+
+# ------------------------------------------------------------------------ which SH is exported
+def _ringing_store(path: Path, *, stored_deringed: bool) -> dict[str, np.ndarray]:
+    """The linear store with probe 5's SH replaced by the projection of a light from +X (its
+    irradiance rings negative at 120 degrees from +X); with ``stored_deringed``, a bake's
+    ``sh_deringed`` extra beside it (scaled by 0.5, so that a test sees which array an export
+    read)."""
+    from probe_stores import linear_arrays
+
+    from probegrid.core.conventions import conventions
+    from probegrid.store import ArraySpec, StoreWriter
+
+    arrays = linear_arrays(GRID)
+    arrays["sh"][5] = sh.project_samples(np.full((1, 3), 40.0), [[1.0, 0.0, 0.0]], [1.0])
+    specs = {name: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str, description=name)
+             for name, a in arrays.items()}
+    writer = StoreWriter.create(path, arrays=specs, grid=GRID, conventions=conventions(),
+                                scene_hash="ringing", bake={"synthetic": True})
+    writer.write(np.arange(GRID.n_probes), arrays)
+    if stored_deringed:
+        writer.add_extra("sh_deringed", (0.5 * dering(arrays["sh"].astype(np.float64))[0])
+                         .astype(np.float32))
+    writer.finish(quality={"invalid_probes": 0}).close()
+    return arrays
+
+
+def test_exports_carry_the_deringed_sh_by_default_and_raw_on_request(tmp_path, capsys):
+    path = tmp_path / "r.probes"
+    arrays = _ringing_store(path, stored_deringed=False)
+    raw = arrays["sh"].astype(np.float64)
+    # (a band-2 delta's irradiance: 40 (1/4 + t/2 + 5/32 (3t^2 - 1)), -1.5625 at t = -1/2)
+    minus_x = np.array([[-0.5, np.sqrt(0.75), 0.0]])
+    assert sh.irradiance(raw[5], minus_x)[0].max() < -1.5  # the raw projection rings
+    want = dering(raw)[0]
+    nz = GRID.counts[2]
+    # three.js: the atlas holds the deringed SH (three would clamp the ring to black)
+    assert main(["export", str(path), "--target", "threejs", "--vk-format",
+                 "R32G32B32A32_SFLOAT", "--out", str(tmp_path / "t")]) == 0
+    atlas = ktx2.read_ktx2(tmp_path / "t" / "lightprobegrid.ktx2").levels[0]
+    got = engines.threejs_unpack(atlas, nz).reshape(-1, 9, 3)
+    np.testing.assert_array_equal(got, want.astype(np.float32))
+    assert sh.irradiance(got[5].astype(np.float64), minus_x)[0].min() >= 0.0
+    man = json.loads((tmp_path / "t" / "manifest.json").read_text())
+    header = json.loads((tmp_path / "t" / "lightprobegrid.json").read_text())
+    assert man["sh"]["kind"] == "deringed" and header["sh_kind"] == "deringed"
+    # raw on request, and the manifest says so
+    assert main(["export", str(path), "--target", "threejs", "--sh", "raw", "--vk-format",
+                 "R32G32B32A32_SFLOAT", "--out", str(tmp_path / "traw")]) == 0
+    atlas = ktx2.read_ktx2(tmp_path / "traw" / "lightprobegrid.ktx2").levels[0]
+    np.testing.assert_array_equal(engines.threejs_unpack(atlas, nz).reshape(-1, 9, 3),
+                                  arrays["sh"])
+    assert json.loads((tmp_path / "traw" / "manifest.json").read_text())["sh"]["kind"] == "raw"
+    # the ktx2 target's and the per-probe export's sh.json: deringed, with consumer forms
+    assert main(["export", str(path), "--target", "ktx2", "--out", str(tmp_path / "k")]) == 0
+    doc = json.loads((tmp_path / "k" / "sh.json").read_text())
+    np.testing.assert_array_equal(doc["coefficients"], want.astype(np.float32))
+    assert doc["sh"] == "deringed"
+    assert json.loads((tmp_path / "k" / "manifest.json").read_text())["sh"]["kind"] == "deringed"
+    i, j, k = (int(x) for x in np.unravel_index(5, GRID.counts))
+    assert main(["export", str(path), "--probe", f"{i},{j},{k}", "--out",
+                 str(tmp_path / "p")]) == 0
+    doc = json.loads((tmp_path / "p" / "sh.json").read_text())
+    np.testing.assert_array_equal(doc["coefficients"], want[5])
+    # export's sh.json carries the consumers' forms too, as filter's does
+    from probegrid.export.shforms import sh_forms
+
+    assert doc["consumers"] == json.loads(json.dumps(sh_forms(want[5])))
+    assert json.loads((tmp_path / "p" / "manifest.json").read_text())["sh"]["kind"] == "deringed"
+    capsys.readouterr()
+
+
+def test_exports_read_the_stores_deringed_sh_when_it_has_them(tmp_path):
+    path = tmp_path / "d.probes"
+    arrays = _ringing_store(path, stored_deringed=True)
+    export_grid(path, tmp_path / "t", target="threejs", vk_format=109)
+    atlas = ktx2.read_ktx2(tmp_path / "t" / "lightprobegrid.ktx2").levels[0]
+    stored = np.asarray(open_store(path)["sh_deringed"])
+    np.testing.assert_array_equal(
+        engines.threejs_unpack(atlas, GRID.counts[2]).reshape(-1, 9, 3), stored)
+    assert not np.array_equal(stored, arrays["sh"])

@@ -165,3 +165,21 @@ def test_the_command_writes_the_library_arrays_bit_for_bit(tmp_path):
 def test_the_package_face_hands_on_the_filter():
     assert probegrid.filter_environment is filter_environment
     assert probegrid.FilterSettings is FilterSettings
+
+
+@pytest.mark.parametrize("name", ["studio_small_03_1k.hdr", "venice_sunset_1k.hdr"])
+def test_previews_are_tone_mapped_with_almost_no_clipped_pixel(tmp_path, shared_data, name):
+    """Each preview by its own exposure and white point: at most 1 % of its pixels at 255 (a
+    studio's diffuse preview exposed like its input was a third white), and the manifest says
+    how previews are made."""
+    out = tmp_path / "o"
+    run_filter(shared_data / "hdr" / name, out, FilterSettings(size=64, diffuse_size=16,
+                                                               lut_size=4))
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["previews"]["tone_mapping"] == imageio.PREVIEW_TONE_MAPPING
+    for what in ("input", "diffuse", "specular"):
+        png = imageio.read_image(out / f"preview_{what}.png")  # (decoded from sRGB: 1 = 255)
+        faces = png.max(axis=-1) > 0
+        clipped = (png >= 1.0).any(axis=-1)
+        assert clipped.mean() <= 0.01, (what, clipped.mean())
+        assert np.median(png.max(axis=-1)[faces]) > 0.05  # and not dark either

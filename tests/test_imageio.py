@@ -374,3 +374,26 @@ def test_write_preview_png_of_cube_and_image(tmp_path):
         io.write_preview_png(tmp_path / "x.exr", cube)
     with pytest.raises(ValueError, match="preview layout"):
         io.write_preview_png(tmp_path / "x.png", cube, layout="faces")
+
+
+def test_adaptive_tone_mapping_keeps_hue_and_clips_almost_nothing():
+    from probegrid.core.color import PREVIEW_WHITE_QUANTILE, tonemap_adaptive
+
+    rng = np.random.default_rng(5)
+    lum = np.exp(rng.normal(0.0, 3.0, size=(64, 64)))  # 26 stops of range
+    tint = np.array([1.0, 0.5, 0.2])
+    img = lum[..., None] * tint
+    out = tonemap_adaptive(img)
+    top = (out == 255).any(axis=-1).mean()
+    assert top <= 1.0 - PREVIEW_WHITE_QUANTILE + 0.002
+    # hue kept: every unclipped pixel's red is the brightest channel, green about half of it
+    lin = io.srgb_to_linear(out[..., :].astype(np.float64) / 255.0)
+    ok = (out[..., 0] > 40) & (out[..., 0] < 255)
+    np.testing.assert_allclose(lin[ok][:, 1] / lin[ok][:, 0], 0.5, atol=0.03)
+    # monotonic in the radiance, and a brighter image previews the same
+    order = np.argsort(lum.ravel())
+    assert (np.diff(out[..., 0].ravel()[order].astype(int)) >= 0).all()
+    assert np.abs(tonemap_adaptive(8 * img).astype(int) - out).max() <= 1
+    special = tonemap_adaptive(np.array([[np.nan, 0, 0], [1.0, np.inf, 0], [-1.0, 0, 0]]),
+                               exposure=0.0)
+    assert special.tolist() == [[0, 0, 0], [255, 255, 255], [0, 0, 0]]

@@ -146,6 +146,49 @@ def test_outputs_refuse_other_kinds_of_output_and_replace_their_own(store, sky, 
     assert (other / "notes.txt").read_text() == "mine"
 
 
+def test_a_rerun_removes_what_the_previous_run_wrote_and_nothing_else(store, tmp_path):
+    """filter into its earlier output: the earlier chain's extra levels (and previews) go, the
+    user's files stay; the same for a many-probe export and an engine export."""
+    from probegrid.jobs.engine_export import export_grid
+    from probegrid.jobs.export import export_probes
+
+    sky = tmp_path / "sky.exr"
+    imageio.write_image(sky, np.full((16, 32, 3), 0.5, np.float32), half=False)
+    out = tmp_path / "fil"
+    run_filter(sky, out, FilterSettings(size=16, diffuse_size=2, lut_size=4, previews=True))
+    assert {p.name for p in out.glob("specular_m4*")}  # five levels: 16 .. 1
+    (out / "notes.txt").write_text("mine")
+    (out / "specular_m9.exr").write_text("not listed by the earlier manifest")
+    run_filter(sky, out, FilterSettings(size=16, specular_levels=3, diffuse_size=2, lut_size=4,
+                                        previews=False))
+    man = json.loads((out / "manifest.json").read_text())
+    listed = {q for f in man["files"] for q in ([f["path"]] if isinstance(f["path"], str)
+                                                  else f["path"])}
+    assert {p.name for p in out.iterdir()} == listed | {"manifest.json", "notes.txt",
+                                                        "specular_m9.exr"}
+    assert not list(out.glob("specular_m3*")) and not list(out.glob("preview_*"))
+    # a many-probe export: the probes of the earlier, larger box go with their folders
+    many = tmp_path / "many"
+    export_probes(store, "all", many, previews=False)
+    (many / "0_0_0" / "mine.txt").write_text("mine")
+    export_probes(store, "0,0,0:0,1,1", many, previews=False)
+    assert sorted(p.name for p in many.iterdir()) == ["0_0_0", "0_0_1", "0_1_0", "0_1_1",
+                                                      "manifest.json"]
+    assert (many / "0_0_0" / "mine.txt").read_text() == "mine"
+    # an engine export: ktx2 of every probe, then of one probe, then the same again
+    eng = tmp_path / "eng"
+    export_grid(store, eng, target="ktx2")
+    (eng / "extra.bin").write_bytes(b"x")
+    m = json.loads((eng / "manifest.json").read_text())
+    m["files"].append({"path": "old_level.ktx2"})  # as if an earlier version wrote it
+    (eng / "manifest.json").write_text(json.dumps(m))
+    (eng / "old_level.ktx2").write_bytes(b"old")
+    export_grid(store, eng, target="ktx2", probe="1,0,1")
+    assert sorted(p.name for p in eng.iterdir()) == ["diffuse.ktx2", "extra.bin",
+                                                     "manifest.json", "sh.json",
+                                                     "specular.ktx2"]
+
+
 # ---------------------------------------------------------------------------- 2. full disk
 GRID = GridSpec.from_counts((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2, 2, 2))
 

@@ -327,3 +327,49 @@ def test_error_tree_keeps_its_builtin_bases(name: str) -> None:
     cls = getattr(errors, name)
     assert issubclass(cls, ProbegridError)
     assert issubclass(cls, ValueError) or issubclass(cls, RuntimeError)
+
+
+# ------------------------------------------------------------------------------ commands shown
+#: A command as the documents show it in a code span or block: ``probegrid CMD ...`` or, in a
+#: span, ``CMD ARG ...`` for the commands that take a file first.
+_COMMAND_SPAN = re.compile(
+    r"(?:probegrid\s+|^)(filter|bake|export|info|serve|demo)\s([^`\n|;&]*)")
+
+
+def _shown_commands() -> Iterator[tuple[Path, str, str]]:
+    """(document, command, the rest of its line) of every command line the documents show."""
+    docs = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    for doc in docs:
+        text = doc.read_text(encoding="utf-8")
+        spans = re.findall(r"```[a-z]*\n(.*?)```", text, flags=re.S)
+        spans = [ln for block in spans for ln in block.splitlines()]
+        spans += re.findall(r"(?<!`)`([^`\n]+)`(?!`)", re.sub(r"```.*?```", "", text,
+                                                                flags=re.S))
+        for span in spans:
+            for m in _COMMAND_SPAN.finditer(span.strip()):
+                yield doc, m.group(1), m.group(2)
+
+
+def test_every_option_a_document_shows_with_a_command_is_one_of_its_options() -> None:
+    from probegrid.cli import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if a.dest == "command").choices
+    flags = {name: {s for a in sub._actions for s in a.option_strings}
+             for name, sub in commands.items()}
+    shown = list(_shown_commands())
+    assert len(shown) > 10  # (the pattern finds the documents' commands)
+    wrong = [(doc.name, cmd, opt) for doc, cmd, rest in shown
+             for opt in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", rest)
+             if opt not in flags[cmd]]
+    assert not wrong
+
+
+def test_the_threejs_snippet_makes_a_ktx2_loader_that_can_load() -> None:
+    """three's KTX2Loader throws on load until detectSupport(renderer) has run."""
+    text = (ROOT / "docs" / "engines.md").read_text(encoding="utf-8")
+    snippet = re.search(r"```js\n(.*?)```", text, flags=re.S)
+    assert snippet is not None
+    code = snippet.group(1)
+    made = code.find("new KTX2Loader().detectSupport(renderer)")
+    assert 0 <= made < code.find("ktx2Loader.loadAsync")

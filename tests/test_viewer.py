@@ -628,8 +628,8 @@ def test_three_ktx2loader_reads_the_filters_cube_maps(ktx2_page, ktx2_files, nam
 
 def test_three_ktx2loader_reads_the_threejs_and_bevy_grid_exports(ktx2_page, stores):
     """The grid exports' 3D KTX2 files through three's KTX2Loader, read back texel by texel
-    from the GPU: the three.js atlas (RGBA16F, Zstandard) equals the store's SH packed as
-    three's LightProbeGrid reads it, rounded to half; the Bevy volume (E5B9G9R9) equals the
+    from the GPU: the three.js atlas (RGBA16F, Zstandard) equals the store's deringed SH (what
+    the export writes by default) packed as three's LightProbeGrid reads it, rounded to half; the Bevy volume (E5B9G9R9) equals the
     store's irradiance/pi along the axes after the format's rounding, decoded by the GPU."""
     from probegrid.export import ktx2
     from probegrid.store import open_store
@@ -640,7 +640,7 @@ def test_three_ktx2loader_reads_the_threejs_and_bevy_grid_exports(ktx2_page, sto
     valid = store.valid_mask().reshape(nx, ny, nz)
 
     atlas = engines.threejs_atlas(engines.fill_invalid(
-        np.asarray(store["sh"], np.float32).reshape(nx, ny, nz, 9, 3), valid)[0])
+        np.asarray(store["sh_deringed"], np.float32).reshape(nx, ny, nz, 9, 3), valid)[0])
     got = page.evaluate("(u) => window.ktx2.read(u)", "/ktx2-test/threejs.ktx2")
     assert got["class"] == "Data3DTexture" and got["half"] and got["rgba"]
     assert (got["width"], got["height"], got["depth"]) == (nx, ny, 7 * (nz + 2))

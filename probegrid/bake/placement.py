@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,11 +35,41 @@ from probegrid.core.grid import GridSpec, parse_bounds, parse_grid, parse_spacin
 if TYPE_CHECKING:  # (Embree and numba load when a default grid is fitted)
     from probegrid.scene import Scene
 
-__all__ = ["DEFAULT_LAYERS", "FIT_SAMPLES", "MAX_PROBES", "default_counts", "default_grid",
-           "grid_for", "relocation_offsets"]
+__all__ = ["DEFAULT_LAYERS", "FIT_SAMPLES", "MAX_PROBES", "check_grid_options",
+           "default_counts", "default_grid", "grid_for", "relocation_offsets"]
 
 #: Most probes a grid may have.
 MAX_PROBES = 10_000_000
+
+
+def check_grid_options(*, grid: str | None = None, spacing: str | None = None,
+                       bounds: str | None = None, margin: float | None = None) -> None:
+    """Refuse (one-line ValueError) grid options that no scene could make valid: text that
+    does not parse, ``grid`` with ``spacing``, a non-finite ``margin``, and a grid of more than
+    :data:`MAX_PROBES` probes when the counts follow from the options alone (``grid``, or
+    ``spacing`` with ``bounds``). Needs no scene, so a bake checks them before loading one;
+    :func:`grid_for` then builds the grid with the same rules."""
+    if grid is not None and spacing is not None:
+        raise ValueError("give either --grid or --spacing, not both")
+    if margin is not None and not math.isfinite(margin):
+        raise ValueError(f"--margin must be a finite number, got {margin}")
+    if grid is not None:
+        _check_probe_count(np.array(_option(parse_grid, "grid", grid), dtype=np.float64))
+    step = None if spacing is None else _option(parse_spacing, "spacing", spacing)
+    box = None if bounds is None else _option(parse_bounds, "bounds", bounds)
+    if step is not None and box is not None:
+        lo, hi = (np.asarray(v, dtype=np.float64) for v in box)  # (margin: without bounds)
+        size = np.broadcast_to(np.asarray(step, dtype=np.float64), (3,))
+        with np.errstate(over="ignore", invalid="ignore"):
+            _check_probe_count(np.floor((hi - lo) / size * (1.0 + 1e-9)) + 1.0)
+
+
+def _option(parse: Callable[[str], object], name: str, text: str) -> Any:
+    """``parse(text)`` with the option's flag leading its message (``--grid: ...``)."""
+    try:
+        return parse(text)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"--{name}: {exc}") from None
 
 
 def grid_for(scene: Scene, *, grid: str | None = None, spacing: str | None = None,

@@ -28,6 +28,7 @@ from probegrid._types import (
     MapFormat,
     SeamMode,
     SHWindow,
+    VkFormatName,
 )
 from probegrid.errors import SettingsError
 
@@ -72,6 +73,8 @@ class FilterSettings:
     sh_window_width: float | None = _option(None, gt=0)
     format: MapFormat = "exr"
     cube_convention: CubeConvention = "gltf"
+    vk_format: VkFormatName | None = None
+    zstd: bool = False
     half: bool = True
     output_layout: CubeLayout = "faces"
     seam: SeamMode = "none"
@@ -194,6 +197,11 @@ def check_settings(settings: FilterSettings) -> None:
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
+    if (settings.vk_format is not None or settings.zstd) and settings.format != "ktx2":
+        raise ValueError("--vk-format and --zstd apply to --format ktx2")
+    if settings.vk_format is not None and not settings.half:
+        raise ValueError("give --vk-format or --float, not both (--float is "
+                         "--vk-format R32G32B32A32_SFLOAT)")
     if settings.format == "gltf" and (settings.output_layout != "faces"
                                       or settings.seam == "border"
                                       or settings.specular_levels is not None
@@ -205,3 +213,27 @@ def check_settings(settings: FilterSettings) -> None:
         from probegrid.export.gltf_ibl import check_size
 
         check_size(settings.size)
+    if settings.size is not None:
+        _check_size(settings.size, settings)
+
+
+def _check_size(n: int, settings: FilterSettings) -> None:
+    """Refuse a ``--size`` the chosen chain cannot take, naming sizes that work: the tiered
+    GGX filter (the default) needs a power of two, and ``--specular-levels`` as many halvings."""
+    from probegrid.core.cubemap import mip_sizes
+
+    if n & (n - 1) and settings.specular_method == "tiered":
+        below = 1 << (n.bit_length() - 1)
+        raise ValueError(f"--size {n} is not a power of two, which the default GGX filter "
+                         f"(--specular-method tiered) needs: use --size {below} or --size "
+                         f"{2 * below} (the nearest powers of two), or --specular-method fis")
+    if settings.specular_levels is not None:
+        try:
+            mip_sizes(n, settings.specular_levels)
+        except ValueError:
+            most = (n & -n).bit_length()  # n's halvings down to an odd size, plus level 0
+            raise ValueError(f"--size {n} cannot be halved {settings.specular_levels - 1} "
+                             f"times for --specular-levels {settings.specular_levels}: use "
+                             f"--specular-levels {most} or less") from None
+    if settings.diffuse_source_size is not None:
+        diffuse_source_size(n, settings.diffuse_source_size)

@@ -5,9 +5,12 @@ job's own: files, grid, environment, where to run); :func:`run_bake` turns them 
 library's inputs and calls the library, printing what it decides on the way. Every check lives
 in the library, and every refusal there is a one-line error the CLI prints as it is:
 
-* the bake's inputs that need no scene (:func:`probegrid.bake.inputs.check_bake_inputs`) and
-  the scene file's header (:func:`probegrid.scene.gltf.check_scene_file`), before any worker
-  process starts;
+* the grid options (:func:`probegrid.bake.placement.check_grid_options`: syntax, and the
+  probe count where the options alone fix it), the environment file's layout from its header
+  (:func:`probegrid.imageio.detect_file_layout`: a square LDR image is not taken as an
+  angular map unless ``--environment-layout angular`` says so), the bake's inputs that need
+  no scene (:func:`probegrid.bake.inputs.check_bake_inputs`) and the scene file's header
+  (:func:`probegrid.scene.gltf.check_scene_file`), before any worker process starts;
 * **no silent black**: a scene with no emissive material, no punctual light and no
   environment is refused before any work (:func:`probegrid.bake.nolight.require_light`);
   ``--allow-black`` bakes it anyway. A bake none of whose valid probes received light stops
@@ -160,8 +163,14 @@ def run_bake(job: BakeJob) -> BakeReport:
     then :func:`~probegrid.bake.bake`."""
     from probegrid.bake.executors import make_executor
     from probegrid.bake.inputs import check_bake_inputs
+    from probegrid.bake.placement import check_grid_options
     from probegrid.scene.gltf import check_scene_file
 
+    check_grid_options(grid=job.grid, spacing=job.spacing, bounds=job.bounds, margin=job.margin)
+    if job.environment and len(job.environment) == 1 and job.environment_layout == "auto":
+        from probegrid.imageio import detect_file_layout
+
+        detect_file_layout(job.environment[0], option="--environment-layout")
     check_bake_inputs(job.out, settings=job.settings, overwrite=job.overwrite)
     check_scene_file(job.scene)  # (what needs no parsing, before any process starts)
     executor = make_executor(workers=job.workers, scheduler=job.scheduler,

@@ -6,8 +6,10 @@
    a point lamp and a window onto that sky) into a probe grid store, unless it exists already.
 3. Serves the store over HTTP (``--no-serve`` stops after step 2) and prints a query to try.
 
-The bundled files are regenerated from code when missing, so the demo also runs from an
-installed package.
+The repository's ``data/`` files are used as they are when present (a checkout); an installed
+package without them regenerates them from code into a per-user cache once.
+:func:`stop_bake_processes` ends what the bake left running (the fork server that started its
+workers, with the bake's modules loaded) before the store is served.
 """
 
 from __future__ import annotations
@@ -16,14 +18,14 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["run_demo", "sample_data_dir"]
+__all__ = ["run_demo", "sample_data_dir", "stop_bake_processes"]
 
 Progress = Callable[[str], None]
 
 
 def sample_data_dir() -> Path:
     """The repository's ``data/`` directory, or a per-user cache when not run from a checkout."""
-    repo_data = Path(__file__).resolve().parents[1] / "data"
+    repo_data = Path(__file__).resolve().parents[2] / "data"  # (probegrid/jobs/demo.py)
     if (repo_data / "sample_room.glb").is_file() and (repo_data / "sample_sky.hdr").is_file():
         return repo_data
     cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "probegrid" / "data"
@@ -33,6 +35,20 @@ def sample_data_dir() -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         write_sample_data(cache)
     return cache
+
+
+def stop_bake_processes() -> None:
+    """Stop this process's multiprocessing fork server, if one runs: the bake's local executor
+    starts its workers from one that has imported the bake (Embree, numba: ~300 MB), and it
+    outlives the executor, which only stops the workers. Nothing else of this process uses it;
+    a later bake would start a new one."""
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    stop = getattr(server, "_stop", None)  # (CPython's own, since 3.8)
+    if server is not None and stop is not None and \
+            getattr(server, "_forkserver_pid", None) is not None:
+        stop()
 
 
 def run_demo(out: str | os.PathLike[str], *, progress: Progress | None = None,

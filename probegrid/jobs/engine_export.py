@@ -7,8 +7,10 @@ Targets (layouts and conventions in :mod:`probegrid.export.engines`):
 ``threejs``
     ``lightprobegrid.ktx2``: three.js' ``LightProbeGrid`` / ``LightProbeGridWebGL`` SH atlas, a
     3D RGBA texture (``R16G16B16A16_SFLOAT`` by default, or ``R32G32B32A32_SFLOAT``) of
-    ``nx x ny x 7 (nz + 2)`` texels holding the store's radiance SH; ``lightprobegrid.json`` the
-    header (position, size, resolution, padding, packing, dtype).
+    ``nx x ny x 7 (nz + 2)`` texels holding the store's deringed radiance SH (three.js clamps
+    negative irradiance, so the raw projection's ringing would render black; ``sh="raw"`` on
+    request); ``lightprobegrid.json`` the header (position, size, resolution, padding,
+    packing, dtype, which SH).
 ``bevy``
     ``irradiance_volume.ktx2``: Bevy's ``IrradianceVolume`` 3D texture of ``nx x 2 ny x 3 nz``
     ambient cubes (``E5B9G9R9_UFLOAT_PACK32`` by default, as Bevy ships them, or RGBA16F /
@@ -18,9 +20,10 @@ Targets (layouts and conventions in :mod:`probegrid.export.engines`):
     ``diffuse.ktx2`` (one level) and ``specular.ktx2`` (the GGX chain as mips, level ``k`` at
     roughness ``k / (levels - 1)``): cube-map arrays with one layer per probe in store order
     (``index = (i ny + j) nz + k``), or plain cube maps with ``probe=(i, j, k)``; ``sh.json``
-    the radiance SH. Faces +X, -X, +Y, -Y, +Z, -Z in the OpenGL/KTX2 table (``cube_convention
-    ="gltf"``), or mirrored for three.js (x) or Bevy (z) so that their lookups read each world
-    direction's light (:func:`probegrid.export.engines.mirror_cube`); ``RGBA16F`` by default.
+    the radiance SH (deringed by default) and their consumer forms. Faces +X, -X, +Y, -Y, +Z,
+    -Z in the OpenGL/KTX2 table (``cube_convention="gltf"``), or mirrored for three.js (x) or
+    Bevy (z) so that their lookups read each world direction's light
+    (:func:`probegrid.export.engines.mirror_cube`); ``RGBA16F`` by default.
 
 Invalid probes are filled from their valid neighbours first (the manifest says how many).
 Everything is read and checked before the output directory is touched; the manifest is written
@@ -39,12 +42,13 @@ from typing import Any, Literal
 import numpy as np
 
 from probegrid._fs import atomic_write_json
-from probegrid._types import CubeConvention, EngineTarget, choices
+from probegrid._types import CubeConvention, EngineTarget, SHKind, choices
 from probegrid._version import __version__
 from probegrid.core.conventions import conventions
 from probegrid.export import engines, ktx2
-from probegrid.jobs.export import _map_arrays, parse_probe
+from probegrid.jobs.export import SH_MEANING, _map_arrays, parse_probe, read_sh, sh_document
 from probegrid.jobs.filter import prepare_output_dir
+from probegrid.jobs.staging import listed_files, remove_stale
 from probegrid.store import StoreError, open_store
 
 __all__ = ["TARGETS", "export_grid"]
@@ -103,8 +107,13 @@ def export_grid(
     zstd: bool = False,
     probe: str | tuple[int, int, int] | None = None,
     cube_convention: CubeConvention = "gltf",
+    sh: SHKind = "deringed",
 ) -> list[Path]:
     """Export a store for ``target`` into ``out_dir``; returns the files written (manifest last).
+
+    The SH the three.js atlas and ``sh.json`` carry are the deringed ones by default (each
+    probe's irradiance non-negative: three.js clamps negative irradiance to black), ``sh="raw"``
+    the stored projection (:func:`probegrid.jobs.export.read_sh`); the manifest says which.
 
     Raises ``StoreError`` / ``ValueError`` (one line) for a damaged store, an unknown target or
     format, a probe outside the grid, or an ``out_dir`` that holds something else, before
@@ -120,6 +129,8 @@ def export_grid(
                          f"got {cube_convention!r}")
     if cube_convention != "gltf" and target != "ktx2":
         raise ValueError("--cube-convention applies to --target ktx2 (cube maps)")
+    if sh not in SH_MEANING:
+        raise ValueError(f"--sh must be one of {', '.join(SH_MEANING)}, got {sh!r}")
     t0 = time.perf_counter()
     store = open_store(store_path)
     grid = store.grid
@@ -147,8 +158,10 @@ def export_grid(
     doc: dict[str, Any] = {}
     filled = 0
     if target == "threejs":
-        sh, filled = engines.fill_invalid(grid_array("sh"), vgrid)
-        atlas = engines.threejs_atlas(sh)
+        coeffs = read_sh(store, sh, valid=valid)
+        _finite(store.path, "sh", coeffs[valid])
+        filled_sh, filled = engines.fill_invalid(coeffs.reshape(nx, ny, nz, 9, 3), vgrid)
+        atlas = engines.threejs_atlas(filled_sh)
         place = engines.threejs_placement(grid)
         payload[out / "lightprobegrid.ktx2"] = ktx2.encode_ktx2_parts(
             [atlas], kind="3d", vk_format=fmt, supercompression="zstd" if zstd else "none",
@@ -163,6 +176,7 @@ def export_grid(
             "sh": ("radiance L_lm, world frame (glTF/three.js: right-handed, +Y up), basis "
                    "index l(l+1)+m without Condon-Shortley phase: three's shGetIrradianceAt "
                    "applies the cosine lobe (0.886227 c0 ...)"),
+            "sh_kind": sh, "sh_meaning": SH_MEANING[sh],
             "conventions": {k: conv[k] for k in ("world_frame", "color_space",
                                                  "radiance_units", "sh_basis",
                                                  "sh_coefficients")},
@@ -199,15 +213,17 @@ def export_grid(
                   int(store.probe_index(*ijk)))
         diffuse = np.asarray(store["diffuse"][select], dtype=np.float32)
         chain = [np.asarray(store[n][select], dtype=np.float32) for n in names]
-        sh = np.asarray(store["sh"][select], dtype=np.float64)
+        coeffs = (read_sh(store, sh, valid=valid) if ijk is None
+                  else read_sh(store, sh, index=select))
         if ijk is None:
             filled_d, filled = engines.fill_invalid(
                 diffuse.reshape((nx, ny, nz) + diffuse.shape[1:]), vgrid)
             diffuse = filled_d.reshape(diffuse.shape)
             chain = [engines.fill_invalid(c.reshape((nx, ny, nz) + c.shape[1:]), vgrid)[0]
                      .reshape(c.shape) for c in chain]
-            sh = engines.fill_invalid(sh.reshape(nx, ny, nz, 9, 3), vgrid)[0].reshape(sh.shape)
-        for name, a in [("diffuse", diffuse), ("sh", sh)] + list(zip(names, chain)):
+            coeffs = engines.fill_invalid(coeffs.reshape(nx, ny, nz, 9, 3),
+                                          vgrid)[0].reshape(coeffs.shape).astype(np.float64)
+        for name, a in [("diffuse", diffuse), ("sh", coeffs)] + list(zip(names, chain)):
             _finite(store.path, name, a)
         mirror = engines.CUBE_MIRROR[cube_convention]
         diffuse = engines.mirror_cube(diffuse, mirror)
@@ -231,11 +247,10 @@ def export_grid(
                                         for k in range(n_lv)],
                           "vk_format": ktx2._FORMATS[fmt][0],
                           "layers": grid.n_probes if layered else None})
-        payload[out / "sh.json"] = {"coefficients": sh.tolist(), "basis": conv["sh_basis"],
-                                    "content": conv["sh_coefficients"],
-                                    "order": "probe index (i ny + j) nz + k" if layered
-                                    else f"probe {list(ijk)}"}
-        files.append({"path": "sh.json", "kind": "sh"})
+        payload[out / "sh.json"] = sh_document(
+            coeffs, sh, conv, order="probe index (i ny + j) nz + k" if layered
+            else f"probe {list(ijk)}")
+        files.append({"path": "sh.json", "kind": "sh", "sh": sh})
         doc = {"ktx2": {"layers": ("one cube per probe, layer = store probe index "
                                    "(i ny + j) nz + k") if layered else f"probe {list(ijk)}",
                         "probe_valid": None if layered else bool(valid[select]),
@@ -243,7 +258,9 @@ def export_grid(
                         "faces": _CUBE_WORDS[cube_convention]}}
 
     # --- write ------------------------------------------------------------------------------
+    previous = listed_files(out)  # an earlier export's files (its manifest goes now)
     prepare_output_dir(out, output_format)
+    remove_stale(out, previous, {p.name for p in payload} | {"manifest.json"})
     written: list[Path] = []
     for path, data in payload.items():
         if isinstance(data, list):  # a KTX2 file's parts
@@ -262,6 +279,7 @@ def export_grid(
                  "bounds_max": list(grid.bounds_max),
                  "probe_position": "bounds_min + (i, j, k) * (max - min) / (counts - 1)"},
         "invalid_probes_filled": filled,
+        **({"sh": {"kind": sh, "meaning": SH_MEANING[sh]}} if target != "bevy" else {}),
         "fill": "each invalid probe = mean of its valid (or already filled) face neighbours, "
                 "filled outward from the valid probes",
         **doc, "conventions": conv, "files": files,

@@ -1,7 +1,9 @@
 """Reading a grid store back out: ``probegrid info`` (the manifest in words) and
-``probegrid export`` (one probe's maps as image files with the conventions beside them, or
-many probes' at once: ``--probe all`` or a box ``I0,J0,K0:I1,J1,K1``, a folder per probe with
-PNG previews).
+``probegrid export`` (one probe's maps as image files with PNG previews and the conventions
+beside them, or many probes' at once: ``--probe all`` or a box ``I0,J0,K0:I1,J1,K1``, a folder
+per probe). Every ``sh.json`` holds the probe's deringed SH by default (:func:`read_sh`: the
+irradiance non-negative everywhere, as the service's ``/sh`` answers; ``sh="raw"`` the stored
+projection) with the consumers' forms (:func:`sh_document`); the manifest says which.
 
 Both trust nothing in the store beyond what :func:`probegrid.store.open_store` checks (manifest
 schema, file headers and sizes) and refuse, with a one-line :class:`~probegrid.store.StoreError`:
@@ -26,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid._fs import atomic_write_json
-from probegrid._types import CubeLayout, ImageFormat
+from probegrid._types import CubeLayout, ImageFormat, SHKind
 from probegrid._version import __version__
 from probegrid.jobs.filter import prepare_output_dir
 from probegrid.store import (
@@ -40,14 +42,72 @@ from probegrid.store import (
 from probegrid.store.check import map_arrays as _map_arrays
 from probegrid.store.check import specular_levels as _specular_levels
 
-__all__ = ["EXPORT_FORMAT", "EXPORT_MANY_FORMAT", "ExportResult", "ProbesExport",
-           "describe_store", "export_probe", "export_probes", "parse_probe", "parse_probes"]
+__all__ = ["EXPORT_FORMAT", "EXPORT_MANY_FORMAT", "SH_MEANING", "ExportResult", "ProbesExport",
+           "describe_store", "export_probe", "export_probes", "parse_probe", "parse_probes",
+           "read_sh"]
 
 #: ``format`` of the manifest of an export directory.
 EXPORT_FORMAT = "probegrid.probe-export"
 #: ``format`` of the manifest of a many-probe export (``--probe all`` or a box).
 EXPORT_MANY_FORMAT = "probegrid.probes-export"
 _SPECULAR_RE = re.compile(r"^specular_(0|[1-9][0-9]*)$")
+
+#: What each kind of exported SH is (``sh`` of every export's manifest and ``sh.json``).
+SH_MEANING: dict[str, str] = {
+    "deringed": ("deringed: each probe's radiance SH windowed so that its irradiance is "
+                 "non-negative over the whole sphere (the store's sh_deringed; equal to the raw "
+                 "projection where that already holds), as the service's /sh answers by "
+                 "default; a consumer that clamps negative irradiance (three.js) then shows "
+                 "no black patches"),
+    "raw": ("raw: the store's least-squares SH projection of each probe (may ring: negative "
+            "irradiance opposite a bright light)"),
+}
+
+
+def sh_document(coefficients: NDArray[np.float64], kind: str, conv: dict[str, Any], *,
+                order: str | None = None) -> dict[str, Any]:
+    """An export's ``sh.json``: the radiance coefficients (``(9, 3)`` or ``(P, 9, 3)``), which
+    kind they are, their basis, and the same SH in each consumer's form
+    (:func:`probegrid.export.shforms.sh_forms`), as the filter's ``sh.json`` carries them."""
+    from probegrid.export.shforms import sh_forms
+
+    doc: dict[str, Any] = {"coefficients": coefficients.tolist(), "sh": kind,
+                           "sh_meaning": SH_MEANING[kind], "basis": conv["sh_basis"],
+                           "content": conv["sh_coefficients"]}
+    if order is not None:
+        doc["order"] = order
+    doc["consumers"] = sh_forms(coefficients)
+    return doc
+
+
+def read_sh(store: ProbeStore, kind: SHKind = "deringed", *,
+            index: int | None = None, valid: NDArray[np.bool_] | None = None
+            ) -> NDArray[np.float64]:
+    """The radiance SH an export writes: ``(P, 9, 3)``, or ``(9, 3)`` of probe ``index``.
+
+    ``kind="deringed"`` (the default of every export) reads the store's ``sh_deringed`` extra,
+    or, for a store without it (format 1), windows the raw SH here
+    (:func:`probegrid.core.sh.dering.dering`; only the ``valid`` probes of a whole grid, the
+    others being replaced by the exports anyway); ``"raw"`` the stored projection.
+    """
+    if kind not in SH_MEANING:
+        raise ValueError(f"--sh must be one of {', '.join(SH_MEANING)}, got {kind!r}")
+    select = slice(None) if index is None else index
+    if kind == "deringed" and "sh_deringed" in store.extras:
+        return np.asarray(store["sh_deringed"][select], dtype=np.float64)
+    raw = np.array(store["sh"][select], dtype=np.float64)
+    if kind == "raw":
+        return raw
+    from probegrid.core.sh.dering import dering
+
+    if index is not None:
+        return dering(raw[None])[0][0]
+    rows = np.isfinite(raw).all(axis=(1, 2))
+    if valid is not None:
+        rows &= np.asarray(valid, dtype=bool)
+    if rows.any():
+        raw[rows] = dering(raw[rows])[0]
+    return raw
 
 
 def _mb(nbytes: int) -> str:
@@ -238,8 +298,9 @@ def _read_probes(store: ProbeStore, maps: list[tuple[str, str, int | None]],
 def _write_probe(out: Path, store: ProbeStore, maps: list[tuple[str, str, int | None]],
                  index: int, ijk: tuple[int, int, int], conv: dict[str, Any], *,
                  layout: CubeLayout, fmt: ImageFormat, half: bool,
-                 previews: bool) -> tuple[list[dict[str, Any]], list[Path]]:
-    """One probe's maps, ``sh.json`` and (``previews``) PNG previews into ``out``."""
+                 previews: bool, sh_kind: SHKind) -> tuple[list[dict[str, Any]], list[Path]]:
+    """One probe's maps, ``sh.json`` (the ``sh_kind`` SH, :func:`sh_document`) and
+    (``previews``) PNG previews into ``out``."""
     from probegrid import imageio
     from probegrid.jobs.filter import _specular_sheet
 
@@ -260,14 +321,14 @@ def _write_probe(out: Path, store: ProbeStore, maps: list[tuple[str, str, int | 
         files.append({"path": [str(q.relative_to(out)) for q in paths], "kind": kind,
                       "level": level, "roughness": r, "layout": layout, "format": fmt,
                       "dtype": paths.pixel_type, "face_size": int(faces.shape[1])})
-    atomic_write_json(out / "sh.json", {
-        "coefficients": np.asarray(store["sh"][index], dtype=np.float64).tolist(),
-        "basis": conv["sh_basis"], "content": conv["sh_coefficients"]})
-    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None})
+    atomic_write_json(out / "sh.json", sh_document(read_sh(store, sh_kind, index=index),
+                                                   sh_kind, conv))
+    files.append({"path": "sh.json", "kind": "sh", "level": None, "roughness": None,
+                  "sh": sh_kind})
     written.append(out / "sh.json")
-    if previews:  # as filter's: one exposure (the incoming light's, else level 0's) for all
-        exposure = imageio.cube_exposure(data.get("incoming", data.get("specular_0",
-                                                                       data["diffuse"])))
+    if previews:  # as filter's: each tone-mapped by its own statistics
+        from probegrid.core.color import PREVIEW_TONE_MAPPING
+
         shown = [("diffuse", data["diffuse"])]
         if n_levels:
             shown.append(("specular", _specular_sheet([data[f"specular_{k}"]
@@ -276,9 +337,10 @@ def _write_probe(out: Path, store: ProbeStore, maps: list[tuple[str, str, int | 
             shown.append(("incoming", data["incoming"]))
         for what, img in shown:
             path = out / f"preview_{what}.png"
-            imageio.write_preview_png(path, img, exposure=exposure)
+            imageio.write_preview_png(path, img)
             files.append({"path": path.name, "kind": "preview", "of": what, "level": None,
                           "roughness": None, "format": "png",
+                          "tone_mapping": PREVIEW_TONE_MAPPING,
                           "layout": "hcross per level, level 0 at the top"
                           if what == "specular" else "hcross"})
             written.append(path)
@@ -293,9 +355,12 @@ def export_probe(
     layout: CubeLayout = "faces",
     fmt: ImageFormat = "exr",
     half: bool = False,
-    previews: bool = False,
+    previews: bool = True,
+    sh: SHKind = "deringed",
 ) -> ExportResult:
-    """Write one probe's maps (diffuse, specular levels, incoming if stored, SH) and a manifest.
+    """Write one probe's maps (diffuse, specular levels, incoming if stored, the ``sh`` kind of
+    SH: deringed by default, :func:`read_sh`), PNG previews (unless ``previews`` is false) and
+    a manifest.
 
     Everything is read and checked before anything is written: a damaged store (missing or
     misshapen arrays, non-contiguous specular levels, non-finite values in this probe) raises
@@ -310,6 +375,8 @@ def export_probe(
     if fmt == "hdr" and half:
         raise ValueError("--half applies to EXR; Radiance HDR files are always RGBE (8-bit "
                          "mantissas, shared exponent)")
+    if sh not in SH_MEANING:
+        raise ValueError(f"--sh must be one of {', '.join(SH_MEANING)}, got {sh!r}")
     store = open_store(store_path)
     ijk = parse_probe(probe, store) if isinstance(probe, str) else probe
     maps = _map_arrays(store)
@@ -319,7 +386,7 @@ def export_probe(
     with staged_output(out, lambda final: prepare_output_dir(final, EXPORT_FORMAT,
                                                              create=False)) as stage:
         written = _write_export(stage, store, store_path, ijk, index, maps, layout=layout,
-                                fmt=fmt, half=half, previews=previews)
+                                fmt=fmt, half=half, previews=previews, sh_kind=sh)
     return ExportResult([out / p.relative_to(stage) for p in written],
                         probe=tuple(ijk), valid=_probe_valid(store, index))
 
@@ -345,14 +412,14 @@ def _probe_valid(store: ProbeStore, index: int) -> bool | None:
 def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[str],
                   ijk: tuple[int, ...], index: int, maps: list[tuple[str, str, int | None]],
                   *, layout: CubeLayout, fmt: ImageFormat, half: bool,
-                  previews: bool) -> list[Path]:
+                  previews: bool, sh_kind: SHKind) -> list[Path]:
     """Write the probe's files into (staging) directory ``out``; returns their paths."""
     from probegrid.core.conventions import conventions
 
     manifest_path = out / "manifest.json"
     conv = conventions()
     files, written = _write_probe(out, store, maps, index, ijk, conv, layout=layout, fmt=fmt,
-                                  half=half, previews=previews)
+                                  half=half, previews=previews, sh_kind=sh_kind)
     position = (np.asarray(store["positions"][index], dtype=np.float64).tolist()
                 if "positions" in store.names else None)
     valid = _probe_valid(store, index)
@@ -360,6 +427,7 @@ def _write_export(out: Path, store: ProbeStore, store_path: str | os.PathLike[st
         "format": EXPORT_FORMAT, "format_version": 1,
         "probegrid_version": __version__, "store": str(Path(store_path)),
         "probe": {"ijk": list(ijk), "index": index, "position": position, "valid": valid},
+        "sh": {"kind": sh_kind, "meaning": SH_MEANING[sh_kind]},
         "conventions": conv, "files": files,
     })
     written.append(manifest_path)
@@ -397,6 +465,7 @@ def export_probes(
     fmt: ImageFormat = "exr",
     half: bool = False,
     previews: bool = True,
+    sh: SHKind = "deringed",
 ) -> ProbesExport:
     """Many probes' maps at once (``selection``: ``all``, ``I0,J0,K0:I1,J1,K1`` or ``I,J,K``):
     a folder ``I_J_K`` per probe holding what :func:`export_probe` writes plus PNG previews
@@ -404,6 +473,8 @@ def export_probes(
     ``manifest.json`` listing every probe with its position and validity. Checked first like
     :func:`export_probe` (every selected probe's values must be finite)."""
 
+    if sh not in SH_MEANING:
+        raise ValueError(f"--sh must be one of {', '.join(SH_MEANING)}, got {sh!r}")
     store = open_store(store_path)
     probes = parse_probes(selection, store)
     maps = _map_arrays(store)
@@ -419,7 +490,7 @@ def export_probes(
                                                              create=False)) as stage:
         count, invalid = _write_many(stage, store, store_path, selection, probes, indices, maps,
                                      valid, positions, layout=layout, fmt=fmt, half=half,
-                                     previews=previews)
+                                     previews=previews, sh_kind=sh)
     return ProbesExport(out, probes, invalid, count)
 
 
@@ -427,7 +498,8 @@ def _write_many(out: Path, store: ProbeStore, store_path: str | os.PathLike[str]
                 probes: list[tuple[int, int, int]], indices: list[int],
                 maps: list[tuple[str, str, int | None]], valid: NDArray[np.bool_] | None,
                 positions: NDArray[np.float64] | None, *, layout: CubeLayout, fmt: ImageFormat,
-                half: bool, previews: bool) -> tuple[int, list[tuple[int, int, int]]]:
+                half: bool, previews: bool,
+                sh_kind: SHKind) -> tuple[int, list[tuple[int, int, int]]]:
     """Write :func:`export_probes`' folders and manifest into (staging) directory ``out``;
     returns the number of files and the invalid probes."""
     from probegrid.core.conventions import conventions
@@ -439,7 +511,8 @@ def _write_many(out: Path, store: ProbeStore, store_path: str | os.PathLike[str]
         sub = out / "_".join(map(str, ijk))
         sub.mkdir(exist_ok=True)
         files, written = _write_probe(sub, store, maps, index, ijk, conv, layout=layout,
-                                      fmt=fmt, half=half, previews=previews)
+                                      fmt=fmt, half=half, previews=previews,
+                                      sh_kind=sh_kind)
         count += len(written)
         entries.append({"ijk": list(ijk), "index": index, "folder": sub.name,
                         "position": None if positions is None else positions[index].tolist(),
@@ -452,6 +525,7 @@ def _write_many(out: Path, store: ProbeStore, store_path: str | os.PathLike[str]
         "probegrid_version": __version__, "store": str(Path(store_path)),
         "selection": selection, "count": len(probes),
         "invalid": [list(p) for p in invalid],
+        "sh": {"kind": sh_kind, "meaning": SH_MEANING[sh_kind]},
         "conventions": conv, "probes": entries,
     })
     return count + 1, invalid

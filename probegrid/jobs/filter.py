@@ -39,6 +39,7 @@ from probegrid._fs import atomic_write_json, fsync_file
 from probegrid._machine import available_cores
 from probegrid._types import ImageFormat
 from probegrid._version import __version__
+from probegrid.core.color import PREVIEW_TONE_MAPPING
 from probegrid.core.conventions import conventions
 from probegrid.filter import FilteredEnvironment, FilterSettings, Progress, check_settings
 
@@ -79,6 +80,13 @@ class FilterResult:
                 f"{min(q['energy']['specular']):.4f}..{max(q['energy']['specular']):.4f}"
             ),
         ]
+        low = min(q["sh_min_irradiance_over_pi"])
+        if low < 0:  # as the bake says of its raw SH
+            lines.append(
+                f"  warning:   the SH's irradiance is negative in some directions (min "
+                f"irradiance/pi {low:.4g}): ringing of the truncated projection; a consumer "
+                "that clamps it (three.js) shows black there. Window the coefficients "
+                "(probegrid.core.sh.dering) or light with the diffuse map")
         previews = [f["path"] for f in self.files if f["kind"] == "preview"]
         if previews:
             lines.append("  previews:  " + ", ".join(str(self.out_dir / p) for p in previews))
@@ -175,6 +183,10 @@ def run_filter(
     check_settings(settings)
     paths = [env] if isinstance(env, (str, os.PathLike)) else list(env)
     out = prepare_output_dir(out_dir, FILTER_FORMAT, create=False)  # refuse early
+    if len(paths) == 1 and settings.layout == "auto":  # from the header, before any pixel
+        from probegrid.imageio import detect_file_layout
+
+        detect_file_layout(paths[0], option="--layout")
     with staged_output(out, lambda final: prepare_output_dir(final, FILTER_FORMAT,
                                                              create=False)) as stage:
         manifest, files = _filter_into(stage, paths, settings, progress,
@@ -282,6 +294,7 @@ def _filter_into(
             "energy": env.energy,
             "seam_score": env.seam_score,
         },
+        "previews": ({"tone_mapping": PREVIEW_TONE_MAPPING} if settings.previews else None),
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
         "files": files,
     }
@@ -297,18 +310,19 @@ def _attributes(conv: dict[str, Any], kind: str) -> dict[str, str]:
 
 def _submit_previews(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment
                      ) -> list[Future[dict[str, Any]]]:
-    """The PNG previews of the input, the specular chain and the diffuse map, one exposure for
-    all (so they compare), encoded by ``pool``; their manifest entries."""
+    """The PNG previews of the input, the specular chain and the diffuse map, each tone-mapped
+    by its own statistics (:data:`probegrid.imageio.PREVIEW_TONE_MAPPING`: a preview whose
+    exposure came from the input would show a bright studio's diffuse map a third white),
+    encoded by ``pool``; their manifest entries."""
     from probegrid import imageio
 
     def preview(name: str, faces: NDArray[np.float32], layout: str) -> dict[str, Any]:
-        path = imageio.write_preview_png(out / f"preview_{name}.png", faces, exposure=exposure,
-                                         durable=False)
+        path = imageio.write_preview_png(out / f"preview_{name}.png", faces, durable=False)
         fsync_file(path)
         return {"path": path.name, "kind": "preview", "of": name, "level": None,
-                "roughness": None, "layout": layout, "format": "png"}
+                "roughness": None, "layout": layout, "format": "png",
+                "tone_mapping": PREVIEW_TONE_MAPPING}
 
-    exposure = imageio.cube_exposure(env.cube)
     return [
         pool.submit(preview, "input", env.cube, "hcross"),
         pool.submit(preview, "specular", _specular_sheet(env.specular),  # (the largest first)
@@ -351,8 +365,10 @@ def _write_maps(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment,
     if ext == "ktx2":  # specular.ktx2 (the chain as mips) and diffuse.ktx2
         from probegrid.export.environment import write_environment_ktx2
 
+        vk_format = settings.vk_format or ("R16G16B16A16_SFLOAT" if settings.half
+                                           else "R32G32B32A32_SFLOAT")
         return write_environment_ktx2(out, env.diffuse_export, env.specular_export,
-                                      vk_format=97 if settings.half else 109,
+                                      vk_format=vk_format, zstd=settings.zstd,
                                       cube_convention=settings.cube_convention,
                                       key_values={"probegrid:conventions": json.dumps(conv)}), []
     if ext == "gltf":  # environment.gltf (EXT_lights_image_based) and its RGBD PNG faces

@@ -412,7 +412,7 @@ def write_sample_data(directory: str | Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     """``python -m probegrid.jobs.samples [DIR]``: regenerate the sample data (default ``data/``)."""
     args = sys.argv[1:] if argv is None else argv
-    target = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "data"
+    target = Path(args[0]) if args else Path(__file__).resolve().parents[2] / "data"
     for p in write_sample_data(target):
         print(f"wrote {p} ({p.stat().st_size} bytes)")
     return 0

@@ -11,9 +11,11 @@ moved into place:
   no directory, or the finished one);
 * an earlier output of the same kind (the only other case
   :func:`probegrid.jobs.filter.prepare_output_dir` allows): its ``manifest.json`` is removed
-  first, each staged file renamed over its old namesake, and the new ``manifest.json`` moved
-  last, so a directory with a manifest always holds a finished output, and files that are not
-  the job's (the user's own) are left alone.
+  first, then the files it lists that the new output does not write (an earlier run's
+  ``specular_m7`` beside a new 6-level chain: :func:`remove_stale`), each staged file is
+  renamed over its old namesake, and the new ``manifest.json`` moved last, so a directory with
+  a manifest always holds a finished output and nothing of an earlier one; files the earlier
+  manifest does not list (the user's own) are left alone.
 
 When the block raises (a bad option found late, a full disk, Ctrl-C, SIGTERM), the staging
 folder and every directory created for it are removed and an earlier output is left exactly as
@@ -22,6 +24,7 @@ it was: no failure leaves temporary files or a half-written output.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
@@ -31,10 +34,59 @@ from pathlib import Path
 
 from probegrid._fs import fsync_dir
 
-__all__ = ["MANIFEST", "check_writable_location", "staged_output", "staging_path"]
+__all__ = ["MANIFEST", "check_writable_location", "listed_files", "remove_stale",
+           "staged_output", "staging_path"]
 
 #: The file written last into an output directory: its presence marks a finished output.
 MANIFEST = "manifest.json"
+
+
+def listed_files(out: str | os.PathLike[str]) -> set[str]:
+    """The files the ``manifest.json`` in ``out`` says its output wrote, as paths relative to
+    ``out`` (``files[].path``, a name or a list of names, and ``probes[].folder`` with its
+    ``files``, as every probegrid output manifest lists them); empty when there is no readable
+    manifest. Names that would leave ``out`` (absolute, ``..``) are not returned."""
+    try:
+        doc = json.loads((Path(out) / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return set()
+    found: set[str] = set()
+
+    def add(entries: object, folder: str = "") -> None:
+        for entry in entries if isinstance(entries, list) else ():
+            path = entry.get("path") if isinstance(entry, dict) else None
+            for name in path if isinstance(path, list) else [path]:
+                if isinstance(name, str) and name:
+                    found.add(os.path.join(folder, name) if folder else name)
+
+    if isinstance(doc, dict):
+        add(doc.get("files"))
+        probes = doc.get("probes")
+        for probe in probes if isinstance(probes, list) else ():
+            folder = probe.get("folder") if isinstance(probe, dict) else None
+            if isinstance(folder, str) and folder:
+                add(probe.get("files"), folder)
+    return {n for n in found if not os.path.isabs(n)
+            and ".." not in Path(n).parts and Path(n).parts}
+
+
+def remove_stale(out: str | os.PathLike[str], previous: set[str], kept: set[str]) -> list[str]:
+    """Remove from ``out`` the files of ``previous`` (an earlier output's :func:`listed_files`)
+    that the new output does not write (not in ``kept``, paths relative to ``out``), and the
+    folders that leaves empty; only regular files and links are removed, never a directory's
+    content the manifest did not list. Returns the removed paths."""
+    base = Path(out)
+    removed: list[str] = []
+    for name in sorted(previous - kept):
+        path = base / name
+        if path.is_symlink() or path.is_file():
+            path.unlink()
+            removed.append(name)
+            parent = path.parent
+            while parent != base and parent.is_dir() and not any(parent.iterdir()):
+                parent.rmdir()
+                parent = parent.parent
+    return removed
 
 
 def staging_path(out: str | os.PathLike[str]) -> Path:
@@ -141,10 +193,26 @@ def _commit(staging: Path, final: Path) -> None:
         else:
             fsync_dir(final.parent)
             return
+    previous = listed_files(final)
     (final / MANIFEST).unlink(missing_ok=True)
     fsync_dir(final)
+    kept = {str(p.relative_to(staging)) for p in staging.rglob("*") if not p.is_dir()}
+    remove_stale(final, previous, kept)
     names = sorted(p.name for p in staging.iterdir())
     for name in [n for n in names if n != MANIFEST] + [n for n in names if n == MANIFEST]:
-        os.replace(staging / name, final / name)
+        _move(staging / name, final / name)
     fsync_dir(final)
     staging.rmdir()
+
+
+def _move(source: Path, target: Path) -> None:
+    """Rename ``source`` over ``target``; a folder onto an existing folder is merged (its files
+    renamed one by one, the target's other files left alone)."""
+    if source.is_dir() and not source.is_symlink() and target.is_dir() \
+            and not target.is_symlink():
+        for child in sorted(source.iterdir()):
+            _move(child, target / child.name)
+        fsync_dir(target)
+        source.rmdir()
+        return
+    os.replace(source, target)
