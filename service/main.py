@@ -115,9 +115,6 @@ def create_app(
     # the viewer's data and pages (service.routers.viewer, service.routers.web)
     app.state.probegrid_assets = StaticAssets()
     app.state.probegrid_pages = {}
-    app.state.probegrid_probes = {}
-    app.state.probegrid_scenes = viewer.open_scenes(registry)
-    app.state.probegrid_threejs = {}  # grid name -> service.routers.exports.ThreeExport
     app.include_router(viewer.router)
     app.include_router(exports.router)
     app.include_router(web.router)
