@@ -75,6 +75,7 @@ References
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 from collections.abc import Callable, Mapping, Sequence
@@ -547,6 +548,39 @@ _WRITERS: Final[int] = 3
 _FAST_PNG: Final[Mapping[str, int]] = {"png:compressionLevel": 1, "png:filter": 16}
 
 
+#: The last 12 bytes of every PNG file: the IEND chunk (length 0, type, CRC).
+_PNG_END: Final = b"\0\0\0\0IEND\xaeB`\x82"
+
+
+def _check_written(tmp: Path, p: Path, height: int) -> None:
+    """ImageError unless the file just written ends as an image file ends (a PNG in its IEND
+    chunk; other formats: their last scanline reads back). OpenImageIO's writers report a
+    failed write of the pixels but not the final flush of the file's buffer: on a full disk an
+    image of a few KiB is left empty (or short) behind a successful close."""
+    try:
+        size = tmp.stat().st_size
+        if p.suffix.lower() == ".png":
+            with open(tmp, "rb") as f:
+                f.seek(max(0, size - len(_PNG_END)))
+                whole = size > len(_PNG_END) and f.read() == _PNG_END
+        else:
+            inp = oiio.ImageInput.open(str(tmp)) if size else None
+            whole = inp is not None and inp.spec().height == height
+            if inp is not None:
+                whole = (whole and inp.read_scanline(height - 1, 0, "float") is not None
+                         and not inp.has_error)
+                inp.close()
+    except OSError as exc:
+        raise ImageError(f"{p}: cannot write image ({exc.strerror}).") from None
+    if not whole:
+        try:
+            full = os.statvfs(tmp.parent).f_bavail == 0
+        except OSError:
+            full = False
+        reason = os.strerror(errno.ENOSPC) if full else "the file is incomplete"
+        raise ImageError(f"{p}: cannot write image ({reason}).")
+
+
 def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
                metadata: Mapping[str, str], durable: bool = True, fast: bool = False) -> Path:
     """Write ``data`` to a temporary sibling of ``p`` and (``durable``) flush it; return the
@@ -578,6 +612,7 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
         ok = out.close() and ok
         if not ok or out.has_error:
             raise ImageError(f"{p}: cannot write image ({_one_line(out.geterror())}).")
+        _check_written(tmp, p, h)
         if durable:
             fsync_file(tmp)
     except BaseException:

@@ -574,3 +574,52 @@ def test_truncating_a_served_stores_files_does_not_crash_the_server(lin, tmp_pat
                           capture_output=True, cwd=Path(__file__).parents[1], timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]  # -7 (SIGBUS) with mapped arrays
     assert done.stdout.strip() == "True"
+
+
+# ---------------------------------------------------------------------------- failed writes
+MAPS_URL = "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5&format="
+
+
+def _assert_scratch_503(response: httpx.Response, scratch: Path) -> None:
+    assert response.status_code == 503 and response.content
+    assert response.json()["error"] == "scratch_unavailable"
+    assert response.headers["retry-after"] == "5"
+    assert str(scratch) not in response.text and "etag" not in response.headers
+
+
+@pytest.mark.parametrize("fmt", ["exr", "hdr", "png"])
+def test_a_failing_scratch_write_is_a_503_not_the_clients_fault(lin, monkeypatch, fmt):
+    import errno
+
+    import service.encoding
+
+    def full(path, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(service.encoding, "write_image", full)
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, MAPS_URL + fmt)
+    _assert_scratch_503(r, app.state.probegrid.scratch)
+
+
+@pytest.mark.parametrize("fmt", ["exr", "hdr", "png"])
+def test_a_full_scratch_file_system_is_a_503_with_no_empty_body(lin, tmp_path, fmt):
+    import os
+    import subprocess
+
+    mnt = tmp_path / "scratch"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs",
+                                            str(mnt)], capture_output=True).returncode:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        with open(mnt / "fill", "wb") as f, pytest.raises(OSError):
+            f.write(b"\0" * 70000)
+            f.flush()
+        app = create_app([lin], LIMITS)
+        app.state.probegrid.scratch = mnt
+        (r,) = _get(app, MAPS_URL + fmt)
+        _assert_scratch_503(r, mnt)
+        assert sorted(p.name for p in mnt.iterdir()) == ["fill"]
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
