@@ -11,6 +11,7 @@ a value the library rejects (ValueError)     422     ``invalid_request``
 body over ``max_body_bytes``, batch too big  413     ``too_large``
 store files unreadable (server side)         503     ``store_unavailable``
 scratch space full or failing (server side)  503     ``scratch_unavailable``
+all heavy-request slots taken (lights/shade)  503     ``busy``
 anything else (a server bug)                 500     ``internal_error``
 ===========================================  ======  ======================
 

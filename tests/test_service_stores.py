@@ -623,3 +623,28 @@ def test_a_full_scratch_file_system_is_a_503_with_no_empty_body(lin, tmp_path, f
         assert sorted(p.name for p in mnt.iterdir()) == ["fill"]
     finally:
         subprocess.run(["umount", str(mnt)], check=True)
+
+
+# ---------------------------------------------------------------------------- bounded cost
+def _post(app, url: str, body: dict) -> httpx.Response:
+    async def run() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post(url, json=body)
+
+    return asyncio.run(run())
+
+
+def test_heavy_requests_beyond_the_cap_are_503_busy_with_retry_after(lin):
+    app = create_app([lin], Settings(max_heavy_requests=1))
+    state = app.state.probegrid
+    shade = {"points": [{"position": [0.75, 0.25, 1.5], "normal": [0, 1, 0],
+                         "view": [0, 1, 0]}]}
+    light = {"position": [0.75, 0.25, 1.5], "kind": "diffuse", "diffuse_size": 4,
+             "lights": [{"type": "point", "position": [1, 2, 1], "intensity": 5}]}
+    with state.heavy():  # the one slot is taken (a long request under way)
+        for r in (_post(app, "/v1/grids/lin/shade", shade), _post(app, "/v1/lights/maps", light)):
+            assert r.status_code == 503 and r.json()["error"] == "busy"
+            assert r.headers["retry-after"] == "1"
+    assert _post(app, "/v1/grids/lin/shade", shade).status_code == 200
+    assert _post(app, "/v1/lights/maps", light).status_code == 200
