@@ -111,6 +111,7 @@ __all__ = [
     "FACE_ORDER_HELP",
     "FACE_SUFFIXES",
     "HALF_MAX",
+    "MAX_PIXELS",
     "PIXEL_TYPES",
     "READ_EXTENSIONS",
     "WRITE_EXTENSIONS",
@@ -266,13 +267,23 @@ def _open(p: Path) -> oiio.ImageInput:
     return inp
 
 
-def read_image(path: str | os.PathLike[str]) -> NDArray[np.float32]:
+#: Most pixels :func:`read_image` decodes (2^28: a 23170^2 image, 3 GiB as float32 RGB); a
+#: header that declares more is refused before any pixel is read or memory allocated.
+MAX_PIXELS: Final[int] = 1 << 28
+
+
+def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None
+               ) -> NDArray[np.float32]:
     """Read an image as linear RGB.
 
     Parameters
     ----------
     path : str or Path
         ``.hdr``, ``.exr``, ``.pfm``, ``.tif``, ``.tiff``, ``.png``, ``.jpg`` or ``.jpeg``.
+    max_pixels : int, optional
+        Largest ``width x height`` read (default :data:`MAX_PIXELS`); more is an ImageError
+        raised from the header alone (OpenImageIO itself refuses a header that declares far
+        more pixels than the file holds; this bounds what a real file may cost).
 
     Returns
     -------
@@ -294,6 +305,10 @@ def read_image(path: str | os.PathLike[str]) -> NDArray[np.float32]:
                 f"{p}: not a flat 2-D image (width {w}, height {h}, depth {depth}, "
                 f"{c} channels{', deep' if spec.deep else ''})."
             )
+        max_pixels = MAX_PIXELS if max_pixels is None else max_pixels
+        if w * h > max_pixels:
+            raise ImageError(f"{p}: {w}x{h} is {w * h} pixels, over the limit of {max_pixels} "
+                             "an image may have here; downsample it first.")
         integer = spec.format.basetype not in (oiio.BASETYPE.HALF, oiio.BASETYPE.FLOAT,
                                                oiio.BASETYPE.DOUBLE)
         data = inp.read_image(0, 0, 0, c, oiio.FLOAT)

@@ -433,3 +433,15 @@ def test_writes_on_a_full_file_system_raise(full_fs, ext, n):
     with pytest.raises(io.ImageError, match="cannot write image"):
         io.write_image(full_fs / f"x.{ext}", np.ones((6 * n, n, 3), np.float32), half=False)
     assert sorted(p.name for p in full_fs.iterdir()) == ["fill"]
+
+
+# ------------------------------------------------------------------------------ pixel limits
+def test_an_image_with_too_many_pixels_is_refused_from_its_header(tmp_path, monkeypatch):
+    small = io.write_image(tmp_path / "s.exr", np.ones((4, 4, 3), np.float32))
+    with pytest.raises(io.ImageError, match="4x4 is 16 pixels, over the limit of 15"):
+        io.read_image(small, max_pixels=15)
+    assert io.read_image(small, max_pixels=16).shape == (4, 4, 3)
+    assert io.MAX_PIXELS == 1 << 28
+    monkeypatch.setattr(io, "MAX_PIXELS", 8)  # the default limit
+    with pytest.raises(io.ImageError, match="16 pixels, over the limit of 8"):
+        io.read_image(small)
