@@ -299,6 +299,9 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(x, J, "scheduler", help="Dask scheduler address, e.g. tcp://HOST:8786")
     _option(p, J, "overwrite", help="replace an existing store")
     _option(p, J, "allow_black", help="bake a scene without light, or keep a black result")
+    _option(p, J, "allow_paths", "--allow-path", type=Path, action="append", metavar="DIR",
+            help="a folder besides the scene's own whose files the glTF may name (e.g. "
+            "../textures); repeat for more")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 

@@ -79,6 +79,7 @@ References
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 from collections.abc import Callable, Mapping, Sequence
@@ -116,6 +117,7 @@ __all__ = [
     "FACE_ORDER_HELP",
     "FACE_SUFFIXES",
     "HALF_MAX",
+    "MAX_PIXELS",
     "PIXEL_TYPES",
     "PREVIEW_TONE_MAPPING",
     "READ_EXTENSIONS",
@@ -273,13 +275,23 @@ def _open(p: Path) -> oiio.ImageInput:
     return inp
 
 
-def read_image(path: str | os.PathLike[str]) -> NDArray[np.float32]:
+#: Most pixels :func:`read_image` decodes (2^28: a 23170^2 image, 3 GiB as float32 RGB); a
+#: header that declares more is refused before any pixel is read or memory allocated.
+MAX_PIXELS: Final[int] = 1 << 28
+
+
+def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None
+               ) -> NDArray[np.float32]:
     """Read an image as linear RGB.
 
     Parameters
     ----------
     path : str or Path
         ``.hdr``, ``.exr``, ``.pfm``, ``.tif``, ``.tiff``, ``.png``, ``.jpg`` or ``.jpeg``.
+    max_pixels : int, optional
+        Largest ``width x height`` read (default :data:`MAX_PIXELS`); more is an ImageError
+        raised from the header alone (OpenImageIO itself refuses a header that declares far
+        more pixels than the file holds; this bounds what a real file may cost).
 
     Returns
     -------
@@ -301,6 +313,10 @@ def read_image(path: str | os.PathLike[str]) -> NDArray[np.float32]:
                 f"{p}: not a flat 2-D image (width {w}, height {h}, depth {depth}, "
                 f"{c} channels{', deep' if spec.deep else ''})."
             )
+        max_pixels = MAX_PIXELS if max_pixels is None else max_pixels
+        if w * h > max_pixels:
+            raise ImageError(f"{p}: {w}x{h} is {w * h} pixels, over the limit of {max_pixels} "
+                             "an image may have here; downsample it first.")
         integer = spec.format.basetype not in (oiio.BASETYPE.HALF, oiio.BASETYPE.FLOAT,
                                                oiio.BASETYPE.DOUBLE)
         data = inp.read_image(0, 0, 0, c, oiio.FLOAT)
@@ -584,6 +600,39 @@ _WRITERS: Final[int] = 3
 _FAST_PNG: Final[Mapping[str, int]] = {"png:compressionLevel": 1, "png:filter": 16}
 
 
+#: The last 12 bytes of every PNG file: the IEND chunk (length 0, type, CRC).
+_PNG_END: Final = b"\0\0\0\0IEND\xaeB`\x82"
+
+
+def _check_written(tmp: Path, p: Path, height: int) -> None:
+    """ImageError unless the file just written ends as an image file ends (a PNG in its IEND
+    chunk; other formats: their last scanline reads back). OpenImageIO's writers report a
+    failed write of the pixels but not the final flush of the file's buffer: on a full disk an
+    image of a few KiB is left empty (or short) behind a successful close."""
+    try:
+        size = tmp.stat().st_size
+        if p.suffix.lower() == ".png":
+            with open(tmp, "rb") as f:
+                f.seek(max(0, size - len(_PNG_END)))
+                whole = size > len(_PNG_END) and f.read() == _PNG_END
+        else:
+            inp = oiio.ImageInput.open(str(tmp)) if size else None
+            whole = inp is not None and inp.spec().height == height
+            if inp is not None:
+                whole = (whole and inp.read_scanline(height - 1, 0, "float") is not None
+                         and not inp.has_error)
+                inp.close()
+    except OSError as exc:
+        raise ImageError(f"{p}: cannot write image ({exc.strerror}).") from None
+    if not whole:
+        try:
+            full = os.statvfs(tmp.parent).f_bavail == 0
+        except OSError:
+            full = False
+        reason = os.strerror(errno.ENOSPC) if full else "the file is incomplete"
+        raise ImageError(f"{p}: cannot write image ({reason}).")
+
+
 def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
                metadata: Mapping[str, str], durable: bool = True, fast: bool = False) -> Path:
     """Write ``data`` to a temporary sibling of ``p`` and (``durable``) flush it; return the
@@ -615,6 +664,7 @@ def _write_tmp(p: Path, data: NDArray, pixel_type: PixelType,
         ok = out.close() and ok
         if not ok or out.has_error:
             raise ImageError(f"{p}: cannot write image ({_one_line(out.geterror())}).")
+        _check_written(tmp, p, h)
         if durable:
             fsync_file(tmp)
     except BaseException:

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -36,6 +37,7 @@ from service.schemas import COORD_LIMIT
 from service.settings import Settings
 
 __all__ = [
+    "BUSY_RETRY_AFTER",
     "DFG_SIZE",
     "POINT_PARAMETERS",
     "QUERY_NAMES",
@@ -55,6 +57,9 @@ __all__ = [
 #: Size of the split-sum DFG table used by ``/shade``.
 DFG_SIZE = 64
 
+#: Seconds a client is asked to wait when every heavy-request slot is taken (``Retry-After``).
+BUSY_RETRY_AFTER = 1
+
 
 @dataclass(eq=False)
 class ServiceState:
@@ -73,6 +78,24 @@ class ServiceState:
     scratch: Path
     _dfg: NDArray[np.float32] | None = field(default=None, repr=False)
     _dfg_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _heavy: threading.BoundedSemaphore | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        self._heavy = threading.BoundedSemaphore(self.settings.max_heavy_requests)
+
+    @contextmanager
+    def heavy(self) -> Iterator[None]:
+        """Hold one of the ``max_heavy_requests`` slots for the duration; ApiError 503 ``busy``
+        with ``Retry-After`` (at once, without waiting) when none is free."""
+        assert self._heavy is not None
+        if not self._heavy.acquire(blocking=False):
+            raise ApiError(503, "The server is busy with other heavy requests; try again in a "
+                                "moment.", code="busy",
+                           headers={"Retry-After": str(BUSY_RETRY_AFTER)})
+        try:
+            yield
+        finally:
+            self._heavy.release()
 
     def dfg(self) -> NDArray[np.float32]:
         """The DFG LUT, computed on first use (about half a second) and kept."""

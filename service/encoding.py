@@ -23,8 +23,9 @@ Faces are in the order ``+X, -X, +Y, -Y, +Z, -Z`` with row 0 at the top (:mod:`p
 the cross is :func:`probegrid.core.layouts.faces_to_cross` ``"hcross"`` (uncovered cells 0). The exr,
 hdr and png encoders are :func:`probegrid.imageio.write_image`, which writes files: each image is
 written to a fresh file in the service's scratch directory (in ``/dev/shm`` when it exists, so it
-never touches a disk), read back and deleted. Every encoder is deterministic (EXRs carry no
-capture date), so the same query always returns the same bytes.
+never touches a disk), read back and deleted; a write that fails (a full scratch file system) is
+a ``503 scratch_unavailable`` with ``Retry-After``, never an empty body. Every encoder is
+deterministic (EXRs carry no capture date), so the same query always returns the same bytes.
 
 ETags
 -----
@@ -39,6 +40,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import logging
 import os
 import secrets
 import tempfile
@@ -53,7 +55,9 @@ from pydantic_core import to_json
 
 from probegrid.core.layouts import faces_to_cross
 from probegrid.export.ktx2 import VK_FORMAT_R32G32B32A32_SFLOAT, encode_ktx2
+from probegrid.errors import ImageError
 from probegrid.imageio import write_image
+from service.errors import ApiError
 
 __all__ = [
     "MEDIA_TYPES",
@@ -73,6 +77,7 @@ MEDIA_TYPES: Final[dict[str, str]] = {
     "ktx2": "image/ktx2",
 }
 CACHE_CONTROL: Final = "no-cache"
+_log = logging.getLogger("probegrid.service")
 
 
 def etag_of(body: bytes) -> str:
@@ -128,11 +133,25 @@ def cube_image(faces: NDArray[np.float32], layout: str) -> NDArray[np.float32]:
 _EXR_METADATA: Final = {"DateTime": ""}
 
 
+#: Seconds a client is asked to wait after a failed image encoding (``Retry-After``).
+SCRATCH_RETRY_AFTER: Final = 5
+
+
 def _encode_image(image: NDArray[np.float32], fmt: str, scratch: Path) -> bytes:
+    """The image encoded through a scratch file; a write that fails (a full scratch file
+    system, say) is a 503 with a generic message (the cause is logged, the path is not sent)."""
     path = scratch / f"{secrets.token_hex(12)}.{fmt}"
     try:
         write_image(path, image, half=False, metadata=_EXR_METADATA)
-        return path.read_bytes()
+        body = path.read_bytes()
+        if not body:
+            raise ImageError(f"{path}: the encoded image is empty.")
+        return body
+    except (ImageError, OSError) as exc:
+        _log.error("cannot encode a %s image in %s: %s", fmt, scratch, exc)
+        raise ApiError(503, "The server cannot encode images right now; try again later.",
+                       code="scratch_unavailable",
+                       headers={"Retry-After": str(SCRATCH_RETRY_AFTER)}) from None
     finally:
         path.unlink(missing_ok=True)
 

@@ -10,6 +10,8 @@ missing / non-finite / out-of-range values   422     ``invalid_request``
 a value the library rejects (ValueError)     422     ``invalid_request``
 body over ``max_body_bytes``, batch too big  413     ``too_large``
 store files unreadable (server side)         503     ``store_unavailable``
+scratch space full or failing (server side)  503     ``scratch_unavailable``
+all heavy-request slots taken (lights/shade)  503     ``busy``
 anything else (a server bug)                 500     ``internal_error``
 ===========================================  ======  ======================
 
@@ -63,11 +65,13 @@ _CODES = {
 class ApiError(Exception):
     """An error a route raises on purpose: status, code and one-sentence message."""
 
-    def __init__(self, status: int, message: str, *, code: str | None = None) -> None:
+    def __init__(self, status: int, message: str, *, code: str | None = None,
+                 headers: dict[str, str] | None = None) -> None:
         super().__init__(message)
         self.status = status
         self.code = code or _CODES.get(status, "bad_request")
         self.message = message
+        self.headers = headers
 
 
 def error_body(code: str, message: str, detail: list[dict[str, Any]] | None = None) -> bytes:
@@ -129,7 +133,7 @@ def _http(request: Request, exc: Exception) -> Response:
 
 def _api(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, ApiError)
-    return _json(exc.status, exc.code, _sentence(exc.message))
+    return _json(exc.status, exc.code, _sentence(exc.message), headers=exc.headers)
 
 
 def _value(request: Request, exc: Exception) -> Response:

@@ -1,11 +1,12 @@
 """Build the probe map service app and run it with uvicorn.
 
-* :func:`create_app` opens the stores (read-only memory maps) and returns the FastAPI app.
+* :func:`create_app` opens the stores (checked, read into memory: :mod:`service.registry`) and
+  returns the FastAPI app.
 * :func:`app_from_environment` is the app factory of worker processes: it reads the store list
   and every setting from ``PROBEGRID_*`` variables (:mod:`service.settings`).
 * :func:`example_usage` is what to print at start-up: a query to try and the same client call.
 * :func:`run` serves until interrupted; with ``workers > 1`` uvicorn starts that many processes,
-  each building its app through the factory (memory-mapped stores share their pages).
+  each building its app through the factory (each holds its own copy of the stores).
 
 Routes (OpenAPI at ``/docs`` and ``/openapi.json``)::
 
@@ -115,9 +116,6 @@ def create_app(
     # the viewer's data and pages (service.routers.viewer, service.routers.web)
     app.state.probegrid_assets = StaticAssets()
     app.state.probegrid_pages = {}
-    app.state.probegrid_probes = {}
-    app.state.probegrid_scenes = viewer.open_scenes(registry)
-    app.state.probegrid_threejs = {}  # grid name -> service.routers.exports.ThreeExport
     app.include_router(viewer.router)
     app.include_router(exports.router)
     app.include_router(web.router)

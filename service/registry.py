@@ -11,31 +11,40 @@ and the JSON-ready summary the ``/v1/grids`` routes return.
 
 A store is checked when it is opened as ``probegrid export`` checks it
 (:func:`probegrid.store.check.check_store`: manifest, array shapes, specular levels, no NaN or
-infinity anywhere), so the service never answers with a value it would refuse to export.
+infinity anywhere) after :func:`probegrid.store.open_store` has checked that every file is a
+regular file inside the store (no link followed) with the size and SHA-256 the manifest records,
+so the service never answers with a value it would refuse to export, nor with bytes from outside
+the store. The arrays and the scene copy are read into memory at open (``load=True``: the
+store's size per process, 207 MiB for a 16x8x16 grid of 32^2 faces), not mapped: a file
+truncated or rewritten in place under the server can then neither crash it (SIGBUS on a mapped
+page that is gone) nor change what it serves behind its back.
 
-A store replaced on disk while it is served (a new bake with ``--overwrite`` renames a new
-directory into place) is noticed: at most every :data:`RECHECK_SECONDS` a request looks at the
-store's ``manifest.json`` (device, inode, size, modification time); when it changed, a
-background thread opens and checks the new store and then swaps it in with one assignment, so
-a request is answered whole from the old store or whole from the new one, never from a mix.
-A new store that fails its checks is not served (the old one stays, and ``/v1/grids/{grid}``
-says why in ``replaced_on_disk``). ``content_hash`` (SHA-256 of the served ``manifest.json``,
-which names the bake, its settings and creation time) says which bake is served; it is in the
-``/v1/grids`` bodies and so in their ETags.
+A store changed on disk while it is served (a new bake with ``--overwrite`` renames a new
+directory into place; a copy lands file by file, manifest first; a file is rewritten in place)
+is noticed: at most every :data:`RECHECK_SECONDS` a request looks at the store directory's
+entries (``os.scandir``: name, inode, size, modification time of each, no reading); when they
+changed, a background thread opens and checks the store as it now is and then swaps it in with
+one assignment, so a request is answered whole from the old store or whole from the new one,
+never from a mix. A store that fails its checks (a half-landed copy fails its hashes) is not
+served: the old one stays, ``/v1/grids/{grid}`` says why in ``replaced_on_disk``, and the store
+is opened again on the next change of its entries, so a copy that completes is picked up.
+``content_hash`` (SHA-256 of the served ``manifest.json``, which records every file's hash, the
+bake, its settings and creation time) is the served store's content identity: it is in the
+``/v1/grids`` bodies, and every response made from the store and kept (``/probes``, the
+three.js export) is kept on the :class:`ServedGrid` it was made from, so it goes with it.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import re
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -47,18 +56,26 @@ from probegrid.store.manifest import store_name
 
 __all__ = ["RECHECK_SECONDS", "GridRegistry", "ServedGrid", "grid_name"]
 
-#: Seconds between two looks at a served store's ``manifest.json`` (see the module docstring).
+#: Seconds between two looks at a served store's directory (see the module docstring).
 RECHECK_SECONDS = 1.0
 _log = logging.getLogger("probegrid.service")
+T = TypeVar("T")
 
 
-def _signature(path: Path) -> tuple[int, ...] | None:
-    """What identifies the store directory's manifest file on disk (None if it is gone)."""
+def _signature(path: Path) -> tuple[tuple[object, ...], ...] | None:
+    """What identifies the store directory's content on disk without reading it: the
+    directory's and each entry's inode, size and modification time (None if it is gone)."""
     try:
-        st = os.stat(path / "manifest.json")
+        top = os.stat(path)
+        with os.scandir(path) as entries:
+            rows = []
+            for e in entries:
+                st = e.stat(follow_symlinks=False)
+                rows.append((e.name, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
     except OSError:
         return None
-    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    return ((top.st_dev, top.st_ino), *sorted(rows))
+
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
@@ -96,26 +113,39 @@ class ServedGrid:
     store: ProbeStore
     field: ProbeField
     summary: dict[str, Any]
-    signature: tuple[int, ...] | None = None
+    signature: tuple[tuple[object, ...], ...] | None = None
+    #: The store's scene copy (read and checked at open), None if it keeps none.
+    scene: bytes | None = None
+    #: Responses made from this store and kept (see :meth:`kept`), by key.
+    responses: dict[str, Any] = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def kept(self, key: str, make: Callable[[], T]) -> T:
+        """``make()``, made once per served store and kept with it: a store replaced on disk
+        is a new :class:`ServedGrid`, so nothing made from the old one is served for it."""
+        done = self.responses.get(key)
+        if done is None:
+            with self._lock:
+                done = self.responses.get(key)
+                if done is None:
+                    done = self.responses[key] = make()
+        return done
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> ServedGrid:
         """Open a store, check it (:func:`~probegrid.store.check.check_store`) and describe it;
         StoreError or ValueError if it cannot be served.
 
-        Every array is memory-mapped now, not on first use: a store replaced on disk is served
-        whole from the old files, whose mappings stay valid, until the registry swaps the new
-        one in (see the module docstring), never as a mix of old and new arrays.
+        Every array and the scene copy are read into memory now (see the module docstring):
+        the old store is served whole until the registry swaps the new one in, never as a mix
+        of old and new files. StoreError too when the directory changed while it was read.
         """
         name = grid_name(path)
         signature = _signature(Path(path))
-        store = open_store(path)
-        try:
-            manifest_bytes = (Path(path) / "manifest.json").read_bytes()
-        except OSError as exc:
-            raise StoreError(f"{path}: cannot read manifest.json: {exc.strerror}") from None
-        for array_name in store.names:
-            store.arrays[array_name]
+        store = open_store(path, load=True)
+        scene = store.scene_bytes()
+        if _signature(Path(path)) != signature:
+            raise StoreError(f"{path} changed while it was opened")
         check_store(store)
         field = ProbeField(store)
         arrays = store.manifest.arrays
@@ -139,10 +169,11 @@ class ServedGrid:
             "visibility": "moments" in arrays,
             "scene_hash": store.manifest.scene_hash,
             "created": store.manifest.created.isoformat(),
-            "content_hash": hashlib.sha256(manifest_bytes).hexdigest(),
+            "content_hash": store.manifest_sha256,
             "replaced_on_disk": None,
         }
-        return cls(name=name, store=store, field=field, summary=summary, signature=signature)
+        return cls(name=name, store=store, field=field, summary=summary, signature=signature,
+                   scene=scene)
 
 
 @dataclass(eq=False)
@@ -151,7 +182,7 @@ class _Watch:
 
     path: Path
     next_check: float = 0.0
-    failed: tuple[tuple[int, ...] | None, str] | None = None
+    failed: tuple[tuple[tuple[object, ...], ...] | None, str] | None = None
     reloading: threading.Thread | None = None
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -206,6 +237,8 @@ class GridRegistry(Mapping[str, ServedGrid]):
         try:
             new = ServedGrid.open(watch.path)
         except (StoreError, ValueError, OSError) as exc:
+            if _signature(watch.path) != signature:  # still landing: look again on next check
+                return
             reason = str(exc).strip().splitlines()[0] if str(exc).strip() else repr(exc)
             watch.failed = (signature, reason)
             old = self._grids[name]
@@ -213,7 +246,8 @@ class GridRegistry(Mapping[str, ServedGrid]):
                 f"the store on disk was replaced by one that cannot be served ({reason}); "
                 "still serving the bake opened before")}
             self._grids[name] = ServedGrid(name=old.name, store=old.store, field=old.field,
-                                           summary=summary, signature=old.signature)
+                                           summary=summary, signature=old.signature,
+                                           scene=old.scene, responses=old.responses)
             _log.warning("grid %r: not serving the replaced store: %s", name, reason)
             return
         if new.name != name:  # pragma: no cover - same path, same name

@@ -42,6 +42,10 @@ class Settings(BaseSettings):
         Most floats a ``format=json`` map response may hold (422 above it; use npy or exr).
         The default holds a cube of the default ``max_light_map_size`` (``6 x 256^2 x 3``), so
         that with the defaults every light map may be asked for as JSON.
+    max_heavy_requests : int
+        Most ``POST /v1/lights/maps`` and ``POST /v1/grids/{grid}/shade`` requests one process
+        runs at once (each may take seconds of CPU); one more is answered ``503 busy`` with
+        ``Retry-After`` at once instead of queueing behind them.
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, extra="ignore")
@@ -52,6 +56,7 @@ class Settings(BaseSettings):
     max_lights: int = Field(default=16, ge=1)
     max_light_map_size: int = Field(default=256, ge=1)
     max_json_values: int = Field(default=6 * 256 * 256 * 3, ge=1)
+    max_heavy_requests: int = Field(default=2, ge=1)
 
 
 def settings_environment(settings: Settings) -> dict[str, str]:

@@ -21,8 +21,10 @@ from probegrid.store import ArraySpec, ProbeStore, StoreWriter
 GRID = GridSpec.from_counts((0.0, 0.0, 0.0), (2.0, 1.0, 2.0), (3, 2, 3))
 
 
-def write_store(path: Path, grid: GridSpec, arrays: dict[str, np.ndarray]) -> ProbeStore:
-    """Write ``arrays`` (each ``(P, ...)``) as a finished store at ``path`` and open it."""
+def write_store(path: Path, grid: GridSpec, arrays: dict[str, np.ndarray], *,
+                scene: Path | None = None) -> ProbeStore:
+    """Write ``arrays`` (each ``(P, ...)``) as a finished store at ``path`` (keeping a copy of
+    the glTF ``scene`` if given) and open it."""
     specs = {
         name: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str, description=f"test {name}")
         for name, a in arrays.items()
@@ -37,7 +39,7 @@ def write_store(path: Path, grid: GridSpec, arrays: dict[str, np.ndarray]) -> Pr
     )
     writer.write(np.arange(grid.n_probes), arrays)
     return writer.finish(quality={"invalid_probes": int(np.sum(~arrays["valid"]))
-                                  if "valid" in arrays else 0})
+                                  if "valid" in arrays else 0}, scene_file=scene)
 
 
 def _pattern(shape: tuple[int, ...], seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -397,3 +397,74 @@ def test_adaptive_tone_mapping_keeps_hue_and_clips_almost_nothing():
     special = tonemap_adaptive(np.array([[np.nan, 0, 0], [1.0, np.inf, 0], [-1.0, 0, 0]]),
                                exposure=0.0)
     assert special.tolist() == [[0, 0, 0], [255, 255, 255], [0, 0, 0]]
+
+
+# ------------------------------------------------------------------------------ failed writes
+class _LosesItsLastFlush:
+    """An OpenImageIO writer whose file loses its buffered bytes at close, as on a full disk,
+    while close still reports success."""
+
+    def __init__(self, out, path):
+        self._out, self._path = out, path
+
+    def __getattr__(self, name):
+        return getattr(self._out, name)
+
+    def open(self, path, spec):
+        self._path = path
+        return self._out.open(path, spec)
+
+    def close(self):
+        ok = self._out.close()
+        os.truncate(self._path, 0)
+        return ok
+
+
+@pytest.mark.parametrize("ext", ["exr", "hdr", "png", "tif", "pfm"])
+def test_a_write_that_loses_its_last_flush_raises_and_leaves_nothing(tmp_path, monkeypatch, ext):
+    real = oiio.ImageOutput.create
+    monkeypatch.setattr(oiio.ImageOutput, "create",
+                        staticmethod(lambda path, *a: _LosesItsLastFlush(real(path, *a), path)))
+    with pytest.raises(io.ImageError, match=r"x\.%s: cannot write image" % ext):
+        io.write_image(tmp_path / f"x.{ext}", np.ones((12, 2, 3), np.float32))
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture
+def full_fs(tmp_path):
+    """A 64 KiB tmpfs, filled (needs root; skipped otherwise)."""
+    import subprocess
+
+    mnt = tmp_path / "full"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs",
+                                            str(mnt)], capture_output=True).returncode:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        with open(mnt / "fill", "wb") as f, pytest.raises(OSError):
+            f.write(b"\0" * 70000)
+            f.flush()
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
+
+
+@pytest.mark.parametrize("ext", ["exr", "hdr", "png", "tif", "pfm"])
+@pytest.mark.parametrize("n", [1, 4, 32])
+def test_writes_on_a_full_file_system_raise(full_fs, ext, n):
+    # OpenImageIO closes a small image (one buffer) "successfully" with 0 bytes on disk
+    with pytest.raises(io.ImageError, match="cannot write image"):
+        io.write_image(full_fs / f"x.{ext}", np.ones((6 * n, n, 3), np.float32), half=False)
+    assert sorted(p.name for p in full_fs.iterdir()) == ["fill"]
+
+
+# ------------------------------------------------------------------------------ pixel limits
+def test_an_image_with_too_many_pixels_is_refused_from_its_header(tmp_path, monkeypatch):
+    small = io.write_image(tmp_path / "s.exr", np.ones((4, 4, 3), np.float32))
+    with pytest.raises(io.ImageError, match="4x4 is 16 pixels, over the limit of 15"):
+        io.read_image(small, max_pixels=15)
+    assert io.read_image(small, max_pixels=16).shape == (4, 4, 3)
+    assert io.MAX_PIXELS == 1 << 28
+    monkeypatch.setattr(io, "MAX_PIXELS", 8)  # the default limit
+    with pytest.raises(io.ImageError, match="16 pixels, over the limit of 8"):
+        io.read_image(small)

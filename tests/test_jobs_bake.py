@@ -40,7 +40,7 @@ def scene_file(monkeypatch, tmp_path_factory):
     file.write_text('{"asset": {"version": "2.0"}}')
 
     def use(scene):
-        monkeypatch.setattr(scenes, "load_gltf", lambda path: scene)
+        monkeypatch.setattr(scenes, "load_gltf", lambda path, **kw: scene)
         return str(file)
 
     return use
@@ -238,3 +238,29 @@ def test_a_missing_or_truncated_scene_is_refused_before_any_worker_starts(tmp_pa
     assert len(err) == 1 and err[0].startswith("probegrid: error: ")
     assert ("not found" in err[0] if content is None else
             "truncated" in err[0] if content.startswith(b"glTF") else "bad magic" in err[0])
+
+
+def test_bake_reads_files_outside_the_scene_folder_only_under_allow_path(tmp_path, monkeypatch,
+                                                                           capsys):
+    from probegrid.bake import executors
+
+    monkeypatch.setattr(executors, "make_executor",
+                        lambda **kw: InlineExecutor(check_pickle=False))
+    (tmp_path / "shared").mkdir()
+    (tmp_path / "scene").mkdir()
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    (tmp_path / "shared" / "mesh.bin").write_bytes(pos.tobytes())
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"mesh": 0}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+           "buffers": [{"uri": "../shared/mesh.bin", "byteLength": pos.nbytes}],
+           "bufferViews": [{"buffer": 0, "byteLength": pos.nbytes}],
+           "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}]}
+    scene = tmp_path / "scene" / "room.gltf"
+    scene.write_text(json.dumps(doc))
+    args = ["bake", str(scene), "--out", str(tmp_path / "r.probes"), "--grid", "2x2x2", *FAST]
+    assert main(args) == EXIT_BAD_INPUT
+    line = _one_line(capsys, only=False)
+    assert "outside the scene's folder" in line and "--allow-path" in line
+    assert main([*args, "--allow-path", str(tmp_path / "shared")]) != 0
+    line = _one_line(capsys, only=False)  # loaded: the unlit triangle is what stops it now
+    assert "no light" in line

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
 import shutil
@@ -279,6 +280,13 @@ def test_export_names_a_missing_required_array(store, tmp_path, capsys, name):
                                               "--out", tmp_path / "out")
 
 
+def _rehash(store: Path, name: str) -> None:
+    """Record array ``name``'s file's SHA-256 as it now is in the store's manifest."""
+    data = (store / f"{name}.npy").read_bytes()
+    _edit_manifest(store, lambda m: m["arrays"][name].update(
+        sha256=hashlib.sha256(data).hexdigest()))
+
+
 @pytest.mark.parametrize("name, value", [("sh", np.nan), ("diffuse", np.inf),
                                          ("specular_2", -np.inf), ("incoming", np.nan)])
 def test_export_refuses_non_finite_data_of_the_probe(store, tmp_path, capsys, name, value):
@@ -287,6 +295,7 @@ def test_export_refuses_non_finite_data_of_the_probe(store, tmp_path, capsys, na
     arr[index].flat[0] = value
     arr.flush()
     del arr
+    _rehash(store, name)  # as a writer that wrote the value would have recorded it
     out = tmp_path / "out"
     with pytest.raises(StoreError, match=f"non-finite values .*1 in '{name}'"):
         export_probe(store, "1,0,2", out)

@@ -544,3 +544,61 @@ def test_an_interrupt_during_trimesh_loading_is_not_swallowed(tmp_path: Path, mo
             load_gltf(real_data / "gltf" / "Cubes.glb")
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+# ---------------------------------------------------------------------------- confined to the folder
+_TEXTURED = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
+
+
+def _reads(monkeypatch) -> list[str]:
+    """Every file read through Path.read_bytes from now on."""
+    seen: list[str] = []
+    real = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda self: seen.append(str(self)) or real(self))
+    return seen
+
+
+@pytest.mark.parametrize("uri", ["../secret.png", "%2E%2E/secret.png", "{abs}", "file://{abs}",
+                                 "link.png"])
+def test_uris_outside_the_scene_folder_are_refused_before_any_read(tmp_path, monkeypatch, uri):
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    secret = tmp_path / "secret.png"
+    secret.write_bytes(_png(np.zeros((2, 2, 3), np.uint8)) + b"\0" * 12345)
+    (folder / "link.png").symlink_to(secret)
+    path = _write_gltf(folder, material=_TEXTURED,
+                       images=[{"uri": uri.format(abs=secret)}])
+    seen = _reads(monkeypatch)
+    with pytest.raises(SceneError) as info:
+        load_gltf(path)
+    msg = _one_line_error(info)
+    assert "--allow-path" in msg and str(secret.stat().st_size) not in msg
+    assert str(secret) not in seen and str(folder / "link.png") not in seen
+
+
+def test_a_buffer_outside_the_folder_is_refused_without_its_size(tmp_path):
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    (tmp_path / "big.bin").write_bytes(b"\0" * 4321)
+    path = _write_gltf(folder)
+    header = json.loads(path.read_text())
+    header["buffers"][0].update(uri="../big.bin", byteLength=99999)
+    path.write_text(json.dumps(header))
+    with pytest.raises(SceneError, match="outside the scene's folder") as info:
+        load_gltf(path)
+    assert "4321" not in _one_line_error(info)
+
+
+def test_allow_paths_lets_a_shared_texture_folder_in(tmp_path):
+    folder = tmp_path / "scene"
+    (tmp_path / "textures").mkdir()
+    folder.mkdir()
+    pixels = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [128, 128, 128]]], np.uint8)
+    (tmp_path / "textures" / "tex.png").write_bytes(_png(pixels))
+    path = _write_gltf(folder, material=_TEXTURED, images=[{"uri": "../textures/tex.png"}])
+    with pytest.raises(SceneError, match="name it with --allow-path DIR"):
+        load_gltf(path)
+    scene = load_gltf(path, allow_paths=[tmp_path / "textures"])
+    tex = scene.materials[0].base_color_texture
+    assert tex is not None and tex.shape == (2, 2, 4)
+    np.testing.assert_allclose(tex[0, 0, :3], [1, 0, 0])

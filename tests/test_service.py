@@ -224,10 +224,11 @@ def test_same_query_same_bytes_strong_etag_and_304(http):
                     headers={"If-None-Match": sh.headers["etag"]}).status_code == 304
 
 
-def test_stores_are_memory_mapped_by_the_server(http, server):
+def test_stores_are_read_into_memory_by_the_server_not_mapped(http, server):
+    # a mapped store file truncated under the server would kill it with SIGBUS
     http.get("/v1/grids/lin/maps/diffuse", params={**POINT, "format": "npy"})
     maps = Path(f"/proc/{server.process.pid}/maps").read_text()
-    assert "lin.probes/diffuse.npy" in maps and "lin.probes/sh.npy" in maps
+    assert "lin.probes/" not in maps
 
 
 # ------------------------------------------------------------------------------ shade, lights

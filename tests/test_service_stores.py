@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from probe_stores import GRID, linear_arrays, write_store
 
+from probegrid.core.grid import GridSpec
 from probegrid.query import ProbeField
 from probegrid.store import StoreError, open_store
 from service.main import NONZERO_VECTORS, create_app
@@ -429,3 +430,221 @@ def test_light_directions_of_any_length_the_schema_allows(lin):
                       for d in ([1.0, 0.0, 0.0], [5e-324, 0.0, 0.0]))
         assert unit.status_code == tiny.status_code == 200, tiny.text
         assert unit.content == tiny.content
+
+
+# ---------------------------------------------------------------------------- what is served
+SAMPLE_GLB = Path(__file__).parents[1] / "data" / "sample_room.glb"
+EMBEDDED_GLTF = ('{"asset": {"version": "2.0"}, "buffers": [{"uri": '
+                 '"data:application/octet-stream;base64,AAAA", "byteLength": 3}]}')
+
+
+def _secret_behind_scene_link(path: Path, secret: Path) -> None:
+    """Make the store's scene copy a link to ``secret``, with a manifest that states the
+    target's size and hash (the store's author knows them), as a crafted store would."""
+    import hashlib
+    import json
+
+    (path / "scene.glb").unlink()
+    (path / "scene.glb").symlink_to(secret)
+    raw = json.loads((path / "manifest.json").read_text())
+    raw["scene_file"].update(bytes=secret.stat().st_size,
+                             sha256=hashlib.sha256(secret.read_bytes()).hexdigest())
+    (path / "manifest.json").write_text(json.dumps(raw))
+
+
+def test_a_store_whose_scene_is_a_link_out_of_it_is_refused(tmp_path):
+    secret = tmp_path / "shadow"
+    secret.write_bytes(b"root:$6$secret-hash:19000:0:99999:7:::\n")
+    path = tmp_path / "evil.probes"
+    write_store(path, GRID, linear_arrays(GRID), scene=SAMPLE_GLB)
+    _secret_behind_scene_link(path, secret)
+    with pytest.raises(StoreError, match="scene.glb is a symbolic link") as info:
+        create_app([path], LIMITS)
+    assert "\n" not in str(info.value)
+
+    # the same store arriving as a replacement of a served one is refused too
+    served = tmp_path / "room.probes"
+    write_store(served, GRID, linear_arrays(GRID), scene=SAMPLE_GLB)
+    app = create_app([served], LIMITS)
+    shutil.rmtree(served)
+    path.rename(served)
+    app.state.probegrid.grids.wait_for_reloads()
+    detail, scene = _get(app, "/v1/grids/room", "/v1/grids/room/scene")
+    assert "symbolic link" in detail.json()["replaced_on_disk"]
+    assert scene.status_code == 200 and scene.content == SAMPLE_GLB.read_bytes()
+    assert b"secret-hash" not in scene.content
+
+
+def _three(app, name: str) -> tuple[httpx.Response, ...]:
+    return tuple(_get(app, f"/v1/grids/{name}/probes", f"/v1/grids/{name}/export/threejs.json",
+                      f"/v1/grids/{name}/export/threejs.bin?dtype=float32",
+                      f"/v1/grids/{name}/scene"))
+
+
+def test_every_route_follows_a_store_replaced_on_disk(tmp_path):
+    from service.encoding import etag_of
+
+    path = tmp_path / "room.probes"
+    write_store(path, GRID, linear_arrays(GRID), scene=SAMPLE_GLB)
+    app = create_app([path], LIMITS)
+    before = _three(app, "room")
+    assert before[3].headers["content-type"] == "model/gltf-binary"
+
+    wider = GridSpec.from_counts((0.0, 0.0, 0.0), (4.0, 1.0, 2.0), GRID.counts)
+    doubled = linear_arrays(wider)
+    doubled["sh"] = doubled["sh"] * 2
+    (tmp_path / "room.gltf").write_text(EMBEDDED_GLTF)
+    new = tmp_path / "incoming.probes"
+    write_store(new, wider, doubled, scene=tmp_path / "room.gltf")
+    shutil.rmtree(path)
+    new.rename(path)
+    app.state.probegrid.grids.wait_for_reloads()
+    after = _three(app, "room")
+    for old, now in zip(before, after, strict=True):
+        assert now.status_code == 200 and now.content != old.content
+        assert now.headers["etag"] == etag_of(now.content) != old.headers["etag"]
+    assert after[3].headers["content-type"] == "model/gltf+json"
+    assert after[3].content == EMBEDDED_GLTF.encode()
+    assert after[1].json()["size"] == [6.0, 2.0, 3.0] != before[1].json()["size"]
+    sh = base64_f32(after[0].json()["sh"])
+    np.testing.assert_array_equal(sh, doubled["sh"].reshape(-1))
+
+
+def base64_f32(text: str) -> np.ndarray:
+    import base64
+
+    return np.frombuffer(base64.b64decode(text), "<f4")
+
+
+def test_a_store_landing_file_by_file_is_served_only_once_complete(lin, tmp_path):
+    path = tmp_path / "land.probes"
+    shutil.copytree(lin, path)
+    app = create_app([path], LIMITS)
+    grids = app.state.probegrid.grids
+    url = "/v1/grids/land/sh?x=0.75&y=0.25&z=1.5"
+    (old,) = _get(app, url)
+
+    tripled = linear_arrays(GRID)
+    for name in ("sh", "diffuse", "specular_0"):
+        tripled[name] = tripled[name] * 3
+    new = tmp_path / "staging.probes"
+    write_store(new, GRID, tripled)
+    files = ["manifest.json"] + sorted(f.name for f in new.iterdir() if f.name != "manifest.json")
+    for i, name in enumerate(files):  # manifest first, as a naive copy would
+        shutil.copyfile(new / name, path / name)
+        grids.wait_for_reloads()
+        (now,) = _get(app, url)
+        if i < len(files) - 1 and any(f in files[i + 1:] for f in ("sh.npy", "diffuse.npy")):
+            assert now.json() == old.json()  # half landed: the old store, whole
+            assert "SHA-256" in _get(app, "/v1/grids/land")[0].json()["replaced_on_disk"]
+    (now,) = _get(app, url)
+    field = ProbeField(open_store(path))
+    np.testing.assert_array_equal(np.array(now.json()["coefficients"]),
+                                  field.sh(field.weights(POS))[0])
+    np.testing.assert_allclose(np.array(now.json()["coefficients"]),
+                               3 * np.array(old.json()["coefficients"]), rtol=1e-12)
+    assert _get(app, "/v1/grids/land")[0].json()["replaced_on_disk"] is None
+
+
+TRUNCATE_SCRIPT = """
+import asyncio, os, sys
+from pathlib import Path
+import httpx
+from service.main import create_app
+path = Path(sys.argv[1])
+app = create_app([path])
+async def get(url):
+    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://t") as c:
+        return (await c.get(url)).content
+url = "/v1/grids/cut/maps/diffuse?x=0.75&y=0.25&z=1.5&format=npy"
+before = asyncio.run(get(url))
+for f in path.glob("*.npy"):
+    os.truncate(f, 0)
+print(asyncio.run(get(url)) == before)
+"""
+
+
+def test_truncating_a_served_stores_files_does_not_crash_the_server(lin, tmp_path):
+    import subprocess
+    import sys
+
+    path = tmp_path / "cut.probes"
+    shutil.copytree(lin, path)
+    done = subprocess.run([sys.executable, "-c", TRUNCATE_SCRIPT, str(path)], text=True,
+                          capture_output=True, cwd=Path(__file__).parents[1], timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]  # -7 (SIGBUS) with mapped arrays
+    assert done.stdout.strip() == "True"
+
+
+# ---------------------------------------------------------------------------- failed writes
+MAPS_URL = "/v1/grids/lin/maps/diffuse?x=0.75&y=0.25&z=1.5&format="
+
+
+def _assert_scratch_503(response: httpx.Response, scratch: Path) -> None:
+    assert response.status_code == 503 and response.content
+    assert response.json()["error"] == "scratch_unavailable"
+    assert response.headers["retry-after"] == "5"
+    assert str(scratch) not in response.text and "etag" not in response.headers
+
+
+@pytest.mark.parametrize("fmt", ["exr", "hdr", "png"])
+def test_a_failing_scratch_write_is_a_503_not_the_clients_fault(lin, monkeypatch, fmt):
+    import errno
+
+    import service.encoding
+
+    def full(path, *a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(service.encoding, "write_image", full)
+    app = create_app([lin], LIMITS)
+    (r,) = _get(app, MAPS_URL + fmt)
+    _assert_scratch_503(r, app.state.probegrid.scratch)
+
+
+@pytest.mark.parametrize("fmt", ["exr", "hdr", "png"])
+def test_a_full_scratch_file_system_is_a_503_with_no_empty_body(lin, tmp_path, fmt):
+    import os
+    import subprocess
+
+    mnt = tmp_path / "scratch"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs",
+                                            str(mnt)], capture_output=True).returncode:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        with open(mnt / "fill", "wb") as f, pytest.raises(OSError):
+            f.write(b"\0" * 70000)
+            f.flush()
+        app = create_app([lin], LIMITS)
+        app.state.probegrid.scratch = mnt
+        (r,) = _get(app, MAPS_URL + fmt)
+        _assert_scratch_503(r, mnt)
+        assert sorted(p.name for p in mnt.iterdir()) == ["fill"]
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)
+
+
+# ---------------------------------------------------------------------------- bounded cost
+def _post(app, url: str, body: dict) -> httpx.Response:
+    async def run() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            return await c.post(url, json=body)
+
+    return asyncio.run(run())
+
+
+def test_heavy_requests_beyond_the_cap_are_503_busy_with_retry_after(lin):
+    app = create_app([lin], Settings(max_heavy_requests=1))
+    state = app.state.probegrid
+    shade = {"points": [{"position": [0.75, 0.25, 1.5], "normal": [0, 1, 0],
+                         "view": [0, 1, 0]}]}
+    light = {"position": [0.75, 0.25, 1.5], "kind": "diffuse", "diffuse_size": 4,
+             "lights": [{"type": "point", "position": [1, 2, 1], "intensity": 5}]}
+    with state.heavy():  # the one slot is taken (a long request under way)
+        for r in (_post(app, "/v1/grids/lin/shade", shade), _post(app, "/v1/lights/maps", light)):
+            assert r.status_code == 503 and r.json()["error"] == "busy"
+            assert r.headers["retry-after"] == "1"
+    assert _post(app, "/v1/grids/lin/shade", shade).status_code == 200
+    assert _post(app, "/v1/lights/maps", light).status_code == 200

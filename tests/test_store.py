@@ -429,3 +429,76 @@ def test_sigkilled_bake_is_not_loadable_and_resumes(tmp_path, durable):
     w.write(rest, make_values(rest))
     w.finish(quality={"invalid_probes": 5, "furnace_error": 1e-6})
     assert data_bytes(path) == data_bytes(ref)
+
+
+# ---------------------------------------------------------------------------- self-contained
+def test_finish_records_each_files_sha256(good_store):
+    import hashlib
+
+    raw = json.loads((good_store / "manifest.json").read_text())
+    for name, info in raw["arrays"].items():
+        data = (good_store / f"{name}.npy").read_bytes()
+        assert info["sha256"] == hashlib.sha256(data).hexdigest()
+
+
+@pytest.mark.parametrize("name", ["sh.npy", "manifest.json"])
+def test_a_store_whose_file_is_a_symlink_is_refused_wherever_it_points(good_store, tmp_path,
+                                                                       name):
+    # the link's target has exactly the bytes the manifest records: only the link is wrong
+    outside = tmp_path / f"outside-{name}"
+    outside.write_bytes((good_store / name).read_bytes())
+    (good_store / name).unlink()
+    (good_store / name).symlink_to(outside)
+    with pytest.raises(StoreError, match=f"{name} is a symbolic link") as info:
+        open_store(good_store)
+    assert "\n" not in str(info.value)
+
+
+def test_a_store_whose_file_is_not_a_regular_file_is_refused(good_store):
+    (good_store / "valid.npy").unlink()
+    os.mkfifo(good_store / "valid.npy")  # a reader would block on it forever
+    with pytest.raises(StoreError, match="valid.npy is not a regular file"):
+        open_store(good_store)
+
+
+def test_a_same_size_rewrite_fails_the_sha256(good_store):
+    data = bytearray((good_store / "sh.npy").read_bytes())
+    data[-1] ^= 0x40
+    (good_store / "sh.npy").write_bytes(bytes(data))
+    with pytest.raises(StoreError, match="sh.npy does not have the SHA-256 the manifest records"):
+        open_store(good_store)
+    open_store(good_store, verify=False)  # sizes and headers are still right
+
+
+def test_files_are_hashed_once_per_process_while_unchanged(good_store, monkeypatch):
+    import hashlib
+
+    open_store(good_store)  # hashed (or already, by finish)
+    calls = []
+    real = hashlib.file_digest
+    monkeypatch.setattr(hashlib, "file_digest", lambda *a, **k: calls.append(a) or real(*a, **k))
+    open_store(good_store)
+    assert calls == []
+    data = (good_store / "valid.npy").read_bytes()
+    (good_store / "valid.npy").write_bytes(data)  # same bytes, a new modification time
+    open_store(good_store)
+    assert len(calls) == 1
+
+
+def test_loaded_arrays_survive_their_files_being_truncated(good_store):
+    store = open_store(good_store, load=True)
+    assert store.in_memory and not isinstance(store["sh"], np.memmap)
+    assert not store["sh"].flags.writeable
+    for f in good_store.glob("*.npy"):
+        os.truncate(f, 0)  # a map of these would fault with SIGBUS
+    np.testing.assert_array_equal(store["sh"], make_values(np.arange(24))["sh"])
+    np.testing.assert_array_equal(store["positions"], GRID.positions())
+
+
+def test_a_lazy_map_of_a_file_changed_since_open_is_refused(good_store):
+    store = open_store(good_store)
+    data = (good_store / "diffuse.npy").read_bytes()
+    (good_store / "diffuse.npy").unlink()
+    (good_store / "diffuse.npy").write_bytes(data)  # another file now
+    with pytest.raises(StoreError, match="diffuse.npy changed on disk since the store was opened"):
+        store["diffuse"]

@@ -79,6 +79,7 @@ class BakeJob(BaseModel):
     overwrite: bool = False
     progress: bool = True
     allow_black: bool = False
+    allow_paths: list[Path] = []
 
 
 #: Largest default face size of a bake's environment cube (each worker holds a copy).
@@ -185,7 +186,7 @@ def run_bake(job: BakeJob) -> BakeReport:
 
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
-        scene = load_gltf(job.scene)
+        scene = load_gltf(job.scene, allow_paths=job.allow_paths)
         env = load_environment(job.environment, layout=job.environment_layout,
                                color=job.environment_color,
                                intensity=job.environment_intensity,

@@ -33,6 +33,11 @@ skins (the bind pose is used), points and lines (ignored). A file whose ``extens
 names anything but ``KHR_lights_punctual`` and ``KHR_materials_emissive_strength`` is refused,
 as the glTF specification asks of a loader.
 
+Files: a ``.gltf``'s buffers and images are read only from its own folder (and from folders
+given with ``allow_paths``, the CLI's ``--allow-path``): each URI is checked before anything is
+read (absolute paths, URLs and relative paths that lead outside, links resolved, are refused
+without saying anything of the file), read once, and handed to trimesh from memory.
+
 References: glTF 2.0 specification (Khronos, 2021); KHR_lights_punctual and
 KHR_materials_emissive_strength extension specifications; IEC 61966-2-1 (sRGB).
 """
@@ -44,10 +49,12 @@ import copy
 import io
 import json
 import math
+import os
+import re
 import signal
 import struct
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Final
@@ -136,17 +143,50 @@ def _build_glb(header: dict, binary: bytes | None) -> bytes:
     return _GLB_MAGIC + struct.pack("<II", 2, 12 + len(chunks)) + chunks
 
 
-def _uri_bytes(uri: str, base: Path, what: str) -> bytes:
-    """Bytes of a glTF URI: a data URI or a path relative to the .gltf file."""
+#: A URI that names a scheme (``file:``, ``http:``) or a Windows drive (``C:``).
+_SCHEME_RE: Final = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*:")
+
+
+def _inside(target: Path, roots: Sequence[Path]) -> bool:
+    """Whether ``target``, its links resolved, lies under one of ``roots`` (resolved too)."""
+    real = os.path.realpath(target)
+    for root in roots:
+        top = os.path.realpath(root)
+        if real == top or real.startswith(top.rstrip(os.sep) + os.sep):
+            return True
+    return False
+
+
+def _uri_path(uri: str, base: Path, allow: Sequence[Path], what: str) -> Path:
+    """The file a relative glTF URI names, after checking, before anything is read, that it is
+    under the scene's folder ``base`` or one of the ``allow``-ed folders (links resolved);
+    SceneError otherwise (no size, no content, nothing read)."""
+    raw = unquote(uri)
+    if not raw or raw.startswith(("/", "\\")) or _SCHEME_RE.match(raw) or "\0" in raw:
+        raise SceneError(f"{what} is not a path relative to the scene's folder; only files "
+                         "under it (or under a folder given with --allow-path) are read.")
+    target = base / raw
+    if not _inside(target, [base, *allow]):
+        raise SceneError(f"{what} is outside the scene's folder; to read files under another "
+                         "folder, name it with --allow-path DIR (load_gltf: allow_paths).")
+    return target
+
+
+def _uri_bytes(uri: str, base: Path, what: str, allow: Sequence[Path] = ()) -> bytes:
+    """Bytes of a glTF URI: a data URI or a path relative to the .gltf file, confined to its
+    folder and the ``allow``-ed ones (:func:`_uri_path`)."""
     if uri.startswith("data:"):
         try:
             return base64.b64decode(uri.split(",", 1)[1], validate=False)
         except (IndexError, ValueError) as exc:
             raise SceneError(f"{what} has a malformed data URI ({exc}).") from None
-    target = base / unquote(uri)
+    target = _uri_path(uri, base, allow, what)
     if not target.is_file():
         raise SceneError(f"{what} not found: {target}")
-    return target.read_bytes()
+    try:
+        return target.read_bytes()
+    except OSError as exc:
+        raise SceneError(f"{what} cannot be read ({exc.strerror}).") from None
 
 
 def _check_nodes(header: dict, name: str) -> None:
@@ -171,18 +211,25 @@ def _check_nodes(header: dict, name: str) -> None:
             n = parent[n]
 
 
-def _check_buffers(header: dict, binary: bytes | None, base: Path, name: str) -> None:
-    """Every buffer exists and holds its declared byteLength (catches truncated files)."""
+def _check_buffers(header: dict, binary: bytes | None, base: Path, name: str,
+                   allow: Sequence[Path] = (), files: dict[str, bytes] | None = None) -> None:
+    """Every buffer exists and holds its declared byteLength (catches truncated files); the
+    external files read are kept in ``files`` by URI."""
     for i, buf in enumerate(header.get("buffers", [])):
         need = int(buf.get("byteLength", 0))
         if "uri" in buf:
-            have = len(_uri_bytes(buf["uri"], base, f"{name}: buffer {i} ({buf['uri']})"))
+            uri = str(buf["uri"])
+            data = _uri_bytes(uri, base, f"{name}: buffer {i} ({uri[:80]})", allow)
+            if files is not None and not uri.startswith("data:"):
+                files[uri] = data
+            have = len(data)
         elif i == 0 and binary is not None:
             have = len(binary)
         else:
             raise SceneError(f"{name}: buffer {i} has no data (no uri and no .glb BIN chunk).")
         if have < need:
-            raise SceneError(f"{name}: buffer {i} is truncated ({have} of {need} bytes).")
+            raise SceneError(f"{name}: buffer {i} is truncated (shorter than its byteLength "
+                             f"{need}).")
 
 
 def _node_world_matrices(header: dict, name: str) -> dict[int, NDArray[np.float64]]:
@@ -367,7 +414,7 @@ def _vertex_colors(raw: NDArray) -> NDArray[np.float64]:
     return a[:, :4]
 
 
-def load_gltf(path: str | Path) -> Scene:
+def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]] = ()) -> Scene:
     """Load a glTF 2.0 scene (.gltf or .glb) into world space.
 
     trimesh reads the meshes, the node hierarchy and the images; factors, samplers, the
@@ -380,6 +427,11 @@ def load_gltf(path: str | Path) -> Scene:
     ----------
     path : str or Path
         A ``.gltf`` (with its buffers and images beside it, or embedded as data URIs) or ``.glb``.
+    allow_paths : sequence of path
+        Folders other than the scene's own whose files its URIs may name (the CLI's
+        ``--allow-path``). A URI is checked before anything is read: an absolute path, a URL or
+        a relative path that leads (links resolved) outside the scene's folder and these is a
+        :class:`SceneError`.
 
     Returns
     -------
@@ -395,7 +447,7 @@ def load_gltf(path: str | Path) -> Scene:
     label = p.name
     data = p.read_bytes()
     try:
-        return _load_gltf_data(p, data)
+        return _load_gltf_data(p, data, [Path(a) for a in allow_paths])
     except SceneError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
@@ -437,7 +489,7 @@ def gltf_mesh_count(path: str | Path) -> int | None:
     return len(meshes) if isinstance(meshes, list) else 0
 
 
-def _load_gltf_data(p: Path, data: bytes) -> Scene:
+def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
     """:func:`load_gltf` of the file's bytes (its errors of malformed JSON not yet caught)."""
     label, suffix = p.name, p.suffix.lower()
     if suffix == ".glb":
@@ -456,17 +508,19 @@ def _load_gltf_data(p: Path, data: bytes) -> Scene:
     unsupported = sorted(set(header.get("extensionsRequired", [])) - _SUPPORTED_EXTENSIONS)
     if unsupported:
         raise SceneError(f"{label} requires unsupported glTF extensions: {', '.join(unsupported)}.")
-    _check_buffers(header, binary, p.parent, label)
+    files: dict[str, bytes] = {}  # the external files, read once, handed on to trimesh
+    _check_buffers(header, binary, p.parent, label, allow, files)
     _check_nodes(header, label)
     for i, img in enumerate(header.get("images", [])):
-        if "uri" in img and not str(img["uri"]).startswith("data:"):
-            _uri_bytes(img["uri"], p.parent, f"{label}: image {i} ({img['uri']})")
+        uri = str(img.get("uri", ""))
+        if "uri" in img and not uri.startswith("data:"):
+            files[uri] = _uri_bytes(uri, p.parent, f"{label}: image {i} ({uri[:80]})", allow)
 
     # Tag material names so trimesh's materials map back to their glTF indices.
     tagged = copy.deepcopy(header)
     for i, m in enumerate(tagged.get("materials", [])):
         m["name"] = f"{_TAG}{i}"
-    tm_scene = _trimesh_load(tagged, binary, p, label)
+    tm_scene = _trimesh_load(tagged, binary, p, label, files)
 
     n_json_mats = len(header.get("materials", []))
     tm_materials: dict[int, object] = {}
@@ -535,8 +589,13 @@ def _load_gltf_data(p: Path, data: bytes) -> Scene:
     )
 
 
-def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str):
+def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str,
+                  files: dict[str, bytes] | None = None):
     """trimesh.Scene of a (re-encoded) glTF; any trimesh failure becomes a SceneError.
+
+    trimesh reads a ``.gltf``'s external files from ``files`` (URI -> bytes, read and checked
+    by :func:`_uri_bytes`), never from the file system: its own resolver would fall back to a
+    file of the same name elsewhere.
 
     trimesh's loader catches ``BaseException`` around format handlers, which would swallow a
     Ctrl-C (or the CLI's SIGTERM, turned into KeyboardInterrupt) arriving during the load; in
@@ -550,7 +609,7 @@ def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str):
             return trimesh.load_scene(
                 io.BytesIO(_build_glb(header, binary)), file_type="glb", process=False
             )
-        resolver = trimesh.resolvers.FilePathResolver(str(path))
+        resolver = _Files(dict(files or {}), label)
         return trimesh.load_scene(
             io.BytesIO(json.dumps(header).encode("utf-8")),
             file_type="gltf",
@@ -566,6 +625,21 @@ def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str):
     except Exception as exc:  # noqa: BLE001 -- trimesh raises arbitrary types on bad accessors
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise SceneError(f"{label} could not be read by trimesh: {msg}") from None
+
+
+class _Files(dict):
+    """The external files of a glTF by URI, as trimesh's resolver: a URI not read and checked
+    beforehand is a SceneError, never looked up on disk."""
+
+    def __init__(self, files: dict[str, bytes], label: str) -> None:
+        super().__init__(files)
+        self._label = label
+
+    def __missing__(self, uri: str) -> bytes:
+        raise SceneError(f"{self._label}: {uri[:80]!r} is not a file the scene declares.")
+
+    def get(self, name: str, default: object = None) -> bytes:  # type: ignore[override]
+        return self[name]
 
 
 @contextmanager

@@ -17,8 +17,12 @@ see :mod:`probegrid.core.grid`), e.g. ``sh (P, 9, 3) float32``, ``diffuse (P, 6,
 dtype kinds bool / int / uint / float), so any reader can memory-map them; :func:`open_store`
 maps them read-only (``np.load(mmap_mode="r")``, i.e. ``MAP_SHARED`` + ``PROT_READ``), so many
 reader processes share the same page-cache pages and touch only the probes they index. The
-manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape and a
-description; the reader refuses a store whose files disagree with it in size, shape or dtype.
+manifest records, for every array, its file, dtype string (``numpy.dtype.str``), full shape, a
+description and the file's SHA-256; the reader refuses a store whose files disagree with it in
+size, shape, dtype or hash. A store is self-contained: its files are regular files directly in
+its directory, opened without following symbolic links (a store is refused when one of its files
+is a link, wherever it points), so a store copied or unpacked from elsewhere can never make a
+reader open a file outside it.
 
 *Extras* (format version 2; version 1 stores have none) are arrays added to a finished bake by
 :meth:`StoreWriter.add_extra` just before it is published, listed under the manifest's ``extras``
@@ -106,6 +110,9 @@ _NAME_RE = re.compile(r"^[a-z][a-z0-9_]{0,63}$")
 _DTYPE_KINDS = "biuf"
 
 
+_SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
+
+
 # ---------------------------------------------------------------------------- array declarations
 def _check_name(name: str) -> str:
     if not isinstance(name, str) or not _NAME_RE.match(name):
@@ -159,7 +166,10 @@ class ArraySpec:
 
 
 class ArrayInfo(BaseModel):
-    """Manifest entry of one array: file name, dtype string, full shape ``(P, ...)``, words."""
+    """Manifest entry of one array: file name, dtype string, full shape ``(P, ...)``, words,
+    and the SHA-256 of the whole ``.npy`` file (written by :meth:`StoreWriter.finish`; None in
+    plans and in stores written before it was recorded, whose files are then checked by size
+    only)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -167,6 +177,14 @@ class ArrayInfo(BaseModel):
     dtype: str
     shape: tuple[int, ...]
     description: str = ""
+    sha256: str | None = None
+
+    @field_validator("sha256")
+    @classmethod
+    def _sha256(cls, v: str | None) -> str | None:
+        if v is not None and not _SHA256_RE.match(v):
+            raise ValueError(f"sha256 must be 64 lowercase hex digits, got {v[:80]!r}")
+        return v
 
     @field_validator("dtype")
     @classmethod

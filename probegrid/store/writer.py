@@ -22,9 +22,9 @@ Atomic, resumable writes
    on disk, whenever the process dies. (``durable=False`` skips the ``msync``s: stores to shared
    maps outlive a killed process in program order, so this still holds for a killed process,
    not for an OS crash.)
-3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, writes
-   ``manifest.json`` atomically (temporary file, ``fsync``, ``os.replace``, ``fsync`` of the
-   directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
+3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, records each
+   file's SHA-256 (readers check them), writes ``manifest.json`` atomically (temporary file,
+   ``fsync``, ``os.replace``, ``fsync`` of the directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
    (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``: it is
    renamed aside, the new one renamed in, the old one deleted; readers that still map the old
    files keep valid maps).
@@ -82,6 +82,7 @@ from probegrid.store.reader import (
     _check_array_file,
     _load_manifest_json,
     _validate_store_dir,
+    file_sha256,
     open_store,
 )
 
@@ -661,6 +662,8 @@ class StoreWriter:
         elif inputs is not None and not isinstance(inputs, BakeInputs):
             inputs = BakeInputs.model_validate(inputs)
         plan_fields = self._plan.model_dump(include=set(_Plan.model_fields))
+        plan_fields["arrays"] = self._hashed(self._plan.arrays)
+        self._extras = self._hashed(self._extras)
         if self._extras:  # a version-1 plan (a bake resumed across versions) gains extras
             plan_fields["format_version"] = FORMAT_VERSION
         manifest = StoreManifest(**plan_fields, created=datetime.now(UTC), quality=q,
@@ -685,6 +688,11 @@ class StoreWriter:
             else:  # a file (or link) stood where the store goes
                 aside.unlink(missing_ok=True)
         return open_store(self._final)
+
+    def _hashed(self, infos: Mapping[str, ArrayInfo]) -> dict[str, ArrayInfo]:
+        """``infos`` with each file's SHA-256 recorded (the manifest's, checked by readers)."""
+        return {name: info.model_copy(update={"sha256": file_sha256(self._partial / info.file)})
+                for name, info in infos.items()}
 
     def close(self) -> None:
         """Release the maps and the lock without finishing (the partial bake stays resumable)."""

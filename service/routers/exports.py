@@ -12,15 +12,15 @@
 
 The layout, placement and the filling of invalid probes are :mod:`probegrid.export.engines`'
 (the same functions the ``export`` command uses): invalid probes (inside geometry) take the mean
-of their valid neighbours, the SH are the store's radiance ``L_lm``. Each grid's export is made
-once, on first request, and kept (a few bytes per probe: 28 floats); the request names the grid
-only, nothing from it becomes a path. A value beyond half float's range (65504) makes the
-float16 forms a 422 that says to ask for ``dtype=float32``.
+of their valid neighbours, the SH are the store's radiance ``L_lm``. Each served store's export
+is made once, on first request, and kept with it (a few bytes per probe: 28 floats; a store
+replaced on disk gets its own); the request names the grid only, nothing from it becomes a
+path. A value beyond half float's range (65504) makes the float16 forms a 422 that says to ask
+for ``dtype=float32``.
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
@@ -40,8 +40,6 @@ router = APIRouter(tags=["grids"])
 
 #: Largest finite half float.
 HALF_MAX = ktx2.HALF_MAX
-
-_lock = threading.Lock()
 
 _PACKING = ["c0.rgb c1.r", "c1.gb c2.rg", "c2.b c3.rgb", "c4.rgb c5.r", "c5.gb c6.rg",
             "c6.b c7.rgb", "c8.rgb 0"]
@@ -100,16 +98,9 @@ def threejs_export(grid: ServedGrid) -> ThreeExport:
 
 
 async def _export(request: Request, grid: ServedGrid) -> ThreeExport:
-    cache: dict[str, ThreeExport] = request.app.state.probegrid_threejs
-    done = cache.get(grid.name)
+    done = grid.responses.get("threejs")
     if done is None:
-        def make() -> ThreeExport:
-            with _lock:
-                ready = cache.get(grid.name)
-                if ready is None:
-                    ready = cache[grid.name] = threejs_export(grid)
-                return ready
-        done = await run_in_threadpool(make)
+        done = await run_in_threadpool(grid.kept, "threejs", lambda: threejs_export(grid))
     return done
 
 

@@ -53,7 +53,7 @@ def to_light(spec: LightIn) -> Light:
     response_class=Response,
     responses={
         200: _BINARY, 400: {"model": ErrorOut}, 404: {"model": ErrorOut},
-        413: {"model": ErrorOut}, 422: {"model": ErrorOut},
+        413: {"model": ErrorOut}, 422: {"model": ErrorOut}, 503: {"model": ErrorOut},
     },
 )
 def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
@@ -96,13 +96,14 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
     try:
-        maps = light_maps(
-            [to_light(s) for s in body.lights],
-            np.asarray(body.position, dtype=np.float64),
-            diffuse_size=diffuse_size,
-            specular_size=specular_size,
-            specular_levels=specular_levels,
-        )
+        with state.heavy():  # at most max_heavy_requests at once; 503 busy beyond
+            maps = light_maps(
+                [to_light(s) for s in body.lights],
+                np.asarray(body.position, dtype=np.float64),
+                diffuse_size=diffuse_size,
+                specular_size=specular_size,
+                specular_levels=specular_levels,
+            )
     except ValueError as exc:  # a light practically at the position: 1 / d^2 overflows
         raise ApiError(422, f"The lights cannot be evaluated at this position ({exc}); is a "
                             "light almost exactly at it?") from None

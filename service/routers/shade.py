@@ -19,7 +19,7 @@ router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"],
     operation_id="shade",
     responses={
         400: {"model": ErrorOut}, 404: {"model": ErrorOut}, 413: {"model": ErrorOut},
-        422: {"model": ErrorOut},
+        422: {"model": ErrorOut}, 503: {"model": ErrorOut},
     },
 )
 def shade(body: ShadeRequest, grid: GridDep, state: StateDep) -> ShadeOut:
@@ -35,15 +35,16 @@ def shade(body: ShadeRequest, grid: GridDep, state: StateDep) -> ShadeOut:
         raise ApiError(422, f"Grid {grid.name!r} has no diffuse and specular maps to shade with.")
     pts = body.points
     mats = [p.material or body.material for p in pts]
-    rgb, w = grid.field.shade(
-        np.array([p.position for p in pts], dtype=np.float64),
-        np.array([p.normal for p in pts], dtype=np.float64),
-        np.array([p.view for p in pts], dtype=np.float64),
-        albedo=np.array([m.albedo for m in mats], dtype=np.float64),
-        roughness=np.array([m.roughness for m in mats], dtype=np.float64),
-        f0=np.array([m.f0 for m in mats], dtype=np.float64),
-        dfg=state.dfg(),
-    )
+    with state.heavy():  # at most max_heavy_requests at once; 503 busy beyond
+        rgb, w = grid.field.shade(
+            np.array([p.position for p in pts], dtype=np.float64),
+            np.array([p.normal for p in pts], dtype=np.float64),
+            np.array([p.view for p in pts], dtype=np.float64),
+            albedo=np.array([m.albedo for m in mats], dtype=np.float64),
+            roughness=np.array([m.roughness for m in mats], dtype=np.float64),
+            f0=np.array([m.f0 for m in mats], dtype=np.float64),
+            dfg=state.dfg(),
+        )
     return ShadeOut(
         grid=grid.name,
         rgb=[(float(r), float(g), float(b)) for r, g, b in rgb.tolist()],

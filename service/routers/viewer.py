@@ -1,11 +1,13 @@
 """Data for drawing a grid: every probe at once, the baked scene, and the DFG table.
 
 * ``GET /v1/grids/{grid}/probes`` -- positions, SH, validity and relocation of every probe
-  (:class:`service.schemas.ProbesOut`), for instanced drawing; made once per grid and kept.
+  (:class:`service.schemas.ProbesOut`), for instanced drawing; made once per served store and
+  kept with it (:meth:`service.registry.ServedGrid.kept`).
 * ``GET /v1/grids/{grid}/scene`` -- the glTF scene the grid was baked from, when the store keeps
   a copy (``scene_file`` in its manifest, see :func:`probegrid.store.keepable_scene`). The file
-  is the store's own fixed-name copy, mapped when the app starts (like the arrays: a store
-  replaced on disk is still served whole from the old files); the request only names the grid.
+  is the store's own fixed-name copy, read and checked (a regular file inside the store, of the
+  recorded size and SHA-256) with the served store, and sent with the ETag of those bytes; the
+  request only names the grid.
 * ``GET /v1/dfg`` -- the split-sum DFG table ``/shade`` uses (:func:`probegrid.core.dfg.dfg_lut`):
   ``(n, n, 2)`` float32, rows perceptual roughness, columns N.V, channels (A, B).
 """
@@ -14,9 +16,6 @@ from __future__ import annotations
 
 import base64
 import io
-import mmap
-import os
-import threading
 from typing import Annotated, Literal
 
 import numpy as np
@@ -27,25 +26,10 @@ from starlette.concurrency import run_in_threadpool
 from service.deps import GridDep, StateDep
 from service.encoding import conditional_response
 from service.errors import ApiError
-from service.registry import GridRegistry, ServedGrid
+from service.registry import ServedGrid
 from service.schemas import ErrorOut, ProbesOut
 
 router = APIRouter(tags=["grids"])
-
-_lock = threading.Lock()
-
-
-def open_scenes(grids: GridRegistry) -> dict[str, mmap.mmap | bytes]:
-    """Map each served store's scene copy (read-only); grids without one are left out."""
-    scenes: dict[str, mmap.mmap | bytes] = {}
-    for name, g in grids.items():
-        kept = g.store.manifest.scene_file
-        if kept is None:
-            continue
-        with open(g.store.path / kept.file, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            scenes[name] = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
-    return scenes
 
 
 def _b64(a: np.ndarray) -> str:
@@ -85,13 +69,7 @@ def probes_body(grid: ServedGrid) -> bytes:
 )
 async def get_probes(request: Request, grid: GridDep) -> Response:
     """Positions, SH, validity and relocation of every probe (base64 arrays, see the schema)."""
-    cache: dict[str, bytes] = request.app.state.probegrid_probes
-    body = cache.get(grid.name)
-    if body is None:
-        with _lock:
-            body = cache.get(grid.name)
-            if body is None:
-                body = cache[grid.name] = probes_body(grid)
+    body = grid.kept("probes", lambda: probes_body(grid))
     return conditional_response(request, body, "application/json")
 
 
@@ -107,18 +85,11 @@ async def get_scene(request: Request, grid: GridDep) -> Response:
     """The glTF scene the grid was baked from (a GLB, or a self-contained .gltf), if the store
     keeps one; 404 otherwise (stores baked by older versions, or from a .gltf that refers to
     other files)."""
-    scenes: dict[str, mmap.mmap | bytes] = request.app.state.probegrid_scenes
-    data = scenes.get(grid.name)
+    data = grid.scene
     kept = grid.store.manifest.scene_file
     if data is None or kept is None:
         raise ApiError(404, f"The store of grid {grid.name!r} keeps no copy of its scene.")
-    etag = '"' + kept.sha256[:32] + '"'
-    headers = {"ETag": etag, "Cache-Control": "no-cache"}
-    inm = request.headers.get("if-none-match")
-    if inm is not None and any(t.strip().removeprefix("W/") in (etag, "*")
-                               for t in inm.split(",")):
-        return Response(status_code=304, headers=headers)
-    return Response(content=bytes(data), media_type=kept.media_type, headers=headers)
+    return conditional_response(request, data, kept.media_type)
 
 
 @router.get(
