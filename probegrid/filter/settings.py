@@ -194,14 +194,15 @@ def check_settings(settings: FilterSettings) -> None:
                          "seam mode other than 'border'")
     if settings.cube_convention != "gltf" and settings.format != "ktx2":
         raise ValueError("--cube-convention applies to --format ktx2")
-    if settings.format == "gltf" and (settings.output_layout != "faces"
-                                      or settings.seam == "border"
-                                      or settings.specular_levels is not None
-                                      or settings.specular_method != "tiered"):
-        raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2, tiered GGX): "
-                         "it needs --output-layout faces, no --specular-levels or "
+    engine = {"gltf": "Babylon's", "filament": "Filament's"}.get(settings.format)
+    if engine is not None and (settings.output_layout != "faces"
+                               or settings.seam == "border"
+                               or settings.specular_levels is not None
+                               or settings.specular_method != "tiered"):
+        raise ValueError(f"--format {settings.format} writes {engine} mip chain (down to 16^2, "
+                         "tiered GGX): it needs --output-layout faces, no --specular-levels or "
                          "--specular-method and a seam mode other than 'border'")
-    if settings.format == "gltf" and settings.size is not None:
-        from probegrid.export.gltf_ibl import check_size
+    if engine is not None and settings.size is not None:
+        from probegrid.export import filament, gltf_ibl
 
-        check_size(settings.size)
+        (gltf_ibl if settings.format == "gltf" else filament).check_size(settings.size)
