@@ -50,7 +50,7 @@ CubeLayout = Literal["faces", "hcross", "vcross", "equirect"]
 ImageFormat = Literal["exr", "hdr"]
 #: File formats a filtered environment's maps are written in (ktx2: one cube-map file each;
 #: gltf: a glTF file with EXT_lights_image_based, RGBD PNG faces, as Babylon.js reads it).
-MapFormat = Literal["exr", "hdr", "ktx2", "gltf"]
+MapFormat = Literal["exr", "hdr", "ktx2", "gltf", "filament"]
 #: Whose cube-map lookup a written cube map is arranged for: glTF/OpenGL/KTX2's face table (the
 #: store's), three.js' (x mirrored) or Bevy's (z mirrored).
 CubeConvention = Literal["gltf", "threejs", "bevy"]

@@ -173,7 +173,9 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
     _option(p, F, "sh_window_width", help="window width (bands)")
     _option(p, F, "format", help="map file format (ktx2: specular.ktx2 with the chain as mips and "
             "diffuse.ktx2, RGBA16F, or RGBA32F with --float; gltf: environment.gltf with "
-            "EXT_lights_image_based, RGBD PNG faces down to 16^2, as Babylon.js reads it)")
+            "EXT_lights_image_based, RGBD PNG faces down to 16^2, as Babylon.js reads it; "
+            "filament: environment_ibl.ktx and environment_skybox.ktx, KTX1 R11F_G11F_B10F "
+            "with the SH in key 'sh', as cmgen writes them for Filament)")
     _option(p, F, "cube_convention",
             help="ktx2 cube faces for that consumer's lookup: the OpenGL/KTX2 table (glTF "
                  "Sample Viewer), mirrored in x (three.js) or z (Bevy)")

@@ -8,8 +8,11 @@ its source:
 * ``fromRGBD`` (helperFunctions.fx): ``pow(rgb, 2.2) / a``;
 * the glTF loader's root node in Babylon's default left-handed scene (rotation [0, 1, 0, 0],
   scale (1, 1, -1)): glTF direction ``(x, y, z)`` is looked up at ``(-x, y, z)`` in the cube
-  (OpenGL face table, first PNG row = t 0) and in the irradiance polynomial
-  (``SH3ylmBasisConstants`` x ``SH3ylmBasisTrigonometricTerms``).
+  (OpenGL face table; Babylon uploads each face with ``invertY``, so a PNG's first row is the
+  face's ``t = 1`` row) and in the irradiance polynomial (``SH3ylmBasisConstants`` x
+  ``SH3ylmBasisTrigonometricTerms``).
+
+``tests/test_babylon.py`` runs real Babylon.js on the same kind of file.
 
 PNG faces are read with OpenImageIO (unassociated alpha), not with the writer's Pillow; the file
 is validated by the Khronos glTF validator (npm gltf-validator, skipped without node).
@@ -113,10 +116,12 @@ def gltf_out(tmp_path_factory) -> tuple[Path, np.ndarray]:
 
 
 def loaded_chain(out: Path) -> tuple[dict, list[np.ndarray]]:
-    """The light and its mips, decoded the way Babylon decodes them (faces in slot order)."""
+    """The light and its mips, decoded and uploaded the way Babylon does (faces in slot order,
+    rows in GL order: ``invertY`` puts a PNG's first row at ``t = 1``)."""
     doc = json.loads((out / "environment.gltf").read_text())
     light = doc["extensions"]["EXT_lights_image_based"]["lights"][0]
-    mips = [np.stack([from_rgbd(read_png_rgba(out / doc["images"][i]["uri"])) for i in row])
+    mips = [np.stack([from_rgbd(read_png_rgba(out / doc["images"][i]["uri"]))[::-1]
+                      for i in row])
             for row in light["specularImages"]]
     return light, mips
 

@@ -16,16 +16,25 @@ Mip -> roughness
     ``alpha = 1``. This module filters each mip at exactly that alpha
     (:func:`probegrid.core.specular.ggx_filter`), not at probegrid's ``roughness = k/(levels-1)``.
 Orientation
-    Faces in the order +X, -X, +Y, -Y, +Z, -Z, each PNG's first row the face's ``t = 0`` row
-    (the GL / KTX2 cube-face layout; Babylon uploads the decoded image as it is, ``invertY``
-    false). Babylon's default scene is left-handed and its glTF loader puts the asset under a
-    root with rotation ``[0, 1, 0, 0]`` and scale ``(1, 1, -1)``: glTF direction ``(x, y, z)``
-    is Babylon's ``(-x, y, z)``, and the cube (and the SH) are looked up with Babylon's world
-    direction. So the faces written here are probegrid's glTF-frame cube mirrored in x
-    (:func:`probegrid.export.engines.mirror_cube`): +-X swapped and every face image mirrored
-    about its vertical axis -- the extension's "flipped about its vertical axis". In a
-    right-handed Babylon scene (``useRightHandedSystem``) the shader negates z instead, which
-    shows this file rotated 180 degrees about +Y; write ``rotation=(0, 1, 0, 0)`` for it.
+    Faces in the order +X, -X, +Y, -Y, +Z, -Z. Babylon uploads each decoded face with
+    ``invertY`` (``UNPACK_FLIP_Y``, and the same flip when it expands RGBD into a half-float
+    cube): a PNG's first row becomes the face's last GL row, ``t = 1``. So each face image is
+    written bottom-up relative to the GL / KTX2 cube-face layout (first row ``t = 1``) -- the
+    extension's "flipped" images (upright faces read back upside down: right at each face's
+    centre, 40-60 % off elsewhere on a smooth sky). Babylon's
+    default scene is left-handed and its glTF loader puts the asset under a root with rotation
+    ``[0, 1, 0, 0]`` and scale ``(1, 1, -1)``: glTF direction ``(x, y, z)`` is Babylon's
+    ``(-x, y, z)``, and the cube (and the SH) are looked up with Babylon's world direction. So
+    the cube written here is probegrid's glTF-frame cube mirrored in x
+    (:func:`probegrid.export.engines.mirror_cube`: +-X swapped, every face mirrored about its
+    vertical axis), then each face stored bottom-up. In a right-handed Babylon scene
+    (``useRightHandedSystem``) the shader negates z instead, which shows this file rotated 180
+    degrees about +Y; write ``rotation=(0, 1, 0, 0)`` for it. Checked in real Babylon.js
+    (npm ``@babylonjs/core`` in headless Chromium, ``tests/test_babylon.py``).
+Gamma
+    Babylon 9.x creates the light's ``RawCubeTexture`` with ``gammaSpace`` true, so its PBR
+    shader raises the (linear) radiance to the power 2.2 once more; set
+    ``scene.environmentTexture.gammaSpace = false`` after loading (docs/engines.md).
 RGBD
     Babylon's ``toRGBD``: ``D = clamp(floor(max(255 / max(r, g, b), 1)) / 255, 0, 1)``,
     ``rgb' = (rgb D)^(1/2.2)`` in 8 bits, alpha = ``D``; decoded as ``rgb'^2.2 / D``. Values
@@ -191,7 +200,7 @@ def write_environment_gltf(
     images: list[dict[str, str]] = []
     mips: list[list[int]] = []
     for k, lv in enumerate(chain):
-        faces = rgbd_encode(engines.mirror_cube(lv[..., :3], 0))
+        faces = rgbd_encode(engines.mirror_cube(lv[..., :3], 0))[:, ::-1]  # bottom-up rows
         row = []
         for f, suffix in enumerate(FACE_NAMES):
             uri = f"ibl/specular_m{k}_{suffix}.png"
@@ -218,7 +227,8 @@ def write_environment_gltf(
             "mip_alpha": [float(a) for a in alphas],
             "mip_roughness": [float(np.sqrt(a)) for a in alphas],
             "conventions": "faces +X,-X,+Y,-Y,+Z,-Z for Babylon's left-handed view of glTF "
-                           "(glTF frame mirrored in x), first PNG row = t 0, RGBD (gamma 2.2), "
+                           "(glTF frame mirrored in x), first PNG row = t 1 (Babylon uploads "
+                           "with invertY), RGBD (gamma 2.2), "
                            "mip k at GGX alpha 2^(k/s)/size, s = (mips-1)/log2(size)",
         }},
     }
@@ -234,5 +244,5 @@ def write_environment_gltf(
         {"path": sorted(pngs), "kind": "specular", "levels": n, "layout": "faces",
          "format": "png", "dtype": "rgbd8", "face_size": size,
          "roughness": [float(np.sqrt(a)) for a in alphas],
-         "cube_convention": "babylon (glTF mirrored in x)"},
+         "cube_convention": "babylon (glTF mirrored in x, rows bottom-up)"},
     ]

@@ -11,7 +11,8 @@ aliasing and computes
   coefficients (:mod:`probegrid.core.diffuse`),
 * the GGX specular mip chain, level ``k`` at perceptual roughness ``k / (levels - 1)``
   (:mod:`probegrid.core.specular`; Babylon.js' chain for ``format="gltf"``,
-  :mod:`probegrid.export.gltf_ibl`); by default, for cubes up to 128^2, the exact diffuse map
+  :mod:`probegrid.export.gltf_ibl`, Filament's for ``format="filament"``,
+  :mod:`probegrid.export.filament`); by default, for cubes up to 128^2, the exact diffuse map
   and every GGX level are one pass of dense sums over every input texel
   (:func:`probegrid.core.specular.symmetric_zonal_sums`; level 1's far field over 2x2 merged
   texels, ``far_field``),
@@ -181,7 +182,7 @@ def filter_environment(
         or the six faces (layout ``auto`` or ``faces``).
     settings : FilterSettings, optional
         Every option (those of the output files are checked too, as their combinations decide
-        what is computed: ``format="gltf"`` takes Babylon's chain).
+        what is computed: ``format="gltf"`` takes Babylon's chain, ``"filament"`` Filament's).
     progress : callable, optional
         Receives one line per stage.
     workers : int, optional
@@ -320,12 +321,16 @@ def filter_environment(
         "specular": [float(seams.seam_score(lv)) for lv in
                      (spec_out if settings.seam != "border" else spec)],
     }
-    if settings.format != "gltf":
-        roughness = [float(r) for r in lobes.level_roughness(np.arange(levels), levels)]
-    else:
+    if settings.format == "gltf":
         from probegrid.export import gltf_ibl
 
         roughness = [float(np.sqrt(a)) for a in gltf_ibl.babylon_alphas(n)]
+    elif settings.format == "filament":
+        from probegrid.export import filament
+
+        roughness = [float(r) for r in filament.filament_roughness(levels)]
+    else:
+        roughness = [float(r) for r in lobes.level_roughness(np.arange(levels), levels)]
     return FilteredEnvironment(
         cube=cube, diffuse=diff, specular=list(spec), diffuse_export=diff_out,
         specular_export=spec_out, sh=coeffs, sh9=sh9, sh_min_irradiance=irr_min,
@@ -402,6 +407,20 @@ class _Plan:
     outputs: Sequence[Any]
 
 
+def _engine_chain(fmt: str) -> Any:
+    """The module whose ``mip_count`` and ``specular_chain`` give an engine format's chain
+    (Babylon's for ``gltf``, Filament's for ``filament``), or None for probegrid's own."""
+    if fmt == "gltf":
+        from probegrid.export import gltf_ibl
+
+        return gltf_ibl
+    if fmt == "filament":
+        from probegrid.export import filament
+
+        return filament
+    return None
+
+
 def _plan(n: int, settings: FilterSettings) -> _Plan:
     """The chain's shape for an ``n``^2 cube; loads the modules of the filter stages and builds
     the dense sums' tables (a ``ValueError`` for a cube size the chosen chain cannot take)."""
@@ -410,13 +429,12 @@ def _plan(n: int, settings: FilterSettings) -> _Plan:
     # the full chain by default; a cube that is not a power of two gets its level 0
     default_levels = None if n & (n - 1) == 0 else 1
     levels = len(mip_sizes(n, settings.specular_levels or default_levels))
-    if settings.format == "gltf":
-        from probegrid.export import gltf_ibl
-
-        levels = gltf_ibl.mip_count(n)  # ValueError unless n is a power of two >= 32
+    engine = _engine_chain(settings.format)
+    if engine is not None:
+        levels = engine.mip_count(n)  # ValueError unless n is a power of two >= 32
     diffuse_source = diffuse_source_size(n, settings.diffuse_source_size)
     dense = (n <= specular.DENSE_CHAIN_MAX and n & (n - 1) == 0
-             and settings.format != "gltf" and settings.specular_method == "tiered"
+             and engine is None and settings.specular_method == "tiered"
              and settings.diffuse_method == "exact" and diffuse_source == n)
     outputs: list[Any] = []
     if dense:
@@ -445,12 +463,11 @@ def _separate_stages(cube: NDArray[np.float32], settings: FilterSettings, levels
     with ThreadPoolExecutor(max_workers=1) as pool:
         diffuse_future = pool.submit(diffuse_stage) if n <= 128 and workers > 1 else None
         t = time.perf_counter()
-        if settings.format != "gltf":
+        engine = _engine_chain(settings.format)
+        if engine is None:
             spec = specular.ggx_prefilter(cube, **spec_kwargs)
         else:
-            from probegrid.export import gltf_ibl
-
-            spec = gltf_ibl.specular_chain(cube)  # Babylon's mip -> alpha mapping
+            spec = engine.specular_chain(cube)  # the engine's own mip -> roughness mapping
         timings["specular"] = time.perf_counter() - t
         if n > 128:  # one cube of this size: its plans are not reused, free them for the rest
             specular.clear_caches()

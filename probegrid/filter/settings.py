@@ -202,17 +202,18 @@ def check_settings(settings: FilterSettings) -> None:
     if settings.vk_format is not None and not settings.half:
         raise ValueError("give --vk-format or --float, not both (--float is "
                          "--vk-format R32G32B32A32_SFLOAT)")
-    if settings.format == "gltf" and (settings.output_layout != "faces"
-                                      or settings.seam == "border"
-                                      or settings.specular_levels is not None
-                                      or settings.specular_method != "tiered"):
-        raise ValueError("--format gltf writes Babylon's mip chain (down to 16^2, tiered GGX): "
-                         "it needs --output-layout faces, no --specular-levels or "
+    engine = {"gltf": "Babylon's", "filament": "Filament's"}.get(settings.format)
+    if engine is not None and (settings.output_layout != "faces"
+                               or settings.seam == "border"
+                               or settings.specular_levels is not None
+                               or settings.specular_method != "tiered"):
+        raise ValueError(f"--format {settings.format} writes {engine} mip chain (down to 16^2, "
+                         "tiered GGX): it needs --output-layout faces, no --specular-levels or "
                          "--specular-method and a seam mode other than 'border'")
-    if settings.format == "gltf" and settings.size is not None:
-        from probegrid.export.gltf_ibl import check_size
+    if engine is not None and settings.size is not None:
+        from probegrid.export import filament, gltf_ibl
 
-        check_size(settings.size)
+        (gltf_ibl if settings.format == "gltf" else filament).check_size(settings.size)
     if settings.size is not None:
         _check_size(settings.size, settings)
 

@@ -340,7 +340,7 @@ def _write_maps(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment,
     from probegrid import imageio
 
     ext, layout = settings.format, settings.output_layout
-    fmt = cast(ImageFormat, ext)  # (ktx2 and gltf are written below, not by write_cube)
+    fmt = cast(ImageFormat, ext)  # (ktx2, gltf and filament are written below, not by write_cube)
 
     def write_cube(stem: str, faces: NDArray[np.float32], **meta: Any) -> dict[str, Any]:
         written = imageio.write_cube(
@@ -375,6 +375,10 @@ def _write_maps(pool: ThreadPoolExecutor, out: Path, env: FilteredEnvironment,
         from probegrid.export import gltf_ibl
 
         return gltf_ibl.write_environment_gltf(out, env.specular_export, env.sh9), []
+    if ext == "filament":  # environment_ibl.ktx (chain + SH) and environment_skybox.ktx (KTX1)
+        from probegrid.export import filament
+
+        return filament.write_filament_ibl(out, env.specular_export, env.sh9), []
     maps = [pool.submit(write_cube, "diffuse", env.diffuse_export, kind="diffuse", level=0,
                         roughness=None, content="irradiance / pi",
                         method=settings.diffuse_method, sh_window=env.sh_window["window"])]
