@@ -168,12 +168,12 @@ def test_the_package_face_hands_on_the_filter():
 
 
 @pytest.mark.parametrize("name", ["studio_small_03_1k.hdr", "venice_sunset_1k.hdr"])
-def test_previews_are_tone_mapped_with_almost_no_clipped_pixel(tmp_path, shared_data, name):
+def test_previews_are_tone_mapped_with_almost_no_clipped_pixel(tmp_path, real_data, name):
     """Each preview by its own exposure and white point: at most 1 % of its pixels at 255 (a
     studio's diffuse preview exposed like its input was a third white), and the manifest says
     how previews are made."""
     out = tmp_path / "o"
-    run_filter(shared_data / "hdr" / name, out, FilterSettings(size=64, diffuse_size=16,
+    run_filter(real_data / "hdr" / name, out, FilterSettings(size=64, diffuse_size=16,
                                                                lut_size=4))
     man = json.loads((out / "manifest.json").read_text())
     assert man["previews"]["tone_mapping"] == imageio.PREVIEW_TONE_MAPPING
