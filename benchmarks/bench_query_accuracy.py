@@ -32,8 +32,9 @@ sample room (``data/sample_room.glb``, its point light without its glTF range, a
 bake it, and ``data/sample_sky.hdr``; ``--room-grid``, 8x6x8 by default). Converged defaults,
 face 32. Bakes and references are cached under ``--cache`` (default
 ``~/.cache/probegrid-bench/query``), keyed by content; ``--rebake`` bakes again (after a change
-of the bake). ``--trace-gather`` / ``--trace-lights`` trace points with fewer gather or light
-samples than the bake's (the accuracy/latency trade-off). Run::
+of the bake). ``--trace-gather`` / ``--trace-depth`` / ``--trace-lights`` trace points with
+fewer gather rays, gather levels or light samples than the bake's (the accuracy/latency
+trade-off). Run::
 
     .venv/bin/pip install mitsuba
     .venv/bin/python benchmarks/bench_query_accuracy.py [--points 16] [--scenes cornell,room]
@@ -286,7 +287,8 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
     store_path = baked_store(args.cache, label, scene, path, env or Environment(), grid,
                              settings, rebake=args.rebake, workers=args.workers)
     store = open_store(store_path)
-    ps = PointSettings(gather_samples=args.trace_gather, light_samples=args.trace_lights)
+    ps = PointSettings(gather_samples=args.trace_gather, gather_depth=args.trace_depth,
+                       light_samples=args.trace_lights)
     field = ProbeField(store, scene=scene, point_settings=ps)
     why = field.trace_support()
     if why is not None:
@@ -316,6 +318,7 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
     positions = np.asarray(store.arrays["positions"], np.float64)
     err: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     lat: dict[str, list[float]] = {m: [] for m in METHODS}
+    cpu: list[float] = []
     sh_ref = [sh.project_cube(c) for c in ref_cube]
     field.point_tracer()  # built (and its kernels loaded) before the timing
     field.point_maps(pts[0] + 1e-9 * np.abs(pts[0]).max())
@@ -332,9 +335,10 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
         spec_n = np.asarray(store.arrays["specular_0"][near], np.float32)
         lat["nearest"].append((time.perf_counter() - t0) / 2)
         sh_n = np.asarray(field.sh_array("deringed")[near], np.float64)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         maps = field.point_maps(p)
         lat["trace"].append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
         sh_t = sh.project_cube(maps.incoming)
         for method, dif, spec, shc in (("blend", dif_b, spec_b, sh_b),
                                        ("nearest", dif_n, spec_n, sh_n),
@@ -358,7 +362,8 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
             rows.append((label, kind, method, float(e[:, 0].mean()), float(e[:, 1].mean())))
     print("latency, median ms per answer: " + ", ".join(
         f"{m} {1000 * np.median(lat[m]):.2f}" for m in METHODS) +
-        f" (trace: gather {args.trace_gather or 'bake'}, light samples "
+        f" (trace: {1000 * np.median(cpu):.1f} ms CPU; gather samples "
+        f"{args.trace_gather or 'bake'}, depth {args.trace_depth or 'bake'}, light samples "
         f"{args.trace_lights or 'bake'})")
     return rows
 
@@ -371,6 +376,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--face-size", type=int, default=32)
     ap.add_argument("--ref-spp", type=int, default=128, help="reference samples per texel")
     ap.add_argument("--trace-gather", type=int, default=None)
+    ap.add_argument("--trace-depth", type=int, default=None)
     ap.add_argument("--trace-lights", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=1)

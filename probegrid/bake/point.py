@@ -77,12 +77,16 @@ class PointSettings:
     Attributes
     ----------
     gather_samples : int or None
-        Gather rays per front hit (0: read the grid at the hits themselves).
+        Gather rays per front hit (at least 1 for a bake with gather rays: its grid's cubes
+        are of the size gather hits read).
+    gather_depth : int or None
+        Gather levels (at most the bake's).
     light_samples : int or None
         Emitter and environment samples per hit.
     """
 
     gather_samples: int | None = None
+    gather_depth: int | None = None
     light_samples: int | None = None
 
 
@@ -192,6 +196,10 @@ class PointTracer:
         gather = int(st["gather_samples"]) if ps.gather_samples is None else ps.gather_samples
         if depth and gather < 1:
             raise ValueError("a bake with gather rays is traced with at least 1 gather sample.")
+        if depth and ps.gather_depth is not None:
+            if not 1 <= ps.gather_depth <= depth:
+                raise ValueError(f"gather_depth must be 1..{depth} for this store.")
+            depth = ps.gather_depth
         levels = len(mip_sizes(face, st.get("specular_levels")))
         return cls(scene, env, render, data, level=level,
                    light_samples=(int(st["light_samples"]) if ps.light_samples is None
