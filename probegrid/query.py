@@ -322,13 +322,18 @@ class ProbeField:
                 method: MapMethod = "trace", normal: ArrayLike | None = None
                 ) -> tuple[NDArray[np.float32], ProbeWeights, MapMethod]:
         """One map level ``(6, s, s, 3)`` float32 at one point, the blend's weights (for the
-        flags; the traced map does not use them) and the method used (:meth:`map_method`)."""
+        flags; the traced map does not use them) and the method used (:meth:`map_method`; the
+        blend too for a point inside a solid, whose traced rays meet back faces more often than
+        the bake lets a probe's)."""
         self._level(kind, level)  # checks kind and level
         used = self.map_method(method)
         w = self.weights(point, normals=normal)
         if used == "blend":
             return self.cube(w, kind, level=level)[0], w, used
         maps = self.point_maps(point)
+        limit = float(self.store.manifest.bake["settings"].get("invalid_threshold", 0.25))
+        if maps.backface_fraction > limit:
+            return self.cube(w, kind, level=level)[0], w, "blend"
         faces = (maps.incoming if kind == "incoming" else maps.diffuse if kind == "diffuse"
                  else maps.specular[level])
         return faces, w, used

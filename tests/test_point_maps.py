@@ -225,3 +225,16 @@ def test_the_client_passes_the_method_through():
                                      ).params["method"] == "trace"
     with pytest.raises(ProbegridError, match="method must be one of"):
         ProbeGridClient._map_call("g", (0.0, 1.0, 2.0), None, "diffuse", 0, "nearest")
+
+
+def test_a_point_inside_a_solid_is_answered_with_the_blend(panel_stores):
+    """Behind a single-sided wall (outside the room) half the traced rays meet its back: no
+    probe would be valid there, and the blend answers."""
+    scene, two, _ = panel_stores
+    field = ProbeField(two, scene=scene)
+    outside = np.array([1.05, 0.5, 0.0])
+    assert field.point_maps(outside).backface_fraction > 0.4
+    got, w, used = field.cube_at(outside, "diffuse")
+    assert used == "blend"
+    np.testing.assert_array_equal(got, field.cube(w, "diffuse")[0])
+    assert field.cube_at(POINT, "diffuse")[2] == "trace"

@@ -92,11 +92,14 @@ class PointSettings:
 
 @dataclass(frozen=True)
 class PointMaps:
-    """What a probe at a point holds: its incoming cube, diffuse map and GGX chain."""
+    """What a probe at a point holds: its incoming cube, diffuse map and GGX chain, and the
+    fraction of its rays that met a back face (over the bake's ``invalid_threshold``: the
+    point is inside a solid, where no probe would be valid)."""
 
     incoming: NDArray[np.float32]
     diffuse: NDArray[np.float32]
     specular: tuple[NDArray[np.float32], ...]
+    backface_fraction: float = 0.0
 
 
 def trace_support(manifest: Any, extras: set[str], has_scene: bool) -> str | None:
@@ -216,6 +219,10 @@ class PointTracer:
 
     def incoming(self, points: ArrayLike) -> NDArray[np.float32]:
         """``(B, 6, n, n, 3)`` incoming cubes of probes at ``points (B, 3)``."""
+        return self._incoming(points)[0]
+
+    def _incoming(self, points: ArrayLike) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+        """:meth:`incoming` and each point's backface fraction."""
         pos = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if not np.isfinite(pos).all():
             raise ValueError("points must be finite.")
@@ -228,15 +235,17 @@ class PointTracer:
             if gather_depth(rec) and self.level >= 2:
                 rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
             cubes = self.data.cubes
+        back = np.asarray(rec["backface_fraction"], np.float64)
         cube, _ = replay(rec, self.render, self.level, cubes, final=True)
-        return cube
+        return cube, back
 
     def maps(self, point: ArrayLike) -> PointMaps:
         """The incoming cube, diffuse map and GGX chain of a probe at one point."""
-        cube = self.incoming(np.asarray(point, dtype=np.float64).reshape(1, 3))[0]
-        return self.filter(cube)
+        cube, back = self._incoming(np.asarray(point, dtype=np.float64).reshape(1, 3))
+        return self.filter(cube[0], backface_fraction=float(back[0]))
 
-    def filter(self, cube: NDArray[np.float32]) -> PointMaps:
+    def filter(self, cube: NDArray[np.float32], *, backface_fraction: float = 0.0
+               ) -> PointMaps:
         """A probe's maps from its incoming cube ``(6, n, n, 3)``, as the bake filters them."""
         from probegrid import usercache
         from probegrid.core import diffuse, specular
@@ -252,5 +261,5 @@ class PointTracer:
             d = diffuse.diffuse_exact(cube, self.diffuse_size)
             chain = specular.ggx_prefilter(cube, levels=self.specular_levels)
         return PointMaps(cube, np.asarray(d, np.float32),
-                         tuple(np.asarray(c, np.float32) for c in chain))
+                         tuple(np.asarray(c, np.float32) for c in chain), backface_fraction)
 

@@ -119,17 +119,17 @@ async def get_map(
     used = field.map_method(method)
 
     def render() -> tuple[bytes, dict[str, str]]:
-        faces, w, _ = field.cube_at(point.position, map_kind, level=level, method=used,
-                                    normal=point.normal)
+        faces, w, made = field.cube_at(point.position, map_kind, level=level, method=used,
+                                       normal=point.normal)
         f = flags_json(w, visibility=point.normal is not None)
         meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level,
-                                   "method": used}
+                                   "method": made}
         headers = {
             "X-Probegrid-Probes": probe_header(w),
             "X-Probegrid-Outside": str(f["outside"]).lower(),
             "X-Probegrid-Unlit": str(f["unlit"]).lower(),
             "X-Probegrid-Visibility": w.visibility,
-            "X-Probegrid-Method": used,
+            "X-Probegrid-Method": made,
         }
         if kind == "specular":
             r = float(level_roughness(level, levels))
