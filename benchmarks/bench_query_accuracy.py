@@ -249,8 +249,12 @@ def baked_store(cache: Path, label: str, scene: Any, scene_file: Path, env: Any,
                          .encode()).hexdigest()[:16]
     out = cache / "stores" / f"{label}-{key}.probes"
     if out.is_dir() and not rebake:
-        print(f"(reusing the bake {out}; --rebake to bake again)")
-        return out
+        from probegrid.query import ProbeField
+        from probegrid.store import open_store
+
+        if ProbeField(open_store(out), scene=scene).trace_support() is None:
+            print(f"(reusing the bake {out}; --rebake to bake again)")
+            return out
     out.parent.mkdir(parents=True, exist_ok=True)
     ex = make_executor(workers=workers)
     try:

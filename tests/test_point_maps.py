@@ -145,7 +145,13 @@ def test_the_bake_stores_the_grid_and_the_environment_the_tracer_reads(tmp_path)
     assert {GRID_EXTRA, ENVIRONMENT_EXTRA} <= set(s.manifest.extras)
     np.testing.assert_array_equal(s[ENVIRONMENT_EXTRA], resample(faces, LIGHT_SIZE))
     g = s[GRID_EXTRA]
-    assert g.shape == (2, 6, 8, 8, 3) and g.dtype == np.float32 and float(g.max()) > 0
+    assert g.shape == (2, 6, 10, 10, 3) and g.dtype == np.float32 and float(g.max()) > 0
+    from probegrid.bake.point import MOMENTS_EXTRA
+    from probegrid.core.ddgi import bordered_cubes
+
+    np.testing.assert_array_equal(s[MOMENTS_EXTRA], bordered_cubes(s["moments"]))
+    tracer0 = PointTracer.from_store(s, scene)
+    assert tracer0.data.cubes is not None and not tracer0.data.cubes.flags.owndata  # mapped
     assert s.manifest.bake["environment"]["rotation_rad"] == 0.3
     tracer = PointTracer.from_store(s, scene)
     env_q = tracer.records.renderer.environment

@@ -12,12 +12,16 @@
     The scene's triangle soup, so that queries can test the visibility between a point and the
     surrounding probes exactly (:class:`probegrid.query.ProbeField`). float32 is what Embree
     traces anyway; 12 bytes per vertex and per triangle.
-``grid_irradiance (P, 6, g, g, 3) float32``
+``grid_irradiance (P, 6, g + 2, g + 2, 3) float32``
     The grid the final pass read: each probe's irradiance / pi cube of the light reflected at
-    least once (the converged level, or its extrapolated limit), unbordered; zeros for a bake
-    of no bounce. With the environment it is what a probe traced at any point needs
-    (:class:`probegrid.bake.point.PointTracer`); ``6 g^2 * 12`` bytes per probe (``g = 8``
-    with gather rays: 4.6 KB, under a tenth of the maps).
+    least once (the converged level, or its extrapolated limit) with its seamless one-texel
+    border (:func:`probegrid.core.ddgi.bordered_cubes`, as the pass reads it); zeros for a bake
+    of no bounce. With the bordered moments and the environment it is what a probe traced at
+    any point needs (:class:`probegrid.bake.point.PointTracer`), memory-mapped as stored;
+    ``6 (g + 2)^2 * 12`` bytes per probe (``g = 8`` with gather rays: 7.2 KB).
+``moments_bordered (P, 6, m + 2, m + 2, 2) float32``
+    ``moments`` with the same border (what the hits' probe weights read; 4.8 KB per probe at
+    ``m = 8``). The two are about a tenth of the maps at face 32.
 ``environment (6, m, m, 3) float32``
     The environment cube the rays saw, box-filtered to the finest size the bake read it at
     (:func:`probegrid.bake.point.environment_extra`), without the rotation and intensity the
@@ -34,8 +38,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
-from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, environment_extra
+from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, MOMENTS_EXTRA, environment_extra
 from probegrid.bake.records import irradiance_size
+from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
@@ -69,9 +74,13 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
     if grid_irradiance is None:
         g = irradiance_size(gather)
         grid_irradiance = np.zeros((writer.n_probes, 6, g, g, 3), np.float32)
-    writer.add_extra(GRID_EXTRA, np.asarray(grid_irradiance, dtype=np.float32),
+    writer.add_extra(GRID_EXTRA, bordered_cubes(grid_irradiance),
                      description="irradiance / pi cubes of the light reflected at least once, "
-                                 "the grid the final pass read (for probes traced at points)")
+                                 "the grid the final pass read, bordered (for probes traced at "
+                                 "points)")
+    writer.add_extra(MOMENTS_EXTRA, bordered_cubes(writer.array("moments")),
+                     description="distance moments with their seamless border (for probes "
+                                 "traced at points)")
     env = environment_extra(environment, face_size)
     if env is not None:
         writer.add_extra(ENVIRONMENT_EXTRA, env,

@@ -12,9 +12,12 @@ cube into the diffuse map and the GGX chain with the bake's filter
 (:func:`probegrid.core.probefilter.filter_cube`). The parallax of everything the point sees is
 then exact; only the light reflected more than ``gather_depth`` times still comes from the grid.
 
-What it needs of a bake is what the final pass read (:func:`probegrid.bake.extras`: the
-environment and the grid's irradiance cubes the final pass read, stored as extras), the scene
-and the bake's settings; :meth:`PointTracer.from_store` builds it from a store that has them.
+What it needs of a bake is what the final pass read (:mod:`probegrid.bake.extras`: the
+environment, the grid's irradiance cubes and the bordered distance moments, stored as extras),
+the scene and the bake's settings; :meth:`PointTracer.from_store` builds it from a store that
+has them. The grid's arrays stay memory-mapped (a query reads the 8 probes around each hit); a
+tracer holds the scene's tables, the emitters' and the environment's (at most ``6 x 64^2``
+texels and the probes' face size), and the probes' validity and positions (25 bytes a probe).
 
 A point's random streams are keyed by the bake's seed and the point's coordinates (the same
 point gives the same bits), so two nearby points draw independent noise, of the bake's level
@@ -42,18 +45,19 @@ from probegrid.bake.records.replay import replay
 from probegrid.bake.render import RenderSettings
 from probegrid.core import probefilter
 from probegrid.core.cubemap import mip_sizes
-from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.sampling import resample
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
-__all__ = ["ENVIRONMENT_EXTRA", "GRID_EXTRA", "PointMaps", "PointSettings", "PointTracer",
+__all__ = ["ENVIRONMENT_EXTRA", "GRID_EXTRA", "MOMENTS_EXTRA", "PointMaps", "PointSettings", "PointTracer",
            "environment_extra", "trace_support"]
 
 #: The store extra holding the environment a bake's rays saw (unrotated, unscaled cube).
 ENVIRONMENT_EXTRA = "environment"
-#: The store extra holding the grid's irradiance cubes the bake's final pass read.
+#: The store extra holding the grid's irradiance cubes the bake's final pass read (bordered).
 GRID_EXTRA = "grid_irradiance"
+#: The store extra holding the probes' distance moments with their seamless border.
+MOMENTS_EXTRA = "moments_bordered"
 
 
 def environment_extra(environment: Environment, face_size: int) -> NDArray[np.float32] | None:
@@ -110,7 +114,7 @@ def trace_support(manifest: Any, extras: set[str], has_scene: bool) -> str | Non
         return "the store records no bake settings"
     if not has_scene:
         return "the store keeps no scene file"
-    if GRID_EXTRA not in extras:
+    if GRID_EXTRA not in extras or MOMENTS_EXTRA not in extras:
         return "the store keeps no grid irradiance (baked before it was stored)"
     env = bake.get("environment") or {}
     if env.get("type") == "cube" and ENVIRONMENT_EXTRA not in extras:
@@ -182,14 +186,14 @@ class PointTracer:
             env = Environment(color=np.asarray(env_d.get("color", (0.0, 0.0, 0.0))),
                               intensity=float(env_d.get("intensity", 1.0)))
         level = int(store.manifest.quality["bounces"])
-        moments = bordered_cubes(store.arrays["moments"])
-        grid_cubes = np.asarray(store.arrays[GRID_EXTRA], np.float32)
+        # the bordered grid the final pass read, memory-mapped: what a query reads of it is
+        # the 8 probes around each hit, so the service's memory does not grow with the grid
+        moments = np.asarray(store.arrays[MOMENTS_EXTRA])
+        grid_cubes = np.asarray(store.arrays[GRID_EXTRA])
         data = GridData(store.grid, np.array(store.arrays["valid"], dtype=bool),
                         np.asarray(store.arrays["positions"], dtype=np.float64),
-                        np.ascontiguousarray(moments).reshape(-1, moments.shape[-1]),
-                        moments.shape[2] - 2,
-                        np.ascontiguousarray(bordered_cubes(grid_cubes)).reshape(-1, 3)
-                        if level > 0 else None)
+                        moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
+                        grid_cubes.reshape(-1, 3) if level > 0 else None)
         ps = settings or PointSettings()
         # the bake's gather levels (BakeSettings.gather_levels): the grid's irradiance cubes
         # are of the size its hits read them at, so a query keeps gather rays if it had them
