@@ -16,6 +16,8 @@ kind the mean and worst error over the points of:
 * ``/maps/specular`` level 0 (the mirror level): relative L1 of both cubes averaged over 4x4
   texel blocks (the reference with the visible punctual lights splatted as the bake does,
   :func:`probegrid.core.lights.splat_delta`);
+* every GGX level against the reference filtered by the bake's filter, next to the same error of
+  the store's own probes nearest the points (against references rendered there);
 * ``E(n)`` from ``/sh``: the irradiance of the answer's SH toward a normal (the surface's off which
   the point stands; +Y in free space) against that of the SH of the reference cube,
   ``sum |E - E_ref| / sum E_ref`` over RGB;
@@ -315,15 +317,35 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
         ref_cube = splat_lights(cube, scene, pts)
         noise_s = np.array([relative_l1(block4(x), 0.5 * (block4(x) + block4(y)))
                             for x, y in zip(a, b, strict=True)])
+        # probes for the GGX levels' error at a probe: the valid probe nearest each kind's
+        # first point
+        valid = np.asarray(store.arrays["valid"], bool)
+        positions = np.asarray(store.arrays["positions"], np.float64)
+        firsts = [kinds.index(k) for k in KINDS if k in kinds]
+        at = sorted({int(np.flatnonzero(valid)[np.argmin(np.linalg.norm(
+            positions[valid] - pts[i], axis=1))]) for i in firsts})
+        pa, pb, _ = bba.cached_reference(args.cache / "mitsuba", ref, scene, env, positions[at],
+                                         face_size=n, spp=args.ref_spp, max_depth=64)
+        probe_ref = splat_lights(0.5 * (pa + pb), scene, positions[at])
     print(f"reference: Mitsuba path, depth 64, {args.ref_spp} spp ({secs:.0f} s when "
           f"rendered); its noise: diffuse {100 * noise_d.mean():.2f} % mean, mirror (4x4) "
           f"{100 * noise_s.mean():.2f} % mean")
-    valid = np.asarray(store.arrays["valid"], bool)
-    positions = np.asarray(store.arrays["positions"], np.float64)
     err: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     lat: dict[str, list[float]] = {m: [] for m in METHODS}
     cpu: list[float] = []
     sh_ref = [sh.project_cube(c) for c in ref_cube]
+    tracer = field.point_tracer()
+    levels = field.specular_levels
+    chains = {"probe": [], "blend": [], "trace": []}  # per point, per level: the error
+
+    def level_errors(chain, ref_chain) -> list[float]:
+        return [relative_l1(block4(c), block4(r)) if c.shape[1] % 4 == 0 and c.shape[1] >= 8
+                else relative_l1(c, r) for c, r in zip(chain, ref_chain, strict=True)]
+
+    for j, i in enumerate(at):  # the store's own probes against the reference there
+        ref_chain = tracer.filter(probe_ref[j].astype(np.float32)).specular
+        own = [np.asarray(store.arrays[f"specular_{k}"][i], np.float32) for k in range(levels)]
+        chains["probe"].append(level_errors(own, ref_chain))
     field.point_tracer()  # built (and its kernels loaded) before the timing
     field.point_maps(pts[0] + 1e-9 * np.abs(pts[0]).max())
     for i, (p, nrm, kind) in enumerate(zip(pts, nrms, kinds, strict=True)):
@@ -344,6 +366,11 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
         lat["trace"].append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         sh_t = sh.project_cube(maps.incoming)
+        ref_chain = tracer.filter(ref_cube[i].astype(np.float32)).specular
+        blend_chain = [field.cube_at(p, "specular", level=k, method="blend")[0]
+                       for k in range(levels)]
+        chains["blend"].append(level_errors(blend_chain, ref_chain))
+        chains["trace"].append(level_errors(list(maps.specular), ref_chain))
         for method, dif, spec, shc in (("blend", dif_b, spec_b, sh_b),
                                        ("nearest", dif_n, spec_n, sh_n),
                                        ("trace", maps.diffuse, maps.specular[0], sh_t)):
@@ -364,6 +391,15 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
                      for c in range(3)]
             print(f"{kind:10s} {method:8s} {cells[0]:>20s} {cells[1]:>23s} {cells[2]:>20s}")
             rows.append((label, kind, method, float(e[:, 0].mean()), float(e[:, 1].mean())))
+    probe_mean = np.mean(chains["probe"], axis=0)
+    print(f"GGX levels (mean error; 4x4 blocks from 8^2 up) at {len(at)} probes, and at the "
+          f"query points blended and traced (ratio to the probes'):")
+    for k in range(levels):
+        b_k = float(np.mean([c[k] for c in chains["blend"]]))
+        t_k = float(np.mean([c[k] for c in chains["trace"]]))
+        print(f"  level {k}: probes {100 * probe_mean[k]:6.2f} %, blend {100 * b_k:7.2f} % "
+              f"({b_k / probe_mean[k]:5.2f}x), trace {100 * t_k:6.2f} % "
+              f"({t_k / probe_mean[k]:4.2f}x)")
     print("latency, median ms per answer: " + ", ".join(
         f"{m} {1000 * np.median(lat[m]):.2f}" for m in METHODS) +
         f" (trace: {1000 * np.median(cpu):.1f} ms CPU; gather samples "
