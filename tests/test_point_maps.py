@@ -29,7 +29,7 @@ LE = 40.0  # the panel's radiance
 PANEL = (0.15, 0.97, 0.0)  # its centre, facing -Y
 SIDE = 0.2
 POINT = np.array([0.0, 0.45, 0.0])
-SETTINGS = {"face_size": 16, "diffuse_size": 4, "moments_size": 4, "bounces": 2,
+SETTINGS = {"face_size": 16, "diffuse_size": 4, "moments_size": 4, "bounces": 4,
             "store_incoming": True, "batch_size": 4}
 
 
@@ -244,3 +244,21 @@ def test_a_point_inside_a_solid_is_answered_with_the_blend(panel_stores):
     assert used == "blend"
     np.testing.assert_array_equal(got, field.cube(w, "diffuse")[0])
     assert field.cube_at(POINT, "diffuse")[2] == "trace"
+
+
+def test_the_traced_point_reads_the_grid_the_final_pass_read(panel_stores):
+    """With 4 bounces and 2 gather levels the final pass reads the grid of level 1 at the
+    deepest gather hits: the tracer reads the stored one. Zeroing it darkens the point by the
+    light reflected three times or more: with walls of albedo 0.2, under a percent of what the
+    point receives (mostly the panel itself), but not nothing."""
+    scene, two, _ = panel_stores
+    tracer = ProbeField(two, scene=scene).point_tracer()
+    assert tracer.level == 4 and tracer.data.cubes is not None
+    lit = tracer.maps(POINT)
+    import dataclasses
+
+    tracer.data = dataclasses.replace(tracer.data, cubes=np.zeros_like(tracer.data.cubes))
+    dark = tracer.maps(POINT)
+    w = texel_solid_angles(4)[..., None]
+    e_lit, e_dark = float((w * lit.diffuse).sum()), float((w * dark.diffuse).sum())
+    assert 1e-4 < (e_lit - e_dark) / e_lit < 0.01

@@ -186,20 +186,14 @@ class PointTracer:
             env = Environment(color=np.asarray(env_d.get("color", (0.0, 0.0, 0.0))),
                               intensity=float(env_d.get("intensity", 1.0)))
         level = int(store.manifest.quality["bounces"])
-        # the bordered grid the final pass read, memory-mapped: what a query reads of it is
-        # the 8 probes around each hit, so the service's memory does not grow with the grid
-        moments = np.asarray(store.arrays[MOMENTS_EXTRA])
-        grid_cubes = np.asarray(store.arrays[GRID_EXTRA])
-        data = GridData(store.grid, np.array(store.arrays["valid"], dtype=bool),
-                        np.asarray(store.arrays["positions"], dtype=np.float64),
-                        moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
-                        grid_cubes.reshape(-1, 3) if level > 0 else None)
         ps = settings or PointSettings()
         # the bake's gather levels (BakeSettings.gather_levels): the grid's irradiance cubes
         # are of the size its hits read them at, so a query keeps gather rays if it had them
         depth = 0 if int(st["gather_samples"]) == 0 else int(st["gather_depth"])
         if st["bounces"] != "converge":
             depth = min(depth, int(st["bounces"]))
+        # the final pass read a grid (grid_level_read) or none (its stored cubes are zeros)
+        reads = level - 1 - depth >= 0
         gather = int(st["gather_samples"]) if ps.gather_samples is None else ps.gather_samples
         if depth and gather < 1:
             raise ValueError("a bake with gather rays is traced with at least 1 gather sample.")
@@ -207,6 +201,14 @@ class PointTracer:
             if not 1 <= ps.gather_depth <= depth:
                 raise ValueError(f"gather_depth must be 1..{depth} for this store.")
             depth = ps.gather_depth
+        # the bordered grid the final pass read, memory-mapped: what a query reads of it is
+        # the 8 probes around each hit, so the service's memory does not grow with the grid
+        moments = np.asarray(store.arrays[MOMENTS_EXTRA])
+        grid_cubes = np.asarray(store.arrays[GRID_EXTRA])
+        data = GridData(store.grid, np.array(store.arrays["valid"], dtype=bool),
+                        np.asarray(store.arrays["positions"], dtype=np.float64),
+                        moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
+                        grid_cubes.reshape(-1, 3) if reads else None)
         levels = len(mip_sizes(face, st.get("specular_levels")))
         return cls(scene, env, render, data, level=level,
                    light_samples=(int(st["light_samples"]) if ps.light_samples is None
