@@ -40,6 +40,7 @@ from __future__ import annotations
 import re
 import threading
 from collections import OrderedDict
+from concurrent.futures import Future
 from functools import cached_property, partial
 from typing import TYPE_CHECKING, Any, Final, cast
 
@@ -154,6 +155,7 @@ class ProbeField:
         self._point_tracer: PointTracer | None = None
         self._trace_lock = threading.Lock()
         self._traced: OrderedDict[bytes, PointMaps] = OrderedDict()
+        self._tracing: dict[bytes, Future[PointMaps]] = {}
 
     def __repr__(self) -> str:
         return f"ProbeField({self.store!r}, kinds={self.kinds})"
@@ -301,22 +303,41 @@ class ProbeField:
 
     def point_maps(self, point: ArrayLike) -> PointMaps:
         """What a probe traced at ``point (3,)`` holds (its incoming cube, diffuse map and GGX
-        chain; the last :data:`TRACE_CACHE` points' are kept)."""
+        chain; the last :data:`TRACE_CACHE` points' are kept). Points are traced side by side
+        on the service's threads; concurrent requests for one point (a client fetching every
+        level at once) wait for its one trace."""
         p = _points(point, "point")
         if len(p) != 1:
             raise ValueError("point_maps traces one point.")
         key = np.ascontiguousarray(p[0], dtype="<f8").tobytes()
         tracer = self.point_tracer()
-        with self._trace_lock:  # one trace at a time: the cores are the limit anyway
+        with self._trace_lock:
             got = self._traced.get(key)
             if got is not None:
                 self._traced.move_to_end(key)
                 return got
+            pending = self._tracing.get(key)
+            if pending is None:
+                pending = self._tracing[key] = Future()
+                mine = True
+            else:
+                mine = False
+        if not mine:
+            return cast("PointMaps", pending.result())
+        try:
             got = tracer.maps(p[0])
+        except BaseException as exc:
+            with self._trace_lock:
+                del self._tracing[key]
+            pending.set_exception(exc)
+            raise
+        with self._trace_lock:
+            del self._tracing[key]
             self._traced[key] = got
             while len(self._traced) > TRACE_CACHE:
                 self._traced.popitem(last=False)
-            return got
+        pending.set_result(got)
+        return got
 
     def cube_at(self, point: ArrayLike, kind: MapKind, *, level: int = 0,
                 method: MapMethod = "trace", normal: ArrayLike | None = None

@@ -10,6 +10,7 @@ client's.
 from __future__ import annotations
 
 import asyncio
+import threading
 
 import httpx
 import numpy as np
@@ -262,3 +263,37 @@ def test_the_traced_point_reads_the_grid_the_final_pass_read(panel_stores):
     w = texel_solid_angles(4)[..., None]
     e_lit, e_dark = float((w * lit.diffuse).sum()), float((w * dark.diffuse).sum())
     assert 1e-4 < (e_lit - e_dark) / e_lit < 0.01
+
+
+def test_concurrent_requests_for_one_point_share_its_trace(panel_stores):
+    """A client fetching every level at once asks for one point several times together: one
+    trace answers them all; two points are traced side by side."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scene, two, _ = panel_stores
+    field = ProbeField(two, scene=scene)
+    tracer = field.point_tracer()
+    calls = []
+    original = tracer.maps
+    other_started = threading.Event()
+
+    def counted(p):
+        calls.append(tuple(p))
+        if np.array_equal(p, POINT):  # the other point's trace runs meanwhile
+            assert other_started.wait(20)
+        else:
+            other_started.set()
+        return original(p)
+
+    tracer.maps = counted  # type: ignore[method-assign]
+    other = POINT + np.array([0.1, 0.0, 0.0])
+    with ThreadPoolExecutor(6) as pool:
+        first = [pool.submit(field.point_maps, POINT) for _ in range(5)]
+        second = pool.submit(field.point_maps, other)
+        got = [f.result() for f in first] + [second.result()]
+    assert len(calls) == 2
+    assert all(g is got[0] for g in got[:5]) and got[5] is not got[0]
+    assert field.point_maps(POINT) is got[0]  # kept
+    # traced side by side, each is what it is alone (its streams are keyed by the point)
+    assert np.array_equal(got[5].incoming, original(other).incoming)
+    assert np.array_equal(got[0].specular[0], original(POINT).specular[0])
