@@ -22,6 +22,7 @@ __all__ = [
     "MapDType",
     "MapFormat",
     "MapKind",
+    "MapMethod",
     "PixelType",
     "SHKind",
     "SHWindow",
@@ -36,6 +37,9 @@ __all__ = [
 #: Cube-map kinds a probe or a store holds: diffuse (irradiance / pi), the GGX specular chain, the
 #: unfiltered incoming light.
 MapKind = Literal["diffuse", "specular", "incoming"]
+#: How a map at a point is made: ``trace`` renders a probe at the point against the converged
+#: grid (what a probe baked there holds); ``blend`` mixes the surrounding probes' maps.
+MapMethod = Literal["trace", "blend"]
 #: Number type of a store's map arrays (diffuse, specular, incoming): float32 or float16.
 MapDType = Literal["float", "half"]
 #: Image layouts of an environment or a cube map (see :mod:`probegrid.core.layouts`).

@@ -60,7 +60,7 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind, SHKind, choices
+from probegrid._types import MapKind, MapMethod, SHKind, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import ProbegridError
@@ -268,6 +268,9 @@ class MapSample:
     outside, unlit : bool
     visibility_test : str
         ``"segments"``, ``"moments"`` or ``"none"`` (see :class:`SHSample`).
+    method : str
+        How the map was made: ``"trace"`` (a probe traced at the point) or ``"blend"`` (the
+        ``X-Probegrid-Method`` header).
     """
 
     faces: NDArray[np.float32]
@@ -278,6 +281,7 @@ class MapSample:
     outside: bool
     unlit: bool
     visibility_test: str
+    method: str = "blend"
 
 
 # ------------------------------------------------------------------------------ request building
@@ -506,13 +510,17 @@ class _BaseClient:
                 outside=r.headers.get("x-probegrid-outside") == "true",
                 unlit=r.headers.get("x-probegrid-unlit") == "true",
                 visibility_test=r.headers.get("x-probegrid-visibility", "none"),
+                method=r.headers.get("x-probegrid-method", "blend"),
             )
 
     @staticmethod
     def _map_call(grid: str, position: ArrayLike, normal: ArrayLike | None, kind: str,
-                  level: int) -> _Call:
+                  level: int, method: MapMethod = "trace") -> _Call:
+        if method not in _MAP_METHODS:
+            raise InvalidArgumentError(
+                f"method must be one of {', '.join(_MAP_METHODS)}, got {method!r}.")
         params = _position_params(position, normal)
-        params.update(level=int(level), format="npy", layout="faces")
+        params.update(level=int(level), format="npy", layout="faces", method=method)
         return _Call("GET", f"/v1/grids/{_segment(grid)}/maps/{_segment(kind)}", params)
 
     @staticmethod
@@ -592,6 +600,8 @@ class _BaseClient:
 
 #: The ``sh`` choices of :meth:`ProbeGridClient.sh_at` (the service's ``/sh?sh=``).
 _SH_KINDS = choices(SHKind)
+#: The ``method`` choices of :meth:`ProbeGridClient.map_at` (the service's ``/maps?method=``).
+_MAP_METHODS = choices(MapMethod)
 
 
 def _segment(name: str) -> str:
@@ -676,15 +686,20 @@ class ProbeGridClient(_BaseClient):
         return self._sh_result(self._send(self._sh_call(grid, position, normal, sh)))
 
     def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
-               level: int = 0, normal: ArrayLike | None = None) -> MapSample:
-        """One level of the blended map at a position, with the probes, weights, flags and
-        visibility test of the blend (:meth:`maps_at` gives the maps alone)."""
-        r = self._send(self._map_call(grid, position, normal, kind, level))
+               level: int = 0, normal: ArrayLike | None = None,
+               method: MapMethod = "trace") -> MapSample:
+        """One level of the map at a position -- traced there (``method="trace"``, the
+        default: what a probe baked at the point holds) or blended from the probes
+        (``"blend"``) -- with the probes, weights, flags and visibility test of the blend and
+        the method used (:meth:`maps_at` gives the maps alone)."""
+        r = self._send(self._map_call(grid, position, normal, kind, level, method))
         return self._map_sample(r, kind, int(level))
 
     def maps_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
-                level: int | None = None, normal: ArrayLike | None = None) -> CubeMap:
-        """The blended cube map of ``kind`` at a position.
+                level: int | None = None, normal: ArrayLike | None = None,
+                method: MapMethod = "trace") -> CubeMap:
+        """The cube map of ``kind`` at a position, traced there or blended (``method``, see
+        :meth:`map_at`).
 
         ``level=None`` fetches every level (the whole specular chain as one CubeMap); an integer
         fetches that level alone.
@@ -694,7 +709,7 @@ class ProbeGridClient(_BaseClient):
             self.grid(grid)
             levels = self._levels_wanted(grid, kind, level) or [0]
         faces = [
-            _load_npy(self._send(self._map_call(grid, position, normal, kind, k)))
+            _load_npy(self._send(self._map_call(grid, position, normal, kind, k, method)))
             for k in levels
         ]
         return CubeMap(tuple(faces), kind=kind)
@@ -785,18 +800,21 @@ class AsyncProbeGridClient(_BaseClient):
         return self._sh_result(await self._send(self._sh_call(grid, position, normal, sh)))
 
     async def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
-                     level: int = 0, normal: ArrayLike | None = None) -> MapSample:
-        r = await self._send(self._map_call(grid, position, normal, kind, level))
+                     level: int = 0, normal: ArrayLike | None = None,
+                     method: MapMethod = "trace") -> MapSample:
+        r = await self._send(self._map_call(grid, position, normal, kind, level, method))
         return self._map_sample(r, kind, int(level))
 
     async def maps_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
-                      level: int | None = None, normal: ArrayLike | None = None) -> CubeMap:
+                      level: int | None = None, normal: ArrayLike | None = None,
+                      method: MapMethod = "trace") -> CubeMap:
         levels = self._levels_wanted(grid, kind, level)
         if levels is None:
             await self.grid(grid)
             levels = self._levels_wanted(grid, kind, level) or [0]
         responses = await asyncio.gather(
-            *(self._send(self._map_call(grid, position, normal, kind, k)) for k in levels)
+            *(self._send(self._map_call(grid, position, normal, kind, k, method))
+              for k in levels)
         )
         return CubeMap(tuple(_load_npy(r) for r in responses), kind=kind)
 

@@ -14,6 +14,19 @@ probe on the far side of a wall gets weight 0 (:attr:`ProbeWeights.visibility` `
 Older stores fall back to what they support: DDGI's Chebyshev test on the distance moments with
 a normal (``"moments"``), nothing without (``"none"``).
 
+Maps at a point
+---------------
+:meth:`ProbeField.cube_at` answers ``method="trace"`` (the default) with what a probe baked at
+the point would hold: a probe traced there with the bake's own estimator against the store's
+converged grid (:class:`probegrid.bake.point.PointTracer`; the store keeps the scene file, the
+grid its final pass read and the environment). A blend of 8 probes' maps overlays 8 views from
+8 places (a mirror level shows a small light up to 8 times); the traced probe sees each thing
+once, in the right direction. ``method="blend"`` keeps the blend, and a store that cannot be
+traced (:meth:`ProbeField.trace_support` says why) is answered with it. The tracer (scene,
+emitter and environment tables; the BVH is the field's) is built on first use, and the maps of
+the last :data:`TRACE_CACHE` traced points are kept (a client fetching a chain asks once per
+level).
+
 SH without ringing
 ------------------
 :meth:`ProbeField.sh` blends the *deringed* radiance SH by default (each probe windowed so that
@@ -26,13 +39,15 @@ from __future__ import annotations
 
 import re
 import threading
+from collections import OrderedDict
+from concurrent.futures import Future
 from functools import cached_property, partial
-from typing import Any, Final, cast
+from typing import TYPE_CHECKING, Any, Final, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind, SHKind, choices
+from probegrid._types import MapKind, MapMethod, SHKind, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
@@ -51,7 +66,17 @@ from probegrid.core.shading import reflect, shade_split_sum
 from probegrid.raytrace import RayTracer
 from probegrid.store import ProbeStore
 
-__all__ = ['SH_KINDS', 'ProbeField', 'SHKind']
+if TYPE_CHECKING:
+    from probegrid.bake.point import PointMaps, PointSettings, PointTracer
+    from probegrid.scene import Scene
+
+__all__ = ['MAP_METHODS', 'SH_KINDS', 'TRACE_CACHE', 'MapMethod', 'ProbeField', 'SHKind']
+
+#: How :meth:`ProbeField.cube_at` makes a map: traced at the point (default) or blended.
+MAP_METHODS: Final[tuple[str, ...]] = choices(MapMethod)
+
+#: Traced points whose maps a field keeps.
+TRACE_CACHE: Final = 16
 
 #: Which SH :meth:`ProbeField.sh` blends: the deringed coefficients (default) or the raw ones.
 SH_KINDS: Final[tuple[str, ...]] = choices(SHKind)
@@ -74,6 +99,11 @@ class ProbeField:
         An open store (its arrays stay memory-mapped; only the probes a query needs are read).
     normal_bias : float
         See :func:`probe_weights`.
+    scene : Scene, optional
+        The scene the store was baked from, for stores that keep no scene file (or to trace
+        the scene as the bake saw it when that differs from the file); default: the store's.
+    point_settings : PointSettings, optional
+        Lower gather or light samples for traced maps (default: the bake's).
 
     Attributes
     ----------
@@ -87,7 +117,9 @@ class ProbeField:
         without them; with it every query's weights take the exact segment test.
     """
 
-    def __init__(self, store: ProbeStore, *, normal_bias: float = DEFAULT_NORMAL_BIAS) -> None:
+    def __init__(self, store: ProbeStore, *, normal_bias: float = DEFAULT_NORMAL_BIAS,
+                 scene: Scene | None = None, point_settings: PointSettings | None = None
+                 ) -> None:
         if not (np.isfinite(normal_bias) and normal_bias >= 0):
             raise ValueError(f"normal_bias must be finite and >= 0, got {normal_bias!r}.")
         self.store = store
@@ -118,6 +150,12 @@ class ProbeField:
         if self._stored_deringed:
             store.arrays["sh_deringed"]  # mapped now, with the other arrays
         self._dering_lock = threading.Lock()
+        self._scene = scene
+        self._point_settings = point_settings
+        self._point_tracer: PointTracer | None = None
+        self._trace_lock = threading.Lock()
+        self._traced: OrderedDict[bytes, PointMaps] = OrderedDict()
+        self._tracing: dict[bytes, Future[PointMaps]] = {}
 
     def __repr__(self) -> str:
         return f"ProbeField({self.store!r}, kinds={self.kinds})"
@@ -230,6 +268,96 @@ class ProbeField:
         """Blended maps of every point as :class:`CubeMap` s (all levels for specular)."""
         levels = [self.cube(weights, kind, level=k) for k in range(self.map_levels(kind))]
         return [CubeMap(tuple(lv[i] for lv in levels), kind=kind) for i in range(len(weights))]
+
+    # -- maps traced at points ----------------------------------------------------------------
+    def trace_support(self) -> str | None:
+        """Why this store's maps cannot be traced at points (None: they can)."""
+        from probegrid.bake.point import trace_support
+
+        has_scene = self._scene is not None or self.store.manifest.scene_file is not None
+        return trace_support(self.store.manifest, set(self.store.manifest.extras), has_scene)
+
+    def map_method(self, method: MapMethod = "trace") -> MapMethod:
+        """The method :meth:`cube_at` uses when asked for ``method``: ``"trace"`` falls back
+        to ``"blend"`` for a store that cannot be traced (:meth:`trace_support`)."""
+        if method not in MAP_METHODS:
+            raise ValueError(f"method must be one of {', '.join(MAP_METHODS)}, got {method!r}.")
+        return "trace" if method == "trace" and self.trace_support() is None else "blend"
+
+    def point_tracer(self) -> PointTracer:
+        """The store's :class:`probegrid.bake.point.PointTracer`, built on first use."""
+        with self._trace_lock:
+            if self._point_tracer is None:
+                from probegrid.bake.point import PointTracer
+
+                scene = self._scene
+                if scene is None:
+                    from probegrid.scene import load_gltf
+
+                    kept = self.store.manifest.scene_file
+                    assert kept is not None
+                    scene = load_gltf(self.store.path / kept.file)
+                self._point_tracer = PointTracer.from_store(self.store, scene, tracer=self.tracer,
+                                                            settings=self._point_settings)
+            return self._point_tracer
+
+    def point_maps(self, point: ArrayLike) -> PointMaps:
+        """What a probe traced at ``point (3,)`` holds (its incoming cube, diffuse map and GGX
+        chain; the last :data:`TRACE_CACHE` points' are kept). Points are traced side by side
+        on the service's threads; concurrent requests for one point (a client fetching every
+        level at once) wait for its one trace."""
+        p = _points(point, "point")
+        if len(p) != 1:
+            raise ValueError("point_maps traces one point.")
+        key = np.ascontiguousarray(p[0], dtype="<f8").tobytes()
+        tracer = self.point_tracer()
+        with self._trace_lock:
+            got = self._traced.get(key)
+            if got is not None:
+                self._traced.move_to_end(key)
+                return got
+            pending = self._tracing.get(key)
+            if pending is None:
+                pending = self._tracing[key] = Future()
+                mine = True
+            else:
+                mine = False
+        if not mine:
+            return cast("PointMaps", pending.result())
+        try:
+            got = tracer.maps(p[0])
+        except BaseException as exc:
+            with self._trace_lock:
+                del self._tracing[key]
+            pending.set_exception(exc)
+            raise
+        with self._trace_lock:
+            del self._tracing[key]
+            self._traced[key] = got
+            while len(self._traced) > TRACE_CACHE:
+                self._traced.popitem(last=False)
+        pending.set_result(got)
+        return got
+
+    def cube_at(self, point: ArrayLike, kind: MapKind, *, level: int = 0,
+                method: MapMethod = "trace", normal: ArrayLike | None = None
+                ) -> tuple[NDArray[np.float32], ProbeWeights, MapMethod]:
+        """One map level ``(6, s, s, 3)`` float32 at one point, the blend's weights (for the
+        flags; the traced map does not use them) and the method used (:meth:`map_method`; the
+        blend too for a point inside a solid, whose traced rays meet back faces more often than
+        the bake lets a probe's)."""
+        self._level(kind, level)  # checks kind and level
+        used = self.map_method(method)
+        w = self.weights(point, normals=normal)
+        if used == "blend":
+            return self.cube(w, kind, level=level)[0], w, used
+        maps = self.point_maps(point)
+        limit = float(self.store.manifest.bake["settings"].get("invalid_threshold", 0.25))
+        if maps.backface_fraction > limit:
+            return self.cube(w, kind, level=level)[0], w, "blend"
+        faces = (maps.incoming if kind == "incoming" else maps.diffuse if kind == "diffuse"
+                 else maps.specular[level])
+        return faces, w, used
 
     def shade(
         self,

@@ -340,8 +340,10 @@ def bake(
         level = schedule.level
         assert level is not None
         final_cubes = cubes_at.get(schedule.reads(level)) if level > 0 else None
+        final_grid = irradiance_at.get(schedule.reads(level)) if level > 0 else None
         if schedule.extrapolates:  # the final pass reads the grid's extrapolated limit
-            cubes = bordered_cubes(schedule.limit(irradiance_at))
+            final_grid = schedule.limit(irradiance_at)
+            cubes = bordered_cubes(final_grid)
             final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
                            else cubes)
 
@@ -395,7 +397,9 @@ def bake(
             quality["bounce_extrapolation"] = schedule.state.factor
             quality["bounce_energy_limit"] = schedule.state.limit
         quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
-        write_store_extras(w, scene)  # deringed SH, scene triangles (probegrid.bake.extras)
+        # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
+        write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
+                           gather=st.gather_levels() > 0, face_size=st.face_size)
         store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
         shutil.rmtree(work, ignore_errors=True)
         if not files:  # (this machine's Dask workers' record directory, emptied block by block)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from probegrid.bake.environment import Environment
+from probegrid.bake.environment import LIGHT_SIZE, Environment
 from probegrid.bake.inside import DIRECTIONS
 from probegrid.bake.maps import FILTER_GROUP
 from probegrid.bake.nolight import light_sources
@@ -149,10 +149,16 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
         return NPY_HEADER_BYTES + p * math.prod(shape) * np.dtype(dtype).itemsize
 
     store = MANIFEST_BYTES + sum(npy(a.shape, a.dtype) for a in store_arrays(st).values())
+    g = irradiance_size(st.gather_levels() > 0)
+    # the extras a probe traced at a point reads (probegrid.bake.extras): the bordered grid
+    # and moments, the environment's cube
+    store += npy((6, g + 2, g + 2, 3), "float32") + npy((6, m + 2, m + 2, 2), "float32")
+    if environment is not None and environment.faces is not None:
+        e = min(int(environment.faces.shape[1]), max(LIGHT_SIZE, n))
+        store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
     # work files: the classification, the per-hit records of every traced ray (kept until the
     # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
     # moments, the done masks
-    g = irradiance_size(st.gather_levels() > 0)
     work = npy((3,), "float64") + npy((), "bool") + npy((), "float64") + npy((), "bool")
     records = record_bytes(primary, st.gather_samples, st.gather_levels())
     work += records

@@ -12,6 +12,20 @@
     The scene's triangle soup, so that queries can test the visibility between a point and the
     surrounding probes exactly (:class:`probegrid.query.ProbeField`). float32 is what Embree
     traces anyway; 12 bytes per vertex and per triangle.
+``grid_irradiance (P, 6, g + 2, g + 2, 3) float32``
+    The grid the final pass read: each probe's irradiance / pi cube of the light reflected at
+    least once (the converged level, or its extrapolated limit) with its seamless one-texel
+    border (:func:`probegrid.core.ddgi.bordered_cubes`, as the pass reads it); zeros for a bake
+    of no bounce. With the bordered moments and the environment it is what a probe traced at
+    any point needs (:class:`probegrid.bake.point.PointTracer`), memory-mapped as stored;
+    ``6 (g + 2)^2 * 12`` bytes per probe (``g = 8`` with gather rays: 7.2 KB).
+``moments_bordered (P, 6, m + 2, m + 2, 2) float32``
+    ``moments`` with the same border (what the hits' probe weights read; 4.8 KB per probe at
+    ``m = 8``). The two are about a tenth of the maps at face 32.
+``environment (6, m, m, 3) float32``
+    The environment cube the rays saw, box-filtered to the finest size the bake read it at
+    (:func:`probegrid.bake.point.environment_extra`), without the rotation and intensity the
+    manifest's ``bake.environment`` states; absent for a constant colour (described there).
 
 The windows are chosen from the float32 ``sh`` as stored (so "already non-negative" is decided
 on the values a reader sees), with :data:`probegrid.core.sh.dering.DEFAULT_MARGIN` of headroom for
@@ -21,7 +35,12 @@ the float32 rounding of the deringed coefficients.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
+from probegrid.bake.environment import Environment
+from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, MOMENTS_EXTRA, environment_extra
+from probegrid.bake.records import irradiance_size
+from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
@@ -29,10 +48,16 @@ from probegrid.store import StoreWriter
 __all__ = ["write_store_extras"]
 
 
-def write_store_extras(writer: StoreWriter, scene: Scene) -> None:
+def write_store_extras(writer: StoreWriter, scene: Scene, *,
+                       environment: Environment | None = None,
+                       grid_irradiance: NDArray[np.float32] | None = None,
+                       gather: bool = True, face_size: int = 32) -> None:
     """Add ``sh_deringed``, ``sh_window``, ``scene_vertices`` and ``scene_triangles`` to the
-    finished-but-unpublished store of ``writer`` (every probe written); see the module
-    docstring. Idempotent: a resumed bake writes the same extras again."""
+    finished-but-unpublished store of ``writer`` (every probe written), and with an
+    ``environment`` the ``grid_irradiance`` (``grid_irradiance``: the cubes the final pass read,
+    None for none; ``gather``: the bake traced gather rays) and ``environment`` extras
+    (``face_size``: the probes'); see the module docstring. Idempotent: a resumed bake writes
+    the same extras again."""
     raw = np.asarray(writer.array("sh"), dtype=np.float64)
     deringed, window, _ = dering(raw)
     writer.add_extra("sh_deringed", deringed.astype(np.float32),
@@ -44,3 +69,20 @@ def write_store_extras(writer: StoreWriter, scene: Scene) -> None:
                      description="scene triangle vertices, world (for exact query visibility)")
     writer.add_extra("scene_triangles", np.asarray(scene.triangles, dtype=np.int32),
                      description="scene triangles: vertex indices into scene_vertices")
+    if environment is None:
+        return
+    if grid_irradiance is None:
+        g = irradiance_size(gather)
+        grid_irradiance = np.zeros((writer.n_probes, 6, g, g, 3), np.float32)
+    writer.add_extra(GRID_EXTRA, bordered_cubes(grid_irradiance),
+                     description="irradiance / pi cubes of the light reflected at least once, "
+                                 "the grid the final pass read, bordered (for probes traced at "
+                                 "points)")
+    writer.add_extra(MOMENTS_EXTRA, bordered_cubes(writer.array("moments")),
+                     description="distance moments with their seamless border (for probes "
+                                 "traced at points)")
+    env = environment_extra(environment, face_size)
+    if env is not None:
+        writer.add_extra(ENVIRONMENT_EXTRA, env,
+                         description="environment cube the rays saw, box-filtered, without the "
+                                     "rotation and intensity of the manifest's bake.environment")

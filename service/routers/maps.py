@@ -1,4 +1,10 @@
-"""``GET /v1/grids/{grid}/maps/{kind}``: a blended cube map at a position, in several formats."""
+"""``GET /v1/grids/{grid}/maps/{kind}``: the cube map at a position, in several formats.
+
+By default (``method=trace``) the map is what a probe baked at the position holds: a probe
+traced there against the grid (:meth:`probegrid.query.ProbeField.cube_at`); ``method=blend``
+blends the surrounding probes' maps (cheaper: microseconds instead of a trace). A store that
+cannot be traced is answered with the blend; ``X-Probegrid-Method`` says which was used.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +13,9 @@ from typing import Annotated, Any, Final, cast, get_args
 from fastapi import APIRouter, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from probegrid._types import MapKind
+from probegrid._types import MapKind, MapMethod
 from probegrid.core.lobes import level_roughness
+from probegrid.query import MAP_METHODS
 from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep, plain_query, probe_query
 from service.encoding import MEDIA_TYPES, conditional_response, encode_cube
 from service.errors import ApiError
@@ -59,10 +66,12 @@ def resolve_map(request: Request) -> dict[str, Any] | None:
     level = _level(params.get("level"))
     fmt = params.get("format", "npy")  # the default of /v1/lights/maps too
     layout = params.get("layout", "faces")
-    if level is None or fmt not in _FORMATS or layout not in _LAYOUTS:
+    method = params.get("method", "trace")
+    if level is None or fmt not in _FORMATS or layout not in _LAYOUTS or method not in MAP_METHODS:
         return None
     return {"request": request, "state": request.app.state.probegrid, "query": query,
-            "kind": request.path_params["kind"], "level": level, "fmt": fmt, "layout": layout}
+            "kind": request.path_params["kind"], "level": level, "fmt": fmt, "layout": layout,
+            "method": method}
 
 
 @router.get(
@@ -81,14 +90,19 @@ async def get_map(
     level: Annotated[int, Query(ge=0, le=MAX_LEVEL, description="Specular mip level.")] = 0,
     fmt: Annotated[CubeFormat, Query(alias="format", description="Encoding.")] = "npy",
     layout: Annotated[CubeLayout, Query(description="Six faces or a horizontal cross.")] = "faces",
+    method: Annotated[MapMethod, Query(
+        description="trace: what a probe baked at the point holds (traced there against the "
+                    "grid); blend: the surrounding probes' maps blended.")] = "trace",
 ) -> Response:
-    """The cube map of one kind (and specular level) at ``(x, y, z)``, blended from the probes.
+    """The cube map of one kind (and specular level) at ``(x, y, z)``: traced at the point
+    (``method=trace``, the default; a store that cannot be traced answers with the blend) or
+    blended from the probes (``method=blend``).
 
     ``faces`` is ``(6, n, n, 3)`` for npy/json and the six faces stacked top to bottom for
     images; ``cross`` is the horizontal cross. Headers ``X-Probegrid-Probes`` (``index:weight``
     pairs), ``X-Probegrid-Outside``, ``X-Probegrid-Unlit`` and ``X-Probegrid-Visibility`` (the
     visibility test: ``segments``, exact against the scene's triangles; ``moments``; ``none``)
-    describe the blend.
+    describe the blend; ``X-Probegrid-Method`` the method used.
     """
     grid, point = query.grid, query.point
     field = grid.field
@@ -102,17 +116,20 @@ async def get_map(
     n = field.map_size(map_kind, level)
     if fmt == "json":
         check_json_size(6 * n * n * 3, state.settings.max_json_values)
+    used = field.map_method(method)
 
     def render() -> tuple[bytes, dict[str, str]]:
-        w = field.weights(point.position, normals=point.normal)
-        faces = field.cube(w, map_kind, level=level)[0]
+        faces, w, made = field.cube_at(point.position, map_kind, level=level, method=used,
+                                       normal=point.normal)
         f = flags_json(w, visibility=point.normal is not None)
-        meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level}
+        meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level,
+                                   "method": made}
         headers = {
             "X-Probegrid-Probes": probe_header(w),
             "X-Probegrid-Outside": str(f["outside"]).lower(),
             "X-Probegrid-Unlit": str(f["unlit"]).lower(),
             "X-Probegrid-Visibility": w.visibility,
+            "X-Probegrid-Method": made,
         }
         if kind == "specular":
             r = float(level_roughness(level, levels))
@@ -124,9 +141,9 @@ async def get_map(
         body = encode_cube(faces, fmt=fmt, layout=layout, scratch=state.scratch, meta=meta)
         return body, headers
 
-    # Small arrays are cheaper to make on the event loop than to hand to a thread; image
-    # encoding (OpenImageIO releases the GIL) and big maps go to the thread pool.
-    if fmt == "npy" and n <= INLINE_FACE_SIZE:
+    # Small blended arrays are cheaper to make on the event loop than to hand to a thread; a
+    # trace, image encoding (OpenImageIO releases the GIL) and big maps go to the thread pool.
+    if fmt == "npy" and n <= INLINE_FACE_SIZE and used == "blend":
         body, headers = render()
     else:
         body, headers = await run_in_threadpool(render)

@@ -1,0 +1,271 @@
+"""Probes traced at any point against a converged grid: what a probe baked there would hold.
+
+Between the probes of a grid, a blend of the 8 surrounding probes' maps is an overlay of views
+from 8 places: a mirror level shows a small light up to 8 times, and the diffuse map carries the
+light of wherever the probes stand. :class:`PointTracer` instead renders a probe at the query
+point with the bake's own estimator -- its texel rays, the direct light sampled at every hit
+(punctual lights, the emitters' exact view and samples, the environment), the final gather and,
+at the gather's deepest hits, the converged grid read through the surrounding probes'
+irradiance cubes (:class:`probegrid.bake.records.RecordTracer`,
+:func:`probegrid.bake.records.replay.replay` with ``final=True``) -- and filters its incoming
+cube into the diffuse map and the GGX chain with the bake's filter
+(:func:`probegrid.core.probefilter.filter_cube`). The parallax of everything the point sees is
+then exact; only the light reflected more than ``gather_depth`` times still comes from the grid.
+
+What it needs of a bake is what the final pass read (:mod:`probegrid.bake.extras`: the
+environment, the grid's irradiance cubes and the bordered distance moments, stored as extras),
+the scene and the bake's settings; :meth:`PointTracer.from_store` builds it from a store that
+has them. The grid's arrays stay memory-mapped (a query reads the 8 probes around each hit); a
+tracer holds the scene's tables, the emitters' and the environment's (at most ``6 x 64^2``
+texels and the probes' face size), and the probes' validity and positions (25 bytes a probe).
+
+A point's random streams are keyed by the bake's seed and the point's coordinates (the same
+point gives the same bits), so two nearby points draw independent noise, of the bake's level
+at a probe.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from probegrid.bake.environment import LIGHT_SIZE, Environment
+from probegrid.bake.records import (
+    GridData,
+    RecordTracer,
+    all_hit_weights,
+    gather_depth,
+    hit_weights,
+)
+from probegrid.bake.records.replay import replay
+from probegrid.bake.render import RenderSettings
+from probegrid.core import probefilter
+from probegrid.core.cubemap import mip_sizes
+from probegrid.core.sampling import resample
+from probegrid.raytrace import RayTracer
+from probegrid.scene import Scene
+
+__all__ = ["ENVIRONMENT_EXTRA", "GRID_EXTRA", "MOMENTS_EXTRA", "PointMaps", "PointSettings", "PointTracer",
+           "environment_extra", "trace_support"]
+
+#: The store extra holding the environment a bake's rays saw (unrotated, unscaled cube).
+ENVIRONMENT_EXTRA = "environment"
+#: The store extra holding the grid's irradiance cubes the bake's final pass read (bordered).
+GRID_EXTRA = "grid_irradiance"
+#: The store extra holding the probes' distance moments with their seamless border.
+MOMENTS_EXTRA = "moments_bordered"
+
+
+def environment_extra(environment: Environment, face_size: int) -> NDArray[np.float32] | None:
+    """The environment cube a store keeps for :class:`PointTracer` (None for a constant
+    colour, which the manifest describes): the cube box-filtered to the finest size the bake
+    reads it at -- the light sampler's (:data:`probegrid.bake.environment.LIGHT_SIZE`) or the
+    probes' texels (``face_size``), at most its own -- without rotation and intensity (the
+    manifest's ``bake.environment`` states them)."""
+    if environment.faces is None:
+        return None
+    n = int(environment.faces.shape[1])
+    size = min(n, max(LIGHT_SIZE, int(face_size)))
+    faces = environment.faces if size == n else resample(environment.faces, size)
+    return np.ascontiguousarray(faces, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class PointSettings:
+    """How a point is traced: the bake's settings by default (``None`` keeps the bake's).
+
+    Attributes
+    ----------
+    gather_samples : int or None
+        Gather rays per front hit (at least 1 for a bake with gather rays: its grid's cubes
+        are of the size gather hits read).
+    gather_depth : int or None
+        Gather levels (at most the bake's).
+    light_samples : int or None
+        Emitter and environment samples per hit.
+    """
+
+    gather_samples: int | None = None
+    gather_depth: int | None = None
+    light_samples: int | None = None
+
+
+@dataclass(frozen=True)
+class PointMaps:
+    """What a probe at a point holds: its incoming cube, diffuse map and GGX chain, and the
+    fraction of its rays that met a back face (over the bake's ``invalid_threshold``: the
+    point is inside a solid, where no probe would be valid)."""
+
+    incoming: NDArray[np.float32]
+    diffuse: NDArray[np.float32]
+    specular: tuple[NDArray[np.float32], ...]
+    backface_fraction: float = 0.0
+
+
+def trace_support(manifest: Any, extras: set[str], has_scene: bool) -> str | None:
+    """Why a store cannot be traced at points (None: it can): its bake's settings, the
+    environment it saw, the grid its final pass read and its scene must all be there."""
+    bake = getattr(manifest, "bake", None) or {}
+    if "settings" not in bake or "render" not in bake:
+        return "the store records no bake settings"
+    if not has_scene:
+        return "the store keeps no scene file"
+    if GRID_EXTRA not in extras or MOMENTS_EXTRA not in extras:
+        return "the store keeps no grid irradiance (baked before it was stored)"
+    env = bake.get("environment") or {}
+    if env.get("type") == "cube" and ENVIRONMENT_EXTRA not in extras:
+        return "the store keeps no environment cube"
+    if "bounces" not in (getattr(manifest, "quality", None) or {}):
+        return "the store records no final bounce level"
+    return None
+
+
+class PointTracer:
+    """Traces probes at arbitrary points of one bake (build once: it owns the BVH and the
+    emitters' and environment's tables).
+
+    Parameters
+    ----------
+    scene, environment
+        What the bake traced.
+    render : RenderSettings
+        The bake's (face size, samples, seed, ray offset, ...).
+    grid_data : GridData
+        The grid the final pass read (bordered moments and irradiance cubes).
+    level : int
+        The final pass's bounce level.
+    light_samples, gather_samples, gather_depth : int
+        The bake's record tracer settings.
+    diffuse_size, specular_levels : int
+        The maps' sizes (the store's).
+    """
+
+    def __init__(self, scene: Scene, environment: Environment, render: RenderSettings,
+                 grid_data: GridData, *, level: int, light_samples: int, gather_samples: int,
+                 gather_depth: int, diffuse_size: int, specular_levels: int,
+                 tracer: RayTracer | None = None) -> None:
+        self.render = render
+        self.data = grid_data
+        self.level = int(level)
+        self.records = RecordTracer(scene, environment, render, light_samples=light_samples,
+                                    gather_samples=gather_samples, gather_depth=gather_depth,
+                                    tracer=tracer)
+        self.diffuse_size = int(diffuse_size)
+        self.specular_levels = int(specular_levels)
+        n = render.face_size
+        self._matrix: Any = None
+        self._dense = probefilter.supported(n, self.diffuse_size)
+
+    @classmethod
+    def from_store(cls, store: Any, scene: Scene, *, tracer: RayTracer | None = None,
+                   settings: PointSettings | None = None) -> PointTracer:
+        """The tracer of a store's bake (:func:`trace_support` must say it can) and ``scene``,
+        the scene it baked; ``settings`` may lower the bake's gather and light samples."""
+        why = trace_support(store.manifest, set(store.manifest.extras), True)
+        if why is not None:
+            raise ValueError(f"store {store.path.name} cannot be traced at points: {why}.")
+        bake = store.manifest.bake
+        st = bake["settings"]
+        rd = bake["render"]
+        face = int(st["face_size"])
+        render = RenderSettings(face_size=face, samples=int(st["samples"]),
+                                seed=int(st["seed"]), moments_size=int(rd["moments_size"]),
+                                direct=bool(st.get("direct", True)),
+                                ray_offset=float(rd["ray_offset"]),
+                                max_distance=float(rd["max_distance"]))
+        env_d = bake.get("environment") or {}
+        if env_d.get("type") == "cube":
+            env = Environment(faces=np.asarray(store.arrays[ENVIRONMENT_EXTRA], np.float32),
+                              intensity=float(env_d.get("intensity", 1.0)),
+                              rotation=float(env_d.get("rotation_rad", 0.0)))
+        else:
+            env = Environment(color=np.asarray(env_d.get("color", (0.0, 0.0, 0.0))),
+                              intensity=float(env_d.get("intensity", 1.0)))
+        level = int(store.manifest.quality["bounces"])
+        ps = settings or PointSettings()
+        # the bake's gather levels (BakeSettings.gather_levels): the grid's irradiance cubes
+        # are of the size its hits read them at, so a query keeps gather rays if it had them
+        depth = 0 if int(st["gather_samples"]) == 0 else int(st["gather_depth"])
+        if st["bounces"] != "converge":
+            depth = min(depth, int(st["bounces"]))
+        # the final pass read a grid (grid_level_read) or none (its stored cubes are zeros)
+        reads = level - 1 - depth >= 0
+        gather = int(st["gather_samples"]) if ps.gather_samples is None else ps.gather_samples
+        if depth and gather < 1:
+            raise ValueError("a bake with gather rays is traced with at least 1 gather sample.")
+        if depth and ps.gather_depth is not None:
+            if not 1 <= ps.gather_depth <= depth:
+                raise ValueError(f"gather_depth must be 1..{depth} for this store.")
+            depth = ps.gather_depth
+        # the bordered grid the final pass read, memory-mapped: what a query reads of it is
+        # the 8 probes around each hit, so the service's memory does not grow with the grid
+        moments = np.asarray(store.arrays[MOMENTS_EXTRA])
+        grid_cubes = np.asarray(store.arrays[GRID_EXTRA])
+        data = GridData(store.grid, np.array(store.arrays["valid"], dtype=bool),
+                        np.asarray(store.arrays["positions"], dtype=np.float64),
+                        moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
+                        grid_cubes.reshape(-1, 3) if reads else None)
+        levels = len(mip_sizes(face, st.get("specular_levels")))
+        return cls(scene, env, render, data, level=level,
+                   light_samples=(int(st["light_samples"]) if ps.light_samples is None
+                                  else ps.light_samples),
+                   gather_samples=gather if depth else 0, gather_depth=max(depth, 1),
+                   diffuse_size=int(st["diffuse_size"]), specular_levels=levels,
+                   tracer=tracer)
+
+    @staticmethod
+    def point_index(point: NDArray[np.float64]) -> int:
+        """The random streams' index of a point: 62 bits of a hash of its coordinates."""
+        h = hashlib.sha256(np.ascontiguousarray(point, dtype="<f8").tobytes()).digest()
+        return int.from_bytes(h[:8], "little") >> 2
+
+    def incoming(self, points: ArrayLike) -> NDArray[np.float32]:
+        """``(B, 6, n, n, 3)`` incoming cubes of probes at ``points (B, 3)``."""
+        return self._incoming(points)[0]
+
+    def _incoming(self, points: ArrayLike) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+        """:meth:`incoming` and each point's backface fraction."""
+        pos = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not np.isfinite(pos).all():
+            raise ValueError("points must be finite.")
+        idx = np.array([self.point_index(p) for p in pos], dtype=np.int64)
+        rec, _, _ = self.records.trace(pos, idx)
+        cubes = None
+        if self.level > 0 and self.data.cubes is not None:
+            rec = dict(rec)
+            rec.update(all_hit_weights(rec, self.data))
+            if gather_depth(rec) and self.level >= 2:
+                rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
+            cubes = self.data.cubes
+        back = np.asarray(rec["backface_fraction"], np.float64)
+        cube, _ = replay(rec, self.render, self.level, cubes, final=True)
+        return cube, back
+
+    def maps(self, point: ArrayLike) -> PointMaps:
+        """The incoming cube, diffuse map and GGX chain of a probe at one point."""
+        cube, back = self._incoming(np.asarray(point, dtype=np.float64).reshape(1, 3))
+        return self.filter(cube[0], backface_fraction=float(back[0]))
+
+    def filter(self, cube: NDArray[np.float32], *, backface_fraction: float = 0.0
+               ) -> PointMaps:
+        """A probe's maps from its incoming cube ``(6, n, n, 3)``, as the bake filters them."""
+        from probegrid import usercache
+        from probegrid.core import diffuse, specular
+
+        n = self.render.face_size
+        if self._dense:
+            if self._matrix is None:
+                self._matrix = usercache.probe_filter_matrix(n, self.diffuse_size,
+                                                             self.specular_levels)
+            d, chain = probefilter.filter_cube(cube, self.diffuse_size, self.specular_levels,
+                                               matrix=self._matrix)
+        else:
+            d = diffuse.diffuse_exact(cube, self.diffuse_size)
+            chain = specular.ggx_prefilter(cube, levels=self.specular_levels)
+        return PointMaps(cube, np.asarray(d, np.float32),
+                         tuple(np.asarray(c, np.float32) for c in chain), backface_fraction)
+
