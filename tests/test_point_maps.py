@@ -155,7 +155,7 @@ def test_the_bake_stores_the_grid_and_the_environment_the_tracer_reads(tmp_path)
     assert tracer0.data.cubes is not None and not tracer0.data.cubes.flags.owndata  # mapped
     assert s.manifest.bake["environment"]["rotation_rad"] == 0.3
     tracer = PointTracer.from_store(s, scene)
-    env_q = tracer.records.renderer.environment
+    env_q = tracer.records.view.environment
     assert env_q.intensity == 0.5 and env_q.rotation == 0.3
 
 

@@ -42,7 +42,7 @@ from probegrid.bake.records import (
     hit_weights,
 )
 from probegrid.bake.records.replay import replay
-from probegrid.bake.render import RenderSettings
+from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.core import probefilter
 from probegrid.core.cubemap import mip_sizes
 from probegrid.core.sampling import resample
@@ -132,31 +132,29 @@ class PointTracer:
     ----------
     scene, environment
         What the bake traced.
-    render : RenderSettings
-        The bake's (face size, samples, seed, ray offset, ...).
+    settings : BakeSettings
+        The bake's (face size, samples, seed, light and gather samples, ...), with the gather
+        and light samples the queries use.
+    geometry : TraceGeometry
+        The bake's ray lengths (ray offset, miss distance).
     grid_data : GridData
         The grid the final pass read (bordered moments and irradiance cubes).
     level : int
         The final pass's bounce level.
-    light_samples, gather_samples, gather_depth : int
-        The bake's record tracer settings.
     diffuse_size, specular_levels : int
         The maps' sizes (the store's).
     """
 
-    def __init__(self, scene: Scene, environment: Environment, render: RenderSettings,
-                 grid_data: GridData, *, level: int, light_samples: int, gather_samples: int,
-                 gather_depth: int, diffuse_size: int, specular_levels: int,
-                 tracer: RayTracer | None = None) -> None:
-        self.render = render
+    def __init__(self, scene: Scene, environment: Environment, settings: BakeSettings,
+                 geometry: TraceGeometry, grid_data: GridData, *, level: int, diffuse_size: int,
+                 specular_levels: int, tracer: RayTracer | None = None) -> None:
+        self.settings = settings
         self.data = grid_data
         self.level = int(level)
-        self.records = RecordTracer(scene, environment, render, light_samples=light_samples,
-                                    gather_samples=gather_samples, gather_depth=gather_depth,
-                                    tracer=tracer)
+        self.records = RecordTracer(scene, environment, settings, geometry, tracer=tracer)
         self.diffuse_size = int(diffuse_size)
         self.specular_levels = int(specular_levels)
-        n = render.face_size
+        n = settings.face_size
         self._matrix: Any = None
         self._dense = probefilter.supported(n, self.diffuse_size)
 
@@ -172,11 +170,13 @@ class PointTracer:
         st = bake["settings"]
         rd = bake["render"]
         face = int(st["face_size"])
-        render = RenderSettings(face_size=face, samples=int(st["samples"]),
-                                seed=int(st["seed"]), moments_size=int(rd["moments_size"]),
-                                direct=bool(st.get("direct", True)),
-                                ray_offset=float(rd["ray_offset"]),
-                                max_distance=float(rd["max_distance"]))
+        try:
+            baked = BakeSettings.model_validate(st)
+        except ValueError:
+            raise ValueError(f"store {store.path.name} cannot be traced at points: its bake "
+                             "settings are not this version's.") from None
+        geometry = TraceGeometry(ray_offset=float(rd["ray_offset"]),
+                                 max_distance=float(rd["max_distance"]))
         env_d = bake.get("environment") or {}
         if env_d.get("type") == "cube":
             env = Environment(faces=np.asarray(store.arrays[ENVIRONMENT_EXTRA], np.float32),
@@ -210,10 +210,14 @@ class PointTracer:
                         moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
                         grid_cubes.reshape(-1, 3) if reads else None)
         levels = len(mip_sizes(face, st.get("specular_levels")))
-        return cls(scene, env, render, data, level=level,
-                   light_samples=(int(st["light_samples"]) if ps.light_samples is None
-                                  else ps.light_samples),
-                   gather_samples=gather if depth else 0, gather_depth=max(depth, 1),
+        # the record tracer reads its light and gather samples from the settings: the bake's,
+        # lowered where ``settings`` asks (gather_levels() then gives ``depth``)
+        queried = baked.model_copy(update={
+            "light_samples": (baked.light_samples if ps.light_samples is None
+                              else int(ps.light_samples)),
+            "gather_samples": gather if depth else 0,
+            "gather_depth": max(depth, 1)})
+        return cls(scene, env, queried, geometry, data, level=level,
                    diffuse_size=int(st["diffuse_size"]), specular_levels=levels,
                    tracer=tracer)
 
@@ -242,7 +246,7 @@ class PointTracer:
                 rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
             cubes = self.data.cubes
         back = np.asarray(rec["backface_fraction"], np.float64)
-        cube, _ = replay(rec, self.render, self.level, cubes, final=True)
+        cube, _ = replay(rec, self.settings, self.level, cubes, final=True)
         return cube, back
 
     def maps(self, point: ArrayLike) -> PointMaps:
@@ -256,7 +260,7 @@ class PointTracer:
         from probegrid import usercache
         from probegrid.core import diffuse, specular
 
-        n = self.render.face_size
+        n = self.settings.face_size
         if self._dense:
             if self._matrix is None:
                 self._matrix = usercache.probe_filter_matrix(n, self.diffuse_size,
