@@ -245,7 +245,7 @@ def test_dask_local_cluster_bake_equals_local_bake(tmp_path):
     st = BakeSettings(bounces=1, samples=2, seed=3, **FAST)
     local = _arrays(bake(scene, grid, tmp_path / "l.probes", settings=st).store)
     cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                       dashboard_address=None)
+                                       dashboard_address=":0")
     with cluster, DaskExecutor(cluster.scheduler_address) as ex:
         dask = _arrays(bake(scene, grid, tmp_path / "d.probes", settings=st, executor=ex).store)
     for k in local:

@@ -282,7 +282,7 @@ def test_dask_unreachable_scheduler_is_one_line():
 def dask_cluster():
     distributed = pytest.importorskip("distributed")
     cluster = distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
         worker_dashboard_address=None,
     )
     try:
