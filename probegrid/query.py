@@ -52,6 +52,8 @@ from probegrid.core.cubemap import CubeMap
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
     MAP_KINDS,
+    QUERY_EXTRAPOLATION,
+    QUERY_FACING,
     Occlusion,
     ProbeWeights,
     _points,
@@ -208,7 +210,9 @@ class ProbeField:
     def weights(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> ProbeWeights:
         """:func:`probe_weights` with the store's validity, probe positions and moments, and
         the exact segment test when the store keeps the scene's triangles (module docstring);
-        the result's ``visibility`` says which test was used."""
+        the result's ``visibility`` says which test was used. A point up to a quarter cell
+        outside the probes' box is extrapolated linearly, and a normal enters the visibility
+        test only, not the weights (section "Queries" of :mod:`probegrid.core.ddgi`)."""
         valid, positions, moments = self._visibility
         return probe_weights(
             self.grid,
@@ -219,6 +223,8 @@ class ProbeField:
             moments=moments,
             normal_bias=self.normal_bias,
             occluded=self._occluded,
+            extrapolate=QUERY_EXTRAPOLATION,
+            facing=QUERY_FACING,
         )
 
     @cached_property

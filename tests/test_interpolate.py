@@ -200,13 +200,36 @@ def test_continuity_across_a_cell_face_exactly():
 # ------------------------------------------------------------------------------ clamping
 def test_outside_points_are_clamped_and_flagged(field):
     pts = np.array([[-1.0, 0.5, 0.5], [3.0, 2.0, -4.0], [1.0, 0.5, 1.0]])
-    w = field.weights(pts)
+    valid = np.asarray(field.store.arrays["valid"], bool)
+    w = probe_weights(field.grid, pts, valid=valid)  # the default: clamped onto the box
     assert w.outside.tolist() == [True, True, False]
     np.testing.assert_array_equal(w.points, [[0.0, 0.5, 0.5], [2.0, 1.0, 0.0], [1.0, 0.5, 1.0]])
-    inside = field.weights(w.points)
+    inside = probe_weights(field.grid, w.points, valid=valid)
     np.testing.assert_array_equal(w.weights, inside.weights)
     np.testing.assert_allclose(field.sh(w, kind="raw"), linear_values("sh", (9, 3), w.points),
                                atol=1e-12)
+
+
+def test_queries_extrapolate_a_quarter_cell_beyond_the_box(field):
+    """SH varying linearly in space: a point up to a quarter cell outside the probes' box gets
+    the exact extrapolated SH (clamping gives the box face's); farther out, the SH a quarter
+    cell out (the grid's cells are 1 wide)."""
+    pts = np.array([[-0.2, 0.5, 0.5], [2.1, 1.15, -0.25], [-1.0, 0.5, 0.5], [3.0, 2.0, -4.0],
+                    [1.0, 0.5, 1.0]])
+    w = field.weights(pts)
+    assert w.outside.tolist() == [True, True, True, True, False]
+    np.testing.assert_allclose(w.points, [[-0.2, 0.5, 0.5], [2.1, 1.15, -0.25],
+                                          [-0.25, 0.5, 0.5], [2.25, 1.25, -0.25], [1.0, 0.5, 1.0]],
+                               atol=1e-15)
+    assert (w.weights < 0).any()
+    np.testing.assert_allclose(w.weights.sum(axis=1), 1.0, atol=1e-12)
+    exact = linear_values("sh", (9, 3), w.points)
+    np.testing.assert_allclose(field.sh(w, kind="raw"), exact, atol=1e-12)
+    clamped = probe_weights(field.grid, pts[:2],
+                            valid=np.asarray(field.store.arrays["valid"], bool))
+    assert np.abs(field.sh(clamped, kind="raw") - exact[:2]).max() > 1e-3
+    one = field.weights(pts[1])  # the single-point path: the same weights
+    np.testing.assert_allclose(one.weights, w.weights[1:2], atol=1e-15)
 
 
 # ------------------------------------------------------------------------------ lookups
@@ -392,3 +415,21 @@ def test_blend_of_a_batch_equals_the_blend_of_each_point(field):
         one = field.weights(p)
         np.testing.assert_array_equal(field.sh(one)[0], batch_sh[k])
         np.testing.assert_array_equal(field.cube(one, "specular", level=1)[0], batch_cube[k])
+
+
+def test_a_query_normal_does_not_reweight_toward_the_probes_it_faces(field):
+    """SH varying linearly in space (the light the probes in front of the surface see differs
+    from the light behind): DDGI's normal-facing term moves the blend toward the probes the
+    normal faces, off the exact value; the query's weights with a normal keep the trilinear
+    blend (the normal only biases the visibility test), which is exact."""
+    pts = np.array([[0.5, 0.5, 0.5], [1.3, 0.2, 1.7]])
+    nrm = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0]])
+    exact = linear_values("sh", (9, 3), pts)
+    with_n = field.weights(pts, normals=nrm)
+    np.testing.assert_allclose(field.sh(with_n, kind="raw"), exact, atol=1e-12)
+    np.testing.assert_allclose(with_n.weights, field.weights(pts).weights, atol=1e-15)
+    one = field.weights(pts[0], normals=nrm[0])  # the single-point path
+    np.testing.assert_allclose(one.weights, with_n.weights[:1], atol=1e-15)
+    valid = np.asarray(field.store.arrays["valid"], bool)
+    ddgi = probe_weights(field.grid, pts, valid=valid, normals=nrm, facing=True)
+    assert np.abs(field.sh(ddgi, kind="raw") - exact).max() > 1e-2
