@@ -433,3 +433,33 @@ def test_a_query_normal_does_not_reweight_toward_the_probes_it_faces(field):
     valid = np.asarray(field.store.arrays["valid"], bool)
     ddgi = probe_weights(field.grid, pts, valid=valid, normals=nrm, facing=True)
     assert np.abs(field.sh(ddgi, kind="raw") - exact).max() > 1e-2
+
+
+def test_extrapolation_with_an_invalid_or_hidden_probe_keeps_weights_non_negative():
+    """A negative extrapolation weight needs every probe it reads: with an invalid probe in
+    the extrapolation the point is clamped; with a hidden one (segment test) the positive part
+    of the weights is kept, renormalised."""
+    grid = GridSpec.from_counts((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (3, 2, 2))
+    p = np.array([[-0.2, 0.5, 0.5]])  # outside on -x: probes at x = 1 get negative weights
+    free = probe_weights(grid, p, extrapolate=0.25)
+    np.testing.assert_allclose(free.weights.sum(), 1.0)
+    neg = free.weights[0] < 0
+    assert neg.sum() == 4
+    xyz = grid.positions()
+    valid = np.ones(len(xyz), bool)
+    valid[free.indices[0][neg][0]] = False
+    w = probe_weights(grid, p, valid=valid, extrapolate=0.25)
+    np.testing.assert_array_equal(w.weights, probe_weights(grid, p, valid=valid).weights)
+    np.testing.assert_array_equal(w.points, [[0.0, 0.5, 0.5]])
+    hide = free.indices[0][neg][0]
+
+    def occluded(starts, ends):
+        return np.all(np.isclose(ends, xyz[hide]), axis=1)
+
+    for pts in (p, np.repeat(p, 2, axis=0)):  # the single-point and the vectorised paths
+        h = probe_weights(grid, pts, extrapolate=0.25, occluded=occluded)
+        assert (h.weights >= 0).all()
+        np.testing.assert_allclose(h.weights.sum(axis=1), 1.0)
+        expect = np.maximum(free.weights[0], 0.0)
+        expect[free.indices[0] == hide] = 0.0
+        np.testing.assert_allclose(h.weights[0], expect / expect.sum(), atol=1e-15)
