@@ -228,8 +228,16 @@ def test_queries_extrapolate_a_quarter_cell_beyond_the_box(field):
     clamped = probe_weights(field.grid, pts[:2],
                             valid=np.asarray(field.store.arrays["valid"], bool))
     assert np.abs(field.sh(clamped, kind="raw") - exact[:2]).max() > 1e-3
-    one = field.weights(pts[1])  # the single-point path: the same weights
-    np.testing.assert_allclose(one.weights, w.weights[1:2], atol=1e-15)
+    rng = np.random.default_rng(5)
+    more = rng.uniform(-0.6, 2.6, (64, 3)) * [1.0, 0.5, 1.0]
+    many = field.weights(more, normals=rng.normal(size=(64, 3)))
+    for i, q in enumerate(np.concatenate([pts, more])):  # the single-point path: the same
+        one = field.weights(q) if i < len(pts) else field.weights(q, normals=None)
+        ref = w if i < len(pts) else field.weights(more)
+        k = i if i < len(pts) else i - len(pts)
+        np.testing.assert_allclose(one.weights, ref.weights[k:k + 1], atol=1e-14)
+        np.testing.assert_allclose(one.points, ref.points[k:k + 1], atol=1e-14)
+    np.testing.assert_allclose(many.weights, field.weights(more).weights, atol=1e-14)
 
 
 # ------------------------------------------------------------------------------ lookups

@@ -301,9 +301,9 @@ def probe_weights(
     v = None if valid is None else np.asarray(valid, dtype=bool)
     if occluded is not None:
         moments = None  # the exact test replaces the Chebyshev estimate
-    if p.shape[0] == 1 and (n is None or moments is None) and (
-            extrapolate == 0 or _in_box(grid, p[0])):
-        w = _weights_one(grid, p, v, None if n is None or not facing else n[0], probe_positions)
+    if p.shape[0] == 1 and (n is None or moments is None):
+        w = _weights_one(grid, p, v, None if n is None or not facing else n[0], probe_positions,
+                         extrapolate)
     else:
         parts = [
             _weights(grid, p[i:i + _POINT_CHUNK], v, None if n is None else n[i:i + _POINT_CHUNK],
@@ -321,13 +321,6 @@ def probe_weights(
     if n is not None and moments is not None:
         return dataclasses.replace(w, visibility="moments")
     return w
-
-
-def _in_box(grid: GridSpec, p: NDArray[np.float64]) -> bool:
-    """Whether one point lies in the grid's box (bounds included)."""
-    x, y, z = p.tolist()
-    (lx, ly, lz), (hx, hy, hz) = grid.bounds_min, grid.bounds_max
-    return lx <= x <= hx and ly <= y <= hy and lz <= z <= hz
 
 
 def _test_point_offset(grid: GridSpec, normal_bias: float) -> float:
@@ -476,6 +469,7 @@ def _hide_occluded_one(
 def _weights_one(
     grid: GridSpec, p: NDArray[np.float64], valid: NDArray[np.bool_] | None,
     normal: NDArray[np.float64] | None = None, probe_positions: ArrayLike | None = None,
+    extrapolate: float = 0.0,
 ) -> ProbeWeights:
     """:func:`_weights` of a single point ``p (1, 3)``, in Python floats, without moments
     (with or without a unit ``normal``).
@@ -486,15 +480,20 @@ def _weights_one(
     a normal, numpy's pairwise order for the sum of 8 weights, and the division). Without a
     normal the result equals :func:`_weights`' bit for bit; with one, to rounding (numpy may
     add the dot product's three terms in another order) (tested; a zero weight may differ in
-    sign, which no consumer sees: only weights > 0 are used).
+    sign, which no consumer sees: only non-zero weights are used).
     """
     x, y, z = p[0].tolist()
     indices, tri, outside = grid.point_corners(x, y, z)
-    if valid is not None:  # ``trilinear * valid[indices]``: t * 1.0 or t * 0.0
-        tri = [t if valid[i] else t * 0.0 for i, t in zip(indices, tri, strict=True)]
     (lx, ly, lz), (hx, hy, hz) = grid.bounds_min, grid.bounds_max
     # np.minimum(np.maximum(p, lo), hi)
     clamped = [min(hx, max(lx, x)), min(hy, max(ly, y)), min(hz, max(lz, z))]
+    if outside and extrapolate > 0:
+        ext, at = _extrapolated_one(grid, (x, y, z), extrapolate)
+        if valid is None or all(valid[i] for i, t in zip(indices, ext, strict=True) if t != 0) \
+                or min(ext) >= 0:  # else an invalid probe in the extrapolation: clamped
+            tri, clamped = ext, at
+    if valid is not None:  # ``trilinear * valid[indices]``: t * 1.0 or t * 0.0
+        tri = [t if valid[i] else t * 0.0 for i, t in zip(indices, tri, strict=True)]
     if normal is not None:
         nx, ny, nz = normal.tolist()
         cx, cy, cz = clamped
@@ -518,6 +517,29 @@ def _weights_one(
         outside=np.array([outside]),
         unlit=np.array([unlit]),
     )
+
+
+def _extrapolated_one(grid: GridSpec, p: tuple[float, float, float], cells: float
+                      ) -> tuple[list[float], list[float]]:
+    """:func:`_extrapolated` of one point outside the box, in Python floats: its 8 weights
+    (corner order) and the point they are of (clamped onto the box grown by ``cells``)."""
+    factors, at = [], []
+    for a in range(3):  # per axis: the two layers' factors 1 - f and f, f in [-cells, 1 + cells]
+        n, lo, hi, x = grid.counts[a], grid.bounds_min[a], grid.bounds_max[a], p[a]
+        if n == 1:
+            factors.append((1.0, 0.0))
+            at.append(min(hi, max(lo, x)))
+            continue
+        step = (hi - lo) / (n - 1)
+        t = (x - lo) / step
+        b = min(max(math.floor(t), 0), n - 2)
+        f = min(max(t - b, -cells), 1.0 + cells)
+        factors.append((1.0 - f, f))
+        at.append(min(hi + cells * step, max(lo - cells * step, x)))
+    (wx0, wx1), (wy0, wy1), (wz0, wz1) = factors
+    w00, w01, w10, w11 = wx0 * wy0, wx0 * wy1, wx1 * wy0, wx1 * wy1
+    return [w00 * wz0, w00 * wz1, w01 * wz0, w01 * wz1,
+            w10 * wz0, w10 * wz1, w11 * wz0, w11 * wz1], at
 
 
 def _shading_factor(
