@@ -135,8 +135,9 @@ class ProbeUse(_Model):
 
 
 class QueryFlags(_Model):
-    outside: bool = Field(description="The position was outside the grid box: extrapolated "
-                          "linearly up to a quarter cell beyond it, clamped farther out.")
+    outside: bool = Field(description="The position was outside the grid box: the SH "
+                          "extrapolated linearly up to a quarter cell beyond it (clamped farther "
+                          "out), the maps' blend clamped onto it.")
     unlit: bool = Field(description="No valid probe carries weight; the result is zero.")
     visibility: bool = Field(description="A normal was given: the visibility test starts off "
                              "the surface along it.")

@@ -238,6 +238,11 @@ def test_queries_extrapolate_a_quarter_cell_beyond_the_box(field):
         np.testing.assert_allclose(one.weights, ref.weights[k:k + 1], atol=1e-14)
         np.testing.assert_allclose(one.points, ref.points[k:k + 1], atol=1e-14)
     np.testing.assert_allclose(many.weights, field.weights(more).weights, atol=1e-14)
+    # the maps' blend clamps onto the box
+    _, wm, used = field.cube_at(pts[0], "diffuse", method="blend")
+    assert used == "blend"
+    np.testing.assert_array_equal(wm.points, [[0.0, 0.5, 0.5]])
+    assert (wm.weights >= 0).all()
 
 
 # ------------------------------------------------------------------------------ lookups
