@@ -227,7 +227,8 @@ class SHSample:
     weights : (k,) float64
         Their weights (sum 1, unless ``unlit``).
     sampled_position : (3,) float64
-        The position clamped onto the grid box.
+        Where the probes were blended: the position, clamped onto the grid box grown by a
+        quarter cell (linear extrapolation up to there).
     outside, unlit, visibility : bool
         Flags of the query (see the service; ``visibility``: a normal was given).
     visibility_test : str

@@ -52,6 +52,8 @@ from probegrid.core.cubemap import CubeMap
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
     MAP_KINDS,
+    QUERY_EXTRAPOLATION,
+    QUERY_FACING,
     Occlusion,
     ProbeWeights,
     _points,
@@ -205,10 +207,16 @@ class ProbeField:
             return "segments"
         return "moments" if normal and self._visibility[2] is not None else "none"
 
-    def weights(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> ProbeWeights:
+    def weights(self, points: ArrayLike, *, normals: ArrayLike | None = None,
+                extrapolate: bool = True) -> ProbeWeights:
         """:func:`probe_weights` with the store's validity, probe positions and moments, and
         the exact segment test when the store keeps the scene's triangles (module docstring);
-        the result's ``visibility`` says which test was used."""
+        the result's ``visibility`` says which test was used. A normal enters the visibility
+        test only, not the weights, and with ``extrapolate`` a point up to a quarter cell
+        outside the probes' box is extrapolated linearly (the SH's weights); without it, it is
+        clamped onto the box (the maps' weights: extrapolating a cube that holds a small
+        bright light magnifies the probes' disagreement about where it is). See section
+        "Queries" of :mod:`probegrid.core.ddgi`."""
         valid, positions, moments = self._visibility
         return probe_weights(
             self.grid,
@@ -219,6 +227,8 @@ class ProbeField:
             moments=moments,
             normal_bias=self.normal_bias,
             occluded=self._occluded,
+            extrapolate=QUERY_EXTRAPOLATION if extrapolate else 0.0,
+            facing=QUERY_FACING,
         )
 
     @cached_property
@@ -348,7 +358,7 @@ class ProbeField:
         the bake lets a probe's)."""
         self._level(kind, level)  # checks kind and level
         used = self.map_method(method)
-        w = self.weights(point, normals=normal)
+        w = self.weights(point, normals=normal, extrapolate=False)
         if used == "blend":
             return self.cube(w, kind, level=level)[0], w, used
         maps = self.point_maps(point)
@@ -399,7 +409,7 @@ class ProbeField:
         v = _points(views, "views")
         if not nrm.shape[0] == v.shape[0] == p.shape[0]:
             raise ValueError("points, normals and views must have the same number of rows.")
-        w = self.weights(p, normals=nrm)
+        w = self.weights(p, normals=nrm, extrapolate=False)
         alb = np.broadcast_to(np.asarray(albedo, dtype=np.float64), p.shape)
         spec_f0 = np.broadcast_to(np.asarray(f0, dtype=np.float64), p.shape)
         r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), p.shape[:1])

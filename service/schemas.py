@@ -130,13 +130,17 @@ class GridDetail(GridSummary):
 class ProbeUse(_Model):
     index: int = Field(description="Linear probe index (i * ny + j) * nz + k.")
     ijk: tuple[int, int, int]
-    weight: float = Field(description="Blending weight; the weights of a query sum to 1.")
+    weight: float = Field(description="Blending weight; the weights of a query sum to 1 "
+                          "(negative for a linear extrapolation beyond the probes' box).")
 
 
 class QueryFlags(_Model):
-    outside: bool = Field(description="The position was outside the grid box and was clamped.")
+    outside: bool = Field(description="The position was outside the grid box: the SH "
+                          "extrapolated linearly up to a quarter cell beyond it (clamped farther "
+                          "out), the maps' blend clamped onto it.")
     unlit: bool = Field(description="No valid probe carries weight; the result is zero.")
-    visibility: bool = Field(description="A normal was given: DDGI normal and visibility weights.")
+    visibility: bool = Field(description="A normal was given: the visibility test starts off "
+                             "the surface along it.")
     visibility_test: Literal["segments", "moments", "none"] = Field(
         description="The visibility test the weights went through: 'segments' (exact: the "
         "segment from the point, moved off the surface along the normal when one is given, to "
@@ -149,7 +153,8 @@ class SHOut(_Model):
     grid: str
     position: tuple[float, float, float] = Field(description="The position asked for.")
     sampled_position: tuple[float, float, float] = Field(
-        description="Where the probes were blended (the position clamped onto the grid box)."
+        description="Where the probes were blended (the position, clamped onto the grid box "
+        "grown by a quarter cell)."
     )
     coefficients: list[tuple[float, float, float]] = Field(
         description="9 RGB radiance coefficients L_lm, index l(l+1)+m."

@@ -200,13 +200,49 @@ def test_continuity_across_a_cell_face_exactly():
 # ------------------------------------------------------------------------------ clamping
 def test_outside_points_are_clamped_and_flagged(field):
     pts = np.array([[-1.0, 0.5, 0.5], [3.0, 2.0, -4.0], [1.0, 0.5, 1.0]])
-    w = field.weights(pts)
+    valid = np.asarray(field.store.arrays["valid"], bool)
+    w = probe_weights(field.grid, pts, valid=valid)  # the default: clamped onto the box
     assert w.outside.tolist() == [True, True, False]
     np.testing.assert_array_equal(w.points, [[0.0, 0.5, 0.5], [2.0, 1.0, 0.0], [1.0, 0.5, 1.0]])
-    inside = field.weights(w.points)
+    inside = probe_weights(field.grid, w.points, valid=valid)
     np.testing.assert_array_equal(w.weights, inside.weights)
     np.testing.assert_allclose(field.sh(w, kind="raw"), linear_values("sh", (9, 3), w.points),
                                atol=1e-12)
+
+
+def test_queries_extrapolate_a_quarter_cell_beyond_the_box(field):
+    """SH varying linearly in space: a point up to a quarter cell outside the probes' box gets
+    the exact extrapolated SH (clamping gives the box face's); farther out, the SH a quarter
+    cell out (the grid's cells are 1 wide)."""
+    pts = np.array([[-0.2, 0.5, 0.5], [2.1, 1.15, -0.25], [-1.0, 0.5, 0.5], [3.0, 2.0, -4.0],
+                    [1.0, 0.5, 1.0]])
+    w = field.weights(pts)
+    assert w.outside.tolist() == [True, True, True, True, False]
+    np.testing.assert_allclose(w.points, [[-0.2, 0.5, 0.5], [2.1, 1.15, -0.25],
+                                          [-0.25, 0.5, 0.5], [2.25, 1.25, -0.25], [1.0, 0.5, 1.0]],
+                               atol=1e-15)
+    assert (w.weights < 0).any()
+    np.testing.assert_allclose(w.weights.sum(axis=1), 1.0, atol=1e-12)
+    exact = linear_values("sh", (9, 3), w.points)
+    np.testing.assert_allclose(field.sh(w, kind="raw"), exact, atol=1e-12)
+    clamped = probe_weights(field.grid, pts[:2],
+                            valid=np.asarray(field.store.arrays["valid"], bool))
+    assert np.abs(field.sh(clamped, kind="raw") - exact[:2]).max() > 1e-3
+    rng = np.random.default_rng(5)
+    more = rng.uniform(-0.6, 2.6, (64, 3)) * [1.0, 0.5, 1.0]
+    many = field.weights(more, normals=rng.normal(size=(64, 3)))
+    for i, q in enumerate(np.concatenate([pts, more])):  # the single-point path: the same
+        one = field.weights(q) if i < len(pts) else field.weights(q, normals=None)
+        ref = w if i < len(pts) else field.weights(more)
+        k = i if i < len(pts) else i - len(pts)
+        np.testing.assert_allclose(one.weights, ref.weights[k:k + 1], atol=1e-14)
+        np.testing.assert_allclose(one.points, ref.points[k:k + 1], atol=1e-14)
+    np.testing.assert_allclose(many.weights, field.weights(more).weights, atol=1e-14)
+    # the maps' blend clamps onto the box
+    _, wm, used = field.cube_at(pts[0], "diffuse", method="blend")
+    assert used == "blend"
+    np.testing.assert_array_equal(wm.points, [[0.0, 0.5, 0.5]])
+    assert (wm.weights >= 0).all()
 
 
 # ------------------------------------------------------------------------------ lookups
@@ -392,3 +428,51 @@ def test_blend_of_a_batch_equals_the_blend_of_each_point(field):
         one = field.weights(p)
         np.testing.assert_array_equal(field.sh(one)[0], batch_sh[k])
         np.testing.assert_array_equal(field.cube(one, "specular", level=1)[0], batch_cube[k])
+
+
+def test_a_query_normal_does_not_reweight_toward_the_probes_it_faces(field):
+    """SH varying linearly in space (the light the probes in front of the surface see differs
+    from the light behind): DDGI's normal-facing term moves the blend toward the probes the
+    normal faces, off the exact value; the query's weights with a normal keep the trilinear
+    blend (the normal only biases the visibility test), which is exact."""
+    pts = np.array([[0.5, 0.5, 0.5], [1.3, 0.2, 1.7]])
+    nrm = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 1.0]])
+    exact = linear_values("sh", (9, 3), pts)
+    with_n = field.weights(pts, normals=nrm)
+    np.testing.assert_allclose(field.sh(with_n, kind="raw"), exact, atol=1e-12)
+    np.testing.assert_allclose(with_n.weights, field.weights(pts).weights, atol=1e-15)
+    one = field.weights(pts[0], normals=nrm[0])  # the single-point path
+    np.testing.assert_allclose(one.weights, with_n.weights[:1], atol=1e-15)
+    valid = np.asarray(field.store.arrays["valid"], bool)
+    ddgi = probe_weights(field.grid, pts, valid=valid, normals=nrm, facing=True)
+    assert np.abs(field.sh(ddgi, kind="raw") - exact).max() > 1e-2
+
+
+def test_extrapolation_with_an_invalid_or_hidden_probe_keeps_weights_non_negative():
+    """A negative extrapolation weight needs every probe it reads: with an invalid probe in
+    the extrapolation the point is clamped; with a hidden one (segment test) the positive part
+    of the weights is kept, renormalised."""
+    grid = GridSpec.from_counts((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (3, 2, 2))
+    p = np.array([[-0.2, 0.5, 0.5]])  # outside on -x: probes at x = 1 get negative weights
+    free = probe_weights(grid, p, extrapolate=0.25)
+    np.testing.assert_allclose(free.weights.sum(), 1.0)
+    neg = free.weights[0] < 0
+    assert neg.sum() == 4
+    xyz = grid.positions()
+    valid = np.ones(len(xyz), bool)
+    valid[free.indices[0][neg][0]] = False
+    w = probe_weights(grid, p, valid=valid, extrapolate=0.25)
+    np.testing.assert_array_equal(w.weights, probe_weights(grid, p, valid=valid).weights)
+    np.testing.assert_array_equal(w.points, [[0.0, 0.5, 0.5]])
+    hide = free.indices[0][neg][0]
+
+    def occluded(starts, ends):
+        return np.all(np.isclose(ends, xyz[hide]), axis=1)
+
+    for pts in (p, np.repeat(p, 2, axis=0)):  # the single-point and the vectorised paths
+        h = probe_weights(grid, pts, extrapolate=0.25, occluded=occluded)
+        assert (h.weights >= 0).all()
+        np.testing.assert_allclose(h.weights.sum(axis=1), 1.0)
+        expect = np.maximum(free.weights[0], 0.0)
+        expect[free.indices[0] == hide] = 0.0
+        np.testing.assert_allclose(h.weights[0], expect / expect.sum(), atol=1e-15)

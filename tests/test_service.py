@@ -137,10 +137,12 @@ def test_sh_equals_the_library(http, field, normal):
     np.testing.assert_array_equal(np.array(raw["coefficients"]), field.sh(w, kind="raw")[0])
 
 
-def test_sh_outside_is_clamped_and_flagged(http):
+def test_sh_outside_is_extrapolated_a_quarter_cell_and_flagged(http):
     doc = http.get("/v1/grids/lin/sh", params={"x": "-5", "y": "0.5", "z": "9"}).json()
     assert doc["flags"]["outside"] is True
-    assert doc["position"] == [-5.0, 0.5, 9.0] and doc["sampled_position"] == [0.0, 0.5, 2.0]
+    assert doc["position"] == [-5.0, 0.5, 9.0] and doc["sampled_position"] == [-0.25, 0.5, 2.25]
+    assert min(p["weight"] for p in doc["probes"]) < 0  # the extrapolation's far layer
+    assert abs(sum(p["weight"] for p in doc["probes"]) - 1) < 1e-12
 
 
 def test_sh_unlit_where_only_invalid_probes_weigh(http):

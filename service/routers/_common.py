@@ -9,9 +9,10 @@ from probegrid.core.grid import GridSpec
 
 
 def _used(weights: ProbeWeights, row: int) -> list[tuple[int, float]]:
-    """``(index, weight)`` of the probes with non-zero weight for one point, in corner order."""
+    """``(index, weight)`` of the probes with non-zero weight for one point, in corner order
+    (a linear extrapolation beyond the probes' box gives some negative weights)."""
     return [(i, w) for i, w in zip(weights.indices[row].tolist(), weights.weights[row].tolist(),
-                                   strict=True) if w > 0]
+                                   strict=True) if w != 0]
 
 
 def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dict[str, Any]]:

@@ -110,7 +110,7 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
     faces = cast(CubeMap, maps[body.kind]).levels[body.level]
     if served is not None:
         w = served.field.weights(np.asarray(body.position, dtype=np.float64),
-                                 normals=body.normal)
+                                 normals=body.normal, extrapolate=False)
         faces = faces + served.field.cube(w, body.kind, level=body.level)[0]
     if not np.all(np.isfinite(faces)):
         raise ApiError(422, "The lights' irradiance at this position overflows float32 (a light "

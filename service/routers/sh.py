@@ -52,9 +52,10 @@ async def get_sh(
 
     Deringed by default (``sh=raw`` for the raw projection; ``sh`` in the response says which).
     Probes hidden from the point by the scene get no weight where the store keeps the scene's
-    triangles (``flags.visibility_test`` is then ``segments``); with a normal ``(nx, ny, nz)``
-    the weights also follow DDGI's normal term. The response lists the probes used and their
-    weights, and flags a clamped (outside) or unlit position.
+    triangles (``flags.visibility_test`` is then ``segments``); a normal ``(nx, ny, nz)``
+    moves the visibility test's start off the surface (it does not reweight the probes). A
+    position up to a quarter cell outside the probes' box is extrapolated linearly. The
+    response lists the probes used and their weights, and flags an outside or unlit position.
     """
     grid, point = query.grid, query.point
     field = grid.field
