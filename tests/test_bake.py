@@ -804,3 +804,48 @@ def test_a_symlinked_work_directory_or_store_is_unlinked_never_emptied(tmp_path)
     stale.mkdir()
     bake(_room_scene(), grid, out, settings=st, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["room.probes", "victim"]
+
+
+class _KillAWorkerAtPass:
+    """Delegates to a Dask executor and, before the ``at``-th map call (a pass boundary),
+    kills one worker process with SIGKILL (its nanny starts a new one)."""
+
+    def __init__(self, executor, at: int) -> None:
+        self._ex, self._at, self.calls, self.killed = executor, at, 0, None
+
+    def __getattr__(self, name):
+        return getattr(self._ex, name)
+
+    def map(self, fn, context, batches, *, progress=None):
+        self.calls += 1
+        if self.calls == self._at:
+            pids = self._ex.client.run(os.getpid)
+            self.killed = pids[sorted(pids)[0]]
+            os.kill(self.killed, signal.SIGKILL)
+        return self._ex.map(fn, context, batches, progress=progress)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("at", [2, 3])
+def test_a_dask_bake_survives_a_worker_killed_at_a_pass_boundary(tmp_path, at):
+    """A worker lost between passes (its records with it): the bake completes, bit for bit
+    the bake of an uninterrupted cluster."""
+    distributed = pytest.importorskip("distributed")
+    from probegrid.bake.executors import DaskExecutor
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 2, 2))
+    st = BakeSettings(bounces=2, samples=2, seed=7, **FAST)
+    ref = _arrays(bake(_room_scene(), grid, tmp_path / "ref.probes", settings=st).store)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        ex = DaskExecutor(cluster.scheduler_address, timeout=30)
+        try:
+            killer = _KillAWorkerAtPass(ex, at)
+            got = bake(_room_scene(), grid, tmp_path / "dask.probes", settings=st,
+                       executor=killer)
+        finally:
+            ex.close()
+    assert killer.killed is not None
+    a = _arrays(got.store)
+    for k in ref:
+        assert np.array_equal(a[k], ref[k]), k
