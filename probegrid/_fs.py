@@ -5,13 +5,25 @@ Every file probegrid writes under its final name goes through :func:`atomic_writ
 :mod:`probegrid.imageio`, then renamed with it), so a crash or power loss leaves either the old
 file or the whole new one, never a half-written file that looks finished, and a failure leaves no
 temporary file behind. :func:`directory_lock` gives one writer at a time per directory.
+
+Deleting never follows a symbolic link (:func:`remove_path` unlinks the link, never empties its
+target). :func:`publish_directory` puts a finished directory at a path so that the path holds
+either the old or the new directory at every instant: on Linux with ``renameat2(RENAME_EXCHANGE)``
+(the two entries swap in one step), elsewhere, or on a file system without it, with two renames
+(old aside as ``NAME.replaced-PID``, new in) whose crash window :func:`recover_publish` closes at
+the next start by putting the old directory back.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import errno
 import fcntl
 import json
 import os
+import shutil
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,6 +39,9 @@ __all__ = [
     "fsync_dir",
     "fsync_file",
     "lock_dir",
+    "publish_directory",
+    "recover_publish",
+    "remove_path",
     "replace_durably",
 ]
 
@@ -108,3 +123,98 @@ def directory_lock(directory: str | os.PathLike[str], *, busy: str | None = None
         yield
     finally:
         os.close(fd)
+
+
+# ------------------------------------------------------------------ deleting and publishing
+def remove_path(path: str | os.PathLike[str]) -> None:
+    """Delete ``path`` without following a symbolic link: a link or a file is unlinked, a real
+    directory removed with its contents (``shutil.rmtree``, which never descends into links);
+    a missing path is no error."""
+    p = Path(path)
+    if p.is_symlink() or (p.exists() and not p.is_dir()):
+        p.unlink(missing_ok=True)
+    elif p.is_dir():
+        shutil.rmtree(p)
+
+
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+def _renameat2_exchange(a: Path, b: Path) -> bool:
+    """Swap the entries ``a`` and ``b`` in one step; False where the system or the file
+    system offers no ``renameat2(RENAME_EXCHANGE)``."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _aside(final: Path) -> Path:
+    return final.with_name(f"{final.name}.replaced-{os.getpid()}")
+
+
+def publish_directory(staged: str | os.PathLike[str], final: str | os.PathLike[str],
+                      *, exchange: bool = True) -> None:
+    """Move the finished directory ``staged`` to ``final``, replacing what stands there, so that
+    ``final`` holds the old entry or the new one at every instant; the old one (a directory, or
+    a link, never followed) is deleted afterwards.
+
+    ``staged`` is first renamed to ``NAME.replaced-PID`` beside ``final`` (so no half-published
+    state looks like work to resume), then swapped with ``final`` by ``renameat2
+    (RENAME_EXCHANGE)``, leaving the old entry under the aside name, which is deleted. Without
+    the exchange (``exchange=False``, another system, or a file system that refuses it) the old
+    entry is renamed aside and the new one in: a crash between the two renames leaves no entry
+    at ``final``, which :func:`recover_publish` puts back at the next start.
+    """
+    staged, final = Path(staged), Path(final)
+    if not final.exists() and not final.is_symlink():
+        os.rename(staged, final)
+        fsync_dir(final.parent)
+        return
+    aside = _aside(final)
+    remove_path(aside)
+    if exchange:
+        os.rename(staged, aside)
+        try:
+            swapped = _renameat2_exchange(aside, final)
+        except BaseException:
+            os.rename(aside, staged)
+            raise
+        if not swapped:
+            os.rename(aside, staged)
+    else:
+        swapped = False
+    if not swapped:
+        os.rename(final, aside)
+        os.rename(staged, final)
+    fsync_dir(final.parent)
+    remove_path(aside)
+
+
+def recover_publish(final: str | os.PathLike[str]) -> None:
+    """Finish what an interrupted :func:`publish_directory` of ``final`` left: with no entry at
+    ``final``, the newest ``NAME.replaced-PID`` (the old directory of a two-rename publish) goes
+    back to ``final``; every other ``NAME.replaced-*`` is deleted. Call it holding the lock that
+    makes its caller the only writer of ``final``."""
+    final = Path(final)
+    if not final.parent.is_dir():
+        return
+    left = sorted(final.parent.glob(f"{final.name}.replaced-*"),
+                  key=lambda p: p.lstat().st_mtime)
+    if left and not final.exists() and not final.is_symlink():
+        os.rename(left.pop(), final)
+        fsync_dir(final.parent)
+    for p in left:
+        remove_path(p)

@@ -743,3 +743,109 @@ def test_trace_geometry_follows_the_extent_of_the_scene_and_grid():
     assert small.trace_geometry(scene, grid).max_distance == geo.max_distance
     with pytest.raises(ValueError, match="ray_offset must be > 0"):
         TraceGeometry(ray_offset=0.0)
+
+
+class _StopInMap(InlineExecutor):
+    """Runs the bake in this process and raises KeyboardInterrupt after the first batch of the
+    ``stop``-th map (1: classify, 2: trace, ...), as a Ctrl-C would."""
+
+    def __init__(self, stop: int) -> None:
+        super().__init__(check_pickle=False)
+        self.stop = stop
+        self.maps = 0
+
+    def map(self, fn, context, batches, *, progress=None):
+        self.maps += 1
+        for k, item in enumerate(super().map(fn, context, batches, progress=progress)):
+            yield item
+            if self.maps == self.stop and k == 0:
+                raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("stop", [1, 2, 3])
+def test_a_rerun_with_other_settings_after_an_interrupt_starts_clean(tmp_path, stop):
+    """The work directory is keyed by the scene and the settings: a bake interrupted in any
+    stage, re-run with another grid and other settings (no --overwrite), starts clean and gives
+    the bits of a fresh bake; the same settings again resume."""
+    st = BakeSettings(bounces=1, **{**FAST, "batch_size": 2})
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 1, 2))
+    other_grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 2, 2))
+    other = st.model_copy(update={"face_size": 16})
+    out = tmp_path / "room.probes"
+    with pytest.raises(KeyboardInterrupt):
+        bake(_room_scene(), grid, out, settings=st, executor=_StopInMap(stop))
+    again = bake(_room_scene(), other_grid, out, settings=other)
+    assert again.resumed_probes == 0
+    fresh = bake(_room_scene(), other_grid, tmp_path / "fresh.probes", settings=other)
+    a, b = _arrays(again.store), _arrays(fresh.store)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh.probes", "room.probes"]
+
+
+def test_a_symlinked_work_directory_or_store_is_unlinked_never_emptied(tmp_path):
+    """A link at ``NAME.probes.work`` or ``NAME.probes`` is replaced, its target untouched;
+    an --overwrite bake leaves no copy of the old store behind."""
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (2, 1, 2))
+    st = BakeSettings(bounces=1, **FAST)
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "theirs").write_text("keep")
+    out = tmp_path / "room.probes"
+    out.with_name("room.probes.work").symlink_to(victim)
+    out.symlink_to(victim)
+    done = bake(_room_scene(), grid, out, settings=st, overwrite=True)
+    assert sorted(p.name for p in victim.iterdir()) == ["theirs"]
+    assert (victim / "theirs").read_text() == "keep"
+    assert not out.is_symlink() and done.store.grid.n_probes == 4
+    # a copy left aside by an interrupted replacement is deleted by the next bake
+    stale = tmp_path / "room.probes.replaced-999999"
+    stale.mkdir()
+    bake(_room_scene(), grid, out, settings=st, overwrite=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["room.probes", "victim"]
+
+
+class _KillAWorkerAtPass:
+    """Delegates to a Dask executor and, before the ``at``-th map call (a pass boundary),
+    kills one worker process with SIGKILL (its nanny starts a new one)."""
+
+    def __init__(self, executor, at: int) -> None:
+        self._ex, self._at, self.calls, self.killed = executor, at, 0, None
+
+    def __getattr__(self, name):
+        return getattr(self._ex, name)
+
+    def map(self, fn, context, batches, *, progress=None):
+        self.calls += 1
+        if self.calls == self._at:
+            pids = self._ex.client.run(os.getpid)
+            self.killed = pids[sorted(pids)[0]]
+            os.kill(self.killed, signal.SIGKILL)
+        return self._ex.map(fn, context, batches, progress=progress)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("at", [2, 3])
+def test_a_dask_bake_survives_a_worker_killed_at_a_pass_boundary(tmp_path, at):
+    """A worker lost between passes (its records with it): the bake completes, bit for bit
+    the bake of an uninterrupted cluster."""
+    distributed = pytest.importorskip("distributed")
+    from probegrid.bake.executors import DaskExecutor
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 2, 2))
+    st = BakeSettings(bounces=2, samples=2, seed=7, **FAST)
+    ref = _arrays(bake(_room_scene(), grid, tmp_path / "ref.probes", settings=st).store)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        ex = DaskExecutor(cluster.scheduler_address, timeout=30)
+        try:
+            killer = _KillAWorkerAtPass(ex, at)
+            got = bake(_room_scene(), grid, tmp_path / "dask.probes", settings=st,
+                       executor=killer)
+        finally:
+            ex.close()
+    assert killer.killed is not None
+    a = _arrays(got.store)
+    for k in ref:
+        assert np.array_equal(a[k], ref[k]), k

@@ -264,3 +264,27 @@ def test_bake_reads_files_outside_the_scene_folder_only_under_allow_path(tmp_pat
     assert main([*args, "--allow-path", str(tmp_path / "shared")]) != 0
     line = _one_line(capsys, only=False)  # loaded: the unlit triangle is what stops it now
     assert "no light" in line
+
+
+def test_a_rerun_with_other_settings_says_it_starts_clean_and_never_resumes(tmp_path,
+                                                                            scene_file, capsys):
+    """An interrupted bake (stopped black before its store was finished) re-run with another
+    grid starts clean and says so, instead of "resuming" and failing; the same command again
+    resumes."""
+    scene = scene_file(_dark_room(boxed_light=True))
+    out = tmp_path / "black.probes"
+    args = ["bake", scene, "--out", str(out), *FAST]
+    assert main([*args, "--grid", "2x2x2"]) == EXIT_BAD_INPUT
+    capsys.readouterr()
+    assert main([*args, "--grid", "3x2x2", "--allow-black"]) == 0
+    got = capsys.readouterr()
+    assert "resum" not in got.err and "resumed" not in got.out
+    assert "had another scene, grid or other settings" in got.err and "starts clean" in got.err
+    assert open_store(out).grid.n_probes == 12
+    assert main([*args, "--grid", "2x2x2"]) == EXIT_BAD_INPUT  # (the store exists)
+    assert main([*args, "--grid", "2x2x2", "--overwrite"]) == EXIT_BAD_INPUT  # black again
+    capsys.readouterr()
+    assert main([*args, "--grid", "2x2x2", "--overwrite", "--allow-black"]) == 0
+    got = capsys.readouterr()
+    assert "resuming the interrupted bake" in got.err and "8 probes resumed" in got.out
+    assert "starts clean" not in got.err

@@ -40,7 +40,11 @@ records the settings, the scene and environment hash, the conventions and the qu
 (``bounces`` reached, ``bounce_passes``, ``bounce_residual``, ``bounce_energy`` per level,
 ``bounce_extrapolation`` and ``bounce_energy_limit``). A killed bake leaves only
 ``.partial``/``.work`` directories, which never load as a store, and the same command resumes
-from the probes it finished. Results depend only on the settings and seed, not on the executor,
+from the probes it finished. The work directory is keyed by the scene, the grid and the plan: a
+bake with another key deletes what it holds (and the final stage's ``.partial``) and starts
+clean. A symbolic link at the work directory's name is unlinked, never followed; the finished
+store is published by :func:`probegrid._fs.publish_directory` (the path holds the old or the
+new store at every instant, the old one deleted afterwards). Results depend only on the settings and seed, not on the executor,
 the number of workers or the batch size.
 """
 
@@ -60,6 +64,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._fs import atomic_write_text, recover_publish, remove_path
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
@@ -161,6 +166,16 @@ def _bake_lock(work: Path, out: Path) -> AbstractContextManager[None]:
     return directory_lock(work, busy=f"another process is baking {out}")
 
 
+def _work_directory(out: Path) -> Path:
+    """The bake's work directory ``NAME.probes.work``, created if missing; a symbolic link or a
+    file standing at its name is unlinked first (its target is never entered or emptied)."""
+    work = work_path(out)
+    if work.is_symlink() or (work.exists() and not work.is_dir()):
+        remove_path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    return work
+
+
 @dataclass
 class _StageRunner:
     """Runs the bake's stages into (resumable) stores and counts their rays and seconds.
@@ -233,6 +248,7 @@ def bake(
     scene_file: str | Path | None = None,
     allow_black: bool = True,
     inputs: BakeInputs | None = None,  # (manifest ``inputs``: the scene/environment as given)
+    on_start: Callable[[bool], None] | None = None,
 ) -> BakeReport:
     """Bake a probe grid of ``scene`` into the store ``out`` (``NAME.probes``).
 
@@ -242,6 +258,9 @@ def bake(
     kept in the store for viewers (see :func:`probegrid.store.writer.keepable_scene`).
     ``allow_black=False`` stops before finishing a store none of whose valid probes received
     light (:func:`probegrid.bake.nolight.light_quality`; the CLI's default).
+    ``on_start(dropped)`` is called under the bake's lock once the work directory holds only
+    what this bake resumes; ``dropped`` says an interrupted bake of another scene or other
+    settings was deleted (the CLI prints where the bake resumes from, or that it starts clean).
     """
     st = settings or BakeSettings()
     env = environment or Environment()
@@ -258,21 +277,38 @@ def bake(
                        "moments_size": st.moments_face_size,
                        "environment_lookup_size": env.lookup_size(st.environment_footprint)},
             "filters": probefilter.describe(st.face_size, st.diffuse_size)}
-    work = work_path(out)
-    work.mkdir(parents=True, exist_ok=True)
+    work = _work_directory(out)
     with _bake_lock(work, out):
-        # An interrupted bake of this store resumes when it had the same scene and plan; with
-        # ``overwrite`` one of another scene or plan is dropped (without it, an error).
+        recover_publish(out)
+        # The work directory is keyed by the scene, the grid and the plan (its stamp
+        # ``bake.json``): an interrupted bake of the same key resumes; anything else in it
+        # (another scene, grid or plan, an unreadable stamp) is dropped with the final
+        # stage's partial store, so a re-run with other settings starts clean, --overwrite
+        # or not.
         stamp = work / "bake.json"
-        fingerprint = json.dumps({"scene": scene_hash, "plan": _jsonable(plan)}, sort_keys=True)
-        if overwrite and not (stamp.is_file() and stamp.read_text() == fingerprint):
+        fingerprint = json.dumps({"scene": scene_hash, "grid": grid.as_dict(),
+                                  "plan": _jsonable(plan)}, sort_keys=True)
+        dropped = False
+        if not (stamp.is_file() and not stamp.is_symlink()
+                and stamp.read_text(errors="replace") == fingerprint):
+            dropped = any(work.iterdir())
             for child in work.iterdir():
-                if child.is_dir():
-                    shutil.rmtree(child)
-                else:
-                    child.unlink()
-            shutil.rmtree(partial_path(out), ignore_errors=True)
-        stamp.write_text(fingerprint)
+                remove_path(child)
+            partial = partial_path(out)
+            if StoreWriter.resumable(out, arrays=store_arrays(st), grid=grid,
+                                     conventions=conventions(), scene_hash=scene_hash,
+                                     bake=plan):
+                pass  # (the final stage of this very bake, its work directory gone)
+            elif partial.is_dir() and not partial.is_symlink():
+                dropped = True
+                with directory_lock(partial, busy=f"another process is writing {partial}"):
+                    remove_path(partial)
+            elif partial.is_symlink() or partial.exists():
+                dropped = True
+                remove_path(partial)
+        atomic_write_text(stamp, fingerprint)
+        if on_start is not None:
+            on_start(dropped)
         runner = _StageRunner(ex, plan, scene_hash, progress)
         t0 = time.perf_counter()
         base = StageContext(scene, env, st, grid, geometry,
@@ -401,7 +437,7 @@ def bake(
         write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
                            gather=st.gather_levels() > 0, face_size=st.face_size)
         store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
-        shutil.rmtree(work, ignore_errors=True)
+        remove_path(work)  # (a Linux flock lives on the open directory, not on its name)
         if not files:  # (this machine's Dask workers' record directory, emptied block by block)
             shutil.rmtree(resolve_directory(records), ignore_errors=True)
 

@@ -203,12 +203,18 @@ def run_bake(job: BakeJob) -> BakeReport:
         print(f"baking {grid.label} = {grid.n_probes} probes of {job.scene} on "
               f"{executor.description}", file=sys.stderr)
         print(size_note(job.settings, grid.n_probes), file=sys.stderr)
-        if (note := resume_note(job.out)) is not None:
-            print(note, file=sys.stderr)
+
+        def on_start(dropped: bool) -> None:
+            if dropped:
+                print(f"note: the interrupted bake of {job.out} had another scene, grid or other "
+                      "settings; it was deleted and this bake starts clean", file=sys.stderr)
+            elif (note := resume_note(job.out)) is not None:
+                print(note, file=sys.stderr)
+
         return bake(scene, grid, job.out, settings=job.settings, environment=env,
                     executor=executor, progress=bar, overwrite=job.overwrite,
                     scene_file=job.scene, allow_black=job.allow_black,
-                    inputs=bake_inputs(job, scene, env))
+                    inputs=bake_inputs(job, scene, env), on_start=on_start)
     finally:
         bar.close()
         executor.close()

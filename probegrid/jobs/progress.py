@@ -11,7 +11,7 @@
 Rates are shown only once they mean something: after :data:`RATE_AFTER` seconds of the stage
 *and* at least two updates, measured from the stage's first update (not from before its first
 batch, whose work was done before the clock started: that gave figures such as
-"578524 probe/s, 0.00 Mrays/s"). :func:`resume_note` says, before a bake starts, whether it
+"578524 probe/s, 0.00 Mrays/s"). :func:`resume_note` says, as a bake starts, whether it
 resumes an interrupted one and from where; :func:`size_note` what the store will take with
 float32 and with half-float maps.
 """
@@ -158,9 +158,11 @@ def resume_note(out: str | os.PathLike[str]) -> str | None:
             return (f"resuming the interrupted bake of {out}: final pass, {done[0]} of "
                     f"{done[1]} probes already done")
         return f"resuming the interrupted bake of {out} (final pass)"
-    if work.is_dir() and any(work.iterdir()):
+    kept = ([p for p in work.iterdir() if p.name != "bake.json"]  # (the key of its settings)
+            if work.is_dir() and not work.is_symlink() else [])
+    if kept:
         stages = sorted(p.name.removesuffix(".probes").removesuffix(".partial")
-                        for p in work.iterdir() if ".probes" in p.name)
+                        for p in kept if ".probes" in p.name)
         where = f" (earlier passes kept: {', '.join(stages)})" if stages else ""
         return f"resuming the interrupted bake of {out}{where}"
     return None

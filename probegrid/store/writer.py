@@ -25,9 +25,10 @@ Atomic, resumable writes
 3. ``finish`` checks every probe is done, flushes and ``fsync``s the arrays, records each
    file's SHA-256 (readers check them), writes ``manifest.json`` atomically (temporary file,
    ``fsync``, ``os.replace``, ``fsync`` of the directory), removes the plan and the done mask, and renames the directory to ``NAME.probes``
-   (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``: it is
-   renamed aside, the new one renamed in, the old one deleted; readers that still map the old
-   files keep valid maps).
+   (one atomic ``rename``; an existing store is only replaced with ``overwrite=True``, by
+   :func:`probegrid._fs.publish_directory`: the path holds the old or the new store at every
+   instant, the old one is deleted afterwards, and readers that still map its files keep
+   valid maps).
 
 Nothing in a ``.partial`` directory ever loads: :func:`open_store` refuses a ``.partial`` name, a
 directory holding a bake plan, one without a valid manifest, and arrays that disagree with the
@@ -57,7 +58,15 @@ import numpy as np
 from numpy.typing import ArrayLike, DTypeLike, NDArray
 from pydantic import BaseModel
 
-from probegrid._fs import atomic_write_bytes, atomic_write_text, fsync_dir, fsync_file, lock_dir
+from probegrid._fs import (
+    atomic_write_bytes,
+    atomic_write_text,
+    fsync_dir,
+    fsync_file,
+    lock_dir,
+    publish_directory,
+    remove_path,
+)
 from probegrid.core.grid import GridSpec
 from probegrid.store.manifest import (
     DONE_FILE,
@@ -353,6 +362,8 @@ class StoreWriter:
         )
         _check_target(final, overwrite)
         partial = partial_path(final)
+        if partial.is_symlink() or (partial.exists() and not partial.is_dir()):
+            remove_path(partial)  # not ours: the link goes, never its target's contents
         if partial.exists():
             has_state = (partial / PLAN_FILE).exists() or (partial / MANIFEST_FILE).exists()
             if has_state and not overwrite:
@@ -361,7 +372,7 @@ class StoreWriter:
                 )
             fd = lock_dir(partial)  # never delete a directory another writer is using
             try:
-                shutil.rmtree(partial)
+                remove_path(partial)
             finally:
                 os.close(fd)
         partial.mkdir(parents=True)
@@ -411,7 +422,7 @@ class StoreWriter:
             arrays=arrays, grid=grid, conventions=conventions, scene_hash=scene_hash, bake=bake
         )
         partial = partial_path(final)
-        if not partial.is_dir():
+        if not partial.is_dir() or partial.is_symlink():
             raise StoreError(f"no unfinished bake at {partial} to resume")
         with _locked_setup(partial) as fd:
             _check_target(final, overwrite)
@@ -480,9 +491,40 @@ class StoreWriter:
             "durable": durable,
         }
         partial = partial_path(_final_path(path))
-        if (partial / PLAN_FILE).is_file() or (partial / MANIFEST_FILE).is_file():
+        if not partial.is_symlink() and ((partial / PLAN_FILE).is_file()
+                                         or (partial / MANIFEST_FILE).is_file()):
             return cls.resume(path, **kw)
         return cls.create(path, **kw)
+
+    @classmethod
+    def resumable(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        arrays: Mapping[str, ArraySpec],
+        grid: GridSpec,
+        conventions: Mapping[str, Any] | BaseModel,
+        scene_hash: str,
+        bake: Mapping[str, Any] | BaseModel | None = None,
+    ) -> bool:
+        """Whether ``NAME.probes.partial`` (a real directory, not a link) holds an unfinished
+        bake that :meth:`resume` with these arguments would continue."""
+        partial = partial_path(_final_path(path))
+        if partial.is_symlink() or not partial.is_dir():
+            return False
+        plan = cls._make_plan(
+            arrays=arrays, grid=grid, conventions=conventions, scene_hash=scene_hash, bake=bake
+        )
+        try:
+            if (partial / PLAN_FILE).is_file():
+                stored: _Plan = _load_manifest_json(partial / PLAN_FILE, _Plan)
+            elif (partial / MANIFEST_FILE).is_file():
+                stored = _validate_store_dir(partial, allow_partial=True)
+            else:
+                return False
+        except (StoreError, OSError, ValueError):
+            return False
+        return not _plan_differences(stored, plan)
 
     # ------------------------------------------------------------------ state
     @property
@@ -675,18 +717,8 @@ class StoreWriter:
             (self._partial / state).unlink(missing_ok=True)
         fsync_dir(self._partial)
         _check_target(self._final, self._overwrite)
-        aside = None
-        if self._final.exists():
-            aside = self._final.with_name(f"{self._final.name}.replaced-{os.getpid()}")
-            os.rename(self._final, aside)
-        os.rename(self._partial, self._final)
-        fsync_dir(self._final.parent)
+        publish_directory(self._partial, self._final)
         self.close()
-        if aside is not None:
-            if aside.is_dir() and not aside.is_symlink():
-                shutil.rmtree(aside, ignore_errors=True)
-            else:  # a file (or link) stood where the store goes
-                aside.unlink(missing_ok=True)
         return open_store(self._final)
 
     def _hashed(self, infos: Mapping[str, ArrayInfo]) -> dict[str, ArrayInfo]:

@@ -3,7 +3,8 @@
 The one module of the project that imports Dask, and only when a :class:`DaskExecutor` is made
 (``distributed`` takes 0.4 s to import; local worker processes import the executors without it).
 
-The worker context is scattered (broadcast) to the workers once per ``map`` call; a worker
+The worker context goes to the workers once per ``map`` call, as the result of a task (so a
+worker lost at any moment, its copy with it, costs a recomputation, never the bake); a worker
 plugin installed on every worker holds a lock and a cache keyed by the call, so ``setup()`` runs
 once per worker process even when the worker has several threads (the state is then shared by
 them and the task function must treat it as read-only). The cache is dropped when the call ends.
@@ -123,6 +124,11 @@ def _dask_task(fn: TaskFn[R], token: str, context: WorkerContext[Any], batch: Ba
     return fn(plugin.states.state(token, context), batch)
 
 
+def _context(context: WorkerContext[Any]) -> WorkerContext[Any]:
+    """The map call's context, as the result of a task (recomputed if its worker is lost)."""
+    return context
+
+
 def _dask_forget(token: str, dask_worker: Any = None) -> None:
     plugin = dask_worker.plugins.get(DASK_PLUGIN_NAME) if dask_worker is not None else None
     if plugin is not None:
@@ -141,6 +147,11 @@ class DaskExecutor(Executor):
         Seconds to wait for the scheduler, and for at least one worker to appear.
     max_in_flight_per_worker : int
         Batches submitted and not yet handed back, per worker thread (default 2).
+    retries : int
+        Times a task that raised is run again (``client.submit(retries=...)``; tasks are
+        idempotent: a batch's result depends only on the context and the batch, and a block
+        whose records were lost with a worker is traced again). A task whose worker is lost is
+        run again by the scheduler itself.
 
     Raises :class:`ExecutorError` (one line) when the scheduler cannot be reached or has no
     workers. Workers need probegrid (and whatever ``fn`` imports) installed.
@@ -155,6 +166,7 @@ class DaskExecutor(Executor):
         *,
         timeout: float = 10.0,
         max_in_flight_per_worker: int = 2,
+        retries: int = 2,
     ) -> None:
         import distributed
 
@@ -162,6 +174,9 @@ class DaskExecutor(Executor):
         if not (isinstance(timeout, (int, float)) and timeout > 0):
             raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
         self._per_worker = int(max_in_flight_per_worker)
+        if not (isinstance(retries, int) and retries >= 0):
+            raise ValueError(f"retries must be a non-negative integer, got {retries!r}")
+        self._retries = retries
         if isinstance(scheduler, distributed.Client):
             self._client, self._owns_client = scheduler, False
         elif isinstance(scheduler, str) and scheduler.strip():
@@ -234,8 +249,13 @@ class DaskExecutor(Executor):
         client = self._client
         token = uuid.uuid4().hex
         where = f"the Dask cluster at {self._address}"
+        # The context is a task's result, not scattered data: a worker lost at any moment takes
+        # its copy with it and the scheduler computes it again from the task, where a scattered
+        # copy would be gone for good (and a broadcast to a worker that just died waits
+        # forever).
         try:
-            ctx_future = client.scatter(context, broadcast=True, hash=False)
+            ctx_future = client.submit(_context, context, key=f"probegrid-context-{token}",
+                                       pure=False, retries=self._retries)
         except Exception as exc:
             raise ExecutorError(f"cannot send the worker context to {where}: "
                                 f"{first_line(exc)}") from exc
@@ -246,7 +266,7 @@ class DaskExecutor(Executor):
         def submit(order: int, batch: Batch) -> distributed.Future:
             fut = client.submit(
                 _dask_task, fn, token, ctx_future, batch, key=f"probegrid-{token}-{order}",
-                pure=False,
+                pure=False, retries=self._retries,
             )
             finished.add(fut)
             return fut
