@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -75,3 +76,20 @@ def _private_user_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
     import os
 
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-cache"))
+
+
+@pytest.fixture
+def full_fs(tmp_path):
+    """A 64 KiB tmpfs, filled: a full file system (mounting needs root; skipped otherwise)."""
+    mnt = tmp_path / "full"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs",
+                                            str(mnt)], capture_output=True).returncode:
+        pytest.skip("mounting a small tmpfs needs root")
+    try:
+        with open(mnt / "fill", "wb") as f, pytest.raises(OSError):
+            f.write(b"\0" * 70000)
+            f.flush()
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=True)

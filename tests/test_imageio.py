@@ -430,25 +430,6 @@ def test_a_write_that_loses_its_last_flush_raises_and_leaves_nothing(tmp_path, m
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.fixture
-def full_fs(tmp_path):
-    """A 64 KiB tmpfs, filled (needs root; skipped otherwise)."""
-    import subprocess
-
-    mnt = tmp_path / "full"
-    mnt.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs",
-                                            str(mnt)], capture_output=True).returncode:
-        pytest.skip("mounting a small tmpfs needs root")
-    try:
-        with open(mnt / "fill", "wb") as f, pytest.raises(OSError):
-            f.write(b"\0" * 70000)
-            f.flush()
-        yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], check=True)
-
-
 @pytest.mark.parametrize("ext", ["exr", "hdr", "png", "tif", "pfm"])
 @pytest.mark.parametrize("n", [1, 4, 32])
 def test_writes_on_a_full_file_system_raise(full_fs, ext, n):
