@@ -224,10 +224,11 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from probegrid.jobs.demo import run_demo, stop_bake_processes
+    from probegrid.bake.executors.local import stop_fork_server
+    from probegrid.jobs.demo import run_demo
 
     print(run_demo(args.out, progress=_stderr_progress), flush=True)
-    stop_bake_processes()  # the bake's fork server is not needed to serve
+    stop_fork_server()  # the bake's fork server is not needed to serve
     if not args.no_serve:
         print("\nServing the store (Ctrl-C stops):")
         _serve([args.out / "sample_room.probes"], "127.0.0.1", args.port, 1)

@@ -8,8 +8,8 @@
 
 The repository's ``data/`` files are used as they are when present (a checkout); an installed
 package without them regenerates them from code into a per-user cache once.
-:func:`stop_bake_processes` ends what the bake left running (the fork server that started its
-workers, with the bake's modules loaded) before the store is served.
+Before the store is served the command stops the fork server the bake's workers came from
+(:func:`probegrid.bake.executors.local.stop_fork_server`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["run_demo", "sample_data_dir", "stop_bake_processes"]
+__all__ = ["run_demo", "sample_data_dir"]
 
 Progress = Callable[[str], None]
 
@@ -35,20 +35,6 @@ def sample_data_dir() -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         write_sample_data(cache)
     return cache
-
-
-def stop_bake_processes() -> None:
-    """Stop this process's multiprocessing fork server, if one runs: the bake's local executor
-    starts its workers from one that has imported the bake (Embree, numba: ~300 MB), and it
-    outlives the executor, which only stops the workers. Nothing else of this process uses it;
-    a later bake would start a new one."""
-    from multiprocessing import forkserver
-
-    server = getattr(forkserver, "_forkserver", None)
-    stop = getattr(server, "_stop", None)  # (CPython's own, since 3.8)
-    if server is not None and stop is not None and \
-            getattr(server, "_forkserver_pid", None) is not None:
-        stop()
 
 
 def run_demo(out: str | os.PathLike[str], *, progress: Progress | None = None,

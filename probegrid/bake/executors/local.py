@@ -47,11 +47,25 @@ from probegrid.bake.executors.base import (
     first_line,
 )
 
-__all__ = ["START_METHODS", "LocalExecutor", "default_workers"]
+__all__ = ["START_METHODS", "LocalExecutor", "default_workers", "stop_fork_server"]
 
 R = TypeVar("R")
 
 START_METHODS: Final[tuple[str, ...]] = ("forkserver", "spawn")
+
+
+def stop_fork_server() -> None:
+    """Stop this process's multiprocessing fork server, if one runs: :class:`LocalExecutor`
+    starts its workers from one that has imported the bake (Embree, numba: ~300 MB), and it
+    outlives the executor, which only stops the workers. Nothing else of this process uses it;
+    a later bake would start a new one."""
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    stop = getattr(server, "_stop", None)  # (CPython's own, since 3.8)
+    if server is not None and stop is not None and \
+            getattr(server, "_forkserver_pid", None) is not None:
+        stop()
 
 
 def default_workers() -> int:
