@@ -39,12 +39,12 @@ from probegrid.bake.records import (
     RecordTracer,
     all_hit_weights,
     gather_depth,
+    grid_level_read,
     hit_weights,
 )
 from probegrid.bake.records.replay import replay
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.core import probefilter
-from probegrid.core.cubemap import mip_sizes
 from probegrid.core.sampling import resample
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
@@ -169,7 +169,6 @@ class PointTracer:
         bake = store.manifest.bake
         st = bake["settings"]
         rd = bake["render"]
-        face = int(st["face_size"])
         try:
             baked = BakeSettings.model_validate(st)
         except ValueError:
@@ -189,12 +188,10 @@ class PointTracer:
         ps = settings or PointSettings()
         # the bake's gather levels (BakeSettings.gather_levels): the grid's irradiance cubes
         # are of the size its hits read them at, so a query keeps gather rays if it had them
-        depth = 0 if int(st["gather_samples"]) == 0 else int(st["gather_depth"])
-        if st["bounces"] != "converge":
-            depth = min(depth, int(st["bounces"]))
-        # the final pass read a grid (grid_level_read) or none (its stored cubes are zeros)
-        reads = level - 1 - depth >= 0
-        gather = int(st["gather_samples"]) if ps.gather_samples is None else ps.gather_samples
+        depth = baked.gather_levels()
+        # the final pass read a grid or none (its stored cubes are zeros)
+        reads = grid_level_read(level, depth) >= 0
+        gather = baked.gather_samples if ps.gather_samples is None else ps.gather_samples
         if depth and gather < 1:
             raise ValueError("a bake with gather rays is traced with at least 1 gather sample.")
         if depth and ps.gather_depth is not None:
@@ -209,7 +206,6 @@ class PointTracer:
                         np.asarray(store.arrays["positions"], dtype=np.float64),
                         moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
                         grid_cubes.reshape(-1, 3) if reads else None)
-        levels = len(mip_sizes(face, st.get("specular_levels")))
         # the record tracer reads its light and gather samples from the settings: the bake's,
         # lowered where ``settings`` asks (gather_levels() then gives ``depth``)
         queried = baked.model_copy(update={
@@ -218,7 +214,7 @@ class PointTracer:
             "gather_samples": gather if depth else 0,
             "gather_depth": max(depth, 1)})
         return cls(scene, env, queried, geometry, data, level=level,
-                   diffuse_size=int(st["diffuse_size"]), specular_levels=levels,
+                   diffuse_size=baked.diffuse_size, specular_levels=baked.levels(),
                    tracer=tracer)
 
     @staticmethod
