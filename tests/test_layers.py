@@ -26,6 +26,7 @@ Every import counts: module level, inside functions (lazy) and under ``TYPE_CHEC
 from __future__ import annotations
 
 import ast
+import functools
 import shutil
 import sys
 from collections.abc import Iterator
@@ -79,14 +80,14 @@ def room(module: str) -> str:
     return ".".join(parts[:2])
 
 
-def imports(path: Path, module: str, root: Path) -> Iterator[tuple[int, str]]:
-    """``(line, imported module)`` for every import of ``path`` (all levels of nesting)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-    for node in ast.walk(tree):
+@functools.lru_cache(maxsize=None)
+def _raw_imports(text: str, package: str) -> tuple[tuple[int, str, tuple[str, ...]], ...]:
+    """``(line, module, names)`` of every import in a module's text (``names`` empty for a plain
+    ``import``), parsed once per text: the planted copies share every other file's parse."""
+    found = []
+    for node in ast.walk(ast.parse(text)):
         if isinstance(node, ast.Import):
-            for alias in node.names:
-                yield node.lineno, alias.name
+            found.extend((node.lineno, alias.name, ()) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
@@ -94,13 +95,23 @@ def imports(path: Path, module: str, root: Path) -> Iterator[tuple[int, str]]:
                 target = ".".join(base + ([node.module] if node.module else []))
             else:
                 target = node.module or ""
-            for alias in node.names:  # `from pkg import submodule` imports the submodule
-                sub = f"{target}.{alias.name}"
-                candidate = root.joinpath(*sub.split("."))
-                if candidate.with_suffix(".py").is_file() or (candidate / "__init__.py").is_file():
-                    yield node.lineno, sub
-                else:
-                    yield node.lineno, target
+            found.append((node.lineno, target, tuple(alias.name for alias in node.names)))
+    return tuple(found)
+
+
+def imports(path: Path, module: str, root: Path) -> Iterator[tuple[int, str]]:
+    """``(line, imported module)`` for every import of ``path`` (all levels of nesting)."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    for line, target, names in _raw_imports(path.read_text(encoding="utf-8"), package):
+        if not names:
+            yield line, target
+        for name in names:  # `from pkg import submodule` imports the submodule
+            sub = f"{target}.{name}"
+            candidate = root.joinpath(*sub.split("."))
+            if candidate.with_suffix(".py").is_file() or (candidate / "__init__.py").is_file():
+                yield line, sub
+            else:
+                yield line, target
 
 
 def violations(root: Path) -> list[str]:
