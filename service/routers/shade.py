@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from fastapi import APIRouter, Depends
 
+from service.cost import check_budget, shade_estimate
 from service.deps import GridDep, StateDep, require_json
 from service.errors import ApiError
 from service.schemas import ErrorOut, ShadeOut, ShadeRequest
@@ -33,6 +34,7 @@ def shade(body: ShadeRequest, grid: GridDep, state: StateDep) -> ShadeOut:
         raise ApiError(413, f"The batch has {n} points, over the limit of {limit}.")
     if "diffuse" not in grid.field.kinds or "specular" not in grid.field.kinds:
         raise ApiError(422, f"Grid {grid.name!r} has no diffuse and specular maps to shade with.")
+    check_budget(shade_estimate(n), state.settings.request_budget)  # 422 over_budget
     pts = body.points
     mats = [p.material or body.material for p in pts]
     with state.heavy():  # at most max_heavy_requests at once; 503 busy beyond
