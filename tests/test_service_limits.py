@@ -273,3 +273,23 @@ def test_requests_in_time_are_served_whole(timed):
     assert data.startswith(b"HTTP/1.1 200")
     assert len(json.loads(data.split(b"\r\n\r\n", 1)[1])["rgb"]) == 1
     assert "Traceback" not in timed.log_text()
+
+
+def test_serve_options_set_the_budget_and_deadlines(lin, monkeypatch, capsys):
+    import service.main
+    from live_server import free_port
+
+    from probegrid.cli import main
+
+    seen: dict = {}
+    monkeypatch.setattr(service.main, "run", lambda stores, **kw: seen.update(kw))
+    assert main(["serve", str(lin), "--port", str(free_port()), "--request-budget", "0.5",
+                 "--header-timeout", "3", "--body-timeout", "7"]) == 0
+    assert seen["overrides"] == {"request_budget": 0.5, "header_timeout": 3.0,
+                                 "body_timeout": 7.0}
+    for bad in (["--request-budget", "0"], ["--header-timeout", "-1"],
+                ["--body-timeout", "nan"]):
+        with pytest.raises(SystemExit) as info:
+            main(["serve", str(lin), *bad])
+        assert info.value.code == 2
+        assert "expected a" in capsys.readouterr().err

@@ -58,7 +58,11 @@ def to_light(spec: LightIn) -> Light:
     },
 )
 def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
-    """Analytic maps of the posted lights at ``position`` (optionally plus a grid's maps)."""
+    """Analytic maps of the posted lights at ``position`` (optionally plus a grid's maps).
+
+    The request is priced before any work (lights x the texels of the maps it makes, see the
+    service's ``service/cost.py``); over the server's ``request_budget`` (seconds of CPU) it is
+    refused with ``422 over_budget`` naming the parameters to lower."""
     settings = state.settings
     if len(body.lights) > settings.max_lights:
         raise ApiError(422, f"{len(body.lights)} lights is over the limit of "

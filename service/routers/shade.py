@@ -27,7 +27,9 @@ def shade(body: ShadeRequest, grid: GridDep, state: StateDep) -> ShadeOut:
     """Outgoing radiance of each point: ``kd Diffuse[N] + ks Prefiltered[R, roughness]``.
 
     ``kd = albedo (1 - s)``, ``ks = s = F0 A + B`` (split sum, DFG table), the maps blended at
-    each point with visibility-aware (DDGI) weights from its normal. At most ``max_batch`` points.
+    each point with visibility-aware (DDGI) weights from its normal. At most ``max_batch`` points,
+    and a batch priced over the server's ``request_budget`` (seconds of CPU) is refused with
+    ``422 over_budget`` before any work.
     """
     n, limit = len(body.points), state.settings.max_batch
     if n > limit:
