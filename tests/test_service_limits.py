@@ -293,3 +293,20 @@ def test_serve_options_set_the_budget_and_deadlines(lin, monkeypatch, capsys):
             main(["serve", str(lin), *bad])
         assert info.value.code == 2
         assert "expected a" in capsys.readouterr().err
+
+
+def test_a_chunked_body_over_the_limit_is_413_without_reading_the_rest(timed):
+    """No Content-Length to refuse up front: the body is read up to max_body_bytes (1 MiB by
+    default), then answered 413 and the connection closed, the rest never read."""
+    s = _connect(timed.url)
+    try:
+        s.sendall(b"POST /v1/grids/lin/shade HTTP/1.1\r\nHost: x\r\n"
+                  b"Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n")
+        piece = b" " * 65536
+        for _ in range(17):  # 1.06 MiB, and no last chunk: the body never ends
+            s.sendall(b"%x\r\n" % len(piece) + piece + b"\r\n")
+        data, _ = _read_until_closed(s, 10.0)
+    finally:
+        s.close()
+    assert data.startswith(b"HTTP/1.1 413"), data[:80]
+    assert json.loads(data.split(b"\r\n\r\n", 1)[1])["error"] == "too_large"
