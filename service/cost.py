@@ -73,8 +73,8 @@ def light_maps_estimate(n_lights: int, *, diffuse_size: int, specular_size: int,
                            specular_levels=specular_levels)
     seconds = SECONDS_PER_TEXEL * work.texels + SECONDS_PER_EVALUATION * work.evaluations
     return Estimate(seconds=seconds,
-                    work=f"{work.evaluations / 1e6:.3g} M lobe evaluations "
-                         f"({n_lights} lights over {work.texels / 1e6:.3g} M texels)",
+                    work=f"{work.evaluations / 1e6:.3g} M lobe evaluations, {n_lights} "
+                         f"lights over {work.texels / 1e6:.3g} M texels",
                     parameters="lights, diffuse_size, specular_size or specular_levels")
 
 
