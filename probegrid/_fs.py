@@ -5,6 +5,8 @@ Every file probegrid writes under its final name goes through :func:`atomic_writ
 :mod:`probegrid.imageio`, then renamed with it), so a crash or power loss leaves either the old
 file or the whole new one, never a half-written file that looks finished, and a failure leaves no
 temporary file behind. :func:`directory_lock` gives one writer at a time per directory.
+:func:`user_cache_root` is where probegrid keeps per-user files (computed arrays, verified
+hashes).
 
 Deleting never follows a symbolic link (:func:`remove_path` unlinks the link, never empties its
 target). :func:`publish_directory` puts a finished directory at a path so that the path holds
@@ -32,6 +34,7 @@ from typing import Any
 from probegrid.errors import StoreError
 
 __all__ = [
+    "CACHE_ENV",
     "atomic_write_bytes",
     "atomic_write_json",
     "atomic_write_text",
@@ -43,7 +46,23 @@ __all__ = [
     "recover_publish",
     "remove_path",
     "replace_durably",
+    "user_cache_root",
 ]
+
+#: Environment variable that names the per-user cache's root directory instead (the test suite
+#: gives each run a fresh one).
+CACHE_ENV = "PROBEGRID_CACHE_DIR"
+
+
+def user_cache_root() -> Path:
+    """``$PROBEGRID_CACHE_DIR`` when set (absolute), else ``$XDG_CACHE_HOME/probegrid``
+    (``~/.cache`` when unset or relative)."""
+    own = os.environ.get(CACHE_ENV, "")
+    if own and os.path.isabs(own):
+        return Path(own)
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
+    return root / "probegrid"
 
 
 def fsync_dir(path: str | os.PathLike[str]) -> None:

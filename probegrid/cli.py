@@ -52,6 +52,13 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _positive_seconds(text: str) -> float:
+    v = _finite_float(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return v
+
+
 def _finite_float(text: str) -> float:
     try:
         v = float(text)
@@ -451,10 +458,21 @@ def _add_serve(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=_positive_int, default=1,
                    help="uvicorn worker processes, each with its own memory maps of the "
                         "stores (default: 1)")
+    p.add_argument("--request-budget", type=_positive_seconds, metavar="SECONDS",
+                   help="most CPU seconds one light-map or shade request may cost, estimated "
+                        "from the request before any work; over it: 422 over_budget "
+                        "(default: 2, or PROBEGRID_REQUEST_BUDGET)")
+    p.add_argument("--header-timeout", type=_positive_seconds, metavar="SECONDS",
+                   help="seconds a client has to send a request's line and headers; then 408 "
+                        "and the connection closed (default: 10)")
+    p.add_argument("--body-timeout", type=_positive_seconds, metavar="SECONDS",
+                   help="seconds a client has to send a request's body after its headers "
+                        "(default: 30)")
     p.set_defaults(handler=_run_serve)
 
 
-def _serve(stores: Sequence[Path], host: str, port: int, workers: int) -> None:
+def _serve(stores: Sequence[Path], host: str, port: int, workers: int,
+           limits: dict[str, float] | None = None) -> None:
     # The CLI is the one place in probegrid that reaches the HTTP layer (service/), lazily.
     import socket
 
@@ -475,11 +493,14 @@ def _serve(stores: Sequence[Path], host: str, port: int, workers: int) -> None:
         print(f"serving {', '.join(str(s) for s in stores)} at {base} (docs: {base}/docs)")
         print(example_usage(stores[0], base), flush=True)
 
-    run(stores, host=host, port=port, workers=workers, on_ready=ready)
+    run(stores, host=host, port=port, workers=workers, overrides=limits, on_ready=ready)
 
 
 def _run_serve(args: argparse.Namespace) -> int:
-    _serve(args.stores, args.host, args.port, args.workers)
+    limits = {name: getattr(args, name) for name in
+              ("request_budget", "header_timeout", "body_timeout")
+              if getattr(args, name) is not None}
+    _serve(args.stores, args.host, args.port, args.workers, limits)
     return 0
 
 

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._fs import CACHE_ENV, user_cache_root
+
 __all__ = ["CACHE_ENV", "CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut",
            "probe_filter_matrix"]
 
@@ -36,20 +38,12 @@ __all__ = ["CACHE_ENV", "CACHE_VERSION", "cache_dir", "cached_array", "dfg_lut",
 CACHE_VERSION = 1
 
 
-#: Environment variable that names the cache's root directory instead (the test suite gives
-#: each run a fresh one).
-CACHE_ENV = "PROBEGRID_CACHE_DIR"
-
 
 def cache_dir() -> Path:
     """``$PROBEGRID_CACHE_DIR/v<CACHE_VERSION>`` when that is set, else
-    ``$XDG_CACHE_HOME/probegrid/v<CACHE_VERSION>`` (``~/.cache`` when unset or relative)."""
-    own = os.environ.get(CACHE_ENV, "")
-    if own and os.path.isabs(own):
-        return Path(own) / f"v{CACHE_VERSION}"
-    base = os.environ.get("XDG_CACHE_HOME", "")
-    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".cache"
-    return root / "probegrid" / f"v{CACHE_VERSION}"
+    ``$XDG_CACHE_HOME/probegrid/v<CACHE_VERSION>`` (``~/.cache`` when unset or relative):
+    :func:`probegrid._fs.user_cache_root`."""
+    return user_cache_root() / f"v{CACHE_VERSION}"
 
 
 def cached_array(name: str, key: dict[str, object], compute: Callable[[], NDArray],

@@ -9,6 +9,8 @@ malformed JSON body                          400     ``malformed_json``
 missing / non-finite / out-of-range values   422     ``invalid_request``
 a value the library rejects (ValueError)     422     ``invalid_request``
 body over ``max_body_bytes``, batch too big  413     ``too_large``
+estimated cost over ``request_budget``       422     ``over_budget``
+headers or body not in within their timeout  408     ``request_timeout``
 store files unreadable (server side)         503     ``store_unavailable``
 scratch space full or failing (server side)  503     ``scratch_unavailable``
 all heavy-request slots taken (lights/shade)  503     ``busy``
@@ -53,6 +55,7 @@ log = logging.getLogger("probegrid.service")
 _CODES = {
     400: "bad_request",
     404: "not_found",
+    408: "request_timeout",
     405: "method_not_allowed",
     413: "too_large",
     415: "unsupported_media_type",

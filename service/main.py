@@ -44,6 +44,7 @@ from probegrid.store import read_manifest
 from service.deps import ServiceState
 from service.encoding import scratch_directory
 from service.errors import BodyLimitMiddleware, LastResortMiddleware, install_error_handlers
+from service.protocol import timed_protocol
 from service.registry import GridRegistry, ServedGrid, grid_name
 from service.routers import exports, grids, health, lights, maps, sh, shade, viewer, web
 from service.schemas import LightMapsRequest
@@ -445,27 +446,33 @@ def run(
     port: int = 8000,
     workers: int = 1,
     settings: Settings | None = None,
+    overrides: Mapping[str, Any] | None = None,
     log_level: str = "info",
     on_ready: Callable[[], None] | None = None,
 ) -> None:
     """Serve the stores with uvicorn until interrupted.
 
-    The stores are opened (and checked) here first, so a bad store fails before any worker
+    ``overrides`` replaces fields of ``settings`` (default: the ``PROBEGRID_*`` variables),
+    as ``probegrid serve``'s options do. The stores are opened (and checked) here first, so a bad store fails before any worker
     starts; ``on_ready`` is called then (the CLI prints where to look). With ``workers > 1``
     each uvicorn worker process builds its app with :func:`app_from_environment` from the
-    ``PROBEGRID_*`` variables set here.
+    ``PROBEGRID_*`` variables set here. Connections get the settings' header and body
+    deadlines (:mod:`service.protocol`).
     """
     import uvicorn
 
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}.")
     settings = load_settings() if settings is None else settings
+    if overrides:  # the command's options over the settings, validated again
+        settings = Settings(**{**settings.model_dump(), **overrides})
     paths = [Path(p).resolve() for p in store_paths]
     app = create_app(paths, settings)
     if on_ready is not None:
         on_ready()
     if workers == 1:
-        uvicorn.run(app, host=host, port=port, log_level=log_level)
+        uvicorn.run(app, host=host, port=port, log_level=log_level,
+                    http=timed_protocol(settings))
         return
     env = settings_environment(settings.model_copy(update={"stores": paths}))
     os.environ.update(env)
@@ -476,4 +483,5 @@ def run(
         port=port,
         workers=workers,
         log_level=log_level,
+        http="service.protocol:TimedH11Protocol",  # its deadlines from the variables set here
     )

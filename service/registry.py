@@ -25,7 +25,8 @@ is noticed: at most every :data:`RECHECK_SECONDS` a request looks at the store d
 entries (``os.scandir``: name, inode, size, modification time of each, no reading); when they
 changed, a background thread opens and checks the store as it now is and then swaps it in with
 one assignment, so a request is answered whole from the old store or whole from the new one,
-never from a mix. A store that fails its checks (a half-landed copy fails its hashes) is not
+never from a mix. A store deleted under the server is served on from memory, and
+``/healthz`` says so (:meth:`GridRegistry.problems`). A store that fails its checks (a half-landed copy fails its hashes) is not
 served: the old one stays, ``/v1/grids/{grid}`` says why in ``replaced_on_disk``, and the store
 is opened again on the next change of its entries, so a copy that completes is picked up.
 ``content_hash`` (SHA-256 of the served ``manifest.json``, which records every file's hash, the
@@ -183,6 +184,7 @@ class _Watch:
     path: Path
     next_check: float = 0.0
     failed: tuple[tuple[tuple[object, ...], ...] | None, str] | None = None
+    gone: bool = False  # the store directory was not there at the last look
     reloading: threading.Thread | None = None
     lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -220,6 +222,7 @@ class GridRegistry(Mapping[str, ServedGrid]):
     def _check(self, name: str, grid: ServedGrid, watch: _Watch) -> None:
         """Start a reload when the store's manifest on disk is not the served one."""
         signature = _signature(watch.path)
+        watch.gone = signature is None
         if signature is None or signature == grid.signature:
             return
         if watch.failed is not None and watch.failed[0] == signature:
@@ -256,6 +259,22 @@ class GridRegistry(Mapping[str, ServedGrid]):
         self._grids[name] = new  # one assignment: requests see the old grid or the new one
         _log.info("grid %r: serving the replaced store (content hash %s)", name,
                   new.summary["content_hash"][:16])
+
+    def problems(self) -> dict[str, str]:
+        """Grid name -> why the served copy is not the store on disk: its directory is gone
+        (deleted under the server), or it was replaced by a store that cannot be served. Empty
+        when every served store is the one on disk. Looks at the disk as requests do (at most
+        every :data:`RECHECK_SECONDS`); the copy read into memory is served either way."""
+        out: dict[str, str] = {}
+        for name, watch in self._watch.items():
+            self[name]
+            if watch.gone:
+                out[name] = ("the store was deleted from disk; serving the copy read into memory "
+                             "until a store is back at its path")
+            elif watch.failed is not None:
+                out[name] = (f"the store on disk was replaced by one that cannot be served "
+                             f"({watch.failed[1]}); serving the copy read before")
+        return out
 
     def wait_for_reloads(self, timeout: float = 30.0) -> None:
         """Look at every store on disk now and wait for the reloads this starts (for tests and

@@ -90,8 +90,14 @@ class ErrorOut(_Model):
 
 
 class Health(_Model):
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "degraded"] = Field(
+        default="ok", description="ok, or degraded when a served store is not the one on disk "
+        "(deleted, or replaced by one that cannot be served): every grid is still answered, "
+        "from the copy read into memory.")
     grids: int = Field(description="Number of grids served.")
+    problems: dict[str, str] | None = Field(
+        default=None, description="When degraded: grid name -> what is wrong with its store "
+        "on disk.")
 
 
 # ------------------------------------------------------------------------------ grids

@@ -46,6 +46,18 @@ class Settings(BaseSettings):
         Most ``POST /v1/lights/maps`` and ``POST /v1/grids/{grid}/shade`` requests one process
         runs at once (each may take seconds of CPU); one more is answered ``503 busy`` with
         ``Retry-After`` at once instead of queueing behind them.
+    request_budget : float
+        Most seconds of CPU one request may cost, as :mod:`service.cost` estimates it from the
+        request before any work (``POST /v1/lights/maps`` and ``/shade``; ``422 over_budget``
+        above it). The default, 2 s, holds 16 lights' full specular chain of face 32, or one
+        light's of face 256.
+    header_timeout : float
+        Seconds a connection may take to send a request's line and headers, from its opening
+        or the end of its previous response (a slow or idle client is then answered ``408``
+        and closed; :mod:`service.protocol`).
+    body_timeout : float
+        Seconds a request may take to send its body once its headers are in (``408`` and
+        closed after that).
     """
 
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, frozen=True, extra="ignore")
@@ -57,6 +69,9 @@ class Settings(BaseSettings):
     max_light_map_size: int = Field(default=256, ge=1)
     max_json_values: int = Field(default=6 * 256 * 256 * 3, ge=1)
     max_heavy_requests: int = Field(default=2, ge=1)
+    request_budget: float = Field(default=2.0, gt=0.0, allow_inf_nan=False)
+    header_timeout: float = Field(default=10.0, gt=0.0, le=3600.0, allow_inf_nan=False)
+    body_timeout: float = Field(default=30.0, gt=0.0, le=3600.0, allow_inf_nan=False)
 
 
 def settings_environment(settings: Settings) -> dict[str, str]:

@@ -849,3 +849,53 @@ def test_a_dask_bake_survives_a_worker_killed_at_a_pass_boundary(tmp_path, at):
     a = _arrays(got.store)
     for k in ref:
         assert np.array_equal(a[k], ref[k]), k
+
+
+class _KillAWorkerInPass(_KillAWorkerAtPass):
+    """Kills one worker *during* the ``at``-th map call: after its first batch came back, while
+    the pass's other batches are queued or running (and the worker may hold the context)."""
+
+    def map(self, fn, context, batches, *, progress=None):
+        self.calls += 1
+        results = self._ex.map(fn, context, batches, progress=progress)
+        return self._killing(results) if self.calls == self._at else results
+
+    def _killing(self, results):
+        self.after = 0
+        for i, item in enumerate(results):
+            if i == 1:
+                self.after = 1
+            elif i > 1:
+                self.after += 1
+            yield item
+            if i == 0:
+                pids = self._ex.client.run(os.getpid)
+                self.killed = pids[sorted(pids)[0]]
+                os.kill(self.killed, signal.SIGKILL)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("at", [1, 2])
+def test_a_dask_bake_survives_a_worker_killed_during_a_pass(tmp_path, at):
+    """A worker killed in the middle of a pass (the first batch back, the others queued or
+    running, the context possibly on it): the lost tasks are computed again and the bake is
+    bit for bit the inline bake."""
+    distributed = pytest.importorskip("distributed")
+    from probegrid.bake.executors import DaskExecutor
+
+    grid = GridSpec.from_counts((-1.5, 0.5, -1.5), (1.5, 2.5, 1.5), (3, 2, 2))
+    st = BakeSettings(bounces=2, samples=2, seed=7, **{**FAST, "batch_size": 2})  # 6 batches a pass
+    ref = _arrays(bake(_room_scene(), grid, tmp_path / "ref.probes", settings=st).store)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        ex = DaskExecutor(cluster.scheduler_address, timeout=30)
+        try:
+            killer = _KillAWorkerInPass(ex, at)
+            got = bake(_room_scene(), grid, tmp_path / "dask.probes", settings=st,
+                       executor=killer)
+        finally:
+            ex.close()
+    assert killer.killed is not None and killer.after > 0  # batches came back after the kill
+    a = _arrays(got.store)
+    for k in ref:
+        assert np.array_equal(a[k], ref[k]), k

@@ -546,6 +546,27 @@ def test_a_store_landing_file_by_file_is_served_only_once_complete(lin, tmp_path
     assert _get(app, "/v1/grids/land")[0].json()["replaced_on_disk"] is None
 
 
+def test_a_store_deleted_under_the_server_is_served_from_memory_and_healthz_says_so(lin,
+                                                                                   tmp_path):
+    path = tmp_path / "gone.probes"
+    shutil.copytree(lin, path)
+    app = create_app([path], LIMITS)
+    url = "/v1/grids/gone/sh?x=0.75&y=0.25&z=1.5"
+    health, before = _get(app, "/healthz", url)
+    assert health.json() == {"status": "ok", "grids": 1}
+    shutil.rmtree(path)
+    app.state.probegrid.grids.wait_for_reloads()
+    health, after = _get(app, "/healthz", url)
+    assert health.status_code == 200  # alive: a restart would only lose the copy it serves
+    assert health.json()["status"] == "degraded"
+    assert "deleted from disk" in health.json()["problems"]["gone"]
+    assert str(tmp_path) not in health.text  # no server path in a public answer
+    assert after.status_code == 200 and after.content == before.content
+    shutil.copytree(lin, path)  # a store is back at the path
+    app.state.probegrid.grids.wait_for_reloads()
+    assert _get(app, "/healthz")[0].json() == {"status": "ok", "grids": 1}
+
+
 TRUNCATE_SCRIPT = """
 import asyncio, os, sys
 from pathlib import Path

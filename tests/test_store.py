@@ -356,7 +356,12 @@ def _append(file: Path, data: bytes) -> None:
          "not valid JSON"),
         (lambda p: (p / "manifest.json").unlink(), "no manifest.json"),
         (lambda p: _edit_manifest(p, lambda m: m.update(format_version=FORMAT_VERSION + 1)),
-         f"format version {FORMAT_VERSION + 1}; probegrid .* reads version 1, 2"),
+         f"format version {FORMAT_VERSION + 1}, written by a newer probegrid; probegrid .* "
+         "reads version 1, 2: upgrade probegrid"),
+        (lambda p: _edit_manifest(p, lambda m: m.update(format_version=0)),
+         "format version 0; probegrid .* reads version 1, 2$"),
+        (lambda p: _edit_manifest(p, lambda m: m.update(format_version="2")),
+         "format version '2'; probegrid .* reads version 1, 2$"),
         (lambda p: _edit_manifest(p, lambda m: m.update(format="other")), "not a probegrid"),
         (lambda p: _edit_manifest(p, lambda m: m.pop("scene_hash")), "scene_hash: Field required"),
         (lambda p: _edit_manifest(p, lambda m: m["grid"].update(counts=[3, 2, 5])),
@@ -373,6 +378,8 @@ def _append(file: Path, data: bytes) -> None:
         (lambda p: _append(p / "sh.npy", b"xx"), "too long"),
         (lambda p: (p / "valid.npy").unlink(), "missing its file valid.npy"),
         (lambda p: (p / "_bake.json").write_text("{}"), "unfinished bake"),
+        (lambda p: os.link(p / "sh.npy", p.parent / "sh-elsewhere.npy"),
+         "sh.npy has 2 hard links; a store's files must be its own"),
     ],
 )
 def test_damaged_store_is_refused_in_one_line(good_store, damage, pattern):

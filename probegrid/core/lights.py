@@ -115,6 +115,7 @@ __all__ = [
     "incident",
     "incident_many",
     "light_maps",
+    "light_maps_work",
     "pack_lights",
     "range_attenuation",
     "splat_delta",
@@ -498,6 +499,55 @@ def _lobe_map(
         num = (acc.reshape(n, m, n, m, c) * wf).sum(axis=(1, 3))
         out[f] = num / wf.sum(axis=(1, 3))
     return out.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class LightMapsWork:
+    """What :func:`light_maps` computes, counted before it runs (its cost model's inputs).
+
+    Attributes
+    ----------
+    texels : int
+        Texels of every (subdivided) cube it fills, the directions and solid angles it makes.
+    evaluations : int
+        Lobe-kernel evaluations: texels times lights, summed over the maps (the dominant cost).
+    """
+
+    texels: int
+    evaluations: int
+
+
+def light_maps_work(
+    n_lights: int,
+    *,
+    diffuse_size: int = 16,
+    specular_size: int = 32,
+    specular_levels: int | None = None,
+    phong_exponents: Sequence[float] = (),
+) -> LightMapsWork:
+    """The work of :func:`light_maps` with the same arguments and ``n_lights`` lights, from the
+    same subdivision rule, without making any map (every light counted as lit).
+
+    Raises
+    ------
+    ValueError
+        A face size or chain :func:`light_maps` would refuse (:func:`mip_sizes`).
+    """
+    mip_sizes(diffuse_size, 1)
+    sizes = mip_sizes(specular_size, specular_levels)
+    fine = [diffuse_size]  # centre values: no subdivision
+    delta = 0
+    for k, n in enumerate(sizes):
+        alpha = float(roughness_to_alpha(level_roughness(k, len(sizes))))
+        if alpha < ALPHA_DELTA:
+            delta += 6 * n * n  # a splat, no kernel
+            continue
+        fine.append(n * _subdivision(n, alpha))
+    for e in phong_exponents:
+        width = 1.0 / math.sqrt(max(float(e), 1.0))  # as light_maps
+        fine.append(specular_size * _subdivision(specular_size, width))
+    texels = sum(6 * f * f for f in fine)
+    return LightMapsWork(texels=texels + delta, evaluations=texels * max(int(n_lights), 0))
 
 
 def light_maps(

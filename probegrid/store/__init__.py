@@ -2,7 +2,8 @@
 
 ``manifest`` (the format: names, array declarations, :class:`StoreManifest`), ``reader``
 (:func:`open_store`, :class:`ProbeStore`) and ``writer`` (:class:`StoreWriter`, ``create_npy``);
-``names``, the store's file and directory names alone. The names below are loaded on first use,
+``names``, the store's file and directory names alone; ``hashcache``, the files' verified
+SHA-256s kept across processes. The names below are loaded on first use,
 so that importing one submodule (``probegrid.store.names``) stays light.
 """
 

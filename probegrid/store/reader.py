@@ -25,6 +25,7 @@ from pydantic import ValidationError
 
 from probegrid._version import __version__
 from probegrid.core.grid import GridSpec
+from probegrid.store import hashcache
 from probegrid.store.manifest import (
     DONE_FILE,
     FORMAT_NAME,
@@ -45,12 +46,6 @@ from probegrid.store.manifest import (
 __all__ = ['ProbeStore', 'file_sha256', 'open_store', 'partial_progress', 'read_manifest']
 
 
-#: ``(device, inode, size, mtime_ns, ctime_ns, sha256)`` of the files whose SHA-256 was checked
-#: in this process: a file is hashed once, then trusted while its identity is unchanged (any
-#: rewrite changes its mtime and ctime). Hashing reads the whole file: about 0.1 s per 200 MiB
-#: from the page cache.
-_VERIFIED: set[tuple[int, int, int, int, int, str]] = set()
-_VERIFIED_LOCK = threading.Lock()
 _OPEN_FLAGS = os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0)
 
 
@@ -63,7 +58,9 @@ def _open_in_store(directory: Path, name: str, what: str = "file",
                    missing: str | None = None) -> BinaryIO:
     """Open the regular file ``name`` directly inside ``directory`` for reading, following no
     symbolic link: StoreError (one line) when ``name`` is not a plain file name, is missing, is
-    a link (wherever it points) or is not a regular file."""
+    a link (wherever it points), is not a regular file or has other hard links (a name outside
+    the store for the same file: what is served could be changed from there, and a store
+    written without SHA-256s could serve any file of the user's)."""
     if not name or "/" in name or "\\" in name or name in (".", "..") or "\0" in name:
         raise StoreError(f"{directory}: {what} {name[:80]!r} is not a file name inside the store")
     file = directory / name
@@ -76,9 +73,14 @@ def _open_in_store(directory: Path, name: str, what: str = "file",
             raise StoreError(f"{file} is a symbolic link; a store's files must be regular files "
                              "inside its directory") from None
         raise StoreError(f"cannot read {file}: {exc.strerror}") from None
-    if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+    st = os.fstat(f.fileno())
+    if not stat.S_ISREG(st.st_mode):
         f.close()
         raise StoreError(f"{file} is not a regular file; the store is damaged")
+    if st.st_nlink > 1:  # the same file under another name, maybe outside the store
+        f.close()
+        raise StoreError(f"{file} has {st.st_nlink} hard links; a store's files must be its own "
+                         "(copy the store with cp -r or rsync without --link-dest)")
     return f
 
 
@@ -100,8 +102,8 @@ def _check_sha256(f: BinaryIO, file: Path, expected: str | None,
     nothing to check). ``data``, when given, is the file's content already read."""
     if expected is None:
         return
-    key = (*_identity(os.fstat(f.fileno())), expected)
-    if key in _VERIFIED:
+    identity = _identity(os.fstat(f.fileno()))
+    if hashcache.is_verified(identity, expected):  # hashed before, here or by another process
         return
     if data is not None:
         digest = hashlib.sha256(data).hexdigest()
@@ -111,8 +113,7 @@ def _check_sha256(f: BinaryIO, file: Path, expected: str | None,
     if digest != expected:
         raise StoreError(f"{file} does not have the SHA-256 the manifest records; the store is "
                          "damaged or was changed after it was written")
-    with _VERIFIED_LOCK:
-        _VERIFIED.add(key)
+    hashcache.remember(identity, digest)
 
 
 @dataclass(frozen=True)
@@ -212,6 +213,12 @@ def _load_manifest_json(file: Path, model: type[_Plan], data: bytes | None = Non
     version = raw.get("format_version")
     if version not in SUPPORTED_FORMAT_VERSIONS:
         supported = ", ".join(str(v) for v in sorted(SUPPORTED_FORMAT_VERSIONS))
+        if (isinstance(version, int) and not isinstance(version, bool)
+                and version > max(SUPPORTED_FORMAT_VERSIONS)):
+            raise StoreError(
+                f"{file} has store format version {version}, written by a newer probegrid; "
+                f"probegrid {__version__} reads version {supported}: upgrade probegrid to read "
+                "this store")
         raise StoreError(
             f"{file} has store format version {version!r}; probegrid {__version__} reads "
             f"version {supported}"
@@ -275,12 +282,11 @@ def read_manifest(path: str | os.PathLike[str]) -> StoreManifest:
 
 def file_sha256(file: Path) -> str:
     """SHA-256 (hex) of a store file, opened as the reader opens it (no link followed); the file
-    counts as verified in this process while it is unchanged (for the writer, which records the
-    hashes)."""
+    counts as verified while it is unchanged (:mod:`probegrid.store.hashcache`; for the writer,
+    which records the hashes)."""
     with _open_in_store(file.parent, file.name) as f:
         digest = hashlib.file_digest(f, "sha256").hexdigest()
-        with _VERIFIED_LOCK:
-            _VERIFIED.add((*_identity(os.fstat(f.fileno())), digest))
+        hashcache.remember(_identity(os.fstat(f.fileno())), digest)
     return digest
 
 
@@ -450,8 +456,10 @@ def open_store(path: str | os.PathLike[str], *, verify: bool = True,
     Validates the manifest (format and version, schema) and every file against it: each one a
     regular file directly in the store's directory (opened without following links; a link is
     refused wherever it points), each array's header and size and, with ``verify`` (the
-    default), the SHA-256 the manifest records for each file (hashed once per process while the
-    file is unchanged; stores written before hashes were recorded are checked by size). Raises
+    default), the SHA-256 the manifest records for each file (hashed once while the file is
+    unchanged, the digest kept across processes: :mod:`probegrid.store.hashcache`; stores
+    written before hashes were recorded are checked by size). A file with other hard links is
+    refused too. Raises
     :class:`StoreError` (one line) for a missing directory, an unfinished bake, a bad manifest or
     a damaged, linked or changed file.
 

@@ -15,6 +15,7 @@ from fastapi import APIRouter, Depends, Response
 
 from probegrid.core.cubemap import CubeMap, mip_sizes
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight, light_maps
+from service.cost import check_budget, light_maps_estimate
 from service.deps import StateDep, require_json
 from service.encoding import MEDIA_TYPES, encode_cube
 from service.errors import ApiError
@@ -57,7 +58,11 @@ def to_light(spec: LightIn) -> Light:
     },
 )
 def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
-    """Analytic maps of the posted lights at ``position`` (optionally plus a grid's maps)."""
+    """Analytic maps of the posted lights at ``position`` (optionally plus a grid's maps).
+
+    The request is priced before any work (lights x the texels of the maps it makes, see the
+    service's ``service/cost.py``); over the server's ``request_budget`` (seconds of CPU) it is
+    refused with ``422 over_budget`` naming the parameters to lower."""
     settings = state.settings
     if len(body.lights) > settings.max_lights:
         raise ApiError(422, f"{len(body.lights)} lights is over the limit of "
@@ -68,10 +73,6 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
                                 f"{settings.max_light_map_size}.")
     served = None
     chain: int | None  # levels of the chain to make (None: full)
-    for name in ("diffuse_size", "specular_size"):  # both, as the OpenAPI document states
-        if getattr(body, name) > settings.max_light_map_size:
-            raise ApiError(422, f"{name} {getattr(body, name)} is over the limit of "
-                                f"{settings.max_light_map_size}.")
     if body.grid is not None:  # the grid's map sizes
         served = state.grids.get(body.grid)
         if served is None:
@@ -95,6 +96,10 @@ def post_light_maps(body: LightMapsRequest, state: StateDep) -> Response:
     size = size0 >> body.level
     if body.format == "json":
         check_json_size(6 * size * size * 3, settings.max_json_values)
+    check_budget(light_maps_estimate(len(body.lights), diffuse_size=diffuse_size,
+                                     specular_size=specular_size,
+                                     specular_levels=specular_levels),
+                 settings.request_budget)  # before any work: 422 over_budget
     try:
         with state.heavy():  # at most max_heavy_requests at once; 503 busy beyond
             maps = light_maps(
