@@ -87,8 +87,8 @@ def _meshopt_view(ext: dict, buffers: Sequence[bytes], i: int, label: str) -> by
         raise SceneError(f"{label}: buffer view {i} declares {count} x {stride} bytes.")
     try:
         if mode == "ATTRIBUTES":
-            out = np.asarray(meshoptimizer.decode_vertex_buffer(count, stride, data,
-                                                                dtype=np.uint8))
+            # (returned as float32 rows of ``stride`` bytes: the bytes are what counts)
+            out = np.asarray(meshoptimizer.decode_vertex_buffer(count, stride, data))
             if filt != "NONE":
                 decode = {"OCTAHEDRAL": meshoptimizer.decode_filter_oct,
                           "QUATERNION": meshoptimizer.decode_filter_quat,
