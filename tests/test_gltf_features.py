@@ -146,7 +146,7 @@ def _sunlit_floor(roof: Material | None) -> Scene:
     if roof is not None:
         m = b.add_material(roof)
         v, t, uv = quad_mesh((-50, 2, -50), (100, 0, 0), (0, 0, 100))  # faces -Y
-        b.add_triangles(v, t, material=m, uvs=uv * 800)  # 8 cm texels
+        b.add_triangles(v, t, material=m, uvs=uv * 39.0625)  # 1 cm texels of _holes(256)
     b.add_light(DirectionalLight((0.0, -1.0, 0.0), (1.0, 1.0, 1.0), 3.0))
     return b.build()
 
@@ -163,7 +163,8 @@ def _floor_light(tmp_path: Path, name: str, scene: Scene) -> float:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("roof,passing", [
-    (Material(base_color=(0, 0, 0, 1), base_color_texture=_holes(), alpha_mode="MASK"), 0.5),
+    (Material(base_color=(0, 0, 0, 1), base_color_texture=_holes(256), alpha_mode="MASK"),
+     0.5),
     (Material(base_color=(0, 0, 0, 1), transmission=0.6), 0.6),
     (Material(base_color=(0, 0, 0, 0.25), alpha_mode="BLEND"), 0.75),
 ], ids=["cutout", "glass", "blend"])
@@ -176,6 +177,45 @@ def test_the_sun_reaches_the_floor_through_holes_and_glass(tmp_path, roof, passi
     assert open_sky > 0
     covered = _floor_light(tmp_path, "roof", _sunlit_floor(roof))
     assert covered / open_sky == pytest.approx(passing, abs=0.03)
+
+
+def _lit_ceiling(roof: Material | None) -> Scene:
+    """A floor (albedo 0.5) lit only by what it gathers: a white ceiling at y = 4 lit by a spot
+    light at y = 3 that shines up (it reaches neither the floor nor the roof), seen through a
+    black roof at y = 2 of ``roof``'s coverage (None: no roof)."""
+    from probegrid.core.lights import SpotLight
+
+    b = SceneBuilder()
+    floor = b.add_material(Material.diffuse(0.5))
+    ceiling = b.add_material(Material.diffuse(0.8))
+    b.add_quad((-50, 0, 50), (100, 0, 0), (0, 0, -100), material=floor)  # faces +Y
+    b.add_quad((-50, 4, -50), (100, 0, 0), (0, 0, 100), material=ceiling)  # faces -Y
+    if roof is not None:
+        m = b.add_material(roof)
+        v, t, uv = quad_mesh((-50, 2, -50), (100, 0, 0), (0, 0, 100))
+        b.add_triangles(v, t, material=m, uvs=uv * 39.0625)
+    b.add_light(SpotLight((0.0, 3.0, 0.0), (0.0, 1.0, 0.0), (1.0, 1.0, 1.0), 50.0,
+                          outer_cone_angle=1.2))
+    return b.build()
+
+
+@pytest.mark.slow
+def test_gather_rays_bring_back_light_through_the_holes(tmp_path) -> None:
+    """The floor under a roof with 50 % holes gathers 50 % of the light of a lit ceiling above
+    the roof (its gather rays pass the holes): what a probe sees of the floor after one
+    bounce, against the same bake without a roof."""
+    def floor_light(name: str, scene: Scene) -> float:
+        grid = GridSpec.from_counts((0, 0.5, 0), (0, 0.5, 0), (1, 1, 1))
+        st = BakeSettings(bounces=1, samples=8, gather_samples=4, gather_depth=1,
+                          store_incoming=True, direct=False, **FAST)
+        s = bake(scene, grid, tmp_path / f"{name}.probes", settings=st).store
+        down = np.asarray(s["incoming"][0])[3, ..., 0].astype(np.float64)
+        return float(np.sum(down * texel_solid_angles(16)[3]))
+
+    open_roof = floor_light("open", _lit_ceiling(None))
+    assert open_roof > 0
+    holes = Material(base_color=(0, 0, 0, 1), base_color_texture=_holes(256), alpha_mode="MASK")
+    assert floor_light("roof", _lit_ceiling(holes)) / open_roof == pytest.approx(0.5, abs=0.03)
 
 
 # --------------------------------------------------------------------------------------------

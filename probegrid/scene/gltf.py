@@ -600,6 +600,11 @@ def unhonoured_features(header: dict) -> tuple[str, ...]:
     for name in sorted(used - HONOURED_EXTENSIONS):
         found.append(f"{name}" + (f": {_NOT_HONOURED_NOTES[name]}" if name in _NOT_HONOURED_NOTES
                                   else ""))
+    if any(any(float(c) > 0 for c in m.get("emissiveFactor", [])) and (
+            m.get("alphaMode", "OPAQUE") != "OPAQUE"
+            or "KHR_materials_transmission" in m.get("extensions", {})) for m in mats):
+        found.append("the alpha and transmission of emissive materials in light sampling "
+                     "(their whole area is sampled)")
     prims = [p for m in header.get("meshes", []) for p in m.get("primitives", [])]
     if header.get("skins"):
         found.append("skins (the bind pose is used)")
