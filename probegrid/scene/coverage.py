@@ -78,9 +78,6 @@ class Coverage:
                 h.update(np.ascontiguousarray(a, "<f8").tobytes())
         self.key = h.hexdigest()
 
-    def __reduce__(self) -> tuple:
-        return (Coverage, (self._scene,))
-
     def alpha(self, prim: NDArray[np.int64], u: NDArray[np.float64],
               v: NDArray[np.float64]) -> NDArray[np.float64]:
         """Alpha ``baseColorFactor.a * baseColorTexture.a * COLOR_0.a`` at barycentric points
@@ -96,7 +93,8 @@ class Coverage:
             col = sc.colors[:, 3]
             out *= (1.0 - u - v) * col[tri[:, 0]] + u * col[tri[:, 1]] + v * col[tri[:, 2]]
         tris = np.ascontiguousarray(sc.triangles, np.int64)
-        for i, m in enumerate(sc.materials):  # loop over materials, not hits
+        for i in np.unique(mat):  # loop over the materials hit, not over hits
+            m = sc.materials[int(i)]
             if m.base_color_texture is None or m.alpha_mode == "OPAQUE":
                 continue
             rows = np.flatnonzero(mat == i)
