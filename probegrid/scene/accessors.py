@@ -5,8 +5,9 @@ accessors decoded into float32 positions and texture coordinates and uint32 indi
 accessor a triangle primitive reads (``POSITION``, ``TEXCOORD_n``, ``COLOR_0``, ``indices``)
 is a plain, dense array in a buffer, as any glTF reader reads it:
 
-* ``EXT_meshopt_compression`` -- each compressed buffer view is decoded (meshoptimizer's
-  ``decode_vertex_buffer`` / ``decode_index_buffer`` / ``decode_index_sequence`` for the
+* ``EXT_meshopt_compression`` -- each compressed buffer view is decoded (meshoptimizer, the
+  package's ``meshopt`` extra:
+  its ``decode_vertex_buffer`` / ``decode_index_buffer`` / ``decode_index_sequence`` for the
   modes ATTRIBUTES / TRIANGLES / INDICES, then the OCTAHEDRAL, QUATERNION or EXPONENTIAL
   filter) into the bytes the view describes; the fallback buffers (often without data) are
   never read;
@@ -75,9 +76,10 @@ def _meshopt_view(ext: dict, buffers: Sequence[bytes], i: int, label: str) -> by
     """An ``EXT_meshopt_compression`` buffer view, decoded (module docstring)."""
     try:
         import meshoptimizer
-    except ImportError:  # pragma: no cover -- a dependency of the package
-        raise SceneError(f"{label}: buffer view {i} is meshopt-compressed and the meshoptimizer "
-                         "package is missing (pip install meshoptimizer).") from None
+    except ImportError:  # pragma: no cover -- the `meshopt` extra
+        raise SceneError(f"{label}: buffer view {i} is EXT_meshopt_compression-compressed and "
+                         "the meshoptimizer package is missing: pip install 'probegrid[meshopt]'."
+                         ) from None
     buf = buffers[int(ext["buffer"])]
     start = int(ext.get("byteOffset", 0))
     data = buf[start:start + int(ext["byteLength"])]
