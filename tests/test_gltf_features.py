@@ -125,6 +125,49 @@ def test_a_pickled_tracer_and_scene_pass_the_same_rays() -> None:
         assert all(np.array_equal(a[k], b[k]) for k in a)
 
 
+def test_transmittance_is_the_expected_share_along_a_segment() -> None:
+    """Two panes of transmission 0.6 pass 0.36 of a segment through both (every ray, no
+    draw); an opaque triangle on the way passes 0; a cut-out passes 0 or 1."""
+    b = SceneBuilder()
+    glass = b.add_material(Material(transmission=0.6))
+    wall = b.add_material(Material.diffuse(0.5))
+    fence = b.add_material(Material(base_color_texture=_holes(), alpha_mode="MASK"))
+    b.add_quad((-1, 1, -1), (0, 0, 2), (2, 0, 0), material=glass)
+    b.add_quad((-1, 2, -1), (0, 0, 2), (2, 0, 0), material=glass)
+    b.add_quad((-1, 3, -1), (0, 0, 2), (2, 0, 0), material=wall)
+    b.add_quad((-1, -1, -1), (0, 0, 2), (2, 0, 0), material=fence)
+    tracer = RayTracer.from_scene(b.build())
+    rng = np.random.default_rng(2)
+    o = np.c_[rng.uniform(-0.9, 0.9, 3000), np.zeros(3000), rng.uniform(-0.9, 0.9, 3000)]
+    up, down = np.array([0.0, 1.0, 0.0]), np.array([0.0, -1.0, 0.0])
+    np.testing.assert_allclose(tracer.transmittance(o, up, 2.5), 0.36, rtol=1e-12)
+    np.testing.assert_allclose(tracer.transmittance(o, up, 1.5), 0.6, rtol=1e-12)
+    assert np.all(tracer.transmittance(o, up, 3.5) == 0.0)
+    through = tracer.transmittance(o, down, 2.0)
+    assert set(np.unique(through)) == {0.0, 1.0}
+    assert np.array_equal(through == 1.0, ~tracer.occluded(o, down, 2.0))
+
+
+def test_a_probe_behind_glass_sees_the_sun_at_the_transmission_factor(tmp_path) -> None:
+    """A probe under a (black) glass pane of transmission 0.6 gets exactly 0.6 of the sun's
+    irradiance (its view of a punctual light is the expected transmittance, not one draw)."""
+    from probegrid.core.sh import K0
+
+    def sh0(pane: Material, name: str) -> float:
+        b = SceneBuilder()
+        m = b.add_material(pane)
+        v, t, _ = quad_mesh((-50, 2, -50), (100, 0, 0), (0, 0, 100))
+        b.add_triangles(v, t, material=m)
+        b.add_light(DirectionalLight((0.0, -1.0, 0.0), (1.0, 1.0, 1.0), 3.0))
+        grid = GridSpec.from_counts((0, 0.5, 0), (0, 0.5, 0), (1, 1, 1))
+        st = BakeSettings(bounces=0, **FAST)
+        return float(bake(b.build(), grid, tmp_path / f"{name}.probes",
+                          settings=st).store["sh"][0, 0, 0])
+
+    assert sh0(Material(base_color=(0, 0, 0, 1), transmission=0.6), "glass") == pytest.approx(
+        0.6 * K0 * 3.0, rel=1e-5)
+
+
 def test_a_ray_passes_several_cutouts_and_stops_at_an_opaque_floor_behind() -> None:
     """Two stacked cut-out layers with complementary holes stop every ray; the closest hit of
     a ray through the holes of one layer is on the next surface behind."""

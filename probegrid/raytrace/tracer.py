@@ -12,7 +12,9 @@ cast again from just past the hit (``tmin`` = the hit's ``t`` plus :attr:`RayTra
 scene units, the origin staying where it was, so nothing in front is hit again), at most
 :data:`MAX_LAYERS` times; a ray that still meets a cut-out surface after that stops there (a
 bound on the work, not a model: it takes 64 stacked cut-outs). Embree's filter callbacks are
-not reachable through embreex; this re-casting gives the same answer.
+not reachable through embreex; this re-casting gives the same answer. :meth:`RayTracer.
+transmittance` gives the expectation instead of a draw: the product of ``1 - p`` along a
+segment (what a probe's single ray toward a punctual light uses).
 
 Occlusion with a coverage first asks Embree's any-hit query of the opaque triangles only (one
 call, as fast as without coverage), then walks the rays it left unblocked through the cut-out
@@ -90,7 +92,8 @@ class RayTracer:
         per ray of a chunk; default 65536).
     coverage : Coverage or None
         What a ray may pass (module docstring): an object with ``cutout (T,) bool`` and
-        ``stops(prim, u, v, xi) -> (k,) bool`` (:class:`probegrid.scene.coverage.Coverage`).
+        ``stops(prim, u, v, xi) -> (k,) bool`` and ``stop_probability(prim, u, v)``
+        (:class:`probegrid.scene.coverage.Coverage`).
         None: every triangle stops every ray.
 
     Attributes
@@ -433,6 +436,57 @@ class RayTracer:
             e = min(s + self.chunk_size, n)
             out[s:e] = self._scene.run(org[s:e], dirs[s:e], dists=far[s:e],
                                        query="OCCLUDED") >= 0
+        return out
+
+    def transmittance(self, origins: ArrayLike, directions: ArrayLike, tmax: ArrayLike, *,
+                      tmin: ArrayLike = 0.0) -> NDArray[np.float64]:
+        """The expected share of light that gets through each segment ``origin + t direction``,
+        ``tmin <= t <= tmax``: 0 when an opaque triangle lies on it, else the product of
+        ``1 - p`` over the surfaces it may pass (``p`` their stop probabilities, module
+        docstring; 0 past :data:`MAX_LAYERS` of them). Without a coverage: ``1 - occluded``.
+        For a probe's view of a punctual light: one ray would give all or nothing.
+
+        Returns
+        -------
+        (...) float64 in [0, 1]
+        """
+        if self.coverage is None:
+            return (~self.occluded(origins, directions, tmax, tmin=tmin)).astype(np.float64)
+        shape, o, d, lo, hi = self._rays(origins, directions, tmin, tmax)
+        n = len(d)
+        out = np.empty(n)
+        for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, n)
+            org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
+            out[s:e] = self._transmittance_embree(org, dirs, far)
+        return out.reshape(shape)
+
+    def _transmittance_embree(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
+                              far: NDArray[np.float32]) -> NDArray[np.float64]:
+        """:meth:`transmittance` of rays as Embree takes them."""
+        n = len(far)
+        out = np.ones(n)
+        if self._opaque_scene is not None:
+            out[self._opaque_scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0] = 0.0
+        rows = np.flatnonzero((out > 0) & (far > 0))
+        o = org[rows].astype(np.float64)
+        d = dirs[rows].astype(np.float64)
+        hi = far[rows].astype(np.float64)
+        lo = np.zeros(len(rows))
+        zero = np.zeros(3)
+        alive = np.arange(len(rows))
+        for _ in range(MAX_LAYERS):  # loop over layers of cut-out surfaces, not rays
+            if not alive.size:
+                return out
+            hits = self._cast(self._cut_scene, o[alive], d[alive], lo[alive], hi[alive], zero)
+            hit = np.flatnonzero(hits.prim_id >= 0)
+            p = self.coverage.stop_probability(  # type: ignore[union-attr]
+                self._cut_ids[hits.prim_id[hit]], hits.u[hit], hits.v[hit])
+            out[rows[alive[hit]]] *= 1.0 - p
+            go = hit[p < 1.0]
+            lo[alive[go]] = hits.t[go] + self.skip / np.linalg.norm(d[alive[go]], axis=1)
+            alive = alive[go]
+        out[rows[alive]] = 0.0  # past MAX_LAYERS (a bound)
         return out
 
     def _occluded_chunks(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
