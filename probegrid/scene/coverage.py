@@ -22,7 +22,9 @@ through its :class:`~probegrid.scene.textures.TexCoord` with its sampler's wrap 
 
 A ray's uniform number ``xi`` in ``[0, 1)`` (the tracer's: a hash of the ray and the
 triangle, so the same ray passes or stops the same way every time) decides: the ray stops
-when ``xi < p``. MASK and OPAQUE need none.
+when ``xi < p``. MASK and OPAQUE need none. Where one ray stands for all the light (a probe's
+view of a punctual light), the tracer takes the expectation instead, the product of
+``1 - p`` along the ray (:meth:`probegrid.raytrace.RayTracer.transmittance`).
 
 Reference: glTF 2.0 specification, 3.9.4 "Alpha Coverage"; KHR_materials_transmission;
 Enderton, Sintorn, Shirley, Luebke, "Stochastic Transparency", I3D 2010.
