@@ -155,7 +155,8 @@ class RayTracer:
         self.skip = SKIP_SHARE * max(float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))),
                                      1e-30)
         self.coverage = None
-        cut = None if coverage is None else np.asarray(coverage.cutout, dtype=bool)  # type: ignore[attr-defined]
+        cut = (None if coverage is None
+               else np.asarray(coverage.cutout, dtype=bool))  # type: ignore[attr-defined]
         if cut is not None and cut.shape != (len(t),):
             raise ValueError(f"coverage.cutout must have shape ({len(t)},), got {cut.shape}.")
         if cut is not None and cut.any():
@@ -325,8 +326,8 @@ class RayTracer:
         """Whether rays ``rows`` stop at their hits on the (cut-out) triangles ``prim``."""
         xi = _uniforms(o[rows] if len(o) > 1 else np.broadcast_to(o, (len(rows), 3)),
                        d[rows], prim)
-        return np.asarray(self.coverage.stops(prim, hits.u[rows], hits.v[rows], xi),  # type: ignore[union-attr]
-                          dtype=bool)
+        stops = self.coverage.stops  # type: ignore[union-attr]
+        return np.asarray(stops(prim, hits.u[rows], hits.v[rows], xi), dtype=bool)
 
     def _pass_through(self, o: NDArray, d: NDArray, hi: NDArray, out: Hits) -> None:
         """Carry the closest hits ``out`` (of rays ``o + t d``, ``t <= hi``) past the cut-out
