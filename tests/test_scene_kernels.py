@@ -12,7 +12,7 @@ from meshes import triangle_soup
     (("repeat", "repeat"), None), (("clamp", "mirror"), None), (("mirror", "clamp"), None),
     (("repeat", "mirror"), ((0.25, -0.5), 0.7, (2.0, -1.5)))])
 def test_texture_kernel_matches_sample_texture(wrap, transform) -> None:
-    from probegrid.scene.kernels import multiply_texture, texture_channel
+    from probegrid.scene.kernels import multiply_texture
     from probegrid.scene.textures import _WRAPS, TexCoord, sample_texture, texture_transform
 
     rng = np.random.default_rng(5)
@@ -36,8 +36,8 @@ def test_texture_kernel_matches_sample_texture(wrap, transform) -> None:
     expect[rows] *= sample_texture(tex, uv[rows], wrap=wrap)[:, :3]
     expect_alpha[rows] *= sample_texture(tex, uv[rows], wrap=wrap)[:, 3]
     wraps = (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1]))
-    multiply_texture(target, rows, (prim, bu, bv), tris, uvs, tex, wraps, xform)
-    texture_channel(alpha, rows, (prim, bu, bv), tris, uvs, tex, wraps, xform, 3)
+    multiply_texture(target, rows, (prim, bu, bv), tris, uvs, tex, wraps, xform, 0)
+    multiply_texture(alpha.reshape(-1, 1), rows, (prim, bu, bv), tris, uvs, tex, wraps, xform, 3)
     np.testing.assert_allclose(target, expect, rtol=1e-12)
     np.testing.assert_allclose(alpha, expect_alpha, rtol=1e-12)
 

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid.scene.kernels import texture_channel
+from probegrid.scene.kernels import multiply_texture
 from probegrid.scene.textures import _WRAPS
 
 if TYPE_CHECKING:
@@ -102,10 +102,10 @@ class Coverage:
             rows = np.flatnonzero(mat == i)
             if rows.size:
                 uvs, xform = sc.kernel_texcoords(m.base_color_uv)
-                texture_channel(out, rows, (prim, u, v), tris, uvs,
-                                np.ascontiguousarray(m.base_color_texture, np.float32),
-                                (_WRAPS.index(m.base_color_wrap[0]),
-                                 _WRAPS.index(m.base_color_wrap[1])), xform, 3)
+                multiply_texture(out.reshape(-1, 1), rows, (prim, u, v), tris, uvs,
+                                 np.ascontiguousarray(m.base_color_texture, np.float32),
+                                 (_WRAPS.index(m.base_color_wrap[0]),
+                                  _WRAPS.index(m.base_color_wrap[1])), xform, 3)
         return out
 
     def stop_probability(self, prim: NDArray[np.int64], u: NDArray[np.float64],

@@ -5,8 +5,8 @@ documentation of the maths (``tests/test_scene_kernels.py`` compares the two on 
 
 * :func:`hit_surfaces` -- :meth:`probegrid.scene.Scene.surface_at`'s barycentric interpolation
   (without the textures);
-* :func:`multiply_texture`, :func:`texture_channel` -- :func:`probegrid.scene.sample_texture`
-  (bilinear, glTF wrap modes) at a hit's texture coordinates, mapped by the texture's
+* :func:`multiply_texture` -- :func:`probegrid.scene.sample_texture` (bilinear, glTF wrap
+  modes) at a hit's texture coordinates, mapped by the texture's
   :class:`~probegrid.scene.textures.TexCoord`.
 
 :func:`_barycentric` (a vertex attribute interpolated over its triangle) is the one scalar step
@@ -24,9 +24,9 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid._jit import inline_kernel, kernel
+from probegrid._jit import kernel
 
-__all__ = ["SurfaceTables", "hit_surfaces", "multiply_texture", "texture_channel"]
+__all__ = ["SurfaceTables", "hit_surfaces", "multiply_texture"]
 
 
 class SurfaceTables(NamedTuple):
@@ -115,44 +115,6 @@ def _wrap(i: int, n: int, mode: int) -> int:
     return m if m < n else 2 * n - 1 - m
 
 
-@inline_kernel
-def _hit_uv(i: int, hits: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]],
-            triangles: NDArray[np.int64], uvs: NDArray[np.float64],
-            xform: NDArray[np.float64]) -> tuple[float, float]:
-    """The texture coordinates of hit ``i``: ``uvs`` interpolated with its barycentrics over its
-    triangle (``uvs`` empty: 0), mapped by ``xform`` (:class:`probegrid.scene.textures.TexCoord`'s
-    six numbers; empty: none)."""
-    prim, u, v = hits
-    s, t = 0.0, 0.0
-    if uvs.shape[0] > 0:
-        tri = prim[i]
-        w1, w2 = u[i], v[i]
-        w0 = 1.0 - w1 - w2
-        a, b, c = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
-        s = w0 * uvs[a, 0] + w1 * uvs[b, 0] + w2 * uvs[c, 0]
-        t = w0 * uvs[a, 1] + w1 * uvs[b, 1] + w2 * uvs[c, 1]
-    if xform.shape[0] == 6:
-        s, t = (xform[0] * s + xform[1] * t + xform[2], xform[3] * s + xform[4] * t + xform[5])
-    return s, t
-
-
-@inline_kernel
-def _bilinear(texture: NDArray[np.float32], s: float, t: float, wrap_s: int, wrap_t: int,
-              k: int) -> float:
-    """Channel ``k`` of :func:`probegrid.scene.sample_texture` at ``(s, t)``."""
-    h, w = texture.shape[0], texture.shape[1]
-    x = s * w - 0.5
-    y = t * h - 0.5
-    x0, y0 = math.floor(x), math.floor(y)
-    fx, fy = x - x0, y - y0
-    xi, yi = int(x0), int(y0)
-    c0, c1 = _wrap(xi, w, wrap_s), _wrap(xi + 1, w, wrap_s)
-    r0, r1 = _wrap(yi, h, wrap_t), _wrap(yi + 1, h, wrap_t)
-    top = texture[r0, c0, k] * (1.0 - fx) + texture[r0, c1, k] * fx
-    bottom = texture[r1, c0, k] * (1.0 - fx) + texture[r1, c1, k] * fx
-    return top * (1.0 - fy) + bottom * fy
-
-
 @kernel
 def multiply_texture(
     target: NDArray[np.float64],
@@ -163,8 +125,10 @@ def multiply_texture(
     texture: NDArray[np.float32],
     wrap: tuple[int, int],
     xform: NDArray[np.float64],
+    first: int,
 ) -> None:
-    """Multiply ``target[rows] (k, 3)`` in place by a texture's RGB at the hits' UVs.
+    """Multiply ``target[rows] (k, C)`` in place by channels ``first`` to ``first + C - 1`` of a
+    texture at the hits' UVs (its RGB: ``first`` 0, C 3; its alpha: ``first`` 3, C 1).
 
     :func:`probegrid.scene.sample_texture` (bilinear, texel centres at ``(col + 0.5) / W``,
     ``(row + 0.5) / H``, wrap modes ``(s, t)`` 0 repeat, 1 clamp, 2 mirror) at the UV
@@ -173,30 +137,33 @@ def multiply_texture(
     :class:`~probegrid.scene.textures.TexCoord` matrix, or empty for none); ``uvs`` empty
     means UV 0.
     """
+    prim, u, v = hits
     wrap_s, wrap_t = wrap
+    h, w = texture.shape[0], texture.shape[1]
+    has_uv = uvs.shape[0] > 0
+    mapped = xform.shape[0] == 6
     for j in range(rows.shape[0]):
         i = rows[j]
-        s, t = _hit_uv(i, hits, triangles, uvs, xform)
-        for k in range(3):
-            target[i, k] *= _bilinear(texture, s, t, wrap_s, wrap_t, k)
-
-
-@kernel
-def texture_channel(
-    out: NDArray[np.float64],
-    rows: NDArray[np.int64],
-    hits: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]],
-    triangles: NDArray[np.int64],
-    uvs: NDArray[np.float64],
-    texture: NDArray[np.float32],
-    wrap: tuple[int, int],
-    xform: NDArray[np.float64],
-    channel: int,
-) -> None:
-    """Multiply ``out[rows] (k,)`` in place by one channel of a texture at the hits' UVs (the
-    lookup of :func:`multiply_texture`; the alpha of a base colour texture, say)."""
-    wrap_s, wrap_t = wrap
-    for j in range(rows.shape[0]):
-        i = rows[j]
-        s, t = _hit_uv(i, hits, triangles, uvs, xform)
-        out[i] *= _bilinear(texture, s, t, wrap_s, wrap_t, channel)
+        s, t = 0.0, 0.0
+        if has_uv:
+            tri = prim[i]
+            w1, w2 = u[i], v[i]
+            w0 = 1.0 - w1 - w2
+            a, b, c = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
+            s = w0 * uvs[a, 0] + w1 * uvs[b, 0] + w2 * uvs[c, 0]
+            t = w0 * uvs[a, 1] + w1 * uvs[b, 1] + w2 * uvs[c, 1]
+        if mapped:
+            s, t = (xform[0] * s + xform[1] * t + xform[2],
+                    xform[3] * s + xform[4] * t + xform[5])
+        x = s * w - 0.5
+        y = t * h - 0.5
+        x0, y0 = math.floor(x), math.floor(y)
+        fx, fy = x - x0, y - y0
+        xi, yi = int(x0), int(y0)
+        c0, c1 = _wrap(xi, w, wrap_s), _wrap(xi + 1, w, wrap_s)
+        r0, r1 = _wrap(yi, h, wrap_t), _wrap(yi + 1, h, wrap_t)
+        for k in range(target.shape[1]):
+            q = first + k
+            top = texture[r0, c0, q] * (1.0 - fx) + texture[r0, c1, q] * fx
+            bottom = texture[r1, c0, q] * (1.0 - fx) + texture[r1, c1, q] * fx
+            target[i, k] *= top * (1.0 - fy) + bottom * fy

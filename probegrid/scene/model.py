@@ -492,7 +492,7 @@ class Scene:
                     uvs, xform = self.kernel_texcoords(tc)
                     multiply_texture(target, sel, (pid, u, v), tris, uvs,
                                      np.ascontiguousarray(tex, dtype=np.float32),
-                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])), xform)
+                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])), xform, 0)
 
     def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
         """Position, geometric normal, albedo and emission at barycentric points of triangles.
