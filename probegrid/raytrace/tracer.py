@@ -324,8 +324,11 @@ class RayTracer:
     def _stops(self, prim: NDArray[np.int64], hits: Hits, rows: NDArray[np.int64],
                o: NDArray, d: NDArray) -> NDArray[np.bool_]:
         """Whether rays ``rows`` stop at their hits on the (cut-out) triangles ``prim``."""
-        xi = _uniforms(o[rows] if len(o) > 1 else np.broadcast_to(o, (len(rows), 3)),
-                       d[rows], prim)
+        if getattr(self.coverage, "stochastic", True):
+            xi = _uniforms(o[rows] if len(o) > 1 else np.broadcast_to(o, (len(rows), 3)),
+                           d[rows], prim)
+        else:  # (every p is 0 or 1: no draw)
+            xi = np.zeros(len(prim))
         stops = self.coverage.stops  # type: ignore[union-attr]
         return np.asarray(stops(prim, hits.u[rows], hits.v[rows], xi), dtype=bool)
 

@@ -54,6 +54,9 @@ class Coverage:
     ----------
     cutout : (T,) bool, read-only
         The triangles a ray may pass (a material that is not opaque or transmits).
+    stochastic : bool
+        Whether some material draws (BLEND, transmission): else every hit's ``p`` is 0 or 1
+        and a ray needs no random number.
     key : str
         A hash of what decides coverage (materials' modes, factors, alpha textures and their
         coordinates, the vertex alphas): two scenes with the same key pass the same rays.
@@ -64,6 +67,8 @@ class Coverage:
         mats = scene.materials
         self._modes = [m.alpha_mode for m in mats]
         flags = np.array([not m.stops_every_ray for m in mats], dtype=bool)
+        #: Whether a hit may need a draw (BLEND or transmission); else ``p`` is 0 or 1.
+        self.stochastic = any(m.alpha_mode == "BLEND" or m.transmission > 0 for m in mats)
         self.cutout: NDArray[np.bool_] = flags[scene.material]
         self.cutout.setflags(write=False)
         h = hashlib.sha256(b"probegrid-coverage-v1;")
@@ -95,7 +100,8 @@ class Coverage:
             col = sc.colors[:, 3]
             out *= (1.0 - u - v) * col[tri[:, 0]] + u * col[tri[:, 1]] + v * col[tri[:, 2]]
         tris = np.ascontiguousarray(sc.triangles, np.int64)
-        for i in np.unique(mat):  # loop over the materials hit, not over hits
+        hit = np.flatnonzero(np.bincount(mat, minlength=len(sc.materials)))
+        for i in hit:  # loop over the materials hit, not over hits
             m = sc.materials[int(i)]
             if m.base_color_texture is None or m.alpha_mode == "OPAQUE":
                 continue
