@@ -77,13 +77,13 @@ def test_cutout_holes_pass_exactly_where_alpha_is_below_the_cutoff() -> None:
     tex = _holes()
     scene = _roof(Material(base_color_texture=tex, alpha_mode="MASK", alpha_cutoff=0.5))
     tracer = RayTracer.from_scene(scene)
-    o, d = _vertical_rays(40000)
+    o, d = _vertical_rays(20000)
     # where each ray crosses the roof, in texture coordinates (quad_mesh's UVs (s, 1 - t),
     # s along +z and t along +x, times 80)
     uv = np.c_[(o[:, 2] + 20) / 40 * 80, (1 - (o[:, 0] + 20) / 40) * 80]
     alpha = sample_texture(tex, uv)[:, 3]
     expected = alpha < 0.5
-    clear = np.abs(alpha - 0.5) > 1e-3  # (Embree's float32 hit points: 6 rays on the edges)
+    clear = np.abs(alpha - 0.5) > 1e-3  # (Embree's float32 hit points: rays on the edges)
     kinds = _every_kind_of_ray(tracer, o, d)
     for kind, passed in kinds.items():
         assert np.array_equal(passed[clear], expected[clear]), kind
@@ -148,6 +148,7 @@ def test_transmittance_is_the_expected_share_along_a_segment() -> None:
     assert np.array_equal(through == 1.0, ~tracer.occluded(o, down, 2.0))
 
 
+@pytest.mark.slow
 def test_a_probe_behind_glass_sees_the_sun_at_the_transmission_factor(tmp_path) -> None:
     """A probe under a (black) glass pane of transmission 0.6 gets exactly 0.6 of the sun's
     irradiance (its view of a punctual light is the expected transmittance, not one draw)."""
