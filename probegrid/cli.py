@@ -312,6 +312,9 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "allow_paths", "--allow-path", type=Path, action="append", metavar="DIR",
             help="a folder besides the scene's own whose files the glTF may name (e.g. "
             "../textures); repeat for more")
+    _option(p, J, "ignore_extensions", "--ignore-extension", action="append", metavar="NAME",
+            help="bake a glTF that requires this extension with the extension ignored (the "
+            "bake names it among what it does not honour); repeat for more, * for all")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 

@@ -306,8 +306,12 @@ class ProbeField:
 
                     kept = self.store.manifest.scene_file
                     assert kept is not None
-                    scene = load_gltf(self.store.path / kept.file)
-                self._point_tracer = PointTracer.from_store(self.store, scene, tracer=self.tracer,
+                    # (the bake had to ignore every extension it refused: the same scene)
+                    scene = load_gltf(self.store.path / kept.file, ignore_extensions=("*",))
+                # the visibility tracer knows the triangles only; a scene with cut-outs or
+                # glass traces with its own (what a ray passes)
+                tracer = self.tracer if scene.coverage is None else None
+                self._point_tracer = PointTracer.from_store(self.store, scene, tracer=tracer,
                                                             settings=self._point_settings)
             return self._point_tracer
 

@@ -288,3 +288,50 @@ def test_a_rerun_with_other_settings_says_it_starts_clean_and_never_resumes(tmp_
     got = capsys.readouterr()
     assert "resuming the interrupted bake" in got.err and "8 probes resumed" in got.out
     assert "starts clean" not in got.err
+
+
+def test_a_required_extension_not_honoured_is_refused_then_baked_ignored_and_named(
+        tmp_path, monkeypatch, capsys):
+    """A glTF requiring an extension the bake does not honour is refused before any work, the
+    one line naming it and ``--ignore-extension``; with the option it bakes, and the summary,
+    the manifest and ``info`` name what was not honoured."""
+    import base64
+
+    from probegrid.bake import executors
+
+    monkeypatch.setattr(executors, "make_executor",
+                        lambda **kw: InlineExecutor(check_pickle=False))
+    pos = np.array([[-2, 0, 2], [2, 0, 2], [2, 0, -2], [-2, 0, -2]], np.float32)
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint32)
+    blob = pos.tobytes() + idx.tobytes()
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"mesh": 0}],
+           "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1,
+                                       "material": 0}]}],
+           "materials": [{"extensions": {"KHR_materials_sheen": {"sheenRoughnessFactor": 1}}}],
+           "extensionsUsed": ["KHR_materials_sheen"],
+           "extensionsRequired": ["KHR_materials_sheen"],
+           "buffers": [{"byteLength": len(blob), "uri": "data:application/octet-stream;base64,"
+                        + base64.b64encode(blob).decode()}],
+           "bufferViews": [{"buffer": 0, "byteLength": pos.nbytes},
+                           {"buffer": 0, "byteOffset": pos.nbytes, "byteLength": idx.nbytes}],
+           "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3"},
+                         {"bufferView": 1, "componentType": 5125, "count": 6, "type": "SCALAR"}]}
+    scene = tmp_path / "sheen.gltf"
+    scene.write_text(json.dumps(doc))
+    out = tmp_path / "s.probes"
+    args = ["bake", str(scene), "--out", str(out), "--grid", "1x1x1", "--bounds",
+            "0,1,0,0,1,0", "--environment-color", "1,1,1", *FAST]
+    assert main(args) == EXIT_BAD_INPUT
+    line = _one_line(capsys, only=False)
+    assert "KHR_materials_sheen" in line and "--ignore-extension KHR_materials_sheen" in line
+    assert not out.exists()
+    assert main([*args, "--ignore-extension", "KHR_materials_sheen"]) == 0
+    printed = capsys.readouterr()
+    summary = [ln for ln in printed.out.splitlines() if "not honoured" in ln]
+    assert summary and "KHR_materials_sheen" in summary[0]
+    assert "metallic-roughness" in summary[0]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert any("KHR_materials_sheen" in x for x in manifest["inputs"]["scene"]["unhonoured"])
+    assert main(["info", str(out)]) == 0
+    assert "not honoured by the bake" in capsys.readouterr().out

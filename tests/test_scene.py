@@ -353,7 +353,7 @@ def test_nan_vertices_and_empty_scene(tmp_path: Path) -> None:
         SceneBuilder().build()
 
 
-def test_unsupported_texcoord_rejected(tmp_path: Path) -> None:
+def test_missing_texcoord_set_rejected(tmp_path: Path) -> None:
     (tmp_path / "t.png").write_bytes(_png(np.zeros((2, 2, 3), np.uint8)))
     material = {"pbrMetallicRoughness": {"baseColorTexture": {"index": 0, "texCoord": 1}}}
     with pytest.raises(SceneError) as e:
@@ -361,14 +361,20 @@ def test_unsupported_texcoord_rejected(tmp_path: Path) -> None:
     assert "TEXCOORD_1" in _one_line_error(e)
 
 
-def test_unsupported_required_extension_rejected(tmp_path: Path) -> None:
+def test_unsupported_required_extension_rejected_with_the_option(tmp_path: Path) -> None:
     path = _write_gltf(tmp_path)
     header = json.loads(path.read_text())
-    header["extensionsRequired"] = ["KHR_lights_punctual", "KHR_draco_mesh_compression"]
+    header["extensionsRequired"] = ["KHR_lights_punctual", "KHR_materials_sheen"]
+    header["materials"][0]["extensions"] = {"KHR_materials_sheen": {"sheenColorFactor": [1, 1,
+                                                                                          1]}}
     path.write_text(json.dumps(header))
     with pytest.raises(SceneError) as e:
         load_gltf(path)
-    assert "KHR_draco_mesh_compression" in _one_line_error(e)
+    msg = _one_line_error(e)
+    assert "KHR_materials_sheen" in msg and "--ignore-extension KHR_materials_sheen" in msg
+    scene = load_gltf(path, ignore_extensions=["KHR_materials_sheen"])
+    assert "KHR_materials_sheen" in scene.unhonoured
+    assert load_gltf(path, ignore_extensions=["*"]).unhonoured == scene.unhonoured
 
 
 def test_from_arrays_rejects_bad_triangles() -> None:

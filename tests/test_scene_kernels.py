@@ -8,10 +8,12 @@ import pytest
 from meshes import triangle_soup
 
 
-@pytest.mark.parametrize("wrap", [("repeat", "repeat"), ("clamp", "mirror"), ("mirror", "clamp")])
-def test_texture_kernel_matches_sample_texture(wrap) -> None:
+@pytest.mark.parametrize("wrap,transform", [
+    (("repeat", "repeat"), None), (("clamp", "mirror"), None), (("mirror", "clamp"), None),
+    (("repeat", "mirror"), ((0.25, -0.5), 0.7, (2.0, -1.5)))])
+def test_texture_kernel_matches_sample_texture(wrap, transform) -> None:
     from probegrid.scene.kernels import multiply_texture
-    from probegrid.scene.textures import _WRAPS, sample_texture
+    from probegrid.scene.textures import _WRAPS, TexCoord, sample_texture, texture_transform
 
     rng = np.random.default_rng(5)
     tex = rng.random((5, 7, 4)).astype(np.float32)
@@ -23,13 +25,32 @@ def test_texture_kernel_matches_sample_texture(wrap) -> None:
     bv = rng.random(n) * (1 - bu)
     w = np.stack([1 - bu - bv, bu, bv], axis=1)[:, :, None]
     uv = np.sum(w * uvs[tris[prim]], axis=1)
+    tc = TexCoord() if transform is None else texture_transform(*transform)
+    uv = tc.apply(uv)
+    xform = np.zeros(0) if transform is None else np.array(tc.matrix)
     target = rng.random((n, 3)) + 0.5
+    alpha = rng.random(n) + 0.5
     rows = np.flatnonzero(rng.random(n) < 0.7)
     expect = target.copy()
+    expect_alpha = alpha.copy()
     expect[rows] *= sample_texture(tex, uv[rows], wrap=wrap)[:, :3]
-    multiply_texture(target, rows, (prim, bu, bv), tris, uvs, tex,
-                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])))
+    expect_alpha[rows] *= sample_texture(tex, uv[rows], wrap=wrap)[:, 3]
+    wraps = (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1]))
+    multiply_texture(target, rows, (prim, bu, bv), tris, uvs, tex, wraps, xform, 0)
+    multiply_texture(alpha.reshape(-1, 1), rows, (prim, bu, bv), tris, uvs, tex, wraps, xform, 3)
     np.testing.assert_allclose(target, expect, rtol=1e-12)
+    np.testing.assert_allclose(alpha, expect_alpha, rtol=1e-12)
+
+
+def test_texture_transform_follows_the_extension_example() -> None:
+    """KHR_texture_transform's example (offset (0, 1), rotation pi/2, scale 0.5) reads "the
+    lower left quadrant of the source image, rotated clockwise 90 degrees": the unit square's
+    corners land on that quadrant's (v grows downward)."""
+    from probegrid.scene.textures import texture_transform
+
+    tc = texture_transform((0.0, 1.0), np.pi / 2, (0.5, 0.5))
+    corners = tc.apply([[0, 0], [1, 0], [1, 1], [0, 1]])
+    np.testing.assert_allclose(corners, [[0, 1], [0, 0.5], [0.5, 0.5], [0.5, 1]], atol=1e-12)
 
 
 def test_hit_surfaces_match_numpy_with_vertex_colors() -> None:

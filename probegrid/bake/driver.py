@@ -152,7 +152,13 @@ class BakeReport:
             + (" (ringing: the deringed SH that /sh serves is >= 0)"
                if (self.quality.get("sh_min_irradiance_over_pi") or 0.0) < 0 else "") + "; "
             f"seam score {q['seam_score_mean']:.2e}"),
-        ])
+        ] + self._unhonoured_lines())
+
+    def _unhonoured_lines(self) -> list[str]:
+        """What the scene file uses that the bake did not honour (manifest ``inputs``)."""
+        inputs = getattr(self.store.manifest, "inputs", None)
+        names = inputs.scene.unhonoured if inputs is not None else ()
+        return [f"  not honoured: {'; '.join(names)}"] if names else []
 
 
 def _jsonable(obj: Any) -> Any:

@@ -76,7 +76,9 @@ class ProbeView:
 
         One shadow ray per (point, light) pair that could deliver light (``E_perp > 0`` and, when
         ``normals (p, 3)`` are given, the light in front of the surface), starting
-        ``ray_offset`` off the point (along the normal when given).
+        ``ray_offset`` off the point (along the normal when given). Through glass or partly
+        covering surfaces, ``e_perp`` is scaled by the ray's expected transmittance
+        (:meth:`probegrid.raytrace.RayTracer.transmittance`).
 
         Returns
         -------
@@ -91,7 +93,14 @@ class ProbeView:
         origins = points[pi] if normals is None else points[pi] + eps * normals[pi]
         tmax = np.where(np.isfinite(dist[pi, li]), dist[pi, li] - eps, np.inf)
         visible = np.zeros(lit.shape, dtype=bool)
-        if pi.size:
+        if pi.size and self.tracer.coverage is not None:
+            # through glass or a partly covering surface: the expected share (one ray would
+            # give a probe all of a sun or none of it), folded into e_perp
+            share = self.tracer.transmittance(origins, dirs[pi, li], tmax, tmin=eps)
+            visible[pi, li] = share > 0
+            e_perp = e_perp.copy()
+            e_perp[pi, li] *= share[:, None]
+        elif pi.size:
             visible[pi, li] = ~self.tracer.occluded(origins, dirs[pi, li], tmax, tmin=eps)
         return dirs, e_perp, visible, len(pi)
 

@@ -95,7 +95,10 @@ class Conventions:
         "front is the winding's side, normalize((b - a) x (c - a)); a doubleSided back face "
         "reflects with the flipped normal, a single-sided back face is black; emission "
         "(emissiveFactor * emissiveStrength * emissiveTexture, cd/m^2) leaves the front only, "
-        "whatever doubleSided"
+        "whatever doubleSided; a ray stops at a hit with probability p = coverage * (1 - "
+        "transmissionFactor), coverage 1 (OPAQUE), alpha >= alphaCutoff (MASK: holes pass "
+        "every ray) or alpha (BLEND), alpha = baseColorFactor.a * baseColorTexture.a * "
+        "COLOR_0.a; a probe's view of a punctual light takes the product of 1 - p on its way"
     )
     light_units: str = (
         "KHR_lights_punctual: point and spot intensity in candela, directional in lux; "

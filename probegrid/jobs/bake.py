@@ -80,6 +80,7 @@ class BakeJob(BaseModel):
     progress: bool = True
     allow_black: bool = False
     allow_paths: list[Path] = []
+    ignore_extensions: list[str] = []
 
 
 #: Largest default face size of a bake's environment cube (each worker holds a copy).
@@ -134,7 +135,7 @@ def bake_inputs(job: BakeJob, scene: Scene, env: Environment) -> BakeInputs:
         name=job.scene.name, bytes=job.scene.stat().st_size, triangles=scene.n_triangles,
         meshes=gltf_mesh_count(job.scene), materials=len(scene.materials),
         emissive_materials=emissive_materials(scene), punctual_lights=len(scene.lights),
-        content_hash=scene.content_hash())
+        content_hash=scene.content_hash(), unhonoured=scene.unhonoured)
     def env_input(layout: EnvironmentSource, **given: Any) -> EnvironmentInput:
         return EnvironmentInput(layout=layout, intensity=job.environment_intensity,
                                 rotation_deg=job.environment_rotation,
@@ -186,13 +187,16 @@ def run_bake(job: BakeJob) -> BakeReport:
 
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
-        scene = load_gltf(job.scene, allow_paths=job.allow_paths)
+        scene = load_gltf(job.scene, allow_paths=job.allow_paths,
+                          ignore_extensions=job.ignore_extensions)
         env = load_environment(job.environment, layout=job.environment_layout,
                                color=job.environment_color,
                                intensity=job.environment_intensity,
                                rotation_deg=job.environment_rotation)
         require_light(scene, env, allow_black=job.allow_black)
         notes: list[str] = []  # printed once every check passed: an error stays one line
+        if scene.unhonoured:
+            notes.append(f"scene: not honoured: {'; '.join(scene.unhonoured)}")
         grid = grid_for(scene, grid=job.grid, spacing=job.spacing, bounds=job.bounds,
                         margin=job.margin, say=notes.append)
         est = estimate(job.settings, grid, scene, env, shares_files=executor.shares_files)

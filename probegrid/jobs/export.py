@@ -213,6 +213,8 @@ def _input_lines(inputs: BakeInputs) -> list[str]:
               count(sc.punctual_lights, "punctual light")]
     lines = [(f"  scene as given: {sc.name} ({sc.bytes:,} bytes): {', '.join(parts)}; "
               f"hash {sc.content_hash}")]
+    if sc.unhonoured:
+        lines.append(f"  not honoured by the bake: {'; '.join(sc.unhonoured)}")
     if env.layout == "none":
         what = "none (black)"
     elif env.layout == "color":

@@ -1,6 +1,27 @@
 """The Embree acceleration structure over one triangle soup (:class:`RayTracer`): closest hits,
 occlusion of rays and of segments, built once per process.
 
+Surfaces a ray may pass
+-----------------------
+A tracer built with a ``coverage`` (a scene's :class:`probegrid.scene.coverage.Coverage`:
+cut-outs, partial coverage, thin transmission) decides at every hit on such a triangle whether
+the ray stops there: it stops when ``xi < p``, ``p`` the coverage's stop probability at the
+hit, ``xi`` a uniform number hashed from the ray's bits and the triangle (:func:`_uniforms`:
+the same ray passes or stops the same way every time, in every process). A ray that passes is
+cast again from just past the hit (``tmin`` = the hit's ``t`` plus :attr:`RayTracer.skip`
+scene units, the origin staying where it was, so nothing in front is hit again), at most
+:data:`MAX_LAYERS` times; a ray that still meets a cut-out surface after that stops there (a
+bound on the work, not a model: it takes 64 stacked cut-outs). Embree's filter callbacks are
+not reachable through embreex; this re-casting gives the same answer. :meth:`RayTracer.
+transmittance` gives the expectation instead of a draw: the product of ``1 - p`` along a
+segment (what a probe's single ray toward a punctual light uses).
+
+Occlusion with a coverage first asks Embree's any-hit query of the opaque triangles only (one
+call, as fast as without coverage), then walks the rays it left unblocked through the cut-out
+triangles only, nearest first, until one stops the ray or the segment ends. Without a coverage
+(or when every triangle is opaque) nothing of this runs and every answer is as before, bit for
+bit.
+
 This is the only module of the project that imports ``embreex``. Conventions (rays, barycentrics,
 back faces, float32 precision, batches) are the package's, :mod:`probegrid.raytrace`.
 
@@ -28,6 +49,34 @@ __all__ = ["RayTracer"]
 _DEFAULT_CHUNK: Final[int] = 1 << 16
 _MAX_CHUNK: Final[int] = 1 << 22
 
+#: Surfaces a ray passes at most before it stops at the next one it may pass (module docstring).
+MAX_LAYERS: Final[int] = 64
+
+#: The step past a passed hit, as a share of the scene's bounding-box diagonal (about 150
+#: float32 ulps of the re-centred coordinates: the next cast cannot find the same surface).
+SKIP_SHARE: Final[float] = 1e-5
+
+
+def _mix(h: NDArray[np.uint64]) -> NDArray[np.uint64]:
+    """SplitMix64's finaliser (Steele, Lea, Flood 2014), element-wise."""
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return h ^ (h >> np.uint64(31))
+
+
+def _uniforms(origins: NDArray, directions: NDArray, prim: NDArray[np.int64]
+              ) -> NDArray[np.float64]:
+    """A uniform number in [0, 1) per ray and triangle: SplitMix64 of the bits of the ray's
+    origin and direction (``(k, 3)`` each, float64 or float32) and of the triangle ``prim``."""
+    h = np.full(len(prim), 0x9E3779B97F4A7C15, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for a in (origins, directions):
+            bits = np.ascontiguousarray(a, np.float64).view(np.uint64)
+            for k in range(3):
+                h = _mix(h ^ bits[:, k])
+        h = _mix(h ^ np.asarray(prim, np.int64).astype(np.uint64))
+    return (h >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
 
 class RayTracer:
     """An Embree acceleration structure over one triangle soup, built once.
@@ -41,6 +90,11 @@ class RayTracer:
     chunk_size : int
         Rays handed to Embree per call, at most 2^22 (bounds temporary memory, about 100 bytes
         per ray of a chunk; default 65536).
+    coverage : Coverage or None
+        What a ray may pass (module docstring): an object with ``cutout (T,) bool`` and
+        ``stops(prim, u, v, xi) -> (k,) bool`` and ``stop_probability(prim, u, v)``
+        (:class:`probegrid.scene.coverage.Coverage`).
+        None: every triangle stops every ray.
 
     Attributes
     ----------
@@ -51,10 +105,13 @@ class RayTracer:
     centre : (3,) float64, read-only
         The bounding box's centre, on which the float32 geometry and rays are re-centred
         (:class:`EmbreeRays`).
+    skip : float
+        The step past a hit a ray passes, in scene units (:data:`SKIP_SHARE` of the diagonal).
     """
 
     def __init__(
-        self, vertices: ArrayLike, triangles: ArrayLike, *, chunk_size: int = _DEFAULT_CHUNK
+        self, vertices: ArrayLike, triangles: ArrayLike, *, chunk_size: int = _DEFAULT_CHUNK,
+        coverage: object | None = None,
     ):
         v = np.array(vertices, dtype=np.float64)
         t = np.asarray(triangles)
@@ -92,17 +149,36 @@ class RayTracer:
         )
         self.normals.setflags(write=False)
         self._scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(
-            scene=self._scene,
-            vertices=np.ascontiguousarray(v - self.centre, dtype=np.float32),
-            indices=np.ascontiguousarray(t, dtype=np.int32),
-        )
+        v32 = np.ascontiguousarray(v - self.centre, dtype=np.float32)
+        TriangleMesh(scene=self._scene, vertices=v32,
+                     indices=np.ascontiguousarray(t, dtype=np.int32))
+        self.skip = SKIP_SHARE * max(float(np.linalg.norm(v.max(axis=0) - v.min(axis=0))),
+                                     1e-30)
+        self.coverage = None
+        cut = (None if coverage is None
+               else np.asarray(coverage.cutout, dtype=bool))  # type: ignore[attr-defined]
+        if cut is not None and cut.shape != (len(t),):
+            raise ValueError(f"coverage.cutout must have shape ({len(t)},), got {cut.shape}.")
+        if cut is not None and cut.any():
+            self.coverage = coverage
+            self._cut = cut
+            self._cut_ids = np.flatnonzero(cut)
+            self._cut_scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(scene=self._cut_scene, vertices=v32,
+                         indices=np.ascontiguousarray(t[cut], dtype=np.int32))
+            self._opaque_scene = None
+            if not cut.all():
+                self._opaque_scene = rtcore_scene.EmbreeScene()
+                TriangleMesh(scene=self._opaque_scene, vertices=v32,
+                             indices=np.ascontiguousarray(t[~cut], dtype=np.int32))
 
     @classmethod
     def from_scene(cls, scene: object, *, chunk_size: int = _DEFAULT_CHUNK) -> RayTracer:
-        """A tracer over ``scene.vertices`` and ``scene.triangles`` (a Scene of probegrid.scene)."""
+        """A tracer over ``scene.vertices`` and ``scene.triangles`` (a Scene of probegrid.scene),
+        with its ``coverage`` (what a ray may pass; None: nothing)."""
         vertices, triangles = scene.vertices, scene.triangles  # type: ignore[attr-defined]
-        return cls(vertices, triangles, chunk_size=chunk_size)
+        return cls(vertices, triangles, chunk_size=chunk_size,
+                   coverage=getattr(scene, "coverage", None))
 
     @classmethod
     def shared(cls, scene: object, *, chunk_size: int = _DEFAULT_CHUNK) -> RayTracer:
@@ -115,16 +191,18 @@ class RayTracer:
         vertices, triangles = scene.vertices, scene.triangles  # type: ignore[attr-defined]
         h = hashlib.sha256(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
         h.update(np.ascontiguousarray(triangles, dtype=np.int64).tobytes())
-        key = (h.hexdigest(), chunk_size)
+        coverage = getattr(scene, "coverage", None)
+        key = (h.hexdigest(), chunk_size, None if coverage is None else coverage.key)
         cached = _SHARED.get(key)
         if cached is None:
             _SHARED.clear()
-            cached = _SHARED[key] = cls(vertices, triangles, chunk_size=chunk_size)
+            cached = _SHARED[key] = cls(vertices, triangles, chunk_size=chunk_size,
+                                        coverage=coverage)
         return cached
 
     def __reduce__(self) -> tuple:
         """Pickle as the arrays; the Embree scene is rebuilt on unpickling."""
-        return (_rebuild, (self.vertices, self.triangles, self.chunk_size))
+        return (_rebuild, (self.vertices, self.triangles, self.chunk_size, self.coverage))
 
     def __repr__(self) -> str:
         return f"RayTracer({len(self.triangles)} triangles, {len(self.vertices)} vertices)"
@@ -221,7 +299,98 @@ class RayTracer:
             res = self._scene.run(org, dirs, dists=far, output=1)
             embree_hits((res["primID"], res["tfar"], res["u"], res["v"]),
                         lo.reshape(1) if lo.ndim == 0 else lo, s, out)
+        if self.coverage is not None:
+            self._pass_through(o, d, hi, out)
         return Hits(prim.reshape(shape), t.reshape(shape), u.reshape(shape), v.reshape(shape))
+
+    def _cast(self, scene: object, o: NDArray, d: NDArray, lo: NDArray, hi: NDArray,
+              centre: NDArray[np.float64]) -> Hits:
+        """Closest hits in ``scene`` (one of this tracer's Embree scenes) of rays ``o + t d``,
+        ``lo <= t <= hi`` (``(k, 3)`` and ``(k,)`` float64, in the frame ``centre`` is the
+        geometry's centre in), ``chunk_size`` at a time; ``prim_id`` as ``scene`` numbers its
+        triangles."""
+        n = len(d)
+        out = Hits(np.empty(n, np.int64), np.empty(n), np.empty(n), np.empty(n))
+        for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, n)
+            org, dirs, far, ok = embree_rays(o[s:e], d[s:e], lo[s:e], hi[s:e], centre)
+            if not ok:
+                raise ValueError("ray origins and directions must be finite (and within "
+                                 "float32).")
+            res = scene.run(org, dirs, dists=far, output=1)  # type: ignore[attr-defined]
+            embree_hits((res["primID"], res["tfar"], res["u"], res["v"]), lo, s, out)
+        return out
+
+    def _stops(self, prim: NDArray[np.int64], hits: Hits, rows: NDArray[np.int64],
+               o: NDArray, d: NDArray) -> NDArray[np.bool_]:
+        """Whether rays ``rows`` stop at their hits on the (cut-out) triangles ``prim``."""
+        if getattr(self.coverage, "stochastic", True):
+            xi = _uniforms(o[rows] if len(o) > 1 else np.broadcast_to(o, (len(rows), 3)),
+                           d[rows], prim)
+        else:  # (every p is 0 or 1: no draw)
+            xi = np.zeros(len(prim))
+        stops = self.coverage.stops  # type: ignore[union-attr]
+        return np.asarray(stops(prim, hits.u[rows], hits.v[rows], xi), dtype=bool)
+
+    def _pass_through(self, o: NDArray, d: NDArray, hi: NDArray, out: Hits) -> None:
+        """Carry the closest hits ``out`` (of rays ``o + t d``, ``t <= hi``) past the cut-out
+        surfaces the rays pass (module docstring), in place."""
+        n = len(d)
+        his = np.broadcast_to(hi, (n,))
+        cut = self._cut
+        active = np.flatnonzero(out.prim_id >= 0)
+        active = active[cut[out.prim_id[active]]]
+        for _ in range(MAX_LAYERS):  # loop over layers of cut-out surfaces, not rays
+            if not active.size:
+                return
+            go = active[~self._stops(out.prim_id[active], out, active, o, d)]
+            if not go.size:
+                return
+            og = o if len(o) == 1 else o[go]
+            dg = d[go]
+            lo = out.t[go] + self.skip / np.linalg.norm(dg, axis=1)
+            again = self._cast(self._scene, np.ascontiguousarray(np.broadcast_to(og, dg.shape)),
+                               dg, lo, np.ascontiguousarray(his[go]), self.centre)
+            for a, b in zip(out, again):
+                a[go] = b
+            active = go[again.prim_id >= 0]
+            active = active[cut[out.prim_id[active]]]
+
+    def _occluded_embree(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
+                         far: NDArray[np.float32]) -> NDArray[np.bool_]:
+        """Occlusion of rays as Embree takes them, through the surfaces they may pass (module
+        docstring): the opaque triangles' any-hit query, then the cut-out triangles nearest
+        first."""
+        n = len(far)
+        if self._opaque_scene is not None:
+            blocked = self._opaque_scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
+        else:
+            blocked = np.zeros(n, dtype=bool)
+        rows = np.flatnonzero(~blocked & (far > 0))
+        if not rows.size:
+            return blocked
+        o = org[rows].astype(np.float64)
+        d = dirs[rows].astype(np.float64)
+        hi = far[rows].astype(np.float64)
+        lo = np.zeros(len(rows))
+        zero = np.zeros(3)
+        alive = np.arange(len(rows))
+        for _ in range(MAX_LAYERS):  # loop over layers of cut-out surfaces, not rays
+            hits = self._cast(self._cut_scene, o[alive], d[alive], lo[alive], hi[alive], zero)
+            hit = np.flatnonzero(hits.prim_id >= 0)
+            if not hit.size:
+                return blocked
+            prim = self._cut_ids[hits.prim_id[hit]]
+            local = Hits(hits.prim_id, hits.t, hits.u, hits.v)
+            stop = self._stops(prim, local, hit, o[alive], d[alive])
+            blocked[rows[alive[hit[stop]]]] = True
+            go = hit[~stop]
+            lo[alive[go]] = hits.t[go] + self.skip / np.linalg.norm(d[alive[go]], axis=1)
+            alive = alive[go]
+            if not alive.size:
+                return blocked
+        blocked[rows[alive]] = True  # past MAX_LAYERS: stops at the next one (a bound)
+        return blocked
 
     def occluded(
         self,
@@ -247,6 +416,9 @@ class RayTracer:
         for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
             e = min(s + self.chunk_size, n)
             org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
+            if self.coverage is not None:
+                out[s:e] = self._occluded_embree(org, dirs, far)
+                continue
             out[s:e] = self._scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
         return out.reshape(shape)
 
@@ -259,6 +431,8 @@ class RayTracer:
             raise ValueError("ray origins and directions must be finite (and within float32).")
         org, dirs, far = rays  # (OCCLUDED leaves dists as they are: no copy, as segments_occluded)
         n = len(far)
+        if self.coverage is not None:
+            return self._occluded_chunks(org, dirs, far)
         if n <= self.chunk_size:  # the common case: one call
             return self._scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
         out = np.empty(n, dtype=bool)
@@ -266,6 +440,66 @@ class RayTracer:
             e = min(s + self.chunk_size, n)
             out[s:e] = self._scene.run(org[s:e], dirs[s:e], dists=far[s:e],
                                        query="OCCLUDED") >= 0
+        return out
+
+    def transmittance(self, origins: ArrayLike, directions: ArrayLike, tmax: ArrayLike, *,
+                      tmin: ArrayLike = 0.0) -> NDArray[np.float64]:
+        """The expected share of light that gets through each segment ``origin + t direction``,
+        ``tmin <= t <= tmax``: 0 when an opaque triangle lies on it, else the product of
+        ``1 - p`` over the surfaces it may pass (``p`` their stop probabilities, module
+        docstring; 0 past :data:`MAX_LAYERS` of them). Without a coverage: ``1 - occluded``.
+        For a probe's view of a punctual light: one ray would give all or nothing.
+
+        Returns
+        -------
+        (...) float64 in [0, 1]
+        """
+        if self.coverage is None:
+            return (~self.occluded(origins, directions, tmax, tmin=tmin)).astype(np.float64)
+        shape, o, d, lo, hi = self._rays(origins, directions, tmin, tmax)
+        n = len(d)
+        out = np.empty(n)
+        for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, n)
+            org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
+            out[s:e] = self._transmittance_embree(org, dirs, far)
+        return out.reshape(shape)
+
+    def _transmittance_embree(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
+                              far: NDArray[np.float32]) -> NDArray[np.float64]:
+        """:meth:`transmittance` of rays as Embree takes them."""
+        n = len(far)
+        out = np.ones(n)
+        if self._opaque_scene is not None:
+            out[self._opaque_scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0] = 0.0
+        rows = np.flatnonzero((out > 0) & (far > 0))
+        o = org[rows].astype(np.float64)
+        d = dirs[rows].astype(np.float64)
+        hi = far[rows].astype(np.float64)
+        lo = np.zeros(len(rows))
+        zero = np.zeros(3)
+        alive = np.arange(len(rows))
+        for _ in range(MAX_LAYERS):  # loop over layers of cut-out surfaces, not rays
+            if not alive.size:
+                return out
+            hits = self._cast(self._cut_scene, o[alive], d[alive], lo[alive], hi[alive], zero)
+            hit = np.flatnonzero(hits.prim_id >= 0)
+            p = self.coverage.stop_probability(  # type: ignore[union-attr]
+                self._cut_ids[hits.prim_id[hit]], hits.u[hit], hits.v[hit])
+            out[rows[alive[hit]]] *= 1.0 - p
+            go = hit[p < 1.0]
+            lo[alive[go]] = hits.t[go] + self.skip / np.linalg.norm(d[alive[go]], axis=1)
+            alive = alive[go]
+        out[rows[alive]] = 0.0  # past MAX_LAYERS (a bound)
+        return out
+
+    def _occluded_chunks(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
+                         far: NDArray[np.float32]) -> NDArray[np.bool_]:
+        """:meth:`_occluded_embree`, ``chunk_size`` rays at a time."""
+        out = np.empty(len(far), dtype=bool)
+        for s in range(0, len(far), self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, len(far))
+            out[s:e] = self._occluded_embree(org[s:e], dirs[s:e], far[s:e])
         return out
 
     def segments_occluded(
@@ -305,6 +539,8 @@ class RayTracer:
         org, dirs, far, ok = segment_rays(a, b, float(margin), self.centre)
         if not ok:
             raise ValueError("segment end points must be finite (and within float32).")
+        if self.coverage is not None:
+            return self._occluded_chunks(org, dirs, far)
         live = far > 0
         if live.all():
             if len(far) <= self.chunk_size:  # the common case: one call
@@ -354,5 +590,6 @@ class RayTracer:
 _SHARED: dict[tuple[str, int], RayTracer] = {}
 
 
-def _rebuild(vertices: NDArray, triangles: NDArray, chunk_size: int) -> RayTracer:
-    return RayTracer(vertices, triangles, chunk_size=chunk_size)
+def _rebuild(vertices: NDArray, triangles: NDArray, chunk_size: int,
+             coverage: object | None = None) -> RayTracer:
+    return RayTracer(vertices, triangles, chunk_size=chunk_size, coverage=coverage)

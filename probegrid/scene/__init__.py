@@ -9,7 +9,7 @@ from probegrid.errors import SceneError
 from probegrid.scene.builders import SceneBuilder, box_mesh, box_scene, quad_mesh
 from probegrid.scene.gltf import load_gltf
 from probegrid.scene.model import Material, Scene, Surface
-from probegrid.scene.textures import Wrap, sample_texture
+from probegrid.scene.textures import TexCoord, Wrap, sample_texture, texture_transform
 
 __all__ = [
     "Material",
@@ -17,10 +17,12 @@ __all__ = [
     "SceneBuilder",
     "SceneError",
     "Surface",
+    "TexCoord",
     "Wrap",
     "box_mesh",
     "box_scene",
     "load_gltf",
     "quad_mesh",
     "sample_texture",
+    "texture_transform",
 ]

@@ -26,20 +26,37 @@ Conventions
   node's world matrix applied to -Z (normalised); point/spot intensity in candela, directional in
   lux, ``range`` kept; see :mod:`probegrid.core.lights` for units and falloff.
 
-Not supported (stated rather than guessed): textures on ``TEXCOORD_1`` or higher (rejected
-with a :class:`SceneError`), ``KHR_texture_transform`` (ignored), alpha modes and
-metallic/roughness (the baker treats every surface as opaque Lambertian), morph targets and
-skins (the bind pose is used), points and lines (ignored). A file whose ``extensionsRequired``
-names anything but ``KHR_lights_punctual`` and ``KHR_materials_emissive_strength`` is refused,
-as the glTF specification asks of a loader.
+* Each texture reads its ``texCoord`` set through its ``KHR_texture_transform`` (offset,
+  rotation, scale, and the transform's ``texCoord`` override), :class:`TexCoord`.
+* What stops a ray: ``alphaMode`` (``MASK`` with ``alphaCutoff``, ``BLEND`` as stochastic
+  coverage) and ``KHR_materials_transmission``'s factor (thin, untinted), see
+  :mod:`probegrid.scene.coverage`.
+* Geometry: ``KHR_mesh_quantization``, normalized and sparse accessors,
+  ``EXT_meshopt_compression`` and ``KHR_draco_mesh_compression`` are decoded into plain
+  arrays first (:mod:`probegrid.scene.accessors`); images: ``EXT_texture_webp`` is read (Pillow
+  decodes WebP), ``KHR_texture_basisu`` through the fallback image its texture names (a KTX2
+  texture without one is refused, or dropped with ``--ignore-extension KHR_texture_basisu``).
+* The default scene (``scene``, else the first) of a file with several is loaded.
+
+Not honoured, and named in :attr:`Scene.unhonoured` (the bake prints them and the store's
+manifest keeps them): metallic-roughness (every surface is Lambertian), normal and occlusion
+textures, ``transmissionTexture``, the material extensions of other lobes (sheen, clearcoat,
+specular, anisotropy, iridescence, volume, ior, dispersion, diffuse transmission...),
+``EXT_mesh_gpu_instancing``, and any other extension a file uses; morph targets and skins
+(the bind pose is used), points and lines (skipped). A file whose ``extensionsRequired`` names
+an extension outside :data:`HONOURED_EXTENSIONS` is refused, as the glTF specification asks of
+a loader, with the option that loads it anyway with the extension ignored
+(``ignore_extensions``, the CLI's ``--ignore-extension NAME``).
 
 Files: a ``.gltf``'s buffers and images are read only from its own folder (and from folders
 given with ``allow_paths``, the CLI's ``--allow-path``): each URI is checked before anything is
 read (absolute paths, URLs and relative paths that lead outside, links resolved, are refused
 without saying anything of the file), read once, and handed to trimesh from memory.
 
-References: glTF 2.0 specification (Khronos, 2021); KHR_lights_punctual and
-KHR_materials_emissive_strength extension specifications; IEC 61966-2-1 (sRGB).
+References: glTF 2.0 specification (Khronos, 2021); KHR_lights_punctual,
+KHR_materials_emissive_strength, KHR_texture_transform, KHR_materials_transmission,
+KHR_mesh_quantization, EXT_meshopt_compression, KHR_draco_mesh_compression, EXT_texture_webp
+and KHR_texture_basisu extension specifications; IEC 61966-2-1 (sRGB).
 """
 
 from __future__ import annotations
@@ -65,19 +82,34 @@ from numpy.typing import NDArray
 
 from probegrid.core.color import srgb_to_linear
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
+from probegrid.scene.accessors import DECODED_URI, plain_geometry
 from probegrid.scene.model import Material, Scene, SceneError
+from probegrid.scene.textures import TexCoord, texture_transform
 
-__all__ = ['check_scene_file', 'gltf_mesh_count', 'load_gltf']
+__all__ = ['HONOURED_EXTENSIONS', 'check_scene_file', 'gltf_mesh_count', 'load_gltf',
+           'unhonoured_features']
 
 
 #: glTF sampler wrap codes (OpenGL enums) -> our names.
 _GL_WRAP: Final[dict[int, str]] = {10497: "repeat", 33071: "clamp", 33648: "mirror"}
 
 
-#: Extensions a file may list in ``extensionsRequired`` (glTF: refuse files needing others).
-_SUPPORTED_EXTENSIONS: Final[frozenset[str]] = frozenset(
-    {"KHR_lights_punctual", "KHR_materials_emissive_strength"}
-)
+#: Extensions the loader honours (module docstring); a file may list them in
+#: ``extensionsRequired`` (glTF: refuse files needing others).
+HONOURED_EXTENSIONS: Final[frozenset[str]] = frozenset({
+    "KHR_lights_punctual", "KHR_materials_emissive_strength", "KHR_texture_transform",
+    "KHR_materials_transmission", "KHR_mesh_quantization", "EXT_meshopt_compression",
+    "KHR_draco_mesh_compression", "EXT_texture_webp", "KHR_texture_basisu",
+})
+
+#: What an extension of another lobe or feature would change, for the list of what is not
+#: honoured (any other extension is named as it is).
+_NOT_HONOURED_NOTES: Final[dict[str, str]] = {
+    "KHR_materials_pbrSpecularGlossiness": "specular-glossiness (read as base colour only)",
+    "KHR_materials_unlit": "unlit (shaded as Lambertian)",
+    "EXT_mesh_gpu_instancing": "its instances (each mesh is placed once, at its node)",
+    "KHR_materials_variants": "variants (the default materials are used)",
+}
 
 
 #: Prefix given to material names before trimesh sees the file, to map its materials back.
@@ -212,9 +244,12 @@ def _check_nodes(header: dict, name: str) -> None:
 
 
 def _check_buffers(header: dict, binary: bytes | None, base: Path, name: str,
-                   allow: Sequence[Path] = (), files: dict[str, bytes] | None = None) -> None:
+                   allow: Sequence[Path] = (), files: dict[str, bytes] | None = None
+                   ) -> list[bytes]:
     """Every buffer exists and holds its declared byteLength (catches truncated files); the
-    external files read are kept in ``files`` by URI."""
+    external files read are kept in ``files`` by URI. Returns each buffer's bytes (empty for an
+    ``EXT_meshopt_compression`` fallback buffer without data: it is never read)."""
+    out = []
     for i, buf in enumerate(header.get("buffers", [])):
         need = int(buf.get("byteLength", 0))
         if "uri" in buf:
@@ -222,14 +257,18 @@ def _check_buffers(header: dict, binary: bytes | None, base: Path, name: str,
             data = _uri_bytes(uri, base, f"{name}: buffer {i} ({uri[:80]})", allow)
             if files is not None and not uri.startswith("data:"):
                 files[uri] = data
-            have = len(data)
         elif i == 0 and binary is not None:
-            have = len(binary)
+            data = binary
+        elif buf.get("extensions", {}).get("EXT_meshopt_compression", {}).get("fallback"):
+            out.append(b"")
+            continue
         else:
             raise SceneError(f"{name}: buffer {i} has no data (no uri and no .glb BIN chunk).")
-        if have < need:
+        if len(data) < need:
             raise SceneError(f"{name}: buffer {i} is truncated (shorter than its byteLength "
                              f"{need}).")
+        out.append(data)
+    return out
 
 
 def _node_world_matrices(header: dict, name: str) -> dict[int, NDArray[np.float64]]:
@@ -339,21 +378,31 @@ def _texture_array(image: object, channels: int, what: str) -> NDArray[np.float3
     return out.astype(np.float32)
 
 
+def _texture_source(tex: dict) -> int | None:
+    """The image a texture reads: ``EXT_texture_webp``'s source first (Pillow decodes WebP),
+    else ``source`` (for ``KHR_texture_basisu``, the fallback image)."""
+    webp = tex.get("extensions", {}).get("EXT_texture_webp", {}).get("source")
+    return int(webp) if webp is not None else tex.get("source")
+
+
 def _texture_info(
-    header: dict, info: dict | None, mat_name: str, slot: str
-) -> tuple[str, tuple[str, str]] | None:
-    """(image description, wrap modes) of a textureInfo, after validating what we support."""
+    header: dict, info: dict | None, mat_name: str, slot: str, ignore: frozenset[str] = frozenset()
+) -> tuple[str, tuple[str, str], TexCoord] | None:
+    """(image description, wrap modes, texture coordinates) of a textureInfo, after validating
+    what we support; None for no texture (or a KTX2-only one, ``KHR_texture_basisu`` ignored)."""
     if info is None:
         return None
-    if int(info.get("texCoord", 0)) != 0:
-        raise SceneError(
-            f"material {mat_name!r}: {slot} uses TEXCOORD_{info['texCoord']}; only TEXCOORD_0 "
-            "is supported."
-        )
     try:
         tex = header["textures"][int(info["index"])]
         sampler = header.get("samplers", [])[tex["sampler"]] if "sampler" in tex else {}
-        source = tex.get("source")
+        source = _texture_source(tex)
+        if source is None and "KHR_texture_basisu" in tex.get("extensions", {}):
+            if "KHR_texture_basisu" in ignore:
+                return None
+            raise SceneError(
+                f"material {mat_name!r}: {slot} is a KTX2 (KHR_texture_basisu) image without a "
+                "fallback, which probegrid cannot decode; --ignore-extension KHR_texture_basisu "
+                "bakes it with the texture left out.")
         image = header["images"][source] if source is not None else {}
     except (KeyError, IndexError, TypeError):
         raise SceneError(f"material {mat_name!r}: {slot} refers to a missing texture.") from None
@@ -361,29 +410,47 @@ def _texture_info(
     if isinstance(desc, str) and desc.startswith("data:"):
         desc = "embedded data URI"
     wrap = tuple(_GL_WRAP.get(int(sampler.get(k, 10497)), "repeat") for k in ("wrapS", "wrapT"))
-    return f"{slot} of material {mat_name!r} (image {desc})", wrap  # type: ignore[return-value]
+    transform = info.get("extensions", {}).get("KHR_texture_transform")
+    index = info.get("texCoord", 0)
+    try:
+        if transform is None:
+            tc = texture_transform(index=index)
+        else:
+            tc = texture_transform(transform.get("offset", (0.0, 0.0)),
+                                   transform.get("rotation", 0.0),
+                                   transform.get("scale", (1.0, 1.0)),
+                                   index=transform.get("texCoord", index))
+    except ValueError as exc:
+        raise SceneError(f"material {mat_name!r}: {slot}: {exc}") from None
+    return (f"{slot} of material {mat_name!r} (image {desc})", wrap,  # type: ignore[return-value]
+            tc)
 
 
-def _material_from_json(header: dict, index: int, tm_material: object | None) -> Material:
+def _material_from_json(header: dict, index: int, tm_material: object | None,
+                        ignore: frozenset[str] = frozenset()) -> Material:
     """Material ``index`` of the glTF JSON; texture pixels come from trimesh's decoded images."""
     mj = header["materials"][index]
     mname = str(mj.get("name", f"#{index}"))
     pbr = mj.get("pbrMetallicRoughness", {})
-    strength = mj.get("extensions", {}).get("KHR_materials_emissive_strength", {})
+    ext = mj.get("extensions", {})
+    strength = ext.get("KHR_materials_emissive_strength", {})
     emissive = np.array(mj.get("emissiveFactor", [0.0, 0.0, 0.0]), dtype=np.float64)
     emissive = emissive * float(strength.get("emissiveStrength", 1.0))
+    transmission = float(ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0))
     textures: dict[str, NDArray[np.float32] | None] = {}
     wraps: dict[str, tuple[str, str]] = {}
+    coords: dict[str, TexCoord] = {}
     for slot, info, attr, channels in (
         ("baseColorTexture", pbr.get("baseColorTexture"), "baseColorTexture", 4),
         ("emissiveTexture", mj.get("emissiveTexture"), "emissiveTexture", 3),
     ):
-        found = _texture_info(header, info, mname, slot)
+        found = _texture_info(header, info, mname, slot, ignore)
         textures[slot] = None
         wraps[slot] = ("repeat", "repeat")
+        coords[slot] = TexCoord()
         if found is None or tm_material is None:
             continue
-        what, wraps[slot] = found
+        what, wraps[slot], coords[slot] = found
         image = getattr(tm_material, attr, None)
         if image is None:
             raise SceneError(f"{what} is missing or could not be decoded.")
@@ -398,6 +465,11 @@ def _material_from_json(header: dict, index: int, tm_material: object | None) ->
             name=mname,
             base_color_wrap=wraps["baseColorTexture"],  # type: ignore[arg-type]
             emissive_wrap=wraps["emissiveTexture"],  # type: ignore[arg-type]
+            alpha_mode=str(mj.get("alphaMode", "OPAQUE")),
+            alpha_cutoff=float(mj.get("alphaCutoff", 0.5)),
+            transmission=transmission,
+            base_color_uv=coords["baseColorTexture"],
+            emissive_uv=coords["emissiveTexture"],
         )
     except ValueError as exc:
         raise SceneError(f"material {mname!r} is invalid: {exc}") from None
@@ -414,7 +486,8 @@ def _vertex_colors(raw: NDArray) -> NDArray[np.float64]:
     return a[:, :4]
 
 
-def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]] = ()) -> Scene:
+def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]] = (),
+              ignore_extensions: Sequence[str] = ()) -> Scene:
     """Load a glTF 2.0 scene (.gltf or .glb) into world space.
 
     trimesh reads the meshes, the node hierarchy and the images; factors, samplers, the
@@ -432,6 +505,10 @@ def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]]
         ``--allow-path``). A URI is checked before anything is read: an absolute path, a URL or
         a relative path that leads (links resolved) outside the scene's folder and these is a
         :class:`SceneError`.
+    ignore_extensions : sequence of str
+        Extensions a file may require that the loader does not honour, loaded with them
+        ignored (the CLI's ``--ignore-extension``; ``"*"``: all); they are named in
+        :attr:`Scene.unhonoured`.
 
     Returns
     -------
@@ -447,7 +524,8 @@ def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]]
     label = p.name
     data = p.read_bytes()
     try:
-        return _load_gltf_data(p, data, [Path(a) for a in allow_paths])
+        return _load_gltf_data(p, data, [Path(a) for a in allow_paths],
+                               frozenset(str(e) for e in ignore_extensions))
     except SceneError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
@@ -489,7 +567,73 @@ def gltf_mesh_count(path: str | Path) -> int | None:
     return len(meshes) if isinstance(meshes, list) else 0
 
 
-def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
+def _required(header: dict, label: str, ignore: frozenset[str]) -> None:
+    """Refuse a file that requires an extension the loader does not honour (and that
+    ``ignore`` does not name), with the option that loads it anyway."""
+    required = header.get("extensionsRequired", [])
+    refused = sorted(set(required) - HONOURED_EXTENSIONS - ignore) if "*" not in ignore else []
+    if refused:
+        names = ", ".join(refused)
+        opts = " ".join(f"--ignore-extension {e}" for e in refused)
+        raise SceneError(f"{label} requires the glTF extension{'s' if len(refused) > 1 else ''} "
+                         f"{names}, which probegrid does not honour; {opts} bakes it with "
+                         f"{'them' if len(refused) > 1 else 'it'} ignored.")
+
+
+def unhonoured_features(header: dict) -> tuple[str, ...]:
+    """What a glTF document uses that the bake does not honour (module docstring), each named
+    once, in a fixed order."""
+    found: list[str] = []
+    mats = header.get("materials", [])
+    if any(float(m.get("pbrMetallicRoughness", {}).get("metallicFactor", 1.0)) > 0
+           or "metallicRoughnessTexture" in m.get("pbrMetallicRoughness", {}) for m in mats):
+        found.append("metallic-roughness (every surface is Lambertian)")
+    for key in ("normalTexture", "occlusionTexture"):
+        if any(key in m for m in mats):
+            found.append(key)
+    if any("transmissionTexture" in m.get("extensions", {}).get("KHR_materials_transmission", {})
+           for m in mats):
+            found.append("transmissionTexture (the factor is used)")
+    used = set(header.get("extensionsUsed", [])) | set(header.get("extensionsRequired", []))
+    for m in mats:
+        used |= set(m.get("extensions", {}))
+    for name in sorted(used - HONOURED_EXTENSIONS):
+        found.append(f"{name}" + (f": {_NOT_HONOURED_NOTES[name]}" if name in _NOT_HONOURED_NOTES
+                                  else ""))
+    if any(any(float(c) > 0 for c in m.get("emissiveFactor", [])) and (
+            m.get("alphaMode", "OPAQUE") != "OPAQUE"
+            or "KHR_materials_transmission" in m.get("extensions", {})) for m in mats):
+        found.append("the alpha and transmission of emissive materials in light sampling "
+                     "(their whole area is sampled)")
+    prims = [p for m in header.get("meshes", []) for p in m.get("primitives", [])]
+    if header.get("skins"):
+        found.append("skins (the bind pose is used)")
+    if any(p.get("targets") for p in prims):
+        found.append("morph targets (the base shape is used)")
+    if any(int(p.get("mode", 4)) not in (4, 5, 6) for p in prims):
+        found.append("points and lines (skipped)")
+    return tuple(found)
+
+
+def _texcoord_sets(header: dict, ignore: frozenset[str]) -> dict[int, int]:
+    """The highest TEXCOORD set the base colour or emissive texture of each material reads
+    (materials reading only the first are left out)."""
+    top: dict[int, int] = {}
+    for i, m in enumerate(header.get("materials", [])):
+        for info in (m.get("pbrMetallicRoughness", {}).get("baseColorTexture"),
+                     m.get("emissiveTexture")):
+            found = _texture_info(header, info, str(m.get("name", f"#{i}")), "texture", ignore)
+            if found is not None and found[2].index > 0:
+                top[i] = max(top.get(i, 0), found[2].index)
+    return top
+
+
+#: Prefix of the further TEXCOORD sets handed through trimesh as custom attributes.
+_UV_TAG: Final[str] = "_PROBEGRID_TEXCOORD_"
+
+
+def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = (),
+                    ignore: frozenset[str] = frozenset()) -> Scene:
     """:func:`load_gltf` of the file's bytes (its errors of malformed JSON not yet caught)."""
     label, suffix = p.name, p.suffix.lower()
     if suffix == ".glb":
@@ -505,22 +649,41 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
     version = str(header.get("asset", {}).get("version", ""))
     if not version.startswith("2."):
         raise SceneError(f"{label} is glTF version {version or '?'}; only 2.x is supported.")
-    unsupported = sorted(set(header.get("extensionsRequired", [])) - _SUPPORTED_EXTENSIONS)
-    if unsupported:
-        raise SceneError(f"{label} requires unsupported glTF extensions: {', '.join(unsupported)}.")
+    _required(header, label, ignore)
     files: dict[str, bytes] = {}  # the external files, read once, handed on to trimesh
-    _check_buffers(header, binary, p.parent, label, allow, files)
+    buffers = _check_buffers(header, binary, p.parent, label, allow, files)
     _check_nodes(header, label)
     for i, img in enumerate(header.get("images", [])):
         uri = str(img.get("uri", ""))
         if "uri" in img and not uri.startswith("data:"):
             files[uri] = _uri_bytes(uri, p.parent, f"{label}: image {i} ({uri[:80]})", allow)
+    sets_of = _texcoord_sets(header, ignore)
+    n_sets = max(sets_of.values(), default=0)
 
-    # Tag material names so trimesh's materials map back to their glTF indices.
-    tagged = copy.deepcopy(header)
+    # What trimesh reads: compressed, quantized and sparse geometry made plain first (then
+    # handed over as a .gltf whose buffers are all in ``files``), the further TEXCOORD sets as
+    # custom attributes, material names tagged so its materials map back to their indices.
+    plain = plain_geometry(header, buffers, label)
+    tagged = copy.deepcopy(header if plain is None else plain[0])
+    as_glb = binary is not None or suffix == ".glb"
+    if plain is not None:
+        files[DECODED_URI] = plain[1]
+        for i, buf in enumerate(tagged.get("buffers", [])):
+            if "uri" not in buf:  # the .glb's BIN chunk, or a meshopt fallback never read
+                buf["uri"] = f"probegrid-buffer-{i}.bin"
+                files[buf["uri"]] = buffers[i] if i < len(buffers) else b""
+                buf["byteLength"] = len(files[buf["uri"]])
+        as_glb, binary = False, None
     for i, m in enumerate(tagged.get("materials", [])):
         m["name"] = f"{_TAG}{i}"
-    tm_scene = _trimesh_load(tagged, binary, p, label, files)
+    if n_sets:
+        for mesh in tagged.get("meshes", []):
+            for prim in mesh.get("primitives", []):
+                attrs = prim.get("attributes", {})
+                for k in range(1, n_sets + 1):
+                    if f"TEXCOORD_{k}" in attrs:
+                        attrs[f"{_UV_TAG}{k}"] = attrs[f"TEXCOORD_{k}"]
+    tm_scene = _trimesh_load(tagged, binary, p, label, files, as_glb=as_glb)
 
     n_json_mats = len(header.get("materials", []))
     tm_materials: dict[int, object] = {}
@@ -535,6 +698,7 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
     instances.sort(key=lambda item: (item[0], item[1]))  # deterministic (graph order is not)
 
     verts, tris, mats, uvs, cols = [], [], [], [], []
+    extra: list[list[NDArray[np.float64]]] = [[] for _ in range(n_sets)]
     any_uv = any_col = False
     count = 0
     for _, mbytes, geom in instances:
@@ -564,6 +728,17 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
             any_col = True
         else:
             col = np.ones((len(v), 4))
+        custom = getattr(geom, "vertex_attributes", {}) or {}
+        for k in range(1, n_sets + 1):  # (not flipped: trimesh does not touch them)
+            a = custom.get(f"{_UV_TAG}{k}") if hasattr(custom, "get") else None
+            ok = a is not None and len(a) == len(v)
+            if not ok and sets_of.get(idx, 0) >= k:
+                raise SceneError(f"{label}: material "
+                                 f"{header['materials'][idx].get('name', f'#{idx}')!r} has a "
+                                 f"texture that reads TEXCOORD_{k}, which a primitive using it "
+                                 "does not have.")
+            extra[k - 1].append(np.asarray(a, np.float64).reshape(len(v), 2) if ok
+                                else np.zeros((len(v), 2)))
         verts.append(v)
         tris.append(f + count)
         mats.append(np.full(len(f), idx, np.int64))
@@ -573,7 +748,8 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
     if not tris:
         raise SceneError(f"{label} has no triangles in its default scene.")
 
-    materials = [_material_from_json(header, i, tm_materials.get(i)) for i in range(n_json_mats)]
+    materials = [_material_from_json(header, i, tm_materials.get(i), ignore)
+                 for i in range(n_json_mats)]
     material = np.concatenate(mats)
     if np.any(material == n_json_mats):
         materials.append(Material(name="glTF default"))
@@ -586,11 +762,13 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = ()) -> Scene:
         colors=np.concatenate(cols) if any_col else None,
         lights=_parse_lights(header, label),
         name=label,
+        extra_uvs=tuple(np.concatenate(e) for e in extra),
+        unhonoured=unhonoured_features(header),
     )
 
 
 def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str,
-                  files: dict[str, bytes] | None = None):
+                  files: dict[str, bytes] | None = None, *, as_glb: bool | None = None):
     """trimesh.Scene of a (re-encoded) glTF; any trimesh failure becomes a SceneError.
 
     trimesh reads a ``.gltf``'s external files from ``files`` (URI -> bytes, read and checked
@@ -604,8 +782,10 @@ def _trimesh_load(header: dict, binary: bytes | None, path: Path, label: str,
     """
     import trimesh
 
+    glb = (binary is not None or path.suffix.lower() == ".glb") if as_glb is None else as_glb
+
     def load():
-        if binary is not None or path.suffix.lower() == ".glb":
+        if glb:
             return trimesh.load_scene(
                 io.BytesIO(_build_glb(header, binary)), file_type="glb", process=False
             )

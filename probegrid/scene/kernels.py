@@ -5,7 +5,9 @@ documentation of the maths (``tests/test_scene_kernels.py`` compares the two on 
 
 * :func:`hit_surfaces` -- :meth:`probegrid.scene.Scene.surface_at`'s barycentric interpolation
   (without the textures);
-* :func:`multiply_texture` -- :func:`probegrid.scene.sample_texture` (bilinear, glTF wrap modes).
+* :func:`multiply_texture` -- :func:`probegrid.scene.sample_texture` (bilinear, glTF wrap
+  modes) at a hit's texture coordinates, mapped by the texture's
+  :class:`~probegrid.scene.textures.TexCoord`.
 
 :func:`_barycentric` (a vertex attribute interpolated over its triangle) is the one scalar step
 of both, and of the bake's records pass (:func:`probegrid.bake.kernels.surfaces.shade_hits`).
@@ -122,18 +124,24 @@ def multiply_texture(
     uvs: NDArray[np.float64],
     texture: NDArray[np.float32],
     wrap: tuple[int, int],
+    xform: NDArray[np.float64],
+    first: int,
 ) -> None:
-    """Multiply ``target[rows] (k, 3)`` in place by a texture's RGB at the hits' UVs.
+    """Multiply ``target[rows] (k, C)`` in place by channels ``first`` to ``first + C - 1`` of a
+    texture at the hits' UVs (its RGB: ``first`` 0, C 3; its alpha: ``first`` 3, C 1).
 
     :func:`probegrid.scene.sample_texture` (bilinear, texel centres at ``(col + 0.5) / W``,
     ``(row + 0.5) / H``, wrap modes ``(s, t)`` 0 repeat, 1 clamp, 2 mirror) at the UV
     interpolated with barycentrics ``u[rows], v[rows]`` over triangle ``prim[rows]`` (``hits``
-    is ``(prim, u, v)``); ``uvs`` empty means UV 0.
+    is ``(prim, u, v)``) and mapped by ``xform`` (the texture's
+    :class:`~probegrid.scene.textures.TexCoord` matrix, or empty for none); ``uvs`` empty
+    means UV 0.
     """
     prim, u, v = hits
     wrap_s, wrap_t = wrap
     h, w = texture.shape[0], texture.shape[1]
     has_uv = uvs.shape[0] > 0
+    mapped = xform.shape[0] == 6
     for j in range(rows.shape[0]):
         i = rows[j]
         s, t = 0.0, 0.0
@@ -144,6 +152,9 @@ def multiply_texture(
             a, b, c = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
             s = w0 * uvs[a, 0] + w1 * uvs[b, 0] + w2 * uvs[c, 0]
             t = w0 * uvs[a, 1] + w1 * uvs[b, 1] + w2 * uvs[c, 1]
+        if mapped:
+            s, t = (xform[0] * s + xform[1] * t + xform[2],
+                    xform[3] * s + xform[4] * t + xform[5])
         x = s * w - 0.5
         y = t * h - 0.5
         x0, y0 = math.floor(x), math.floor(y)
@@ -151,7 +162,8 @@ def multiply_texture(
         xi, yi = int(x0), int(y0)
         c0, c1 = _wrap(xi, w, wrap_s), _wrap(xi + 1, w, wrap_s)
         r0, r1 = _wrap(yi, h, wrap_t), _wrap(yi + 1, h, wrap_t)
-        for k in range(3):
-            top = texture[r0, c0, k] * (1.0 - fx) + texture[r0, c1, k] * fx
-            bottom = texture[r1, c0, k] * (1.0 - fx) + texture[r1, c1, k] * fx
+        for k in range(target.shape[1]):
+            q = first + k
+            top = texture[r0, c0, q] * (1.0 - fx) + texture[r0, c1, q] * fx
+            bottom = texture[r1, c0, q] * (1.0 - fx) + texture[r1, c1, q] * fx
             target[i, k] *= top * (1.0 - fy) + bottom * fy

@@ -17,7 +17,13 @@ Conventions
   (:mod:`probegrid.scene.textures`).
 * Shading albedo = ``base_color.rgb * base_color_texture.rgb * vertex colour.rgb``; emission
   (radiance, cd/m^2 in the photometric reading of :mod:`probegrid.core.lights`) =
-  ``emissive * emissive_strength * emissive_texture.rgb``. Every surface is opaque Lambertian.
+  ``emissive * emissive_strength * emissive_texture.rgb``. Every surface is Lambertian.
+* Each texture reads its own set of texture coordinates through its own affine map
+  (:class:`~probegrid.scene.textures.TexCoord`: glTF ``texCoord`` and ``KHR_texture_transform``).
+* What stops a ray (:mod:`probegrid.scene.coverage`): glTF's alpha modes (``MASK`` with its
+  cutoff: a hole; ``BLEND``: alpha is the probability that a ray stops) and thin transmission
+  (``KHR_materials_transmission``: a ray passes with probability ``transmission``). Alpha is
+  ``baseColorFactor.a * baseColorTexture.a * COLOR_0.a``.
 """
 
 from __future__ import annotations
@@ -35,12 +41,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import SceneError
+from probegrid.scene.coverage import Coverage
 from probegrid.scene.kernels import SurfaceTables, hit_surfaces, multiply_texture
-from probegrid.scene.textures import _WRAPS, Wrap, _check_wrap
+from probegrid.scene.textures import _WRAPS, TexCoord, Wrap, _check_texcoord, _check_wrap
 
-__all__ = ['Material', 'Scene', 'SceneError', 'Surface']
+__all__ = ['ALPHA_MODES', 'Material', 'Scene', 'SceneError', 'Surface']
 
 _LIGHT_TYPES: Final = (PointLight, SpotLight, DirectionalLight)
+
+#: glTF's alpha modes.
+ALPHA_MODES: Final = ("OPAQUE", "MASK", "BLEND")
 
 
 def _readonly(a: NDArray) -> NDArray:
@@ -68,6 +78,15 @@ class Material:
         For messages only; not part of :meth:`Scene.content_hash`.
     base_color_wrap, emissive_wrap : (2,) of {"repeat", "clamp", "mirror"}
         The textures' sampler wrap modes along u and v.
+    alpha_mode : {"OPAQUE", "MASK", "BLEND"}
+        glTF ``alphaMode`` (:mod:`probegrid.scene.coverage` for what each does to a ray).
+    alpha_cutoff : float
+        glTF ``alphaCutoff`` of ``MASK`` (default 0.5): alpha below it is a hole.
+    transmission : float in [0, 1]
+        ``KHR_materials_transmission``'s ``transmissionFactor`` (thin: a ray passes with this
+        probability, unbent and untinted).
+    base_color_uv, emissive_uv : TexCoord
+        The coordinates each texture reads (set and ``KHR_texture_transform``).
     """
 
     base_color: NDArray[np.float64] = field(default_factory=lambda: np.ones(4))
@@ -78,6 +97,11 @@ class Material:
     name: str = ""
     base_color_wrap: tuple[Wrap, Wrap] = ("repeat", "repeat")
     emissive_wrap: tuple[Wrap, Wrap] = ("repeat", "repeat")
+    alpha_mode: str = "OPAQUE"
+    alpha_cutoff: float = 0.5
+    transmission: float = 0.0
+    base_color_uv: TexCoord = TexCoord()
+    emissive_uv: TexCoord = TexCoord()
 
     def __post_init__(self) -> None:
         bc = np.array(self.base_color, dtype=np.float64).reshape(-1)
@@ -109,6 +133,23 @@ class Material:
         object.__setattr__(self, "double_sided", bool(self.double_sided))
         object.__setattr__(self, "base_color_wrap", _check_wrap(self.base_color_wrap))
         object.__setattr__(self, "emissive_wrap", _check_wrap(self.emissive_wrap))
+        if self.alpha_mode not in ALPHA_MODES:
+            raise ValueError(f"alpha_mode must be one of {', '.join(ALPHA_MODES)}, got "
+                             f"{self.alpha_mode!r}.")
+        for name in ("alpha_cutoff", "transmission"):
+            x = float(getattr(self, name))
+            if not (np.isfinite(x) and x >= 0) or (name == "transmission" and x > 1):
+                raise ValueError(f"{name} must be a finite number >= 0"
+                                 + (" and <= 1" if name == "transmission" else "")
+                                 + f", got {getattr(self, name)!r}.")
+            object.__setattr__(self, name, x)
+        object.__setattr__(self, "base_color_uv", _check_texcoord(self.base_color_uv))
+        object.__setattr__(self, "emissive_uv", _check_texcoord(self.emissive_uv))
+
+    @property
+    def stops_every_ray(self) -> bool:
+        """Opaque: no hole, no partial coverage, no transmission (every ray that hits stops)."""
+        return self.alpha_mode == "OPAQUE" and self.transmission == 0.0
 
     @classmethod
     def diffuse(
@@ -125,6 +166,10 @@ class Material:
         for tex in (self.base_color_texture, self.emissive_texture):
             _hash_array(h, tex, "<f4")
         h.update(json.dumps([self.double_sided, self.base_color_wrap, self.emissive_wrap]).encode())
+        extra = [self.alpha_mode, self.alpha_cutoff, self.transmission,
+                 list(self.base_color_uv), list(self.emissive_uv)]
+        if extra != ["OPAQUE", 0.5, 0.0, list(TexCoord()), list(TexCoord())]:
+            h.update(json.dumps(extra).encode())  # (a scene without them hashes as before)
 
 
 def _hash_array(h: hashlib._Hash, a: NDArray | None, dtype: str) -> None:
@@ -160,11 +205,18 @@ class Scene:
     materials : tuple of Material
     uvs : (V, 2) float64 or None
         glTF texture coordinates (``TEXCOORD_0``); vertices without them hold 0.
+    extra_uvs : tuple of (V, 2) float64
+        The further sets ``TEXCOORD_1``, ``TEXCOORD_2``, ... (a texture's ``TexCoord.index``
+        ``n`` reads ``extra_uvs[n - 1]``); vertices without them hold 0.
     colors : (V, 4) float64 or None
         Linear RGBA vertex colours (``COLOR_0``); vertices without them hold 1.
     lights : tuple of PointLight, SpotLight, DirectionalLight
     name : str
         For messages only; not part of :meth:`content_hash`.
+    unhonoured : tuple of str
+        What the file the scene came from uses that the bake does not honour (the glTF
+        loader's list: metallic-roughness, sheen, ...); for messages and the store's manifest,
+        not part of :meth:`content_hash`.
 
     Invalid data raises :class:`SceneError` (a ``ValueError``).
     """
@@ -177,6 +229,8 @@ class Scene:
     colors: NDArray[np.float64] | None = None
     lights: tuple[Light, ...] = ()
     name: str = ""
+    extra_uvs: tuple[NDArray[np.float64], ...] = ()
+    unhonoured: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         v = np.array(self.vertices, dtype=np.float64)
@@ -222,6 +276,20 @@ class Scene:
             if not np.all(np.isfinite(a)):
                 raise SceneError(f"{name} must be finite.")
             object.__setattr__(self, name, _readonly(a))
+        extra = []
+        for k, a in enumerate(self.extra_uvs):
+            a = np.array(a, dtype=np.float64)
+            if a.shape != (len(v), 2) or not np.all(np.isfinite(a)):
+                raise SceneError(f"TEXCOORD_{k + 1} must be finite, of shape ({len(v)}, 2), got "
+                                 f"{a.shape}.")
+            extra.append(_readonly(a))
+        object.__setattr__(self, "extra_uvs", tuple(extra))
+        object.__setattr__(self, "unhonoured", tuple(str(x) for x in self.unhonoured))
+        used = {m.base_color_uv.index for m in mats if m.base_color_texture is not None}
+        used |= {m.emissive_uv.index for m in mats if m.emissive_texture is not None}
+        if used and max(used) > len(extra):
+            raise SceneError(f"a texture reads TEXCOORD_{max(used)}, which the scene does not "
+                             "have.")
         lights = tuple(self.lights)
         for light in lights:
             if not isinstance(light, _LIGHT_TYPES):
@@ -248,6 +316,7 @@ class Scene:
         colors: ArrayLike | None = None,
         lights: Sequence[Light] = (),
         name: str = "",
+        extra_uvs: Sequence[ArrayLike] = (),
     ) -> Scene:
         """A scene from arrays; by default one material (glTF's default: white, single-sided).
 
@@ -260,6 +329,8 @@ class Scene:
         materials : sequence of Material, optional
         uvs : (V, 2) float, optional
         colors : (V, 3) or (V, 4) float, optional
+        extra_uvs : sequence of (V, 2) float
+            ``TEXCOORD_1`` and further sets.
         lights : sequence of lights
         name : str
         """
@@ -276,6 +347,7 @@ class Scene:
             colors=colors,  # type: ignore[arg-type]
             lights=tuple(lights),
             name=name,
+            extra_uvs=tuple(extra_uvs),  # type: ignore[arg-type]
         )
 
     # -- derived data ----------------------------------------------------------------------
@@ -333,6 +405,8 @@ class Scene:
         _hash_array(h, self.material, "<i8")
         _hash_array(h, self.uvs, "<f8")
         _hash_array(h, self.colors, "<f8")
+        for a in self.extra_uvs:  # (none: the hash of a scene without them, as before)
+            _hash_array(h, a, "<f8")
         h.update(f"materials{len(self.materials)};".encode())
         for m in self.materials:
             m._hash_into(h)
@@ -372,6 +446,21 @@ class Scene:
             return np.zeros((0, 2))
         return np.ascontiguousarray(self.uvs, dtype=np.float64)
 
+    def kernel_texcoords(self, tc: TexCoord) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The kernels' ``uvs`` (contiguous; empty: UV 0) and ``xform`` (empty: identity) of a
+        texture's :class:`~probegrid.scene.textures.TexCoord`."""
+        uvs = (self._kernel_uvs if tc.index == 0
+               else np.ascontiguousarray(self.extra_uvs[tc.index - 1]))
+        return uvs, (np.zeros(0) if tc.is_identity else np.array(tc.matrix, np.float64))
+
+    @cached_property
+    def coverage(self) -> Coverage | None:
+        """What stops a ray at each triangle (:class:`probegrid.scene.coverage.Coverage`), or
+        None when every material stops every ray (opaque, no transmission)."""
+        if all(m.stops_every_ray for m in self.materials):
+            return None
+        return Coverage(self)
+
     @cached_property
     def _textured_materials(self) -> NDArray[np.int64]:
         return np.array([i for i, m in enumerate(self.materials)
@@ -390,18 +479,20 @@ class Scene:
             return
         hit = np.arange(len(pid)) if rows is None else np.asarray(rows, np.int64)
         mat = self.material[pid[hit]]
-        tris, uvs = self._kernel_tables[1], self._kernel_uvs
+        tris = self._kernel_tables[1]
         for i in self._textured_materials:  # loop over textured materials, not hits
             sel = hit[mat == i]
             if not sel.size:
                 continue
             m = self.materials[int(i)]
-            for tex, wrap, target in ((m.base_color_texture, m.base_color_wrap, albedo),
-                                      (m.emissive_texture, m.emissive_wrap, emission)):
+            for tex, wrap, tc, target in (
+                    (m.base_color_texture, m.base_color_wrap, m.base_color_uv, albedo),
+                    (m.emissive_texture, m.emissive_wrap, m.emissive_uv, emission)):
                 if tex is not None:
+                    uvs, xform = self.kernel_texcoords(tc)
                     multiply_texture(target, sel, (pid, u, v), tris, uvs,
                                      np.ascontiguousarray(tex, dtype=np.float32),
-                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])))
+                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])), xform, 0)
 
     def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
         """Position, geometric normal, albedo and emission at barycentric points of triangles.

@@ -268,7 +268,9 @@ class SceneInput(BaseModel):
     ``emissive_materials``: materials in use with a non-zero emission; ``punctual_lights``:
     ``KHR_lights_punctual`` lights). ``content_hash`` is the scene's own hash
     (:meth:`probegrid.scene.Scene.content_hash`): the store's ``scene_hash`` is the SHA-256 of
-    it followed by the environment's ``content_hash``.
+    it followed by the environment's ``content_hash``. ``unhonoured`` names what the file uses
+    that the bake did not honour (:attr:`probegrid.scene.Scene.unhonoured`: metallic-roughness,
+    sheen, an extension ignored with ``--ignore-extension``...).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -281,6 +283,7 @@ class SceneInput(BaseModel):
     emissive_materials: int
     punctual_lights: int
     content_hash: str
+    unhonoured: tuple[str, ...] = ()
 
     @field_validator("name")
     @classmethod

@@ -1,0 +1,139 @@
+"""What stops a ray where it hits a surface: glTF's alpha modes and thin transmission.
+
+A ray that hits a triangle stops there with a probability ``p`` (the model every ray of the
+bake follows, primary, shadow and gather rays alike; the tracer draws it,
+:meth:`probegrid.raytrace.RayTracer.intersect`):
+
+* ``OPAQUE``: ``p = 1``;
+* ``MASK``: ``p = 1`` where alpha >= ``alphaCutoff``, ``p = 0`` (a hole) elsewhere (glTF 2.0,
+  "Alpha Coverage"): a cut-out leaf or fence passes light exactly through its holes;
+* ``BLEND``: ``p = alpha`` -- stochastic transparency (Enderton et al. 2010): alpha is the
+  share of the surface that covers the pixel, so the expected light through it is
+  ``(1 - alpha)`` times what lies behind, and the expected light it reflects ``alpha`` times
+  its own;
+* ``KHR_materials_transmission`` (thin: no volume, no refraction): ``p`` is multiplied by
+  ``1 - transmission``. A pane of factor ``T`` passes ``T`` of the light behind it,
+  straight and untinted (the extension's tint by the base colour and its specular lobe are
+  not modelled), and reflects ``1 - T`` of its diffuse light, as the extension's
+  ``mix(diffuse, transmission, T)`` does.
+
+Alpha is ``baseColorFactor.a * baseColorTexture.a * COLOR_0.a`` (glTF 2.0), the texture read
+through its :class:`~probegrid.scene.textures.TexCoord` with its sampler's wrap modes.
+
+A ray's uniform number ``xi`` in ``[0, 1)`` (the tracer's: a hash of the ray and the
+triangle, so the same ray passes or stops the same way every time) decides: the ray stops
+when ``xi < p``. MASK and OPAQUE need none. Where one ray stands for all the light (a probe's
+view of a punctual light), the tracer takes the expectation instead, the product of
+``1 - p`` along the ray (:meth:`probegrid.raytrace.RayTracer.transmittance`).
+
+Reference: glTF 2.0 specification, 3.9.4 "Alpha Coverage"; KHR_materials_transmission;
+Enderton, Sintorn, Shirley, Luebke, "Stochastic Transparency", I3D 2010.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid.scene.kernels import multiply_texture
+from probegrid.scene.textures import _WRAPS
+
+if TYPE_CHECKING:
+    from probegrid.scene.model import Scene
+
+__all__ = ["Coverage"]
+
+
+class Coverage:
+    """The coverage of a scene's triangles (module docstring), for the tracer.
+
+    Attributes
+    ----------
+    cutout : (T,) bool, read-only
+        The triangles a ray may pass (a material that is not opaque or transmits).
+    stochastic : bool
+        Whether some material draws (BLEND, transmission): else every hit's ``p`` is 0 or 1
+        and a ray needs no random number.
+    key : str
+        A hash of what decides coverage (materials' modes, factors, alpha textures and their
+        coordinates, the vertex alphas): two scenes with the same key pass the same rays.
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        self._scene = scene
+        mats = scene.materials
+        self._modes = [m.alpha_mode for m in mats]
+        flags = np.array([not m.stops_every_ray for m in mats], dtype=bool)
+        #: Whether a hit may need a draw (BLEND or transmission); else ``p`` is 0 or 1.
+        self.stochastic = any(m.alpha_mode == "BLEND" or m.transmission > 0 for m in mats)
+        self.cutout: NDArray[np.bool_] = flags[scene.material]
+        self.cutout.setflags(write=False)
+        h = hashlib.sha256(b"probegrid-coverage-v1;")
+        h.update(np.ascontiguousarray(scene.material, "<i8").tobytes())
+        for m in mats:
+            h.update(repr((m.alpha_mode, m.alpha_cutoff, m.transmission, float(m.base_color[3]),
+                           tuple(m.base_color_uv), m.base_color_wrap)).encode())
+            if m.base_color_texture is not None and m.alpha_mode != "OPAQUE":
+                h.update(np.ascontiguousarray(m.base_color_texture[..., 3], "<f4").tobytes())
+        if scene.colors is not None:
+            h.update(np.ascontiguousarray(scene.colors[:, 3], "<f8").tobytes())
+        for a in (scene.uvs, *scene.extra_uvs):
+            if a is not None:
+                h.update(np.ascontiguousarray(a, "<f8").tobytes())
+        self.key = h.hexdigest()
+
+    def alpha(self, prim: NDArray[np.int64], u: NDArray[np.float64],
+              v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Alpha ``baseColorFactor.a * baseColorTexture.a * COLOR_0.a`` at barycentric points
+        ``(1 - u - v) a + u b + v c`` of triangles ``prim`` (each ``(k,)``)."""
+        sc = self._scene
+        prim = np.ascontiguousarray(prim, np.int64)
+        u = np.ascontiguousarray(u, np.float64)
+        v = np.ascontiguousarray(v, np.float64)
+        mat = sc.material[prim]
+        out = np.array([m.base_color[3] for m in sc.materials])[mat]
+        if sc.colors is not None:
+            tri = sc.triangles[prim]
+            col = sc.colors[:, 3]
+            out *= (1.0 - u - v) * col[tri[:, 0]] + u * col[tri[:, 1]] + v * col[tri[:, 2]]
+        tris = np.ascontiguousarray(sc.triangles, np.int64)
+        hit = np.flatnonzero(np.bincount(mat, minlength=len(sc.materials)))
+        for i in hit:  # loop over the materials hit, not over hits
+            m = sc.materials[int(i)]
+            if m.base_color_texture is None or m.alpha_mode == "OPAQUE":
+                continue
+            rows = np.flatnonzero(mat == i)
+            if rows.size:
+                uvs, xform = sc.kernel_texcoords(m.base_color_uv)
+                multiply_texture(out.reshape(-1, 1), rows, (prim, u, v), tris, uvs,
+                                 np.ascontiguousarray(m.base_color_texture, np.float32),
+                                 (_WRAPS.index(m.base_color_wrap[0]),
+                                  _WRAPS.index(m.base_color_wrap[1])), xform, 3)
+        return out
+
+    def stop_probability(self, prim: NDArray[np.int64], u: NDArray[np.float64],
+                         v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``p``, the probability that a ray hitting triangle ``prim`` at ``(u, v)`` stops
+        there (module docstring), ``(k,)`` in [0, 1]."""
+        sc = self._scene
+        mat = sc.material[np.asarray(prim, np.int64)]
+        modes = np.array([("OPAQUE", "MASK", "BLEND").index(m) for m in self._modes])[mat]
+        p = np.ones(len(mat))
+        alpha_rows = modes != 0
+        if alpha_rows.any():
+            a = self.alpha(np.asarray(prim)[alpha_rows], np.asarray(u)[alpha_rows],
+                           np.asarray(v)[alpha_rows])
+            cutoff = np.array([m.alpha_cutoff for m in sc.materials])[mat[alpha_rows]]
+            p[alpha_rows] = np.where(modes[alpha_rows] == 1, (a >= cutoff).astype(np.float64),
+                                     np.clip(a, 0.0, 1.0))
+        transmission = np.array([m.transmission for m in sc.materials])[mat]
+        return p * (1.0 - transmission)
+
+    def stops(self, prim: NDArray[np.int64], u: NDArray[np.float64], v: NDArray[np.float64],
+              xi: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Whether rays hitting triangles ``prim`` at ``(u, v)`` with uniform numbers ``xi``
+        stop there: ``xi < p`` (``(k,)`` bool)."""
+        return np.asarray(xi) < self.stop_probability(prim, u, v)
