@@ -137,6 +137,25 @@ def test_every_preset_reads_the_furnace_limit_anywhere(furnace, quality):
     np.testing.assert_allclose(maps.diffuse, le / (1 - rho), rtol=3e-3)
 
 
+def test_accurate_samples_the_direct_light_where_the_lattice_is_coarser_than_a_texel(furnace):
+    """The accurate preset samples the emitters at the hits nearer than ``spacing 2 n / pi``
+    (a lattice cell seen larger than a mirror texel) and reads the cache's direct light beyond:
+    both give the furnace's ``Le`` (the traced cube above), and the rule is the distance's."""
+    scene, store, rho, le = furnace
+    tracer = PointTracer.from_store(store, scene)
+    tracer.cache.spacing = tracer.cache.spacing / 8  # (a finer lattice: some hits are far)
+    p = np.array([0.9, -0.9, 0.9])  # by a corner: near and far walls
+    rec, _, _ = tracer.records.trace(p[None], np.array([7]), hits=True)
+    front = rec["kind"] == 1
+    dist = np.linalg.norm(rec["position"] - p, axis=1)
+    reach = tracer.cache.spacing[rec["primitive"]] * 8 * 2 / np.pi
+    sampled = rec["sampled"]
+    assert 0 < sampled[front].mean() < 1
+    clear = front & (np.abs(dist - reach) > 1e-6 * reach)
+    np.testing.assert_array_equal(sampled[clear], dist[clear] < reach[clear])
+    np.testing.assert_allclose(tracer.maps(p).incoming, le / (1 - rho), rtol=2e-3)
+
+
 def test_the_presets_are_checked():
     with pytest.raises(ValueError, match="quality must be one of accurate, fast, reference"):
         PointSettings.preset("best")

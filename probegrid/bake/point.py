@@ -168,6 +168,17 @@ _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 
 
+def _forget_pools() -> None:
+    """A forked child has none of its parent's threads: it starts its own pools."""
+    global _POOLS_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools)
+
+
 def shared_pool(threads: int | None) -> ThreadPoolExecutor | None:
     """The process's pool of ``threads`` threads (None: :data:`DEFAULT_THREADS`) that every
     tracer shades its rays on, or None for one thread."""
@@ -203,7 +214,10 @@ class PointTracer:
         The store's surface cache: the rays' hits read the light reflected at least once from
         it (None: gathered there, the bake's estimator).
     direct : "sample" or "cache"
-        With a cache, whether the hits' emitter and environment light is sampled or read.
+        With a cache, whether the hits' emitter and environment light is sampled or read:
+        ``"sample"`` samples it at the hits where the lattice is coarser than a texel of the
+        probe's mirror level (distance under ``spacing x 2 n / pi``, ``n`` the face size: a
+        lattice cell seen larger than a texel's 90 / n degrees) and reads the cache beyond.
     threads : int or None
         Threads the rays are shaded on (:func:`shared_pool`; None: :data:`DEFAULT_THREADS`).
     """
@@ -224,6 +238,8 @@ class PointTracer:
         self.records.pool = shared_pool(threads)
         if self.direct_cached:  # no emitter or environment sample at the hits
             self.records.light_samples = 0
+        elif cache is not None:  # sampled where the lattice is coarser than a texel
+            self.records.sample_where = self.samples_direct
         self.diffuse_size = int(diffuse_size)
         self.specular_levels = int(specular_levels)
         n = settings.face_size
@@ -302,6 +318,14 @@ class PointTracer:
                    diffuse_size=baked.diffuse_size, specular_levels=baked.levels(),
                    tracer=tracer, cache=cache, direct=ps.direct, threads=threads)
 
+    def samples_direct(self, prim: NDArray[np.int64], t: NDArray[np.float64]
+                       ) -> NDArray[np.bool_]:
+        """Which hits (triangles ``prim`` at distances ``t``) sample the emitters' and the
+        environment's light (the others read the cache's): those nearer than ``spacing 2 n /
+        pi`` (``n`` the face size), where a lattice cell looks larger than a mirror texel."""
+        assert self.cache is not None
+        return t < self.cache.spacing[prim] * (self.settings.face_size * 2.0 / np.pi)
+
     @staticmethod
     def point_index(point: NDArray[np.float64]) -> int:
         """The random streams' index of a point: 62 bits of a hash of its coordinates."""
@@ -342,7 +366,11 @@ class PointTracer:
         # the side a ray sees: its normal is turned toward it (against the ray)
         light = self.cache.lookup(rec["primitive"], rec["barycentric"][:, 0],
                                   rec["barycentric"][:, 1], -nrm)
-        indirect = light[:, 0] + light[:, 1] if self.direct_cached else light[:, 0]
+        if self.direct_cached:
+            indirect = light[:, 0] + light[:, 1]
+        else:  # the cache's direct light where the hit did not sample it (far hits)
+            cached = ~np.asarray(rec["sampled"], bool)
+            indirect = light[:, 0] + np.where(cached[:, None], light[:, 1], 0.0)
         back = np.asarray(rec["backface_fraction"], np.float64)
         cube, _ = replay(rec, self.settings, self.level, None, final=True,
                          indirect=np.ascontiguousarray(indirect))

@@ -105,14 +105,19 @@ def cache_vertices(settings: BakeSettings, probes: int) -> int:
     return int(min(MAX_VERTICES, max(64, CACHE_COST * bake_points / vertex)))
 
 
+def longest_edges(scene: Scene) -> NDArray[np.float64]:
+    """Each triangle's longest edge."""
+    v = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles)]
+    return np.max(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1)
+
+
 def lattice_resolutions(scene: Scene, vertices: int) -> NDArray[np.int64] | None:
     """Each triangle's resolution for at most ``vertices`` lattice vertices in all (both sides
     of double-sided triangles counted): its longest edge over one spacing, rounded down, the
     finest spacing that fits (bisection), 0 (the centroid alone) to :data:`MAX_RESOLUTION`;
     None when one vertex a side is already too many (a scene of more triangles than the
     budget: no cache)."""
-    v = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles)]
-    edge = np.max(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1)
+    edge = longest_edges(scene)
     sides = 1 + np.asarray(scene.double_sided, np.int64)
 
     def res(h: float) -> NDArray[np.int64]:
@@ -177,6 +182,9 @@ class SurfaceCache:
         self.normals = np.ascontiguousarray(scene.triangle_normals, np.float64)
         if len(self.lattice) != len(self.normals):
             raise ValueError("the surface cache is not of this scene (triangle count).")
+        #: Each triangle's lattice spacing: its longest edge over its resolution (the whole
+        #: edge for resolution 0).
+        self.spacing = longest_edges(scene) / np.maximum(self.lattice[:, 2], 1)
 
     def lookup(self, prim: NDArray[np.int64], u: NDArray[np.float64], v: NDArray[np.float64],
                directions: NDArray[np.float64]) -> NDArray[np.float32]:

@@ -101,6 +101,9 @@ class Level:
     #: point reads the surface cache there, :mod:`probegrid.bake.surfacecache`).
     primitive: NDArray[np.int64] | None = None
     barycentric: NDArray[np.float64] | None = None
+    #: (k,) bool: whether the hit sampled the emitters and the environment (kept with
+    #: ``primitive``; :attr:`probegrid.bake.records.RecordTracer.sample_where`).
+    sampled: NDArray[np.bool_] | None = None
 
     @classmethod
     def empty(cls, k: int, *, hits: bool = False) -> Level:
@@ -109,6 +112,7 @@ class Level:
         return cls(kind=np.zeros(k, np.uint8),
                    primitive=np.full(k, -1, np.int64) if hits else None,
                    barycentric=np.zeros((k, 2)) if hits else None,
+                   sampled=np.zeros(k, bool) if hits else None,
                    emission=np.zeros((k, 3), np.float32),
                    light_punctual=np.zeros((k, 3), np.float32),
                    light_emitters=np.zeros((k, 3), np.float32),

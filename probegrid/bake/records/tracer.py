@@ -111,6 +111,10 @@ class RecordTracer:
         #: Threads that shade a level's chunks side by side (None: one after another; the
         #: kernels and Embree release the GIL). Each ray's result does not depend on its chunk.
         self.pool: ThreadPoolExecutor | None = None
+        #: Which front hits ``(prim_id, t)`` sample the emitters and the environment (None:
+        #: all; a probe traced at a point reads the others' from the surface cache).
+        self.sample_where: Callable[[NDArray[np.int64], NDArray[np.float64]],
+                                    NDArray[np.bool_]] | None = None
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None,
@@ -154,13 +158,19 @@ class RecordTracer:
             rays += len(which)
             scatter_divided(rec.light_punctual, rows,
                             sum_unblocked(len(rows), which, occluded, s_irr), np.pi, False)
+        if self.sample_where is not None and (draw_e is not None or draw_s is not None):
+            # the light sampled at some hits only (the others read it elsewhere)
+            keep = self.sample_where(hits.prim_id[rows], hits.t[rows])
+            rows, back_off, nrm = rows[keep], back_off[keep], nrm[keep]
+            if rec.sampled is not None:
+                rec.sampled[rows] = True
         # lit from a point offset short of the hit, back along the ray (shade_hits)
-        if draw_e is not None:
+        if draw_e is not None and rows.size:
             e_e, r = self.emitters.irradiance(back_off, nrm, draw_e(draw_rows[rows]),
                                               self.tracer, eps)
             rays += r
             scatter_divided(rec.light_emitters, rows, e_e, np.pi, False)
-        if draw_s is not None:  # the environment as a light (it no longer reaches the grid)
+        if draw_s is not None and rows.size:  # the environment as a light (not in the grid)
             e_s, r = self.sky.irradiance(back_off, nrm, draw_s(draw_rows[rows]), self.tracer,
                                          eps)
             rays += r
