@@ -25,9 +25,13 @@ kind the mean and worst error over the points of:
 for each method: ``blend`` (the service's blend of the surrounding probes, weights without a
 normal for the maps and with it for the SH, as a client gives them), ``nearest`` (the nearest
 valid probe's maps) and ``trace`` (:class:`probegrid.bake.point.PointTracer`: a probe traced at
-the point against the stored grid; its SH is the projection of the traced cube). Queries go
-through :class:`probegrid.query.ProbeField`, the service's code. Latency: median milliseconds
-per answer at the store's face size (``trace``: one uncached point, every map of it).
+the point against the stored grid and its surface light cache, ``--quality`` its preset; its SH
+is the projection of the traced cube). Queries go through :class:`probegrid.query.ProbeField`,
+the service's code. Latency: median milliseconds per answer at the store's face size
+(``trace``: one uncached point, every map of it); then cold traced answers at
+``--latency-points`` distinct points for each preset of ``--latency-quality``, in process and
+over HTTP (:func:`latency`: median wall, CPU per answer, cores used, the machine's load).
+A (re)bake prints the cost of its surface cache against the rest of the bake.
 
 Scenes: the shared ``CornellBox.glb`` (an emissive ceiling panel; 4x4x4 probes) and the bundled
 sample room (``data/sample_room.glb``, its point light without its glTF range, as both tools

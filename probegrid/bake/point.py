@@ -12,6 +12,14 @@ cube into the diffuse map and the GGX chain with the bake's filter
 (:func:`probegrid.core.probefilter.filter_cube`). The parallax of everything the point sees is
 then exact; only the light reflected more than ``gather_depth`` times still comes from the grid.
 
+A bake's surface light cache (:mod:`probegrid.bake.surfacecache`) makes the trace cheap: with
+it the probe's rays alone are cast, and each hit reads the light reflected at least once (and,
+where the lattice is coarser than a mirror texel or with ``direct="cache"``, the emitters' and
+the environment's) from the cache instead of gathering it -- a fifth of the shading points.
+:data:`POINT_PRESETS` names the choices the service offers (``quality=``); ``"reference"`` keeps
+the bake's gather at every hit. The rays are shaded, and the filter's product made, on a shared
+pool of two threads (:func:`shared_pool`).
+
 What it needs of a bake is what the final pass read (:mod:`probegrid.bake.extras`: the
 environment, the grid's irradiance cubes and the bordered distance moments, stored as extras),
 the scene and the bake's settings; :meth:`PointTracer.from_store` builds it from a store that
