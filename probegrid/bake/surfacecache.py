@@ -20,15 +20,18 @@ double-sided triangle. Each vertex holds
   hits (:func:`bake_surface_cache`); so a query reading it computes the bake's estimator with
   the hit's gather averaged over many more rays and interpolated over the lattice;
 * ``direct``: the emitters' and the environment's direct light, :data:`CACHE_LIGHT_SAMPLES`
-  samples each, for the cheaper query that skips those shadow rays (``PointSettings.direct=
-  "cache"``; the punctual lights' is always exact: one shadow ray per light).
+  samples each, read by a query at the hits where a lattice cell looks smaller than a mirror texel, or
+  everywhere (``PointSettings.direct="cache"``); the punctual lights' is always exact at the
+  hits (one shadow ray per light).
 
 The lattice's spacing is the same on every triangle (each triangle's resolution is its longest
-edge over the spacing, 1 to :data:`MAX_RESOLUTION`), chosen so that the cache's rays stay within
-:data:`CACHE_COST` of the bake's own (:func:`lattice_resolutions`): the bake's cost grows by at
-most that fraction, and its outputs are unchanged (the cache is an extra of the store). Lattice
-vertices stand a hair inside their triangle (:data:`INSET`), so that no gather ray starts on the
-edge of a concave corner.
+edge over the spacing rounded down, 0 -- the centroid alone -- to :data:`MAX_RESOLUTION`), the
+finest whose vertices cost at most :data:`CACHE_COST` of the bake's shading points
+(:func:`cache_vertices`, :func:`lattice_resolutions`; measured 1.20-1.24x the bake's time),
+and the bake's outputs are unchanged (the cache is an extra of the store). A scene with more
+triangle sides than that budget stores no cache (its queries gather). Lattice vertices stand a
+hair inside their triangle (:data:`INSET`), so that no gather ray starts on the edge of a
+concave corner.
 
 The cache's random numbers are one counter-based stream per purpose
 (:func:`probegrid.bake.kernels.sampling.stream_uniforms`) keyed by the bake's seed and
@@ -49,7 +52,7 @@ from probegrid.bake.kernels.grid import mean_per_parent
 from probegrid.bake.kernels.surfacecache import cache_lookup
 from probegrid.bake.records.replay import GridData, _level_weights, _replay_level, irradiance_size
 from probegrid.bake.records.schema import Level, gather_keys
-from probegrid.bake.records.tracer import RecordTracer, _light_draw, _stream_keys
+from probegrid.bake.records.tracer import RecordTracer, _stream_keys
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
@@ -75,7 +78,7 @@ CACHE_LIGHT_SAMPLES = 16
 CACHE_COST = 0.55
 #: Largest lattice resolution of a triangle (edges over the spacing).
 MAX_RESOLUTION = 64
-#: Largest number of lattice vertices (40 bytes each in the store).
+#: Largest number of lattice vertices (24 bytes each in the store).
 MAX_VERTICES = 1 << 21
 #: Lattice vertices stand this fraction of the way from the triangle's edge to its centroid.
 INSET = 1e-3
