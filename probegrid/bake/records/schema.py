@@ -102,7 +102,7 @@ class Level:
     primitive: NDArray[np.int64] | None = None
     barycentric: NDArray[np.float64] | None = None
     #: (k,) bool: whether the hit sampled the emitters and the environment (kept with
-    #: ``primitive``; :attr:`probegrid.bake.records.RecordTracer.sample_where`).
+    #: ``primitive``; the record tracer's ``sample_where``).
     sampled: NDArray[np.bool_] | None = None
 
     @classmethod
