@@ -25,9 +25,13 @@ kind the mean and worst error over the points of:
 for each method: ``blend`` (the service's blend of the surrounding probes, weights without a
 normal for the maps and with it for the SH, as a client gives them), ``nearest`` (the nearest
 valid probe's maps) and ``trace`` (:class:`probegrid.bake.point.PointTracer`: a probe traced at
-the point against the stored grid; its SH is the projection of the traced cube). Queries go
-through :class:`probegrid.query.ProbeField`, the service's code. Latency: median milliseconds
-per answer at the store's face size (``trace``: one uncached point, every map of it).
+the point against the stored grid and its surface light cache, ``--quality`` its preset; its SH
+is the projection of the traced cube). Queries go through :class:`probegrid.query.ProbeField`,
+the service's code. Latency: median milliseconds per answer at the store's face size
+(``trace``: one uncached point, every map of it); then cold traced answers at
+``--latency-points`` distinct points for each preset of ``--latency-quality``, in process and
+over HTTP (:func:`latency`: median wall, CPU per answer, cores used, the machine's load).
+A (re)bake prints the cost of its surface cache against the rest of the bake.
 
 Scenes: the shared ``CornellBox.glb`` (an emissive ceiling panel; 4x4x4 probes) and the bundled
 sample room (``data/sample_room.glb``, its point light without its glTF range, as both tools
@@ -48,6 +52,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -261,12 +266,83 @@ def baked_store(cache: Path, label: str, scene: Any, scene_file: Path, env: Any,
     ex = make_executor(workers=workers)
     try:
         t0 = time.perf_counter()
-        bake(scene, grid, out, settings=settings, environment=env, executor=ex, overwrite=True,
-             scene_file=scene_file)
-        print(f"baked {grid.label} in {time.perf_counter() - t0:.1f} s")
+        report = bake(scene, grid, out, settings=settings, environment=env, executor=ex,
+                      overwrite=True, scene_file=scene_file)
+        secs = time.perf_counter() - t0
+        cache = float(report.quality["stage_seconds"].get("surface cache", 0.0))
+        print(f"baked {grid.label} in {secs:.1f} s, of which the surface cache {cache:.1f} s: "
+              f"{secs / max(secs - cache, 1e-9):.2f}x the bake without it "
+              f"({report.quality.get('surface_cache_rays', 0) / 1e6:.1f} M rays against "
+              f"{report.rays / 1e6:.1f} M)")
     finally:
         ex.close()
     return out
+
+
+# ------------------------------------------------------------------------------ latency
+def latency(store_path: Path, points: NDArray[np.float64], quality: str, *, http: bool
+            ) -> tuple[float, float, float]:
+    """Median wall milliseconds of a cold traced answer (``/maps/specular`` level 0, every map
+    of the point traced at once) at each of ``points`` (distinct: no answer is reused), the
+    mean CPU milliseconds per answer, and the cores used (CPU over wall). ``http``: through the
+    service (``service.main.run``, one uvicorn worker on 127.0.0.1, the store read into memory
+    as it serves it; sequential keep-alive requests, the server process's CPU); else in this
+    process (``ProbeField.cube_at`` on a store opened as the service opens it)."""
+    import psutil
+
+    from probegrid.query import ProbeField
+    from probegrid.store import open_store
+
+    if not http:
+        field = ProbeField(open_store(store_path, load=True))
+        field.cube_at(points[0] + 1e-7, "specular", quality=quality)  # tracer built, warm
+        walls, cpu0, w0 = [], time.process_time(), time.perf_counter()
+        for p in points:
+            t0 = time.perf_counter()
+            field.cube_at(p, "specular", quality=quality)
+            walls.append(time.perf_counter() - t0)
+        cpu, wall = time.process_time() - cpu0, time.perf_counter() - w0
+        return 1000 * float(np.median(walls)), 1000 * cpu / len(points), cpu / wall
+    import tempfile
+
+    import httpx
+    from bench_service import free_port, start_server
+
+    port = free_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = start_server([store_path], port, Path(tmp) / "server.log")
+        try:
+            base = f"http://127.0.0.1:{port}"
+            with httpx.Client(base_url=base, timeout=120) as client:
+                for _ in range(600):  # until it answers (bounded: a minute)
+                    try:
+                        if client.get("/healthz").status_code == 200:
+                            break
+                    except httpx.TransportError:
+                        time.sleep(0.1)
+                name = client.get("/v1/grids").json()["grids"][0]["name"]
+
+                def get(p: NDArray[np.float64]) -> None:
+                    r = client.get(f"/v1/grids/{name}/maps/specular", params={
+                        "x": repr(float(p[0])), "y": repr(float(p[1])),
+                        "z": repr(float(p[2])), "level": "0", "quality": quality})
+                    if r.status_code != 200 or r.headers.get("x-probegrid-method") != "trace":
+                        raise SystemExit(f"/maps answered {r.status_code}: {r.text[:200]}")
+
+                get(points[0] + 1e-7)  # the tracer built, its kernels loaded
+                server = psutil.Process(proc.pid)
+                c0 = sum(server.cpu_times()[:2])
+                walls, w0 = [], time.perf_counter()
+                for p in points:
+                    t0 = time.perf_counter()
+                    get(p)
+                    walls.append(time.perf_counter() - t0)
+                wall = time.perf_counter() - w0
+                cpu = sum(server.cpu_times()[:2]) - c0
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    return 1000 * float(np.median(walls)), 1000 * cpu / len(points), cpu / wall
 
 
 # ------------------------------------------------------------------------------ main
@@ -293,8 +369,9 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
     store_path = baked_store(args.cache, label, scene, path, env or Environment(), grid,
                              settings, rebake=args.rebake, workers=args.workers)
     store = open_store(store_path)
-    ps = PointSettings(gather_samples=args.trace_gather, gather_depth=args.trace_depth,
-                       light_samples=args.trace_lights)
+    ps = dataclasses.replace(PointSettings.preset(args.quality),
+                             gather_samples=args.trace_gather, gather_depth=args.trace_depth,
+                             light_samples=args.trace_lights)
     field = ProbeField(store, scene=scene, point_settings=ps)
     why = field.trace_support()
     if why is not None:
@@ -405,6 +482,21 @@ def bench_scene(label: str, path: Path, sky: Path | None, grid_label: str,
         f" (trace: {1000 * np.median(cpu):.1f} ms CPU; gather samples "
         f"{args.trace_gather or 'bake'}, depth {args.trace_depth or 'bake'}, light samples "
         f"{args.trace_lights or 'bake'})")
+    if args.latency_points:
+        rng = np.random.default_rng(args.seed + 1)
+        lo, hi = np.asarray(scene.bounds, np.float64)
+        # distinct points, as a moving object's: the query points and points jittered off them
+        extra = pts[rng.integers(0, len(pts), args.latency_points)]
+        extra = extra + rng.normal(0.0, 0.01, extra.shape) * (hi - lo)
+        lat_pts = np.clip(extra, lo + 1e-3 * (hi - lo), hi - 1e-3 * (hi - lo))
+        print(f"cold traced answers at {len(lat_pts)} distinct points (median wall ms, CPU ms "
+              f"per answer, cores used; load average {os.getloadavg()[0]:.1f} on "
+              f"{os.cpu_count()} cores):")
+        for q in args.latency_quality.split(","):
+            for http in (False, True):
+                wall, cpu, cores = latency(store_path, lat_pts, q, http=http)
+                print(f"  {q:9s} {'HTTP' if http else 'in process':10s} {wall:7.1f} ms, CPU "
+                      f"{cpu:6.1f} ms, {cores:.2f} cores")
     return rows
 
 
@@ -415,10 +507,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--room-grid", default="8x6x8")
     ap.add_argument("--face-size", type=int, default=32)
     ap.add_argument("--ref-spp", type=int, default=128, help="reference samples per texel")
+    ap.add_argument("--quality", default="accurate",
+                    help="the traced answer's preset (probegrid.bake.point.POINT_PRESETS)")
     ap.add_argument("--trace-gather", type=int, default=None)
     ap.add_argument("--trace-depth", type=int, default=None)
     ap.add_argument("--trace-lights", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--latency-points", type=int, default=32,
+                    help="distinct points of the cold-latency measurement (0: none)")
+    ap.add_argument("--latency-quality", default="accurate,fast,reference",
+                    help="presets whose latency is measured, in process and over HTTP")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--rebake", action="store_true")
     ap.add_argument("--cache", type=Path,

@@ -25,6 +25,7 @@ __all__ = [
     "MapMethod",
     "PixelType",
     "SHKind",
+    "TraceQuality",
     "SHWindow",
     "SeamMode",
     "StartMethod",
@@ -40,6 +41,10 @@ MapKind = Literal["diffuse", "specular", "incoming"]
 #: How a map at a point is made: ``trace`` renders a probe at the point against the converged
 #: grid (what a probe baked there holds); ``blend`` mixes the surrounding probes' maps.
 MapMethod = Literal["trace", "blend"]
+#: The preset of a traced map (:data:`probegrid.bake.point.POINT_PRESETS`): ``accurate`` (the
+#: surface cache's indirect light, direct light sampled at every hit), ``fast`` (the cache's
+#: direct light too) or ``reference`` (the bake's own gather at every hit).
+TraceQuality = Literal["accurate", "fast", "reference"]
 #: Number type of a store's map arrays (diffuse, specular, incoming): float32 or float16.
 MapDType = Literal["float", "half"]
 #: Image layouts of an environment or a cube map (see :mod:`probegrid.core.layouts`).

@@ -60,7 +60,7 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind, MapMethod, SHKind, choices
+from probegrid._types import MapKind, MapMethod, SHKind, TraceQuality, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import ProbegridError
@@ -516,12 +516,18 @@ class _BaseClient:
 
     @staticmethod
     def _map_call(grid: str, position: ArrayLike, normal: ArrayLike | None, kind: str,
-                  level: int, method: MapMethod = "trace") -> _Call:
+                  level: int, method: MapMethod = "trace",
+                  quality: TraceQuality = "accurate") -> _Call:
         if method not in _MAP_METHODS:
             raise InvalidArgumentError(
                 f"method must be one of {', '.join(_MAP_METHODS)}, got {method!r}.")
+        if quality not in _QUALITIES:
+            raise InvalidArgumentError(
+                f"quality must be one of {', '.join(_QUALITIES)}, got {quality!r}.")
         params = _position_params(position, normal)
         params.update(level=int(level), format="npy", layout="faces", method=method)
+        if quality != "accurate":  # (the service's default)
+            params["quality"] = quality
         return _Call("GET", f"/v1/grids/{_segment(grid)}/maps/{_segment(kind)}", params)
 
     @staticmethod
@@ -603,6 +609,7 @@ class _BaseClient:
 _SH_KINDS = choices(SHKind)
 #: The ``method`` choices of :meth:`ProbeGridClient.map_at` (the service's ``/maps?method=``).
 _MAP_METHODS = choices(MapMethod)
+_QUALITIES = choices(TraceQuality)
 
 
 def _segment(name: str) -> str:
@@ -688,19 +695,20 @@ class ProbeGridClient(_BaseClient):
 
     def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                level: int = 0, normal: ArrayLike | None = None,
-               method: MapMethod = "trace") -> MapSample:
+               method: MapMethod = "trace", quality: TraceQuality = "accurate") -> MapSample:
         """One level of the map at a position -- traced there (``method="trace"``, the
-        default: what a probe baked at the point holds) or blended from the probes
-        (``"blend"``) -- with the probes, weights, flags and visibility test of the blend and
-        the method used (:meth:`maps_at` gives the maps alone)."""
-        r = self._send(self._map_call(grid, position, normal, kind, level, method))
+        default: what a probe baked at the point holds; ``quality`` the trace's preset:
+        ``"accurate"``, ``"fast"`` or ``"reference"``, see the service's ``/maps``) or blended
+        from the probes (``"blend"``) -- with the probes, weights, flags and visibility test of
+        the blend and the method used (:meth:`maps_at` gives the maps alone)."""
+        r = self._send(self._map_call(grid, position, normal, kind, level, method, quality))
         return self._map_sample(r, kind, int(level))
 
     def maps_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                 level: int | None = None, normal: ArrayLike | None = None,
-                method: MapMethod = "trace") -> CubeMap:
-        """The cube map of ``kind`` at a position, traced there or blended (``method``, see
-        :meth:`map_at`).
+                method: MapMethod = "trace", quality: TraceQuality = "accurate") -> CubeMap:
+        """The cube map of ``kind`` at a position, traced there or blended (``method`` and
+        ``quality``, see :meth:`map_at`).
 
         ``level=None`` fetches every level (the whole specular chain as one CubeMap); an integer
         fetches that level alone.
@@ -710,7 +718,8 @@ class ProbeGridClient(_BaseClient):
             self.grid(grid)
             levels = self._levels_wanted(grid, kind, level) or [0]
         faces = [
-            _load_npy(self._send(self._map_call(grid, position, normal, kind, k, method)))
+            _load_npy(self._send(self._map_call(grid, position, normal, kind, k, method,
+                                                quality)))
             for k in levels
         ]
         return CubeMap(tuple(faces), kind=kind)
@@ -802,19 +811,22 @@ class AsyncProbeGridClient(_BaseClient):
 
     async def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                      level: int = 0, normal: ArrayLike | None = None,
-                     method: MapMethod = "trace") -> MapSample:
-        r = await self._send(self._map_call(grid, position, normal, kind, level, method))
+                     method: MapMethod = "trace", quality: TraceQuality = "accurate"
+                     ) -> MapSample:
+        r = await self._send(self._map_call(grid, position, normal, kind, level, method,
+                                            quality))
         return self._map_sample(r, kind, int(level))
 
     async def maps_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                       level: int | None = None, normal: ArrayLike | None = None,
-                      method: MapMethod = "trace") -> CubeMap:
+                      method: MapMethod = "trace", quality: TraceQuality = "accurate"
+                      ) -> CubeMap:
         levels = self._levels_wanted(grid, kind, level)
         if levels is None:
             await self.grid(grid)
             levels = self._levels_wanted(grid, kind, level) or [0]
         responses = await asyncio.gather(
-            *(self._send(self._map_call(grid, position, normal, kind, k, method))
+            *(self._send(self._map_call(grid, position, normal, kind, k, method, quality))
               for k in levels)
         )
         return CubeMap(tuple(_load_npy(r) for r in responses), kind=kind)

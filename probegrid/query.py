@@ -105,13 +105,15 @@ class ProbeField:
         The scene the store was baked from, for stores that keep no scene file (or to trace
         the scene as the bake saw it when that differs from the file); default: the store's.
     point_settings : PointSettings, optional
-        Lower gather or light samples for traced maps (default: the bake's).
+        How traced maps are made when a call names no ``quality`` (default: the ``accurate``
+        preset, :data:`probegrid.bake.point.POINT_PRESETS`).
 
     Attributes
     ----------
     grid : GridSpec
     kinds : tuple of str
-        Map kinds the store holds, among ``"diffuse"``, ``"specular"``, ``"incoming"``.
+        Map kinds the store answers, among ``"diffuse"``, ``"specular"``, ``"incoming"``
+        (incoming: stored, or traced at points for a store that can be traced).
     specular_levels : int
         Levels of the specular chain (0 if none).
     tracer : RayTracer or None
@@ -135,9 +137,13 @@ class ProbeField:
             )
         self._specular = [f"specular_{k}" for k in spec]
         self.specular_levels = len(spec)
+        self._scene = scene
+        #: Whether the incoming cubes are answered by the trace only (not stored).
+        self._traced_incoming = "incoming" not in names and self.trace_support() is None
         self.kinds: tuple[MapKind, ...] = tuple(
             cast(MapKind, k) for k in MAP_KINDS
             if (k == "specular" and spec) or (k != "specular" and k in names)
+            or (k == "incoming" and self._traced_incoming)
         )
         extras = set(store.manifest.extras)
         #: The BVH of the scene's triangles (None for a store without them).
@@ -152,9 +158,8 @@ class ProbeField:
         if self._stored_deringed:
             store.arrays["sh_deringed"]  # mapped now, with the other arrays
         self._dering_lock = threading.Lock()
-        self._scene = scene
         self._point_settings = point_settings
-        self._point_tracer: PointTracer | None = None
+        self._point_tracers: dict[str | None, PointTracer] = {}
         self._trace_lock = threading.Lock()
         self._traced: OrderedDict[bytes, PointMaps] = OrderedDict()
         self._tracing: dict[bytes, Future[PointMaps]] = {}
@@ -180,6 +185,12 @@ class ProbeField:
 
     def map_size(self, kind: MapKind, level: int = 0) -> int:
         """Face size of a map kind's level."""
+        if kind == "incoming" and self._traced_incoming:
+            self._check_kind(kind)
+            if level != 0:
+                raise ValueError(f"level must be an integer in 0..0 for incoming maps, got "
+                                 f"{level!r}.")
+            return int(self.store.manifest.bake["settings"]["face_size"])
         return int(self._level(kind, level).shape[2])
 
     def _check_kind(self, kind: str) -> None:
@@ -294,12 +305,15 @@ class ProbeField:
             raise ValueError(f"method must be one of {', '.join(MAP_METHODS)}, got {method!r}.")
         return "trace" if method == "trace" and self.trace_support() is None else "blend"
 
-    def point_tracer(self) -> PointTracer:
-        """The store's :class:`probegrid.bake.point.PointTracer`, built on first use."""
-        with self._trace_lock:
-            if self._point_tracer is None:
-                from probegrid.bake.point import PointTracer
+    def point_tracer(self, quality: str | None = None) -> PointTracer:
+        """The store's :class:`probegrid.bake.point.PointTracer` of a preset ``quality``
+        (:data:`probegrid.bake.point.POINT_PRESETS`; None: the field's ``point_settings``),
+        built on first use and kept (one per preset: the BVH is shared)."""
+        from probegrid.bake.point import PointSettings, PointTracer
 
+        ps = self._point_settings if quality is None else PointSettings.preset(quality)
+        with self._trace_lock:
+            if quality not in self._point_tracers:
                 scene = self._scene
                 if scene is None:
                     from probegrid.scene import load_gltf
@@ -311,20 +325,21 @@ class ProbeField:
                 # the visibility tracer knows the triangles only; a scene with cut-outs or
                 # glass traces with its own (what a ray passes)
                 tracer = self.tracer if scene.coverage is None else None
-                self._point_tracer = PointTracer.from_store(self.store, scene, tracer=tracer,
-                                                            settings=self._point_settings)
-            return self._point_tracer
+                self._point_tracers[quality] = PointTracer.from_store(
+                    self.store, scene, tracer=tracer, settings=ps)
+            return self._point_tracers[quality]
 
-    def point_maps(self, point: ArrayLike) -> PointMaps:
+    def point_maps(self, point: ArrayLike, *, quality: str | None = None) -> PointMaps:
         """What a probe traced at ``point (3,)`` holds (its incoming cube, diffuse map and GGX
-        chain; the last :data:`TRACE_CACHE` points' are kept). Points are traced side by side
-        on the service's threads; concurrent requests for one point (a client fetching every
-        level at once) wait for its one trace."""
+        chain), traced with preset ``quality`` (:meth:`point_tracer`); the last
+        :data:`TRACE_CACHE` answers are kept. Points are traced side by side on the service's
+        threads; concurrent requests for one point (a client fetching every level at once)
+        wait for its one trace."""
         p = _points(point, "point")
         if len(p) != 1:
             raise ValueError("point_maps traces one point.")
-        key = np.ascontiguousarray(p[0], dtype="<f8").tobytes()
-        tracer = self.point_tracer()
+        tracer = self.point_tracer(quality)
+        key = np.ascontiguousarray(p[0], dtype="<f8").tobytes() + (quality or "").encode()
         with self._trace_lock:
             got = self._traced.get(key)
             if got is not None:
@@ -354,20 +369,30 @@ class ProbeField:
         return got
 
     def cube_at(self, point: ArrayLike, kind: MapKind, *, level: int = 0,
-                method: MapMethod = "trace", normal: ArrayLike | None = None
+                method: MapMethod = "trace", normal: ArrayLike | None = None,
+                quality: str | None = None
                 ) -> tuple[NDArray[np.float32], ProbeWeights, MapMethod]:
         """One map level ``(6, s, s, 3)`` float32 at one point, the blend's weights (for the
         flags; the traced map does not use them) and the method used (:meth:`map_method`; the
         blend too for a point inside a solid, whose traced rays meet back faces more often than
-        the bake lets a probe's)."""
-        self._level(kind, level)  # checks kind and level
+        the bake lets a probe's). ``quality``: the traced answer's preset
+        (:meth:`point_tracer`). Incoming cubes a store does not keep are traced only."""
+        self.map_size(kind, level)  # checks kind and level
+        if quality is not None:
+            from probegrid.bake.point import PointSettings
+
+            PointSettings.preset(quality)  # checked before any work
         used = self.map_method(method)
+        traced_only = kind == "incoming" and self._traced_incoming
+        if traced_only and used == "blend":
+            raise ValueError("this store keeps no incoming maps to blend; they are traced "
+                             "(method=trace).")
         w = self.weights(point, normals=normal, extrapolate=False)
         if used == "blend":
             return self.cube(w, kind, level=level)[0], w, used
-        maps = self.point_maps(point)
+        maps = self.point_maps(point, quality=quality)
         limit = float(self.store.manifest.bake["settings"].get("invalid_threshold", 0.25))
-        if maps.backface_fraction > limit:
+        if maps.backface_fraction > limit and not traced_only:
             return self.cube(w, kind, level=level)[0], w, "blend"
         faces = (maps.incoming if kind == "incoming" else maps.diffuse if kind == "diffuse"
                  else maps.specular[level])

@@ -440,8 +440,12 @@ def bake(
             quality["bounce_energy_limit"] = schedule.state.limit
         quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
         # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
-        write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
-                           gather=st.gather_levels() > 0, face_size=st.face_size)
+        t_cache = time.perf_counter()
+        cache_rays = write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
+                                        gather=st.gather_levels() > 0, face_size=st.face_size,
+                                        settings=st, geometry=geometry, level=level)
+        quality["stage_seconds"]["surface cache"] = round(time.perf_counter() - t_cache, 3)
+        quality["surface_cache_rays"] = cache_rays
         store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
         remove_path(work)  # (a Linux flock lives on the open directory, not on its name)
         if not files:  # (this machine's Dask workers' record directory, emptied block by block)

@@ -32,6 +32,7 @@ from probegrid.bake.records import RECORDS_MEMORY, irradiance_size, record_bytes
 from probegrid.bake.records.tracer import SHADE_CHUNK
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.bake.stages import CLASSIFY_FACE_SIZE
+from probegrid.bake.surfacecache import cache_vertices
 from probegrid.core import probefilter
 from probegrid.core.grid import GridSpec
 from probegrid.scene import Scene
@@ -156,6 +157,8 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     if environment is not None and environment.faces is not None:
         e = min(int(environment.faces.shape[1]), max(LIGHT_SIZE, n))
         store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
+    # the surface light cache (probegrid.bake.surfacecache): at most its budget's vertices
+    store += 2 * NPY_HEADER_BYTES + 24 * (cache_vertices(st, p) + scene.n_triangles)
     # work files: the classification, the per-hit records of every traced ray (kept until the
     # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
     # moments, the done masks

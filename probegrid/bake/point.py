@@ -12,6 +12,14 @@ cube into the diffuse map and the GGX chain with the bake's filter
 (:func:`probegrid.core.probefilter.filter_cube`). The parallax of everything the point sees is
 then exact; only the light reflected more than ``gather_depth`` times still comes from the grid.
 
+A bake's surface light cache (:mod:`probegrid.bake.surfacecache`) makes the trace cheap: with
+it the probe's rays alone are cast, and each hit reads the light reflected at least once (and,
+where the lattice is coarser than a mirror texel or with ``direct="cache"``, the emitters' and
+the environment's) from the cache instead of gathering it -- a fifth of the shading points.
+:data:`POINT_PRESETS` names the choices the service offers (``quality=``); ``"reference"`` keeps
+the bake's gather at every hit. The rays are shaded, and the filter's product made, on a shared
+pool of two threads (:func:`shared_pool`).
+
 What it needs of a bake is what the final pass read (:mod:`probegrid.bake.extras`: the
 environment, the grid's irradiance cubes and the bordered distance moments, stored as extras),
 the scene and the bake's settings; :meth:`PointTracer.from_store` builds it from a store that
@@ -27,12 +35,16 @@ at a probe.
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid._types import TraceQuality, choices
 from probegrid.bake.environment import LIGHT_SIZE, Environment
 from probegrid.bake.records import (
     GridData,
@@ -44,13 +56,14 @@ from probegrid.bake.records import (
 )
 from probegrid.bake.records.replay import replay
 from probegrid.bake.settings import BakeSettings, TraceGeometry
+from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA, SurfaceCache
 from probegrid.core import probefilter
 from probegrid.core.sampling import resample
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
-__all__ = ["ENVIRONMENT_EXTRA", "GRID_EXTRA", "MOMENTS_EXTRA", "PointMaps", "PointSettings", "PointTracer",
-           "environment_extra", "trace_support"]
+__all__ = ["ENVIRONMENT_EXTRA", "GRID_EXTRA", "MOMENTS_EXTRA", "POINT_PRESETS", "PointMaps",
+           "PointSettings", "PointTracer", "environment_extra", "trace_support"]
 
 #: The store extra holding the environment a bake's rays saw (unrotated, unscaled cube).
 ENVIRONMENT_EXTRA = "environment"
@@ -80,18 +93,50 @@ class PointSettings:
 
     Attributes
     ----------
+    indirect : "cache", "gather" or None
+        Where the light reflected at least once comes from at the rays' hits: read from the
+        store's surface cache (:mod:`probegrid.bake.surfacecache`), or gathered there with
+        the bake's estimator (gather rays reading the grid); None: the cache when the store
+        has one.
+    direct : "sample" or "cache"
+        The emitters' and the environment's direct light at the hits: sampled with shadow
+        rays (sharp shadows in the mirror level), or read from the surface cache too (no
+        shadow ray but the punctual lights'; needs the cache). The punctual lights' is always
+        exact.
     gather_samples : int or None
         Gather rays per front hit (at least 1 for a bake with gather rays: its grid's cubes
-        are of the size gather hits read).
+        are of the size gather hits read), when gathering.
     gather_depth : int or None
-        Gather levels (at most the bake's).
+        Gather levels (at most the bake's), when gathering.
     light_samples : int or None
         Emitter and environment samples per hit.
     """
 
+    indirect: Literal["cache", "gather"] | None = None
+    direct: Literal["sample", "cache"] = "sample"
     gather_samples: int | None = None
     gather_depth: int | None = None
     light_samples: int | None = None
+
+    @classmethod
+    def preset(cls, name: str) -> PointSettings:
+        """The settings of a preset of :data:`POINT_PRESETS`."""
+        if name not in POINT_PRESETS:
+            raise ValueError(f"quality must be one of {', '.join(POINT_PRESETS)}, got "
+                             f"{name[:32]!r}.")
+        return POINT_PRESETS[name]
+
+
+#: The traced answers a service offers (``/maps?quality=``): ``accurate`` (the surface
+#: cache's indirect light, direct light sampled at every hit: the default), ``fast`` (the
+#: cache's direct light too; a store without a cache gathers with 1 ray, 1 level and 1 light
+#: sample) and ``reference`` (the bake's own estimator: gather rays at every hit, no cache).
+POINT_PRESETS: dict[str, PointSettings] = {}
+
+
+POINT_PRESETS.update(accurate=PointSettings(), fast=PointSettings(direct="cache"),
+                     reference=PointSettings(indirect="gather"))
+assert tuple(POINT_PRESETS) == choices(TraceQuality)
 
 
 @dataclass(frozen=True)
@@ -124,6 +169,36 @@ def trace_support(manifest: Any, extras: set[str], has_scene: bool) -> str | Non
     return None
 
 
+#: Threads a point's rays are shaded on by default: the machine's cores, at most 2 (the
+#: service's requests share them).
+DEFAULT_THREADS = min(2, os.cpu_count() or 1)
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _forget_pools() -> None:
+    """A forked child has none of its parent's threads: it starts its own pools."""
+    global _POOLS_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools)
+
+
+def shared_pool(threads: int | None) -> ThreadPoolExecutor | None:
+    """The process's pool of ``threads`` threads (None: :data:`DEFAULT_THREADS`) that every
+    tracer shades its rays on, or None for one thread."""
+    n = DEFAULT_THREADS if threads is None else int(threads)
+    if n < 2:
+        return None
+    with _POOLS_LOCK:
+        if n not in _POOLS:
+            _POOLS[n] = ThreadPoolExecutor(n, thread_name_prefix="probegrid-point")
+        return _POOLS[n]
+
+
 class PointTracer:
     """Traces probes at arbitrary points of one bake (build once: it owns the BVH and the
     emitters' and environment's tables).
@@ -143,15 +218,36 @@ class PointTracer:
         The final pass's bounce level.
     diffuse_size, specular_levels : int
         The maps' sizes (the store's).
+    cache : SurfaceCache or None
+        The store's surface cache: the rays' hits read the light reflected at least once from
+        it (None: gathered there, the bake's estimator).
+    direct : "sample" or "cache"
+        With a cache, whether the hits' emitter and environment light is sampled or read:
+        ``"sample"`` samples it at the hits where the lattice is coarser than a texel of the
+        probe's mirror level (distance under ``spacing x 2 n / pi``, ``n`` the face size: a
+        lattice cell seen larger than a texel's 90 / n degrees) and reads the cache beyond.
+    threads : int or None
+        Threads the rays are shaded on (:func:`shared_pool`; None: :data:`DEFAULT_THREADS`).
     """
 
     def __init__(self, scene: Scene, environment: Environment, settings: BakeSettings,
                  geometry: TraceGeometry, grid_data: GridData, *, level: int, diffuse_size: int,
-                 specular_levels: int, tracer: RayTracer | None = None) -> None:
+                 specular_levels: int, tracer: RayTracer | None = None,
+                 cache: SurfaceCache | None = None, direct: str = "sample",
+                 threads: int | None = None) -> None:
         self.settings = settings
         self.data = grid_data
         self.level = int(level)
+        #: The surface cache the rays' hits read their indirect light from (None: gathered).
+        self.cache = cache
+        #: Whether the hits read the emitters' and environment's direct light from the cache.
+        self.direct_cached = cache is not None and direct == "cache"
         self.records = RecordTracer(scene, environment, settings, geometry, tracer=tracer)
+        self.records.pool = shared_pool(threads)
+        if self.direct_cached:  # no emitter or environment sample at the hits
+            self.records.light_samples = 0
+        elif cache is not None:  # sampled where the lattice is coarser than a texel
+            self.records.sample_where = self.samples_direct
         self.diffuse_size = int(diffuse_size)
         self.specular_levels = int(specular_levels)
         n = settings.face_size
@@ -160,7 +256,8 @@ class PointTracer:
 
     @classmethod
     def from_store(cls, store: Any, scene: Scene, *, tracer: RayTracer | None = None,
-                   settings: PointSettings | None = None) -> PointTracer:
+                   settings: PointSettings | None = None, threads: int | None = None
+                   ) -> PointTracer:
         """The tracer of a store's bake (:func:`trace_support` must say it can) and ``scene``,
         the scene it baked; ``settings`` may lower the bake's gather and light samples."""
         why = trace_support(store.manifest, set(store.manifest.extras), True)
@@ -186,6 +283,14 @@ class PointTracer:
                               intensity=float(env_d.get("intensity", 1.0)))
         level = int(store.manifest.quality["bounces"])
         ps = settings or PointSettings()
+        has_cache = LATTICE_EXTRA in store.manifest.extras and LIGHT_EXTRA in store.manifest.extras
+        if ps.indirect == "cache" and not has_cache:
+            raise ValueError(f"store {store.path.name} keeps no surface cache (baked before "
+                             "it was stored).")
+        use_cache = has_cache and ps.indirect != "gather"
+        if ps.direct == "cache" and not use_cache:  # a store without a cache: a cheap gather
+            ps = PointSettings(indirect="gather", gather_samples=1, gather_depth=1,
+                               light_samples=1)
         # the bake's gather levels (BakeSettings.gather_levels): the grid's irradiance cubes
         # are of the size its hits read them at, so a query keeps gather rays if it had them
         depth = baked.gather_levels()
@@ -211,11 +316,23 @@ class PointTracer:
         queried = baked.model_copy(update={
             "light_samples": (baked.light_samples if ps.light_samples is None
                               else int(ps.light_samples)),
-            "gather_samples": gather if depth else 0,
+            "gather_samples": gather if depth and not use_cache else 0,
             "gather_depth": max(depth, 1)})
+        cache = None
+        if use_cache:  # memory-mapped (or in memory) as the store holds it
+            cache = SurfaceCache(scene, np.asarray(store.arrays[LATTICE_EXTRA]),
+                                 np.asarray(store.arrays[LIGHT_EXTRA]))
         return cls(scene, env, queried, geometry, data, level=level,
                    diffuse_size=baked.diffuse_size, specular_levels=baked.levels(),
-                   tracer=tracer)
+                   tracer=tracer, cache=cache, direct=ps.direct, threads=threads)
+
+    def samples_direct(self, prim: NDArray[np.int64], t: NDArray[np.float64]
+                       ) -> NDArray[np.bool_]:
+        """Which hits (triangles ``prim`` at distances ``t``) sample the emitters' and the
+        environment's light (the others read the cache's): those nearer than ``spacing 2 n /
+        pi`` (``n`` the face size), where a lattice cell looks larger than a mirror texel."""
+        assert self.cache is not None
+        return t < self.cache.spacing[prim] * (self.settings.face_size * 2.0 / np.pi)
 
     @staticmethod
     def point_index(point: NDArray[np.float64]) -> int:
@@ -233,6 +350,8 @@ class PointTracer:
         if not np.isfinite(pos).all():
             raise ValueError("points must be finite.")
         idx = np.array([self.point_index(p) for p in pos], dtype=np.int64)
+        if self.cache is not None:
+            return self._incoming_cached(pos, idx)
         rec, _, _ = self.records.trace(pos, idx)
         cubes = None
         if self.level > 0 and self.data.cubes is not None:
@@ -243,6 +362,26 @@ class PointTracer:
             cubes = self.data.cubes
         back = np.asarray(rec["backface_fraction"], np.float64)
         cube, _ = replay(rec, self.settings, self.level, cubes, final=True)
+        return cube, back
+
+    def _incoming_cached(self, pos: NDArray[np.float64], idx: NDArray[np.int64]
+                         ) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+        """:meth:`_incoming` with the hits' indirect light (and with ``direct="cache"`` the
+        emitters' and environment's) read from the surface cache: the probes' rays only."""
+        assert self.cache is not None
+        rec, _, _ = self.records.trace(pos, idx, hits=True)
+        nrm = np.asarray(rec["normal"], np.float64)
+        # the side a ray sees: its normal is turned toward it (against the ray)
+        light = self.cache.lookup(rec["primitive"], rec["barycentric"][:, 0],
+                                  rec["barycentric"][:, 1], -nrm)
+        if self.direct_cached:
+            indirect = light[:, 0] + light[:, 1]
+        else:  # the cache's direct light where the hit did not sample it (far hits)
+            cached = ~np.asarray(rec["sampled"], bool)
+            indirect = light[:, 0] + np.where(cached[:, None], light[:, 1], 0.0)
+        back = np.asarray(rec["backface_fraction"], np.float64)
+        cube, _ = replay(rec, self.settings, self.level, None, final=True,
+                         indirect=np.ascontiguousarray(indirect))
         return cube, back
 
     def maps(self, point: ArrayLike) -> PointMaps:
@@ -262,7 +401,7 @@ class PointTracer:
                 self._matrix = usercache.probe_filter_matrix(n, self.diffuse_size,
                                                              self.specular_levels)
             d, chain = probefilter.filter_cube(cube, self.diffuse_size, self.specular_levels,
-                                               matrix=self._matrix)
+                                               matrix=self._matrix, pool=self.records.pool)
         else:
             d = diffuse.diffuse_exact(cube, self.diffuse_size)
             chain = specular.ggx_prefilter(cube, levels=self.specular_levels)

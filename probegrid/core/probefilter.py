@@ -35,6 +35,7 @@ full chain, 0.6 MB at 16. Larger faces keep the per-call filters (a 64^2 matrix 
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
 from functools import lru_cache
 
 import numpy as np
@@ -145,7 +146,7 @@ def _face_gathers(n: int) -> NDArray[np.int64]:
 
 
 def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
-                matrix: NDArray[np.float32] | None = None
+                matrix: NDArray[np.float32] | None = None, pool: Executor | None = None
                 ) -> tuple[NDArray[np.float32], list[NDArray[np.float32]]]:
     """Diffuse map and GGX chain of ``faces (6, n, n, C)`` (finite, ``n <= MAX_FACE``).
 
@@ -162,6 +163,8 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
 
     ``matrix``: :func:`filter_matrix`'s matrix for these sizes when the caller already has it
     (e.g. read from a per-machine cache); computed (and kept per process) otherwise.
+    ``pool``: threads that each multiply a block of the matrix's rows (one cube's product
+    split over cores: the same sums, equal to float32 rounding).
     """
     src = check_cube(faces, name="faces")
     if not np.all(np.isfinite(src)):
@@ -174,8 +177,15 @@ def filter_cube(faces: ArrayLike, diffuse_size: int, levels: int, *,
         raise ValueError(f"the filter matrix has shape {matrix.shape}, expected {shape}")
     # face f's outputs: face 0's rows applied to the input permuted by face f's symmetry
     gathered = np.ascontiguousarray(src.reshape(-1, c), dtype=np.float32)[_face_gathers(n)]
+    rhs = gathered.reshape(-1, 6 * c)
     with one_blas_thread():  # workers are processes (cf. specular)
-        y = (matrix @ gathered.reshape(-1, 6 * c)).reshape(-1, 6, c)
+        if pool is None:
+            y = (matrix @ rhs).reshape(-1, 6, c)
+        else:  # row blocks side by side (numpy releases the GIL in the product)
+            workers = max(1, int(getattr(pool, "_max_workers", 2)))
+            cut = np.linspace(0, matrix.shape[0], workers + 1).astype(int)
+            blocks = list(pool.map(lambda i: matrix[cut[i]:cut[i + 1]] @ rhs, range(workers)))
+            y = np.concatenate(blocks).reshape(-1, 6, c)
     parts = []
     r0 = 0
     for s in sizes:  # (s, s, face, C) rows -> (face, s, s, C)

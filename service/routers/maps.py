@@ -13,7 +13,7 @@ from typing import Annotated, Any, Final, cast, get_args
 from fastapi import APIRouter, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
-from probegrid._types import MapKind, MapMethod
+from probegrid._types import MapKind, MapMethod, TraceQuality, choices
 from probegrid.core.lobes import level_roughness
 from probegrid.query import MAP_METHODS
 from service.deps import POINT_PARAMETERS, ProbeQueryDep, StateDep, plain_query, probe_query
@@ -31,6 +31,7 @@ INLINE_FACE_SIZE = 32
 MAX_LEVEL: Final = 64
 _FORMATS: Final = frozenset(get_args(CubeFormat))
 _LAYOUTS: Final = frozenset(get_args(CubeLayout))
+_QUALITIES: Final = frozenset(choices(TraceQuality))
 
 _BINARY = {"content": {t: {} for t in MEDIA_TYPES.values()}, "description": "The map."}
 
@@ -67,11 +68,13 @@ def resolve_map(request: Request) -> dict[str, Any] | None:
     fmt = params.get("format", "npy")  # the default of /v1/lights/maps too
     layout = params.get("layout", "faces")
     method = params.get("method", "trace")
-    if level is None or fmt not in _FORMATS or layout not in _LAYOUTS or method not in MAP_METHODS:
+    quality = params.get("quality", "accurate")
+    if (level is None or fmt not in _FORMATS or layout not in _LAYOUTS
+            or method not in MAP_METHODS or quality not in _QUALITIES):
         return None
     return {"request": request, "state": request.app.state.probegrid, "query": query,
             "kind": request.path_params["kind"], "level": level, "fmt": fmt, "layout": layout,
-            "method": method}
+            "method": method, "quality": quality}
 
 
 @router.get(
@@ -93,10 +96,19 @@ async def get_map(
     method: Annotated[MapMethod, Query(
         description="trace: what a probe baked at the point holds (traced there against the "
                     "grid); blend: the surrounding probes' maps blended.")] = "trace",
+    quality: Annotated[TraceQuality, Query(
+        description="The traced answer (method=trace): accurate (the default: light arriving "
+                    "at the rays' hits read from the bake's surface cache, direct light "
+                    "sampled there; ~15-30 ms at faces 32), fast (the cache's direct light too: "
+                    "softer shadows in reflections, about half the time) or reference (the "
+                    "bake's own estimator, gather rays at every hit: 3-5x slower).")
+    ] = "accurate",
 ) -> Response:
     """The cube map of one kind (and specular level) at ``(x, y, z)``: traced at the point
     (``method=trace``, the default; a store that cannot be traced answers with the blend) or
-    blended from the probes (``method=blend``).
+    blended from the probes (``method=blend``); ``quality`` picks the traced answer's preset.
+    ``incoming`` is answered by the trace for any store that can be traced (blended only
+    where the store keeps it).
 
     ``faces`` is ``(6, n, n, 3)`` for npy/json and the six faces stacked top to bottom for
     images; ``cross`` is the horizontal cross. Headers ``X-Probegrid-Probes`` (``index:weight``
@@ -119,8 +131,11 @@ async def get_map(
     used = field.map_method(method)
 
     def render() -> tuple[bytes, dict[str, str]]:
-        faces, w, made = field.cube_at(point.position, map_kind, level=level, method=used,
-                                       normal=point.normal)
+        try:
+            faces, w, made = field.cube_at(point.position, map_kind, level=level, method=used,
+                                           normal=point.normal, quality=quality)
+        except ValueError as exc:  # (incoming blended where the store keeps none)
+            raise ApiError(422, str(exc)) from None
         f = flags_json(w, visibility=point.normal is not None)
         meta: dict[str, object] = {"grid": grid.name, "kind": kind, "level": level,
                                    "method": made}
@@ -131,6 +146,8 @@ async def get_map(
             "X-Probegrid-Visibility": w.visibility,
             "X-Probegrid-Method": made,
         }
+        if made == "trace":
+            headers["X-Probegrid-Quality"] = quality
         if kind == "specular":
             r = float(level_roughness(level, levels))
             meta["roughness"] = r

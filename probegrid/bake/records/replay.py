@@ -266,11 +266,15 @@ def _replay_level(records: Level, depth: int, level: int, grid: NDArray[np.float
 
 
 def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: int,
-           cubes: NDArray[np.float32] | None, *, final: bool
+           cubes: NDArray[np.float32] | None, *, final: bool,
+           indirect: NDArray[np.float32] | None = None
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """A pass over a batch's records (their stored arrays) at bounce ``level`` with the
     bordered irradiance ``cubes`` (None: a black grid) of the grid level the hits read:
     ``level - 1 - depth`` with ``depth`` gather levels (:func:`grid_level_read`).
+    ``indirect`` (records without gather levels): the irradiance / pi of the light reflected
+    at least once at each of the probes' rays' hits, read in the grid's place (a probe traced
+    at a point reads it from the surface cache, :mod:`probegrid.bake.surfacecache`).
 
     Returns the probes' incoming cubes ``(B, 6, n, n, 3)`` float32 -- ``final``: what the probe
     sees (emission, its exact direct view of the emitters and the punctual lights included);
@@ -290,6 +294,10 @@ def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: in
     # gather levels, deepest first: its hits read the grid; each level above reads the light
     # the level below brings back (the rays' hits reflect at level - 1, theirs at level - 2)
     below = empty
+    if indirect is not None:
+        if depth:  # (a bug, not bad input)
+            raise RuntimeError("records with gather levels read no indirect light")
+        below = np.ascontiguousarray(indirect, np.float32)
     for d in range(depth, 0, -1):
         parents = len(levels[d - 1].kind)
         if level - d < 0:

@@ -96,11 +96,23 @@ class Level:
     #: (k, 8) int32 and float32: the probes a hit reads the grid through, and their weights.
     weight_index: NDArray[np.int32] | None = None
     weight: NDArray[np.float32] | None = None
+    #: (k,) int64 the triangle hit (-1: a miss) and (k, 2) float64 Embree's barycentrics
+    #: ``(u, v)`` there: kept only when asked (:meth:`empty` ``hits=True``; a probe traced at a
+    #: point reads the surface cache there, :mod:`probegrid.bake.surfacecache`).
+    primitive: NDArray[np.int64] | None = None
+    barycentric: NDArray[np.float64] | None = None
+    #: (k,) bool: whether the hit sampled the emitters and the environment (kept with
+    #: ``primitive``; the record tracer's ``sample_where``).
+    sampled: NDArray[np.bool_] | None = None
 
     @classmethod
-    def empty(cls, k: int) -> Level:
-        """The records (:data:`RECORD_KEYS`) of ``k`` rays: misses."""
+    def empty(cls, k: int, *, hits: bool = False) -> Level:
+        """The records (:data:`RECORD_KEYS`) of ``k`` rays: misses (with ``hits`` their
+        ``primitive`` and ``barycentric`` too)."""
         return cls(kind=np.zeros(k, np.uint8),
+                   primitive=np.full(k, -1, np.int64) if hits else None,
+                   barycentric=np.zeros((k, 2)) if hits else None,
+                   sampled=np.zeros(k, bool) if hits else None,
                    emission=np.zeros((k, 3), np.float32),
                    light_punctual=np.zeros((k, 3), np.float32),
                    light_emitters=np.zeros((k, 3), np.float32),

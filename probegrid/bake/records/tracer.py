@@ -32,6 +32,7 @@ its stream and the row, not on its batch, so a block traced again gives the same
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -57,6 +58,8 @@ __all__ = ["SHADE_CHUNK", "Draw", "RecordTracer"]
 #: (a whole batch of probes at once spends much of its time in page faults). Each ray's result
 #: does not depend on its chunk.
 SHADE_CHUNK = 1 << 15
+#: Fewest rays a chunk shaded on a thread of :attr:`RecordTracer.pool` holds.
+MIN_SPLIT = 1024
 
 
 #: Random numbers for given rows (a probe stream's rows, see RecordTracer.trace).
@@ -105,6 +108,13 @@ class RecordTracer:
         self.gather_samples = int(settings.gather_samples) if levels else 0
         #: Gather levels traced when ``gather_samples`` is not 0.
         self.gather_depth = max(levels, 1)
+        #: Threads that shade a level's chunks side by side (None: one after another; the
+        #: kernels and Embree release the GIL). Each ray's result does not depend on its chunk.
+        self.pool: ThreadPoolExecutor | None = None
+        #: Which front hits ``(prim_id, t)`` sample the emitters and the environment (None:
+        #: all; a probe traced at a point reads the others' from the surface cache).
+        self.sample_where: Callable[[NDArray[np.int64], NDArray[np.float64]],
+                                    NDArray[np.bool_]] | None = None
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None,
@@ -131,6 +141,10 @@ class RecordTracer:
             dirs, hits, (float(geo.max_distance), eps), sc.surface_tables, rd.double_sided,
             HitRecords(rec.kind, t, rec.position, rec.normal, rec.albedo, rec.emission))
         sc.apply_textures(hits.prim_id, hits.u, hits.v, rec.albedo, rec.emission, rows)
+        if rec.primitive is not None and rec.barycentric is not None:  # (asked: Level.empty)
+            rec.primitive[:] = hits.prim_id
+            rec.barycentric[:, 0] = hits.u
+            rec.barycentric[:, 1] = hits.v
         if sky_at_misses and not rd.environment.is_black:
             miss = np.flatnonzero(rec.kind == 0)
             if miss.size:
@@ -144,13 +158,19 @@ class RecordTracer:
             rays += len(which)
             scatter_divided(rec.light_punctual, rows,
                             sum_unblocked(len(rows), which, occluded, s_irr), np.pi, False)
+        if self.sample_where is not None and (draw_e is not None or draw_s is not None):
+            # the light sampled at some hits only (the others read it elsewhere)
+            keep = self.sample_where(hits.prim_id[rows], hits.t[rows])
+            rows, back_off, nrm = rows[keep], back_off[keep], nrm[keep]
+            if rec.sampled is not None:
+                rec.sampled[rows] = True
         # lit from a point offset short of the hit, back along the ray (shade_hits)
-        if draw_e is not None:
+        if draw_e is not None and rows.size:
             e_e, r = self.emitters.irradiance(back_off, nrm, draw_e(draw_rows[rows]),
                                               self.tracer, eps)
             rays += r
             scatter_divided(rec.light_emitters, rows, e_e, np.pi, False)
-        if draw_s is not None:  # the environment as a light (it no longer reaches the grid)
+        if draw_s is not None and rows.size:  # the environment as a light (not in the grid)
             e_s, r = self.sky.irradiance(back_off, nrm, draw_s(draw_rows[rows]), self.tracer,
                                          eps)
             rays += r
@@ -159,18 +179,26 @@ class RecordTracer:
 
     def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                    draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None, *,
-                   sky_at_misses: bool
+                   sky_at_misses: bool, hits: bool = False
                    ) -> tuple[Level, NDArray[np.float64], int]:
         """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time, into one set of
-        records."""
-        rec = Level.empty(len(dirs))
+        records (with ``hits`` each ray's triangle and barycentrics too)."""
+        rec = Level.empty(len(dirs), hits=hits)
         t = np.empty(len(dirs))
-        rays = 0
-        for c0 in range(0, len(dirs), SHADE_CHUNK):  # loop over chunks of rays, not rays
-            sl = slice(c0, min(c0 + SHADE_CHUNK, len(dirs)))
-            rays += self._shade(origins[sl], dirs[sl], draw_rows[sl], draw_e, draw_s,
-                                rec.rows(sl), t[sl],
-                                sky_at_misses=sky_at_misses)
+        chunk = SHADE_CHUNK
+        if self.pool is not None and len(dirs) >= 2 * MIN_SPLIT:  # one chunk per thread
+            chunk = min(chunk, -(-len(dirs) // self.pool._max_workers))
+
+        def shade(c0: int) -> int:
+            sl = slice(c0, min(c0 + chunk, len(dirs)))
+            return self._shade(origins[sl], dirs[sl], draw_rows[sl], draw_e, draw_s,
+                               rec.rows(sl), t[sl], sky_at_misses=sky_at_misses)
+
+        starts = range(0, len(dirs), chunk)  # chunks of rays, not rays
+        if self.pool is not None and len(starts) > 1:
+            rays = sum(self.pool.map(shade, starts))
+        else:
+            rays = sum(shade(c0) for c0 in starts)
         return rec, t, rays
 
     def _gather_level(self, draw: Any, rays_per_probe: int, purposes: tuple[int, int, int],
@@ -196,9 +224,10 @@ class RecordTracer:
                                        sky_at_misses=False)
         return rec, dirs, rays
 
-    def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
-              ) -> tuple[RecordArrays, NDArray[np.float32], int]:
-        """Cast every ray of probes at ``positions (B, 3)`` (linear ``indices``) once.
+    def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64], *,
+              hits: bool = False) -> tuple[RecordArrays, NDArray[np.float32], int]:
+        """Cast every ray of probes at ``positions (B, 3)`` (linear ``indices``) once (with
+        ``hits`` the probes' rays keep their triangles and barycentrics, :class:`Level`).
 
         Returns the records (their stored arrays, :meth:`Records.arrays`), the probes' distance
         moments ``(B, 6, m, m, 2)`` and the rays cast.
@@ -233,7 +262,7 @@ class RecordTracer:
 
         rec, t, rays = self._shade_all(origins, flat, np.arange(b * nr),
                                        _light_draw(draw, 1, nr, ls), _light_draw(draw, 2, nr, ks),
-                                       sky_at_misses=True)
+                                       sky_at_misses=True, hits=hits)
         levels = [rec]
         if kg:
             # final gather (module docstring): kg rays from every front hit, one more from each

@@ -1,0 +1,312 @@
+"""The surface light cache: the light arriving at the scene's surfaces, stored at bake time so
+that a probe traced at any point (:class:`probegrid.bake.point.PointTracer`) reads it where its
+rays hit instead of gathering it there.
+
+A probe's ray that hits a surface returns ``emission + albedo * (direct + indirect)``, both
+irradiance / pi at the hit. The bake computes the indirect part by final gather (cosine rays from
+the hit, lit at theirs, one more level below, the converged grid read at the deepest hits:
+:mod:`probegrid.bake.records.tracer`); that is four fifths of a traced point's rays and their
+shadow rays. It is a smooth function of the point on the surface, the same for every query point,
+so the bake stores it once, as Lumen's surface cache (Wright et al., "Lumen: Real-time Global
+Illumination in Unreal Engine 5", SIGGRAPH 2022 course) and SEED's surfels (Halen et al.,
+"Global Illumination Based on Surfels", SIGGRAPH 2021 course) do at run time: here at the
+vertices of a barycentric lattice over each triangle (mesh colors, Yuksel et al. 2010; the
+layout and lookup are :func:`probegrid.bake.kernels.surfacecache.cache_lookup`), both sides of a
+double-sided triangle. Each vertex holds
+
+* ``indirect``: the light reflected at least once, gathered exactly as the bake gathers it at a
+  probe's hit -- :data:`CACHE_GATHER` cosine rays instead of ``gather_samples``, each lit as the
+  bake lights gather rays, the same gather levels below, the converged grid read at the deepest
+  hits (:func:`bake_surface_cache`); so a query reading it computes the bake's estimator with
+  the hit's gather averaged over many more rays and interpolated over the lattice;
+* ``direct``: the emitters' and the environment's direct light, :data:`CACHE_LIGHT_SAMPLES`
+  samples each, read by a query at the hits where a lattice cell looks smaller than a mirror texel, or
+  everywhere (``PointSettings.direct="cache"``); the punctual lights' is always exact at the
+  hits (one shadow ray per light).
+
+The lattice's spacing is the same on every triangle (each triangle's resolution is its longest
+edge over the spacing rounded down, 0 -- the centroid alone -- to :data:`MAX_RESOLUTION`), the
+finest whose vertices cost at most :data:`CACHE_COST` of the bake's shading points
+(:func:`cache_vertices`, :func:`lattice_resolutions`; measured 1.20-1.24x the bake's time),
+and the bake's outputs are unchanged (the cache is an extra of the store). A scene with more
+triangle sides than that budget stores no cache (its queries gather). Lattice vertices stand a
+hair inside their triangle (:data:`INSET`), so that no gather ray starts on the edge of a
+concave corner.
+
+The cache's random numbers are one counter-based stream per purpose
+(:func:`probegrid.bake.kernels.sampling.stream_uniforms`) keyed by the bake's seed and
+:data:`CACHE_STREAM`, a row per vertex and ray: a bake's cache is the same bits whatever its
+chunks.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from probegrid.bake.environment import Environment
+from probegrid.bake.kernels.grid import mean_per_parent
+from probegrid.bake.kernels.surfacecache import cache_lookup
+from probegrid.bake.records.replay import GridData, _level_weights, _replay_level, irradiance_size
+from probegrid.bake.records.schema import Level, gather_keys
+from probegrid.bake.records.tracer import RecordTracer, _stream_keys
+from probegrid.bake.settings import BakeSettings, TraceGeometry
+from probegrid.raytrace import RayTracer
+from probegrid.scene import Scene
+
+__all__ = ["CACHE_COST", "CACHE_GATHER", "CACHE_LIGHT_SAMPLES", "LATTICE_EXTRA", "LIGHT_EXTRA",
+           "SurfaceCache", "bake_surface_cache", "cache_vertices", "lattice_positions",
+           "lattice_resolutions"]
+
+#: The store extra of the lattice: per triangle its front's first vertex, its back's (-1 for a
+#: one-sided triangle) and its resolution, ``(T, 3) int64``.
+LATTICE_EXTRA = "surface_lattice"
+#: The store extra of the light at the lattice's vertices, ``(V, 2, 3) float32``: irradiance / pi
+#: of the light reflected at least once (``[:, 0]``) and of the emitters' and environment's
+#: direct light (``[:, 1]``).
+LIGHT_EXTRA = "surface_light"
+
+#: Cosine-weighted gather rays per lattice vertex (the bake's hits cast ``gather_samples``).
+CACHE_GATHER = 64
+#: Emitter and environment samples per lattice vertex for its direct light.
+CACHE_LIGHT_SAMPLES = 16
+#: The cache's shading points (vertices and their gather hits) as a fraction of the bake's
+#: (its probes' rays and their gather hits).
+CACHE_COST = 0.55
+#: Largest lattice resolution of a triangle (edges over the spacing).
+MAX_RESOLUTION = 64
+#: Largest number of lattice vertices (24 bytes each in the store).
+MAX_VERTICES = 1 << 21
+#: Lattice vertices stand this fraction of the way from the triangle's edge to its centroid.
+INSET = 1e-3
+#: The random streams' index of the cache (beyond every probe's and query point's, < 2^62).
+CACHE_STREAM = (1 << 62) + 1
+#: Vertices shaded together.
+CHUNK = 4096
+
+
+def lattice_counts(res: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Vertices of a lattice of resolution ``res``: ``(r + 1)(r + 2) / 2`` (one, the
+    centroid, for 0)."""
+    r = np.asarray(res, np.int64)
+    return (r + 1) * (r + 2) // 2
+
+
+def cache_vertices(settings: BakeSettings, probes: int) -> int:
+    """The lattice vertices a bake of ``settings`` and ``probes`` probes affords: its shading
+    points (each probe's rays and their gather hits) times :data:`CACHE_COST` over a vertex's
+    (its gather hits, and its direct light's samples counted as one hit per bake light
+    sample's worth), at least 64 and at most :data:`MAX_VERTICES`."""
+    depth = settings.gather_levels()
+    kg = settings.gather_samples if depth else 0
+    rays = 6 * settings.face_size ** 2 * settings.samples
+    bake_points = probes * rays * (1 + kg * depth)
+    vertex = (CACHE_GATHER * depth if kg else 0) + CACHE_LIGHT_SAMPLES / settings.light_samples
+    return int(min(MAX_VERTICES, max(64, CACHE_COST * bake_points / vertex)))
+
+
+def longest_edges(scene: Scene) -> NDArray[np.float64]:
+    """Each triangle's longest edge."""
+    v = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles)]
+    return np.max(np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2), axis=1)
+
+
+def lattice_resolutions(scene: Scene, vertices: int) -> NDArray[np.int64] | None:
+    """Each triangle's resolution for at most ``vertices`` lattice vertices in all (both sides
+    of double-sided triangles counted): its longest edge over one spacing, rounded down, the
+    finest spacing that fits (bisection), 0 (the centroid alone) to :data:`MAX_RESOLUTION`;
+    None when one vertex a side is already too many (a scene of more triangles than the
+    budget: no cache)."""
+    edge = longest_edges(scene)
+    sides = 1 + np.asarray(scene.double_sided, np.int64)
+
+    def res(h: float) -> NDArray[np.int64]:
+        return np.clip(np.floor(edge / h), 0, MAX_RESOLUTION).astype(np.int64)
+
+    if int(np.sum(sides)) > vertices:
+        return None
+    lo, hi = 1e-9 * max(float(edge.max()), 1e-9), 2.0 * max(float(edge.max()), 1e-9)
+    for _ in range(60):  # bisection on the spacing, in log
+        h = math.sqrt(lo * hi)
+        if int(np.sum(sides * lattice_counts(res(h)))) > vertices:
+            lo = h
+        else:
+            hi = h
+    return res(hi)
+
+
+def lattice_layout(scene: Scene, res: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The ``(T, 3)`` lattice table (:data:`LATTICE_EXTRA`) of resolutions ``res``."""
+    counts = lattice_counts(res)
+    sides = 1 + np.asarray(scene.double_sided, np.int64)
+    start = np.concatenate([[0], np.cumsum(sides * counts)[:-1]]).astype(np.int64)
+    back = np.where(sides == 2, start + counts, -1)
+    return np.stack([start, back, res], axis=1).astype(np.int64)
+
+
+def lattice_positions(scene: Scene, lattice: NDArray[np.int64]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Positions and unit normals (the side's: a back's is flipped) ``(V, 3)`` of every lattice
+    vertex, each a fraction :data:`INSET` of the way toward its triangle's centroid."""
+    tri = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles)]
+    nrm = np.asarray(scene.triangle_normals, np.float64)
+    res = lattice[:, 2]
+    total = int(np.sum(lattice_counts(res) * (1 + (lattice[:, 1] >= 0))))
+    pos = np.empty((total, 3))
+    out_n = np.empty((total, 3))
+    for r in np.unique(res):  # loop over resolutions (at most MAX_RESOLUTION), not vertices
+        ts = np.flatnonzero(res == r)
+        j, i = np.divmod(np.arange((r + 1) * (r + 1)), r + 1)
+        keep = i + j <= r  # row j after row j - 1: the layout of cache_lookup
+        bu, bv = (i[keep] / r, j[keep] / r) if r else (np.full(1, 1 / 3), np.full(1, 1 / 3))
+        bary = np.stack([1.0 - bu - bv, bu, bv], axis=1)
+        bary = (1.0 - INSET) * bary + INSET / 3.0
+        pts = np.einsum("mk,tkc->tmc", bary, tri[ts])  # (T_r, m, 3)
+        m = bary.shape[0]
+        for side, col in ((1.0, 0), (-1.0, 1)):  # front, then back
+            on = lattice[ts, col] >= 0
+            rows = lattice[ts[on], col][:, None] + np.arange(m)[None, :]
+            pos[rows] = pts[on]
+            out_n[rows] = side * nrm[ts[on]][:, None, :]
+    return pos, out_n
+
+
+class SurfaceCache:
+    """A store's surface cache (:data:`LATTICE_EXTRA`, :data:`LIGHT_EXTRA`; memory-mapped as
+    stored) read at ray hits."""
+
+    def __init__(self, scene: Scene, lattice: NDArray[np.int64], light: NDArray[np.float32]
+                 ) -> None:
+        self.lattice = np.ascontiguousarray(lattice, np.int64)
+        self.light = light.reshape(len(light), -1)
+        self.normals = np.ascontiguousarray(scene.triangle_normals, np.float64)
+        if len(self.lattice) != len(self.normals):
+            raise ValueError("the surface cache is not of this scene (triangle count).")
+        #: Each triangle's lattice spacing: its longest edge over its resolution (the whole
+        #: edge for resolution 0).
+        self.spacing = longest_edges(scene) / np.maximum(self.lattice[:, 2], 1)
+
+    def lookup(self, prim: NDArray[np.int64], u: NDArray[np.float64], v: NDArray[np.float64],
+               directions: NDArray[np.float64]) -> NDArray[np.float32]:
+        """Indirect and direct irradiance / pi ``(k, 2, 3)`` at hits of rays along
+        ``directions (k, 3)`` (``prim`` -1: a miss, zeros)."""
+        out = cache_lookup(np.ascontiguousarray(prim, np.int64), np.ascontiguousarray(u),
+                           np.ascontiguousarray(v), np.ascontiguousarray(directions),
+                           self.normals, self.lattice, self.light)
+        return out.reshape(len(out), 2, 3)
+
+
+def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSettings,
+                       geometry: TraceGeometry, data: GridData, *, level: int, vertices: int,
+                       tracer: RayTracer | None = None
+                       ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
+    """The lattice table, the light at its vertices (module docstring) and the rays cast, for
+    a bake of ``settings`` whose final pass, at bounce ``level``, read ``data`` (``cubes`` the
+    grid's bordered irradiance, None for none), with at most ``vertices`` lattice vertices
+    (None: the scene has more triangle sides than that, :func:`lattice_resolutions`)."""
+    res = lattice_resolutions(scene, vertices)
+    if res is None:
+        return None
+    lattice = lattice_layout(scene, res)
+    pos, nrm = lattice_positions(scene, lattice)
+    depth = settings.gather_levels()
+    st = settings.model_copy(update={"gather_samples": CACHE_GATHER if depth else 0,
+                                     "gather_depth": max(depth, 1)})
+    rt = RecordTracer(scene, environment, st, geometry, tracer=tracer)
+    eps = geometry.ray_offset
+    total = len(pos)
+    light = np.zeros((total, 2, 3), np.float32)
+    keys: dict[int, NDArray[np.uint64]] = {}
+
+    def draw(purpose: int, per: int, width: int, rows: NDArray[np.int64]) -> NDArray[np.float64]:
+        if purpose not in keys:
+            keys[purpose] = _stream_keys(settings.seed, np.array([CACHE_STREAM]), purpose)
+        u = np.asarray(_draw_rows(keys[purpose], per, rows, width))
+        if purpose == 3:  # a vertex's first gather rays: stratified over the unit square
+            u = stratified(u, rows % CACHE_GATHER, CACHE_GATHER)
+        return u
+
+    ls = CACHE_LIGHT_SAMPLES if len(rt.emitters) else 0
+    ks = 0 if rt.sky.is_black else CACHE_LIGHT_SAMPLES
+    kg = rt.gather_samples
+    g = irradiance_size(depth > 0)
+    grid = data.cubes if data.cubes is not None else np.zeros((0, 3), np.float32)
+    empty = np.zeros((0, 3), np.float32)
+    rays = 0
+    for v0 in range(0, total, CHUNK):  # loop over chunks of vertices, not vertices
+        v1 = min(v0 + CHUNK, total)
+        k = v1 - v0
+        p = pos[v0:v1]
+        n = nrm[v0:v1]
+        # direct light of the emitters and the environment, from just off the surface
+        off = p + eps * n
+        if ls:
+            e, r = rt.emitters.irradiance(off, n, draw(1, total, 3 * ls, np.arange(v0, v1))
+                                          .reshape(k, ls, 3), rt.tracer, eps)
+            light[v0:v1, 1] += (e / np.pi).astype(np.float32)
+            rays += r
+        if ks:
+            e, r = rt.sky.irradiance(off, n, draw(2, total, 3 * ks, np.arange(v0, v1))
+                                     .reshape(k, ks, 3), rt.tracer, eps)
+            light[v0:v1, 1] += (e / np.pi).astype(np.float32)
+            rays += r
+        if not kg or level < 1:
+            continue
+        # the gather: the vertices as front hits seen from straight above
+        above = Level(kind=np.ones(k, np.uint8), position=p, normal=n.astype(np.float32))
+        arriving = -n
+        front = np.arange(k)
+        rows = (v0 + np.repeat(front, kg)) * kg + np.tile(np.arange(kg), k)
+        parent_row = np.repeat(front, kg)
+        levels: list[Level] = [above]
+        for d in range(1, depth + 1):
+            lv, g_dir, cast = rt._gather_level(draw, total, (3 * d, 3 * d + 1, 3 * d + 2),
+                                               rows, above, arriving, parent_row, bool(ls),
+                                               bool(ks))
+            rays += cast
+            kept = lv.keep(gather_keys(deepest=d == depth))
+            kept.primary = parent_row.astype(np.int32)
+            levels.append(kept)
+            hit = np.flatnonzero(lv.kind == 1)
+            rows, parent_row = rows[hit], hit
+            above, arriving = lv, g_dir
+        deepest = levels[depth]
+        if grid.shape[0]:
+            deepest.weight_index, deepest.weight = _level_weights(deepest, data)
+        below = empty
+        for d in range(depth, 0, -1):  # deepest first, as the bake's replay
+            parents = len(levels[d - 1].kind)
+            if level - d < 0:
+                below = np.zeros((parents, 3), np.float32)
+                continue
+            _, reflected = _replay_level(levels[d], d, level - d,
+                                         grid if d == depth else empty, below, g)
+            primary = levels[d].primary
+            assert primary is not None
+            below = mean_per_parent(primary, reflected, parents)
+        light[v0:v1, 0] = below
+    return lattice, light, rays
+
+
+def stratified(u: NDArray[np.float64], k: NDArray[np.int64], count: int) -> NDArray[np.float64]:
+    """Uniform pairs ``u (n, 2)`` of sample ``k`` of ``count`` moved into stratum ``k`` of a
+    ``sqrt(count)``-square grid over the unit square (unchanged unless ``count`` is a square):
+    each vertex's gather rays then cover the cosine lobe evenly (the cosine map of
+    :func:`probegrid.bake.kernels.sampling.gather_rays` keeps the strata's equal measure)."""
+    s = math.isqrt(count)
+    if s * s != count or s < 2:
+        return u
+    out = np.empty_like(u)
+    out[:, 0] = (k // s + u[:, 0]) / s
+    out[:, 1] = (k % s + u[:, 1]) / s
+    return out
+
+
+def _draw_rows(keys: NDArray[np.uint64], per: int, rows: NDArray[np.int64], width: int
+               ) -> Any:
+    from probegrid.bake.kernels.sampling import stream_uniforms
+
+    return stream_uniforms(keys, max(int(per), int(rows.max(initial=0)) + 1), rows, width)

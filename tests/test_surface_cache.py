@@ -1,0 +1,263 @@
+"""The surface light cache (probegrid.bake.surfacecache) and the traced answer's presets.
+
+The lattice lookup reproduces light linear over a triangle exactly; a furnace box (every wall
+emitting ``Le`` with albedo ``rho``) has the analytic cache ``rho Le / (1 - rho)`` (light
+reflected at least once) and ``Le`` (the emitters' direct light) at every vertex, and a probe
+traced anywhere inside reads ``Le / (1 - rho)`` whichever preset answers; a panel room's traced
+point agrees with a probe baked there (the cache against the bake's own gather). Then the
+presets through ``ProbeField``, the service (422 on a bad value) and the client, and the
+incoming cube traced for a store that keeps none.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+
+import httpx
+import numpy as np
+import pytest
+
+from probegrid.bake import BakeSettings, bake
+from probegrid.bake.kernels.surfacecache import cache_lookup
+from probegrid.bake.point import POINT_PRESETS, PointSettings, PointTracer
+from probegrid.bake.surfacecache import (
+    INSET,
+    LATTICE_EXTRA,
+    LIGHT_EXTRA,
+    lattice_counts,
+    lattice_layout,
+    lattice_positions,
+    lattice_resolutions,
+)
+from probegrid.core.grid import GridSpec
+from probegrid.query import ProbeField
+from probegrid.scene import SceneBuilder, Material, box_scene, load_gltf
+
+FAST = {"face_size": 8, "diffuse_size": 4, "moments_size": 4, "batch_size": 4}
+
+
+def _two_triangles(double: bool):
+    b = SceneBuilder()
+    m = b.add_material(Material(base_color=(0.5, 0.5, 0.5), double_sided=double))
+    b.add_quad((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 0.0, 1.0), material=m)
+    return b.build()
+
+
+@pytest.mark.parametrize("double", [False, True])
+def test_the_lattice_reads_light_linear_over_a_triangle_exactly(double):
+    """Values linear in the position at every lattice vertex come back exactly (to float32)
+    anywhere on the triangle, per side; a one-sided triangle's back and a miss read 0."""
+    scene = _two_triangles(double)
+    res = lattice_resolutions(scene, 200)
+    assert res is not None and res.min() >= 1
+    lattice = lattice_layout(scene, res)
+    pos, nrm = lattice_positions(scene, lattice)
+    total = int(np.sum(lattice_counts(res) * (1 + double)))
+    assert len(pos) == total <= 200
+    # front: a linear function of the position; back: another
+    front = np.where(np.einsum("vc,c->v", nrm, scene.triangle_normals[0]) > 0, 1.0, 0.0)
+    values = np.stack([1.0 + pos @ [0.3, 0.0, 0.7], 5.0 - pos @ [0.1, 0.0, 0.2],
+                       2.0 + 0.0 * pos[:, 0], 0.5 + pos @ [1.0, 0.0, 0.0],
+                       0.5 + 0.0 * pos[:, 0], 0.5 + 0.0 * pos[:, 0]], axis=1)
+    values[:, 3:] *= (1.0 - front)[:, None]  # the back's channels
+    values[:, :3] *= front[:, None]
+    rng = np.random.default_rng(1)
+    k = 500
+    prim = rng.integers(0, scene.n_triangles, k)
+    u, v = rng.random((2, k))
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    tri = np.asarray(scene.vertices)[np.asarray(scene.triangles)[prim]]
+    p = (1 - u - v)[:, None] * tri[:, 0] + u[:, None] * tri[:, 1] + v[:, None] * tri[:, 2]
+    # the vertices stand INSET of the way toward the centroid: so does what they give back
+    c = tri.mean(axis=1)
+    p = c + (1.0 - INSET) * (p - c)
+    for side in (1.0, -1.0):  # rays from above the front, then from behind
+        dirs = -side * np.asarray(scene.triangle_normals)[prim]
+        got = cache_lookup(prim.astype(np.int64), u, v, dirs,
+                           np.asarray(scene.triangle_normals, np.float64), lattice,
+                           values.astype(np.float32))
+        if side > 0:
+            expect = np.stack([1.0 + p @ [0.3, 0.0, 0.7], 5.0 - p @ [0.1, 0.0, 0.2],
+                               np.full(k, 2.0)], axis=1)
+            np.testing.assert_allclose(got[:, :3], expect, rtol=2e-6, atol=2e-6)
+            np.testing.assert_array_equal(got[:, 3:], 0.0)
+        elif double:
+            np.testing.assert_allclose(got[:, 3], 0.5 + p[:, 0], rtol=2e-6)
+        else:  # the back of a one-sided triangle: none
+            np.testing.assert_array_equal(got, 0.0)
+    miss = cache_lookup(np.array([-1]), np.zeros(1), np.zeros(1), np.array([[0.0, -1.0, 0.0]]),
+                        np.asarray(scene.triangle_normals, np.float64), lattice,
+                        values.astype(np.float32))
+    np.testing.assert_array_equal(miss, 0.0)
+
+
+def test_a_budget_below_one_vertex_per_triangle_stores_no_cache():
+    scene = _two_triangles(True)
+    assert lattice_resolutions(scene, 3) is None  # 2 triangles, 2 sides each
+    res = lattice_resolutions(scene, 4)
+    assert res is not None and list(res) == [0, 0]  # the centroids alone
+    assert lattice_positions(scene, lattice_layout(scene, res))[0].shape == (4, 3)
+
+
+@pytest.fixture(scope="module")
+def furnace(tmp_path_factory):
+    rho, le = 0.5, 2.0
+    scene = box_scene((-1, -1, -1), (1, 1, 1), albedo=rho, emission=le, inward=True)
+    grid = GridSpec.from_counts((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), (2, 1, 1))
+    store = bake(scene, grid, tmp_path_factory.mktemp("furnace") / "f.probes",
+                 settings=BakeSettings(bounces="converge", **FAST)).store
+    return scene, store, rho, le
+
+
+def test_the_furnace_cache_holds_the_reflected_and_the_emitted_light(furnace):
+    """Every vertex of a converged furnace box: light reflected at least once
+    ``rho Le / (1 - rho)``, the emitters' direct light ``Le`` (irradiance / pi)."""
+    scene, store, rho, le = furnace
+    assert {LATTICE_EXTRA, LIGHT_EXTRA} <= set(store.manifest.extras)
+    light = np.asarray(store[LIGHT_EXTRA], np.float64)
+    lattice = np.asarray(store[LATTICE_EXTRA])
+    assert lattice.shape == (scene.n_triangles, 3) and light.shape[1:] == (2, 3)
+    assert store.manifest.quality["surface_cache_rays"] > 0
+    # the gather converges to the grid's limit (to the furnace test's tolerance, 1e-3) with
+    # the noise of the direct samples' and gather rays' none: every ray sees the same
+    np.testing.assert_allclose(light[:, 0], rho * le / (1 - rho), rtol=2e-3)
+    np.testing.assert_allclose(light[:, 1], le, rtol=1e-4)
+
+
+@pytest.mark.parametrize("quality", list(POINT_PRESETS))
+def test_every_preset_reads_the_furnace_limit_anywhere(furnace, quality):
+    scene, store, rho, le = furnace
+    tracer = PointTracer.from_store(store, scene, settings=PointSettings.preset(quality))
+    assert (tracer.cache is not None) == (quality != "reference")
+    assert tracer.direct_cached == (quality == "fast")
+    maps = tracer.maps(np.array([0.31, -0.62, 0.17]))
+    np.testing.assert_allclose(maps.incoming, le / (1 - rho), rtol=2e-3)
+    np.testing.assert_allclose(maps.diffuse, le / (1 - rho), rtol=3e-3)
+
+
+def test_accurate_samples_the_direct_light_where_the_lattice_is_coarser_than_a_texel(furnace):
+    """The accurate preset samples the emitters at the hits nearer than ``spacing 2 n / pi``
+    (a lattice cell seen larger than a mirror texel) and reads the cache's direct light beyond:
+    both give the furnace's ``Le`` (the traced cube above), and the rule is the distance's."""
+    scene, store, rho, le = furnace
+    tracer = PointTracer.from_store(store, scene)
+    tracer.cache.spacing = tracer.cache.spacing / 8  # (a finer lattice: some hits are far)
+    p = np.array([0.9, -0.9, 0.9])  # by a corner: near and far walls
+    rec, _, _ = tracer.records.trace(p[None], np.array([7]), hits=True)
+    front = rec["kind"] == 1
+    dist = np.linalg.norm(rec["position"] - p, axis=1)
+    reach = tracer.cache.spacing[rec["primitive"]] * 8 * 2 / np.pi
+    sampled = rec["sampled"]
+    assert 0 < sampled[front].mean() < 1
+    clear = front & (np.abs(dist - reach) > 1e-6 * reach)
+    np.testing.assert_array_equal(sampled[clear], dist[clear] < reach[clear])
+    np.testing.assert_allclose(tracer.maps(p).incoming, le / (1 - rho), rtol=2e-3)
+
+
+def test_the_presets_are_checked():
+    with pytest.raises(ValueError, match="quality must be one of accurate, fast, reference"):
+        PointSettings.preset("best")
+    assert PointSettings.preset("fast").direct == "cache"
+    assert PointSettings.preset("reference").indirect == "gather"
+
+
+def test_a_store_without_a_cache_gathers_and_fast_lowers_the_gather(furnace, tmp_path):
+    import json
+    import shutil
+
+    scene, store, rho, le = furnace
+    copy = tmp_path / "old.probes"
+    shutil.copytree(store.path, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    del manifest["extras"][LATTICE_EXTRA], manifest["extras"][LIGHT_EXTRA]
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    from probegrid.store import open_store
+
+    old = open_store(copy)
+    accurate = PointTracer.from_store(old, scene)
+    assert accurate.cache is None and accurate.records.gather_samples == 2
+    fast = PointTracer.from_store(old, scene, settings=PointSettings.preset("fast"))
+    assert fast.cache is None and fast.records.gather_samples == 1
+    assert fast.records.gather_depth == 1 and fast.records.light_samples == 1
+    with pytest.raises(ValueError, match="keeps no surface cache"):
+        PointTracer.from_store(old, scene, settings=PointSettings(indirect="cache"))
+
+
+def test_threads_do_not_change_a_traced_point(furnace):
+    """The rays shaded on two threads, in two chunks: each ray's record is its own."""
+    from probegrid.bake.records import tracer as rt
+
+    scene, store, _, _ = furnace
+    one = PointTracer.from_store(store, scene, threads=1)
+    two = PointTracer.from_store(store, scene, threads=2)
+    p = np.array([0.1, 0.2, -0.3])
+    old = rt.MIN_SPLIT
+    rt.MIN_SPLIT = 16  # (the cubes of faces 8 are 384 rays)
+    try:
+        np.testing.assert_array_equal(two.incoming(p[None]), one.incoming(p[None]))
+    finally:
+        rt.MIN_SPLIT = old
+
+
+# ------------------------------------------------------------------------------ the service
+@pytest.fixture(scope="module")
+def room_store(tmp_path_factory):
+    """The sample room baked with its glTF kept in the store, without incoming cubes."""
+    from probegrid.jobs.samples import sample_room_glb_bytes
+
+    root = tmp_path_factory.mktemp("room")
+    glb = root / "room.glb"
+    glb.write_bytes(sample_room_glb_bytes())
+    st = BakeSettings(face_size=8, diffuse_size=4, moments_size=4, bounces=1, batch_size=4)
+    grid = GridSpec.from_counts((-1.0, 1.0, -1.0), (1.0, 1.0, 1.0), (2, 1, 2))
+    return bake(load_gltf(glb), grid, root / "room.probes", settings=st, scene_file=glb).store
+
+
+def test_the_service_answers_each_preset_and_refuses_a_bad_one(room_store):
+    from service.main import create_app
+
+    app = create_app([room_store.path])
+    point = {"x": "0.1", "y": "1.2", "z": "-0.3"}
+    field = ProbeField(room_store)
+    assert "incoming" in field.kinds and "incoming" not in room_store.names
+    p = np.array([0.1, 1.2, -0.3])
+
+    async def fetch():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as c:
+            url = "/v1/grids/room/maps/"
+            return [await c.get(url + "diffuse", params={**point, "quality": q})
+                    for q in ("fast", "reference")] + [
+                await c.get(url + "diffuse", params=point),
+                await c.get(url + "diffuse", params={**point, "quality": "best"}),
+                await c.get(url + "diffuse", params={**point, "quality": ""}),
+                await c.get(url + "incoming", params=point),
+                await c.get(url + "incoming", params={**point, "method": "blend"}),
+                await c.get(url + "incoming", params={**point, "level": "1"})]
+
+    fast, ref, default, bad, empty, incoming, blend_in, level_in = asyncio.run(fetch())
+    for r, q in ((fast, "fast"), (ref, "reference"), (default, "accurate")):
+        assert r.status_code == 200 and r.headers["x-probegrid-quality"] == q
+        np.testing.assert_array_equal(np.load(io.BytesIO(r.content)),
+                                      field.point_maps(p, quality=q).diffuse)
+    assert bad.status_code == 422 and "quality" in bad.text
+    assert empty.status_code == 422
+    assert incoming.status_code == 200
+    np.testing.assert_array_equal(np.load(io.BytesIO(incoming.content)),
+                                  field.point_maps(p, quality="accurate").incoming)
+    assert blend_in.status_code == 422 and "traced" in blend_in.json()["message"]
+    assert level_in.status_code == 422
+
+
+def test_the_client_passes_the_quality_through():
+    from probegrid.client import ProbeGridClient
+    from probegrid.errors import ProbegridError
+
+    call = ProbeGridClient._map_call("g", (0.0, 1.0, 2.0), None, "diffuse", 0, "trace", "fast")
+    assert call.params["quality"] == "fast"
+    assert "quality" not in ProbeGridClient._map_call("g", (0.0, 1.0, 2.0), None, "diffuse",
+                                                      0).params
+    with pytest.raises(ProbegridError, match="quality must be one of"):
+        ProbeGridClient._map_call("g", (0.0, 1.0, 2.0), None, "diffuse", 0, "trace", "best")
