@@ -481,12 +481,14 @@ def test_one_bounce_off_a_floor_is_gathered_not_read_from_the_probe(tmp_path):
     np.testing.assert_allclose(got.mean(axis=0), exact.mean(), rtol=0.015)
 
 
-def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold(
+def test_the_gathers_noise_is_spread_over_texels_without_changing_what_they_hold(
         tmp_path, monkeypatch):
     """What a probe sees of its hits' gathered light keeps the grid read at each hit and the
-    blocks' mean gather correction: two seeds differ by 1.8 % per texel (9 % with the raw
-    gather), and each probe's solid-angle integral over the hits facing each side (floor,
-    ceiling, each wall) is what the raw gather gives: no light moves between surfaces."""
+    gather's correction smoothed over the texels around it: two seeds differ by 3.3 % per
+    texel (2.7 % with a mean correction per 8 x 8 block and rays through the texel centres,
+    which every seed shares; 9 % with the raw gather), and each probe's solid-angle integral
+    over the hits facing each side (floor, ceiling, each wall) is what the raw gather gives: no
+    light moves between surfaces."""
     from probegrid.bake.records import replay as rc
     from probegrid.core.arrays import sum_rows
     from probegrid.core.cubemap import texel_solid_angles
@@ -526,7 +528,7 @@ def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold
     for before, after in integrals:
         np.testing.assert_allclose(after, before, rtol=1e-5, atol=1e-6 * before.max())
     a, c = incoming
-    assert np.abs(a - c).sum() / (a + c).sum() < 0.03
+    assert np.abs(a - c).sum() / (a + c).sum() < 0.04
 
 
 def test_environment_rotation_rotates_the_probes(tmp_path):
@@ -685,7 +687,16 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
     import numba
 
     from probegrid.bake import preload
-    from probegrid.bake.kernels import cube, emitters, environment, grid, lights, sampling, surfaces
+    from probegrid.bake.kernels import (
+        cube,
+        emitters,
+        environment,
+        grid,
+        lights,
+        sampling,
+        surfaces,
+        texels,
+    )
     from probegrid.raytrace import kernels as rays
 
     preload._warm_up()  # raises if the tiny bake fails
@@ -694,7 +705,8 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
             (emitters, "polygon_irradiance"), (environment, "environment_samples"),
             (sampling, "gather_rays"), (grid, "hit_probe_weights"), (grid, "replay_radiance"),
             (grid, "distance_moments"), (cube, "cube_sample_directions"),
-            (emitters, "texel_emitter_coverage"), (rays, "embree_rays"), (rays, "embree_hits")]
+            (emitters, "texel_emitter_coverage"), (rays, "embree_rays"), (rays, "embree_hits"),
+            (texels, "smooth_texels")]
     for module, name in used:
         fn = getattr(module, name)
         assert isinstance(fn, numba.core.registry.CPUDispatcher)

@@ -242,7 +242,7 @@ class PointTracer:
                 rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
             cubes = self.data.cubes
         back = np.asarray(rec["backface_fraction"], np.float64)
-        cube, _ = replay(rec, self.settings, self.level, cubes, final=True)
+        cube, _ = replay(rec, self.settings, self.level, cubes, final=True, positions=pos)
         return cube, back
 
     def maps(self, point: ArrayLike) -> PointMaps:
