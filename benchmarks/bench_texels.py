@@ -25,7 +25,9 @@ Figures, per probe, then the mean and the worst probe:
   all faces of all probes; for the incoming cube and every specular level of at least 16
   texels (the reference filtered by the bake's own filter), with the reference's own ratio
   (``e = render A - render B``) beside. What the scene shows cancels in ``e``: 1.0 is no block
-  structure.
+  structure. ``--noise-seed S`` bakes again with seed ``S``: the statistic of the difference
+  of the two bakes is that of the bake's own noise alone (a mean correction per 8 x 8 block
+  makes it a step function of the blocks).
 * **time**: the bake's wall time (scene in memory to store), probes per second.
 
 ``--sun-only`` isolates how the texels sample the sun's sharp patterns (stripes of sunlight
@@ -154,6 +156,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--samples", type=int, default=None, help="rays per texel (default: the "
                    "checkout's)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--noise-seed", type=int, default=None,
+                   help="bake again with this seed: the bake's own noise and its block "
+                        "statistic (the difference of the two bakes)")
     p.add_argument("--settings", default="", help="more BakeSettings as JSON")
     p.add_argument("--ref-spp", type=int, default=512, help="reference samples per pixel")
     p.add_argument("--workers", type=int, default=2)
@@ -224,6 +229,25 @@ def main(argv: list[str] | None = None) -> None:
         print(f"  specular level {k}: {r:.3f}   (reference {q:.3f});  error (4x4) {_stats(e)}")
         rows[f"block_specular_{k}"] = [r, q]
         rows[f"specular_{k}"] = e.tolist()
+    if args.noise_seed is not None:
+        # the bake's own noise: the same bake with another seed; its block structure alone
+        args.seed = args.noise_seed
+        with tempfile.TemporaryDirectory(prefix="pg-texels-") as tmp:
+            other = _bake(args, Path(tmp))
+        diff = inc - other["incoming"][sel].astype(np.float64)
+        noise = half_difference(average4(inc), average4(other["incoming"][sel]))
+        print(f"seed {baked['settings'].seed} against seed {args.noise_seed}: incoming (4x4) "
+              f"{_stats(noise)} (half the difference over the mean); block statistic of the "
+              f"difference {block_statistic(diff):.3f}")
+        for k in range(len(baked["specular"])):
+            if (n >> k) < 2 * BLOCK:
+                break
+            r = block_statistic(baked["specular"][k][sel].astype(np.float64)
+                                - other["specular"][k][sel])
+            print(f"  specular level {k}: block statistic of the difference {r:.3f}")
+            rows[f"block_seeds_specular_{k}"] = r
+        rows["block_seeds_incoming"] = block_statistic(diff)
+        rows["seeds4"] = noise.tolist()
     if args.save:
         args.save.write_text(json.dumps(rows))
     if args.dump:

@@ -94,7 +94,7 @@ def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
     """A point light over an endless floor, nothing else: the floor is lit by the light alone,
     so the radiance a probe sees on it is rho / pi I cos / d^2 after any number of bounces (the
     bounce grids must not carry the light's direct term into the surfaces a second time)."""
-    from probegrid.core.cubemap import texel_directions
+    from probegrid.bake.pattern import sample_pattern
 
     rho, intensity, light = 0.5, 20.0, np.array([0.0, 3.0, 0.0])
     b = SceneBuilder()
@@ -109,7 +109,7 @@ def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
                           **{**FAST, "face_size": 16})
         s = bake(scene, grid, tmp_path / f"f{bounces}.probes", settings=st).store
         p = np.asarray(s["positions"][probe])
-        d = texel_directions(16)[3]  # the -Y face: every texel sees the floor
+        d = sample_pattern(st, probe)[0][3, :, :, 0]  # the -Y face's rays: all see the floor
         hit = p + (-p[1] / d[..., 1])[..., None] * d
         to_light = light - hit
         dist = np.linalg.norm(to_light, axis=-1)
@@ -586,7 +586,7 @@ def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path, real_data):
     reflected once) it is black. Light from the panel reaches the walls by next-event
     estimation, the grid carries no emission and cannot ring, so nothing leaks onto it."""
     glb = real_data / "gltf" / "CornellBox.glb"
-    from probegrid.core.cubemap import texel_directions
+    from probegrid.bake.pattern import sample_pattern
     from probegrid.raytrace import RayTracer
     from probegrid.scene import load_gltf
 
@@ -601,9 +601,9 @@ def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path, real_data):
     panel = scene.vertices[scene.triangles[emissive]].reshape(-1, 3)
     margin = 0.1 * (hi - lo)[0]
     tracer = RayTracer.from_scene(scene)
-    d = texel_directions(16).reshape(-1, 3)
     checked = 0
     for p in range(grid.n_probes):
+        d = sample_pattern(st, p)[0].reshape(-1, 3)  # the probe's own rays, one per texel
         pos = np.asarray(s["positions"][p])
         hits = tracer.intersect(np.repeat(pos[None], len(d), 0), d)
         pt = pos + hits.t[:, None] * d

@@ -47,6 +47,7 @@ from probegrid.bake.records.schema import Level, RecordArrays, Records, gather_k
 from probegrid.bake.pattern import sample_pattern
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.bake.view import ProbeView
+from probegrid.core.cubemap import texel_directions
 from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
@@ -108,14 +109,17 @@ class RecordTracer:
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None,
-               rec: Level, t: NDArray[np.float64], *, sky_at_misses: bool) -> int:
+               rec: Level, t: NDArray[np.float64], *,
+               sky_at_misses: NDArray[np.float64] | None) -> int:
         """Fills ``rec`` (:meth:`Level.empty`: misses) and ``t`` with the records and hit
         distances of one chunk of rays; returns the rays cast: the rays themselves and every
         shadow ray of their front hits (punctual lights; ``draw_e(rows) (k, L, 3)`` the random
         numbers of points on the emitters, ``draw_s`` of directions of the environment, None for
         none; ray ``i``'s are row ``draw_rows[i]``, drawn for the front hits only). A miss keeps
-        the environment's radiance when ``sky_at_misses`` (what a probe sees), else 0 (the
-        environment reaches hits by sampling)."""
+        the environment's radiance in the direction ``sky_at_misses[i]`` (what a probe sees:
+        its texel's centre, where the environment box-filtered to the texels holds the texel's
+        mean, wherever in the texel the ray went), else 0 for None (the environment reaches
+        hits by sampling)."""
         geo = self.geometry
         rd = self.view
         eps = geo.ray_offset
@@ -131,10 +135,10 @@ class RecordTracer:
             dirs, hits, (float(geo.max_distance), eps), sc.surface_tables, rd.double_sided,
             HitRecords(rec.kind, t, rec.position, rec.normal, rec.albedo, rec.emission))
         sc.apply_textures(hits.prim_id, hits.u, hits.v, rec.albedo, rec.emission, rows)
-        if sky_at_misses and not rd.environment.is_black:
+        if sky_at_misses is not None and not rd.environment.is_black:
             miss = np.flatnonzero(rec.kind == 0)
             if miss.size:
-                rec.light_punctual[miss] = rd.environment_view.radiance(dirs[miss])
+                rec.light_punctual[miss] = rd.environment_view.radiance(sky_at_misses[miss])
         if not rows.size:
             return rays
         which, s_org, s_dir, s_len, s_irr, ok = light_rays(p, nrm, rd.punctual_lights, eps,
@@ -159,7 +163,7 @@ class RecordTracer:
 
     def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                    draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None, *,
-                   sky_at_misses: bool
+                   sky_at_misses: NDArray[np.float64] | None
                    ) -> tuple[Level, NDArray[np.float64], int]:
         """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time, into one set of
         records."""
@@ -170,7 +174,8 @@ class RecordTracer:
             sl = slice(c0, min(c0 + SHADE_CHUNK, len(dirs)))
             rays += self._shade(origins[sl], dirs[sl], draw_rows[sl], draw_e, draw_s,
                                 rec.rows(sl), t[sl],
-                                sky_at_misses=sky_at_misses)
+                                sky_at_misses=None if sky_at_misses is None
+                                else sky_at_misses[sl])
         return rec, t, rays
 
     def _gather_level(self, draw: Any, rays_per_probe: int, purposes: tuple[int, int, int],
@@ -193,7 +198,7 @@ class RecordTracer:
         rec, _, rays = self._shade_all(org, dirs, rows,
                                        _light_draw(draw, purposes[1], per, int(emitters)),
                                        _light_draw(draw, purposes[2], per, int(sky)),
-                                       sky_at_misses=False)
+                                       sky_at_misses=None)
         return rec, dirs, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64]
@@ -231,9 +236,11 @@ class RecordTracer:
                 keys[purpose] = _stream_keys(st.seed, idx, purpose)
             return stream_uniforms(keys[purpose], per, rows, width)
 
+        # a probe's misses see the environment at their texels' centres (_shade)
+        centres = np.tile(np.repeat(texel_directions(n).reshape(-1, 3), s, axis=0), (b, 1))
         rec, t, rays = self._shade_all(origins, flat, np.arange(b * nr),
                                        _light_draw(draw, 1, nr, ls), _light_draw(draw, 2, nr, ks),
-                                       sky_at_misses=True)
+                                       sky_at_misses=centres)
         levels = [rec]
         if kg:
             # final gather (module docstring): kg rays from every front hit, one more from each
