@@ -166,7 +166,8 @@ class RecordTracer:
                    sky_at_misses: NDArray[np.float64] | None
                    ) -> tuple[Level, NDArray[np.float64], int]:
         """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time, into one set of
-        records."""
+        records; ``sky_at_misses`` (a probe's ``(R, 3)`` table, ray ``i`` reading row
+        ``i % R``) or None."""
         rec = Level.empty(len(dirs))
         t = np.empty(len(dirs))
         rays = 0
@@ -174,8 +175,8 @@ class RecordTracer:
             sl = slice(c0, min(c0 + SHADE_CHUNK, len(dirs)))
             rays += self._shade(origins[sl], dirs[sl], draw_rows[sl], draw_e, draw_s,
                                 rec.rows(sl), t[sl],
-                                sky_at_misses=None if sky_at_misses is None
-                                else sky_at_misses[sl])
+                                sky_at_misses=None if sky_at_misses is None else
+                                sky_at_misses[np.arange(sl.start, sl.stop) % len(sky_at_misses)])
         return rec, t, rays
 
     def _gather_level(self, draw: Any, rays_per_probe: int, purposes: tuple[int, int, int],
@@ -237,7 +238,7 @@ class RecordTracer:
             return stream_uniforms(keys[purpose], per, rows, width)
 
         # a probe's misses see the environment at their texels' centres (_shade)
-        centres = np.tile(np.repeat(texel_directions(n).reshape(-1, 3), s, axis=0), (b, 1))
+        centres = np.repeat(texel_directions(n).reshape(-1, 3), s, axis=0)  # (nr, 3)
         rec, t, rays = self._shade_all(origins, flat, np.arange(b * nr),
                                        _light_draw(draw, 1, nr, ls), _light_draw(draw, 2, nr, ks),
                                        sky_at_misses=centres)
