@@ -42,7 +42,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.bake.kernels.cube import CUBE_AXES
-from probegrid.bake.kernels.texels import Smoothing, TexelHits, smooth_texels
 from probegrid.bake.kernels.grid import (
     GridLattice,
     ProbeTable,
@@ -53,6 +52,7 @@ from probegrid.bake.kernels.grid import (
     replay_radiance,
     texel_means,
 )
+from probegrid.bake.kernels.texels import Smoothing, TexelHits, smooth_texels
 from probegrid.bake.records.schema import (
     LEVEL_PREFIXES,
     Level,
