@@ -94,7 +94,7 @@ def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
     """A point light over an endless floor, nothing else: the floor is lit by the light alone,
     so the radiance a probe sees on it is rho / pi I cos / d^2 after any number of bounces (the
     bounce grids must not carry the light's direct term into the surfaces a second time)."""
-    from probegrid.core.cubemap import texel_directions
+    from probegrid.bake.pattern import sample_pattern
 
     rho, intensity, light = 0.5, 20.0, np.array([0.0, 3.0, 0.0])
     b = SceneBuilder()
@@ -109,7 +109,7 @@ def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
                           **{**FAST, "face_size": 16})
         s = bake(scene, grid, tmp_path / f"f{bounces}.probes", settings=st).store
         p = np.asarray(s["positions"][probe])
-        d = texel_directions(16)[3]  # the -Y face: every texel sees the floor
+        d = sample_pattern(st, probe)[0][3, :, :, 0]  # the -Y face's rays: all see the floor
         hit = p + (-p[1] / d[..., 1])[..., None] * d
         to_light = light - hit
         dist = np.linalg.norm(to_light, axis=-1)
@@ -481,12 +481,14 @@ def test_one_bounce_off_a_floor_is_gathered_not_read_from_the_probe(tmp_path):
     np.testing.assert_allclose(got.mean(axis=0), exact.mean(), rtol=0.015)
 
 
-def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold(
+def test_the_gathers_noise_is_spread_over_texels_without_changing_what_they_hold(
         tmp_path, monkeypatch):
     """What a probe sees of its hits' gathered light keeps the grid read at each hit and the
-    blocks' mean gather correction: two seeds differ by 1.8 % per texel (9 % with the raw
-    gather), and each probe's solid-angle integral over the hits facing each side (floor,
-    ceiling, each wall) is what the raw gather gives: no light moves between surfaces."""
+    gather's correction smoothed over the texels around it: two seeds differ by 3.3 % per
+    texel (2.7 % with a mean correction per 8 x 8 block and rays through the texel centres,
+    which every seed shares; 9 % with the raw gather), and each probe's solid-angle integral
+    over the hits facing each side (floor, ceiling, each wall) is what the raw gather gives: no
+    light moves between surfaces."""
     from probegrid.bake.records import replay as rc
     from probegrid.core.arrays import sum_rows
     from probegrid.core.cubemap import texel_solid_angles
@@ -526,7 +528,7 @@ def test_the_gathers_noise_is_spread_over_blocks_without_changing_what_they_hold
     for before, after in integrals:
         np.testing.assert_allclose(after, before, rtol=1e-5, atol=1e-6 * before.max())
     a, c = incoming
-    assert np.abs(a - c).sum() / (a + c).sum() < 0.03
+    assert np.abs(a - c).sum() / (a + c).sum() < 0.04
 
 
 def test_environment_rotation_rotates_the_probes(tmp_path):
@@ -584,7 +586,7 @@ def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path, real_data):
     reflected once) it is black. Light from the panel reaches the walls by next-event
     estimation, the grid carries no emission and cannot ring, so nothing leaks onto it."""
     glb = real_data / "gltf" / "CornellBox.glb"
-    from probegrid.core.cubemap import texel_directions
+    from probegrid.bake.pattern import sample_pattern
     from probegrid.raytrace import RayTracer
     from probegrid.scene import load_gltf
 
@@ -599,9 +601,9 @@ def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path, real_data):
     panel = scene.vertices[scene.triangles[emissive]].reshape(-1, 3)
     margin = 0.1 * (hi - lo)[0]
     tracer = RayTracer.from_scene(scene)
-    d = texel_directions(16).reshape(-1, 3)
     checked = 0
     for p in range(grid.n_probes):
+        d = sample_pattern(st, p)[0].reshape(-1, 3)  # the probe's own rays, one per texel
         pos = np.asarray(s["positions"][p])
         hits = tracer.intersect(np.repeat(pos[None], len(d), 0), d)
         pt = pos + hits.t[:, None] * d
@@ -685,7 +687,16 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
     import numba
 
     from probegrid.bake import preload
-    from probegrid.bake.kernels import cube, emitters, environment, grid, lights, sampling, surfaces
+    from probegrid.bake.kernels import (
+        cube,
+        emitters,
+        environment,
+        grid,
+        lights,
+        sampling,
+        surfaces,
+        texels,
+    )
     from probegrid.raytrace import kernels as rays
 
     preload._warm_up()  # raises if the tiny bake fails
@@ -694,7 +705,8 @@ def test_preload_bakes_its_tiny_scene_and_loads_the_kernels():
             (emitters, "polygon_irradiance"), (environment, "environment_samples"),
             (sampling, "gather_rays"), (grid, "hit_probe_weights"), (grid, "replay_radiance"),
             (grid, "distance_moments"), (cube, "cube_sample_directions"),
-            (emitters, "texel_emitter_coverage"), (rays, "embree_rays"), (rays, "embree_hits")]
+            (emitters, "texel_emitter_coverage"), (rays, "embree_rays"), (rays, "embree_hits"),
+            (texels, "smooth_texels")]
     for module, name in used:
         fn = getattr(module, name)
         assert isinstance(fn, numba.core.registry.CPUDispatcher)

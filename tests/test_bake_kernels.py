@@ -33,10 +33,10 @@ def _pattern_reference(n: int, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarr
     from probegrid.core.cubemap import face_uv_to_direction, texel_to_uv
 
     k = np.arange(n, dtype=np.float64)
-    u = texel_to_uv(k[:, None] - 0.5 + jitter[None, :, 0], n)[None, :, :]
-    v = texel_to_uv(k[:, None] - 0.5 + jitter[None, :, 1], n)[:, None, :]
-    u, v = np.broadcast_arrays(u, v)
-    d = face_uv_to_direction(np.arange(6)[:, None, None, None], u[None], v[None])
+    j = np.broadcast_to(jitter, (6 * n * n,) + jitter.shape[1:]).reshape(6, n, n, -1, 2)
+    u = texel_to_uv(k[None, None, :, None] - 0.5 + j[..., 0], n)
+    v = texel_to_uv(k[None, :, None, None] - 0.5 + j[..., 1], n)
+    d = face_uv_to_direction(np.arange(6)[:, None, None, None], u, v)
     norm = np.linalg.norm(d, axis=-1)
     w = norm**-3
     return d / norm[..., None], w / w.sum(axis=-1, keepdims=True)
@@ -53,6 +53,14 @@ def test_sample_pattern_kernel_matches_numpy(samples: int) -> None:
     np.testing.assert_allclose(d, rd, rtol=0, atol=1e-15)
     np.testing.assert_allclose(w, rw, rtol=1e-14)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-15)
+    # one set of positions for every texel (T = 1) is the same kernel's other form
+    from probegrid.bake.kernels.cube import CUBE_AXES, cube_sample_directions
+
+    shared = np.array([[[0.25, 0.75]] * samples])
+    d1, w1 = cube_sample_directions(8, shared, CUBE_AXES)
+    rd1, rw1 = _pattern_reference(8, shared)
+    np.testing.assert_allclose(d1, rd1, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(w1, rw1, rtol=1e-14)
 
 
 def test_texel_means_and_distance_moments_match_numpy() -> None:
@@ -540,3 +548,39 @@ def test_emitter_samples_match_surface_sampling() -> None:
     np.testing.assert_allclose(sum_unblocked(n, which, blocked, vis),
                                sum_rows(which, np.where(blocked[:, None], 0.0, vis), n),
                                rtol=1e-13, atol=1e-300)
+
+
+@pytest.mark.parametrize("samples,planes", [(1, True), (2, False)])
+def test_smooth_texels_matches_numpy(samples: int, planes: bool) -> None:
+    """The edge-aware Gaussian over a window of texels, against the same sums written as
+    array expressions over every pair of rays of a face."""
+    from probegrid.bake.kernels.texels import Smoothing, TexelHits, smooth_texels
+
+    rng = np.random.default_rng(5)
+    n, b = 6, 2
+    per = 6 * n * n * samples
+    nr = b * per
+    value = rng.random((nr, 3))
+    weight = rng.random(nr) * (rng.random(nr) > 0.2)
+    normal = np.zeros((nr, 3), np.float32)
+    normal[np.arange(nr), rng.integers(0, 2, nr)] = 1.0  # two surfaces' worth of normals
+    position = rng.normal(size=(nr, 3))
+    origin = rng.normal(size=(b, 3)) if planes else np.zeros((0, 3))
+    sm = Smoothing(radius=2, sigma=1.5, same_normal=0.9, same_plane=0.3)
+    got = smooth_texels(TexelHits(value, weight, position, normal, origin), n, samples, sm)
+
+    ray = np.arange(nr)
+    probe, texel = ray // per, (ray % per) // samples
+    face, row, col = texel // (n * n), (texel % (n * n)) // n, texel % n
+    dr, dc = row[:, None] - row[None, :], col[:, None] - col[None, :]
+    same = ((probe[:, None] == probe[None, :]) & (face[:, None] == face[None, :])
+            & (np.abs(dr) <= sm.radius) & (np.abs(dc) <= sm.radius)
+            & (normal @ normal.T >= sm.same_normal))
+    if planes:
+        off = np.abs(np.einsum("ijk,ik->ij", position[None, :] - position[:, None], normal))
+        reach = sm.same_plane * np.linalg.norm(position - origin[probe], axis=1)
+        same &= off <= reach[:, None]
+    g = np.exp(-(dr**2 + dc**2) / (2 * sm.sigma**2)) * same * weight[None, :]
+    want = np.where(weight[:, None] > 0, (g @ value) / np.maximum(g.sum(axis=1), 1e-300)[:, None],
+                    value)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)

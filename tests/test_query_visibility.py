@@ -226,7 +226,9 @@ def test_baked_store_keeps_raw_and_deringed_sh(field, old_field):
 
     raw_min, der_min = dense_min(raw), dense_min(der)
     ok = np.all(raw_min >= 0, axis=1)
-    assert np.count_nonzero(~ok) > 0  # the point light rings in some probes
+    # (no probe of these rooms rings: the ones above the roof that did saw the lit inside
+    # through the boxes' edges, where rays through their texel centres slipped between two
+    # triangles; rays anywhere in their texels do not. tests/test_dering.py rings.)
     assert np.all(der_min >= 0)
     np.testing.assert_array_equal(der[ok], raw[ok])
     np.testing.assert_array_equal(window[ok], 1.0)

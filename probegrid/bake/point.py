@@ -361,7 +361,7 @@ class PointTracer:
                 rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
             cubes = self.data.cubes
         back = np.asarray(rec["backface_fraction"], np.float64)
-        cube, _ = replay(rec, self.settings, self.level, cubes, final=True)
+        cube, _ = replay(rec, self.settings, self.level, cubes, final=True, positions=pos)
         return cube, back
 
     def _incoming_cached(self, pos: NDArray[np.float64], idx: NDArray[np.int64]

@@ -317,13 +317,14 @@ def final_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
         cubes = None if state.data is None else state.data.cubes
         if gather_depth(rec) and ctx.level >= 2 and state.data is not None:
             # the rays' own probe weights: the final view spreads the gather's noise over
-            # blocks around the grid read at each hit (records._smooth_gathered)
+            # the texels around each hit, about the grid read at it (replay._smooth_gathered)
             rec = dict(rec)
             rec["weight_index"], rec["weight"] = hit_weights(rec, state.data)
     else:
         rec, path, rays = _block_records(state, batch)
         cubes = None
-    incoming, _ = replay(rec, ctx.settings, ctx.level, cubes, final=True)
+    incoming, _ = replay(rec, ctx.settings, ctx.level, cubes, final=True,
+                         positions=state.positions[batch])
     if path is not None:  # the block's last use: its records go (a retry traces them again)
         remove_records(path)
     levels = st.levels()

@@ -25,7 +25,9 @@ The modules:
   estimates and texel coverage;
 * :mod:`~probegrid.bake.kernels.environment` -- the environment sampled as a light;
 * :mod:`~probegrid.bake.kernels.sampling` -- alias tables, cosine-weighted directions, the final
-  gather's rays, counter-based random streams.
+  gather's rays, counter-based random streams;
+* :mod:`~probegrid.bake.kernels.texels` -- the edge-aware smoothing of the gather's correction
+  over a probe's texels.
 
 Shadow rays are written as Embree takes them by the one rounding rule of
 :func:`probegrid.raytrace.kernels._embree_ray` (:class:`probegrid.raytrace.EmbreeRays`): no

@@ -68,11 +68,13 @@ def cube_sample_directions(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Unit directions of jittered samples in every texel of an ``n``-cube, and their weights.
 
-    Sample ``k`` of texel ``(f, row, col)`` sits at continuous texel coordinates
-    ``(col - 0.5 + jitter[k, 0], row - 0.5 + jitter[k, 1])`` (face coordinates
-    ``(c + 0.5) 2 / n - 1``, :func:`probegrid.core.cubemap.texel_to_uv`); its direction is
-    ``normal + u U + v V`` normalised (``axes``, :data:`CUBE_AXES`) and its weight the area
-    element ``|d|^-3``, normalised over the texel's samples.
+    ``jitter (T, s, 2)`` holds the samples' positions inside their texels, in ``[0, 1)^2``: one
+    set for every texel (``T = 1``) or one per texel (``T = 6 n^2``, texel ``(f, row, col)``'s
+    at ``(f n + row) n + col``). Sample ``k`` of texel ``(f, row, col)`` sits at continuous
+    texel coordinates ``(col - 0.5 + jitter[t, k, 0], row - 0.5 + jitter[t, k, 1])`` (face
+    coordinates ``(c + 0.5) 2 / n - 1``, :func:`probegrid.core.cubemap.texel_to_uv`); its
+    direction is ``normal + u U + v V`` normalised (``axes``, :data:`CUBE_AXES`) and its weight
+    the area element ``|d|^-3``, normalised over the texel's samples.
 
     Returns
     -------
@@ -80,17 +82,19 @@ def cube_sample_directions(
     weights : (6, n, n, s) float64
     """
     face_normals, face_u, face_v = axes
-    s = jitter.shape[0]
+    s = jitter.shape[1]
+    per_texel = jitter.shape[0] > 1
     d = np.empty((6, n, n, s, 3))
     wt = np.empty((6, n, n, s))
     scale = 2.0 / n
     for f in range(6):
         for row in range(n):
             for col in range(n):
+                t = (f * n + row) * n + col if per_texel else 0
                 total = 0.0
                 for k in range(s):
-                    uu = (col - 0.5 + jitter[k, 0] + 0.5) * scale - 1.0
-                    vv = (row - 0.5 + jitter[k, 1] + 0.5) * scale - 1.0
+                    uu = (col - 0.5 + jitter[t, k, 0] + 0.5) * scale - 1.0
+                    vv = (row - 0.5 + jitter[t, k, 1] + 0.5) * scale - 1.0
                     x = face_normals[f, 0] + uu * face_u[f, 0] + vv * face_v[f, 0]
                     y = face_normals[f, 1] + uu * face_u[f, 1] + vv * face_v[f, 1]
                     z = face_normals[f, 2] + uu * face_u[f, 2] + vv * face_v[f, 2]

@@ -26,12 +26,13 @@ With gather levels, a bounce at level ``k`` reads the grid at the deepest level'
 light they reflect at level ``k - depth``, i.e. the grid of level ``k - 1 - depth``
 (:func:`grid_level_read`); each level's mean radiance is the level above's irradiance / pi. What
 the probe itself finally sees of that light is the grid read at each hit plus the gather's mean
-correction over blocks of texels (:func:`_smooth_gathered`): the integrals are the gather's, the
-per-texel noise a quarter of it.
+correction smoothed over the texels around each hit on the same surface
+(:func:`_smooth_gathered`): the integrals are the gather's, the per-texel noise a fraction of it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
@@ -51,6 +52,7 @@ from probegrid.bake.kernels.grid import (
     replay_radiance,
     texel_means,
 )
+from probegrid.bake.kernels.texels import Smoothing, TexelHits, smooth_texels
 from probegrid.bake.records.schema import (
     LEVEL_PREFIXES,
     Level,
@@ -78,7 +80,7 @@ from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.lights import splat_delta
 
 __all__ = [
-    "GATHER_BLOCK",
+    "GATHER_SMOOTHING",
     "GridData",
     "all_hit_weights",
     "grid_level_read",
@@ -189,31 +191,41 @@ def _level_weights(level: Level, data: GridData
         Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES)
 
 
-#: Side, in texels, of the blocks of a probe's faces over which :func:`_smooth_gathered`
-#: spreads the gather rays' noise.
-GATHER_BLOCK = 8
+#: How :func:`_smooth_gathered` spreads the gather rays' noise over a probe's texels
+#: (:func:`probegrid.bake.kernels.texels.smooth_texels`): a Gaussian of 3 texels in a 17 x 17
+#: window, over the hits on one surface (normals within 10 degrees, off each other's plane by
+#: at most 5 % of the hit's distance).
+GATHER_SMOOTHING = Smoothing(radius=8, sigma=3.0, same_normal=math.cos(math.radians(10.0)),
+                             same_plane=0.05)
 
 
 def _smooth_gathered(records: Records, settings: BakeSettings,
                      rad: NDArray[np.float32], gathered: NDArray[np.float32],
                      cubes: NDArray[np.float32], g: int,
-                     sample_weights: NDArray[np.float64] | None) -> NDArray[np.float32]:
+                     sample_weights: NDArray[np.float64] | None,
+                     positions: NDArray[np.float64] | None) -> NDArray[np.float32]:
     """What a probe sees of its hits' gathered light, with the gather rays' noise spread over
-    blocks of :data:`GATHER_BLOCK` texels: each front hit's ``albedo * gathered`` becomes
-    ``albedo * G`` (the grid read at the hit itself: smooth, but biased) plus the block's
-    solid-angle-weighted mean of ``albedo * (gathered - G)``. A block is the texels of an
-    ``8 x 8`` square whose hits face one side (the normal's cube face): spread
-    across the edge between a wall and the ceiling, the corrections moved light from the sample
-    room's red wall to its ceiling (2-3 % of each against a path tracer). A block's integral is
-    unchanged
-    (so is every diffuse map and SH, up to rounding); within a block the gather's mean
-    correction replaces its per-texel noise (two bakes of the sample room with other seeds:
-    10 % per texel apart in level 0 without it). Needs the rays' own probe weights, and the
-    rays' sample weights with several rays per texel."""
+    the texels around each: each front hit's ``albedo * gathered`` becomes ``albedo * G`` (the
+    grid read at the hit itself: smooth, but biased) plus the correction
+    ``albedo * (gathered - G)`` smoothed over the hits around it on the same surface, weighted
+    by their solid angles (:data:`GATHER_SMOOTHING`,
+    :func:`probegrid.bake.kernels.texels.smooth_texels`). The Gaussian's weights change smoothly
+    from texel to texel, so neighbouring texels differ by no more than the light does (a mean
+    over fixed 8 x 8 blocks stepped at every block's edge: a checkerboard in the mirror level
+    of a sunlit hall, whose gather rays rarely find the small sunlit patches that light it).
+    Light is not smoothed across surfaces (a table top and the floor, a wall and the ceiling),
+    and what the smoothing moves within the hits facing one side (the normal's cube face; one
+    sided windows at a surface's edge) is given back to them evenly, so each probe's integral
+    over the hits facing each way is the gather's: the diffuse maps and SH are the gather's,
+    and no light moves from the sample room's red wall to its ceiling (spread across that edge,
+    a correction did: 2-3 % of each against a path tracer). Needs the rays' own probe weights,
+    the rays' sample weights with several rays per texel, and the probes' ``positions`` for the
+    test of a surface's plane (None: normals alone)."""
     n, s = settings.face_size, settings.samples
     nr = records.rays_per_probe
     rays = records.levels[0]
     assert rays.albedo is not None and rays.normal is not None
+    assert rays.position is not None
     kind = rays.kind
     total = len(kind)
     zeros = np.zeros((total, 3), np.float32)
@@ -224,24 +236,25 @@ def _smooth_gathered(records: Records, settings: BakeSettings,
     front = kind == 1
     corr = np.where(front[:, None], rays.albedo.astype(np.float64) * gathered
                     - at_hit.astype(np.float64), 0.0)
-    ray = np.arange(total)
-    probe, local = np.divmod(ray, nr)
-    texel = local // s
-    face, rest = np.divmod(texel, n * n)
-    row, col = np.divmod(rest, n)
-    bs = min(GATHER_BLOCK, n)
-    nb = -(-n // bs)
-    # the side the hit faces (its normal's cube face): light is not moved across the edge
-    # between a wall and the ceiling a block straddles
-    side = direction_to_face(rays.normal)
-    block = (((probe * 6 + face) * nb + row // bs) * nb + col // bs) * 6 + side
+    texel = (np.arange(total) % nr) // s
     w = texel_solid_angles(n).reshape(-1)[texel] * front
     if sample_weights is not None:
         w = w * sample_weights
-    den = np.bincount(block, weights=w, minlength=int(block.max()) + 1)
-    num = sum_rows(block, w[:, None] * corr, len(den))
-    mean = np.divide(num, den[:, None], out=np.zeros_like(num), where=den[:, None] > 0)
-    out = rad.astype(np.float64) - corr + np.where(front[:, None], mean[block], 0.0)
+    origin = (np.zeros((0, 3)) if positions is None
+              else np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3))
+    smooth = smooth_texels(
+        TexelHits(corr, w, np.ascontiguousarray(rays.position, dtype=np.float64),
+                  np.ascontiguousarray(rays.normal, dtype=np.float32), origin),
+        n, s, GATHER_SMOOTHING)
+    # what the smoothing moved within a side (near a surface's edge the window is one-sided)
+    # goes back to the side evenly: each probe's integral over the hits facing each way is
+    # the gather's, so no light moves between a wall and the ceiling, and the diffuse maps and
+    # SH are the gather's
+    side = (np.arange(total) // nr) * 6 + direction_to_face(rays.normal)
+    den = np.bincount(side, weights=w, minlength=int(side.max()) + 1)
+    lost = sum_rows(side, w[:, None] * (corr - smooth), len(den))
+    lost = np.divide(lost, den[:, None], out=np.zeros_like(lost), where=den[:, None] > 0)
+    out = rad.astype(np.float64) - corr + np.where(front[:, None], smooth + lost[side], 0.0)
     return np.maximum(out, 0.0).astype(np.float32)
 
 
@@ -267,7 +280,8 @@ def _replay_level(records: Level, depth: int, level: int, grid: NDArray[np.float
 
 def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: int,
            cubes: NDArray[np.float32] | None, *, final: bool,
-           indirect: NDArray[np.float32] | None = None
+           indirect: NDArray[np.float32] | None = None,
+           positions: NDArray[np.float64] | None = None
            ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """A pass over a batch's records (their stored arrays) at bounce ``level`` with the
     bordered irradiance ``cubes`` (None: a black grid) of the grid level the hits read:
@@ -279,7 +293,9 @@ def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: in
     Returns the probes' incoming cubes ``(B, 6, n, n, 3)`` float32 -- ``final``: what the probe
     sees (emission, its exact direct view of the emitters and the punctual lights included);
     otherwise the bounced light only -- and their texel radiances before the per-probe
-    corrections (for the caller's bookkeeping).
+    corrections (for the caller's bookkeeping). ``positions (B, 3)``: the probes' (where their
+    rays start), which the final view's smoothing of the gather needs to tell surfaces apart
+    (:func:`_smooth_gathered`; None: by their normals alone).
     """
     records = Records.from_arrays(arrays)
     levels = records.levels
@@ -314,7 +330,7 @@ def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: in
     if (final and depth and level >= 2 and grid.shape[0]
             and levels[0].weight_index is not None):
         rad = _smooth_gathered(records, settings, rad, below, grid, g,
-                               None if wts is None else wts.reshape(-1))
+                               None if wts is None else wts.reshape(-1), positions)
     if not final and records.sky_sampled:
         # the environment reaches hits by sampling (light_emitters): the grid carries only
         # light reflected at least once, not what the probe's misses see of the sky

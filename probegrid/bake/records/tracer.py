@@ -48,6 +48,7 @@ from probegrid.bake.records.schema import Level, RecordArrays, Records, gather_k
 from probegrid.bake.pattern import sample_pattern
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.bake.view import ProbeView
+from probegrid.core.cubemap import texel_directions
 from probegrid.raytrace import EmbreeRays, RayTracer
 from probegrid.scene import Scene
 
@@ -118,14 +119,17 @@ class RecordTracer:
 
     def _shade(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None,
-               rec: Level, t: NDArray[np.float64], *, sky_at_misses: bool) -> int:
+               rec: Level, t: NDArray[np.float64], *,
+               sky_at_misses: NDArray[np.float64] | None) -> int:
         """Fills ``rec`` (:meth:`Level.empty`: misses) and ``t`` with the records and hit
         distances of one chunk of rays; returns the rays cast: the rays themselves and every
         shadow ray of their front hits (punctual lights; ``draw_e(rows) (k, L, 3)`` the random
         numbers of points on the emitters, ``draw_s`` of directions of the environment, None for
         none; ray ``i``'s are row ``draw_rows[i]``, drawn for the front hits only). A miss keeps
-        the environment's radiance when ``sky_at_misses`` (what a probe sees), else 0 (the
-        environment reaches hits by sampling)."""
+        the environment's radiance in the direction ``sky_at_misses[i]`` (what a probe sees:
+        its texel's centre, where the environment box-filtered to the texels holds the texel's
+        mean, wherever in the texel the ray went), else 0 for None (the environment reaches
+        hits by sampling)."""
         geo = self.geometry
         rd = self.view
         eps = geo.ray_offset
@@ -145,10 +149,10 @@ class RecordTracer:
             rec.primitive[:] = hits.prim_id
             rec.barycentric[:, 0] = hits.u
             rec.barycentric[:, 1] = hits.v
-        if sky_at_misses and not rd.environment.is_black:
+        if sky_at_misses is not None and not rd.environment.is_black:
             miss = np.flatnonzero(rec.kind == 0)
             if miss.size:
-                rec.light_punctual[miss] = rd.environment_view.radiance(dirs[miss])
+                rec.light_punctual[miss] = rd.environment_view.radiance(sky_at_misses[miss])
         if not rows.size:
             return rays
         which, s_org, s_dir, s_len, s_irr, ok = light_rays(p, nrm, rd.punctual_lights, eps,
@@ -179,10 +183,11 @@ class RecordTracer:
 
     def _shade_all(self, origins: NDArray[np.float64], dirs: NDArray[np.float64],
                    draw_rows: NDArray[np.int64], draw_e: Draw | None, draw_s: Draw | None, *,
-                   sky_at_misses: bool, hits: bool = False
+                   sky_at_misses: NDArray[np.float64] | None, hits: bool = False
                    ) -> tuple[Level, NDArray[np.float64], int]:
         """:meth:`_shade` of any number of rays, :data:`SHADE_CHUNK` at a time, into one set of
-        records (with ``hits`` each ray's triangle and barycentrics too)."""
+        records (with ``hits`` each ray's triangle and barycentrics too); ``sky_at_misses`` (a
+        probe's ``(R, 3)`` table, ray ``i`` reading row ``i % R``) or None."""
         rec = Level.empty(len(dirs), hits=hits)
         t = np.empty(len(dirs))
         chunk = SHADE_CHUNK
@@ -191,8 +196,10 @@ class RecordTracer:
 
         def shade(c0: int) -> int:
             sl = slice(c0, min(c0 + chunk, len(dirs)))
+            sky = (None if sky_at_misses is None else
+                   sky_at_misses[np.arange(sl.start, sl.stop) % len(sky_at_misses)])
             return self._shade(origins[sl], dirs[sl], draw_rows[sl], draw_e, draw_s,
-                               rec.rows(sl), t[sl], sky_at_misses=sky_at_misses)
+                               rec.rows(sl), t[sl], sky_at_misses=sky)
 
         starts = range(0, len(dirs), chunk)  # chunks of rays, not rays
         if self.pool is not None and len(starts) > 1:
@@ -221,7 +228,7 @@ class RecordTracer:
         rec, _, rays = self._shade_all(org, dirs, rows,
                                        _light_draw(draw, purposes[1], per, int(emitters)),
                                        _light_draw(draw, purposes[2], per, int(sky)),
-                                       sky_at_misses=False)
+                                       sky_at_misses=None)
         return rec, dirs, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64], *,
@@ -260,9 +267,11 @@ class RecordTracer:
                 keys[purpose] = _stream_keys(st.seed, idx, purpose)
             return stream_uniforms(keys[purpose], per, rows, width)
 
+        # a probe's misses see the environment at their texels' centres (_shade)
+        centres = np.repeat(texel_directions(n).reshape(-1, 3), s, axis=0)  # (nr, 3)
         rec, t, rays = self._shade_all(origins, flat, np.arange(b * nr),
                                        _light_draw(draw, 1, nr, ls), _light_draw(draw, 2, nr, ks),
-                                       sky_at_misses=True, hits=hits)
+                                       sky_at_misses=centres, hits=hits)
         levels = [rec]
         if kg:
             # final gather (module docstring): kg rays from every front hit, one more from each
