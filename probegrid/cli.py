@@ -260,7 +260,13 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
             help="probes exactly S (or SX,SY,SZ) apart, centred in the box (scene units)")
     _option(p, J, "bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
             "probes at the centres of the grid's cells)")
-    _option(p, J, "margin", help="grow (or, negative, shrink) the scene bounds by this much")
+    _option(p, J, "volume_node", metavar="NAME",
+            help="grid box from the glTF node NAME: the unit cube -0.5..0.5 by the node's world "
+            "transform, as Bevy's light probes (a rotated node: the box's axis-aligned bounds); "
+            "probes at the centres of its cells. Default: the one node named like a probe "
+            "volume (IrradianceVolume, LightProbe, ProbeVolume), if any")
+    _option(p, J, "margin", help="grow (or, negative, shrink) the scene bounds (or the volume "
+            "node's box) by this much")
     e = p.add_mutually_exclusive_group()
     _option(e, J, "environment", type=Path, nargs=1, metavar="FILE",
             help="HDR environment image (any layout; see --environment-layout)")
