@@ -311,6 +311,12 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "allow_paths", "--allow-path", type=Path, action="append", metavar="DIR",
             help="a folder besides the scene's own whose files the glTF may name (e.g. "
             "../textures); repeat for more")
+    _option(p, J, "max_texture_pixels", metavar="N",
+            help="most pixels a texture image may have (refused from its header before any "
+            "decoding; 2^27 = 134 M by default)")
+    _option(p, J, "max_texture_size", metavar="N",
+            help="longest side of a texture as the bake samples it: a larger texture is "
+            "area-averaged down on load, its mean colour kept (default: 1024)")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 

@@ -84,6 +84,8 @@ class BakeJob(BaseModel):
     progress: bool = True
     allow_black: bool = False
     allow_paths: list[Path] = []
+    max_texture_pixels: int | None = Field(default=None, ge=1)  # (None: the loader's)
+    max_texture_size: int | None = Field(default=None, ge=1)
 
 
 #: Largest default face size of a bake's environment cube (each worker holds a copy).
@@ -203,10 +205,14 @@ def run_bake(job: BakeJob) -> BakeReport:
     from probegrid.bake.nolight import require_light
     from probegrid.bake.placement import grid_for
     from probegrid.scene import load_gltf
+    from probegrid.scene.texels import TextureLimits
 
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
-        scene = load_gltf(job.scene, allow_paths=job.allow_paths)
+        limits = {k: v for k, v in (("max_pixels", job.max_texture_pixels),
+                                    ("max_size", job.max_texture_size)) if v is not None}
+        scene = load_gltf(job.scene, allow_paths=job.allow_paths,
+                          textures=TextureLimits(**limits))
         env = load_environment(job.environment, layout=job.environment_layout,
                                color=job.environment_color,
                                intensity=job.environment_intensity,

@@ -17,7 +17,9 @@ Conventions
   (glTF spec, "Metallic-Roughness Material") and are decoded to linear once on load with the
   exact sRGB EOTF (IEC 61966-2-1); alpha stays linear. Textures are filtered bilinearly in
   linear space, wrapping as the texture's sampler says (default REPEAT), like a GPU with an
-  sRGB texture format.
+  sRGB texture format. A texture over the pixel limit is refused from its header; one larger
+  than the bake resolves is area-averaged down on load, its mean kept
+  (:mod:`probegrid.scene.texels`: 2^27 pixels, 1024 texels a side by default).
 * Shading albedo = ``baseColorFactor.rgb * baseColorTexture.rgb * COLOR_0.rgb`` (glTF: COLOR_0
   "acts as an additional linear multiplier to base color"). Emission (radiance, cd/m^2 in the
   photometric reading of :mod:`probegrid.core.lights`) = ``emissiveFactor *
@@ -63,9 +65,9 @@ from urllib.parse import unquote
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid.core.color import srgb_to_linear
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.scene.model import Material, Scene, SceneError
+from probegrid.scene.texels import TextureLimits, decode_texture, texture_limits
 
 __all__ = ['check_scene_file', 'gltf_mesh_count', 'load_gltf']
 
@@ -320,23 +322,9 @@ def _parse_lights(header: dict, name: str) -> tuple[Light, ...]:
 
 
 def _texture_array(image: object, channels: int, what: str) -> NDArray[np.float32]:
-    """A PIL image (as trimesh decoded it) -> (H, W, channels) float32 linear RGB(A)."""
-    try:
-        a = np.asarray(image)
-        if a.dtype == np.uint16 or a.dtype == np.int32:  # 16-bit greyscale PNG modes
-            a = np.clip(a.astype(np.float64) / 65535.0, 0.0, 1.0)
-            a = np.repeat(a[..., None], 3, axis=-1) if a.ndim == 2 else a
-            if channels == 4:
-                a = np.concatenate([a[..., :3], np.ones_like(a[..., :1])], axis=-1)
-        else:
-            mode = "RGBA" if channels == 4 else "RGB"
-            rgb = image.convert(mode)  # type: ignore[attr-defined]
-            a = np.asarray(rgb, dtype=np.float64) / 255.0
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise SceneError(f"{what} could not be decoded ({exc}).") from None
-    out = np.array(a[..., :channels], dtype=np.float64)
-    out[..., :3] = srgb_to_linear(out[..., :3])
-    return out.astype(np.float32)
+    """A PIL image (as trimesh opened it) -> (H, W, channels) float32 linear RGB(A), within
+    the current texture limits (:mod:`probegrid.scene.texels`)."""
+    return decode_texture(image, channels, what)
 
 
 def _texture_info(
@@ -414,7 +402,8 @@ def _vertex_colors(raw: NDArray) -> NDArray[np.float64]:
     return a[:, :4]
 
 
-def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]] = ()) -> Scene:
+def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]] = (),
+              textures: TextureLimits | None = None) -> Scene:
     """Load a glTF 2.0 scene (.gltf or .glb) into world space.
 
     trimesh reads the meshes, the node hierarchy and the images; factors, samplers, the
@@ -432,6 +421,10 @@ def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]]
         ``--allow-path``). A URI is checked before anything is read: an absolute path, a URL or
         a relative path that leads (links resolved) outside the scene's folder and these is a
         :class:`SceneError`.
+    textures : TextureLimits, optional
+        The most pixels a texture image may have and the longest side textures are reduced
+        to (area-averaged, the mean kept; :mod:`probegrid.scene.texels`); default 2^27 and
+        1024.
 
     Returns
     -------
@@ -447,7 +440,8 @@ def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]]
     label = p.name
     data = p.read_bytes()
     try:
-        return _load_gltf_data(p, data, [Path(a) for a in allow_paths])
+        with texture_limits(textures or TextureLimits()):
+            return _load_gltf_data(p, data, [Path(a) for a in allow_paths])
     except SceneError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
