@@ -193,6 +193,10 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
             help="keep negative input pixels (by default they are set to 0 and counted)")
     _option(p, F, "lut_size", help="DFG LUT size")
     _option(p, F, "previews", "--no-previews", help="skip the PNG previews")
+    p.add_argument("--max-pixels", type=_positive_int, metavar="N",
+                   help="most pixels an input image may have, checked from its header "
+                        "(default: 2^28 = 268 M); a larger input than the cube needs is read "
+                        "reduced, in bands, whatever its size")
     p.set_defaults(handler=_run_filter)
 
 
@@ -201,7 +205,8 @@ def _run_filter(args: argparse.Namespace) -> int:
     from probegrid.jobs.filter import run_filter
 
     settings = FilterSettings(**_given(args, FilterSettings))
-    result = run_filter(args.env, args.out, settings, progress=_stderr_progress)
+    result = run_filter(args.env, args.out, settings, progress=_stderr_progress,
+                        max_pixels=args.max_pixels)
     print(result.summary())
     return 0
 

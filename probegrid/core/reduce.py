@@ -36,15 +36,25 @@ def area_edges(n_in: int, n_out: int) -> NDArray[np.float64]:
     return np.arange(n_out + 1, dtype=np.float64) * (n_in / n_out)
 
 
-def area_average(a: ArrayLike, axis: int, edges: ArrayLike, *, offset: float = 0.0
-                 ) -> NDArray[np.float64]:
+def area_average(a: ArrayLike, axis: int, edges: ArrayLike, *, offset: float = 0.0,
+                 weights: ArrayLike | None = None) -> NDArray[np.float64]:
     """The mean of ``a`` (piecewise constant along ``axis``) over each interval
     ``[edges[j], edges[j + 1])``, each at least one pixel long, in the pixel units of a larger
     image of which ``a`` holds the pixels from ``offset`` on (the intervals must lie in
     ``[offset, offset + len]``); float64, ``len(edges) - 1`` along ``axis``.
 
     The sum over an interval is that of its whole pixels (``np.add.reduceat``) less the part
-    of its first pixel before the interval, plus the part of the pixel at its end inside it."""
+    of its first pixel before the interval, plus the part of the pixel at its end inside it.
+    ``weights`` (one per pixel of ``a`` along ``axis``, e.g. the solid angle of an equirect
+    image's rows) make it the weighted mean ``sum(w x) / sum(w)`` over each interval: then
+    ``sum(w x)`` over the image is what is preserved."""
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        shape = [1] * np.ndim(a)
+        shape[axis] = -1
+        w = w.reshape(shape)
+        return (area_average(np.asarray(a) * w, axis, edges, offset=offset)
+                / area_average(w, axis, edges, offset=offset))
     x = np.asarray(a)
     n = x.shape[axis]
     e = np.asarray(edges, dtype=np.float64) - offset

@@ -164,9 +164,9 @@ def decode_texture(image: object, channels: int, what: str, *,
         ex, ey = area_edges(w, ow), area_edges(h, oh)
         for j0, j1, s0, s1 in row_bands(h, oh, max(1, BAND_PIXELS // w)):
             band = _band(image, s0, s1, channels, alpha_cutoff)
-            cols = area_average(band, 1, ex)
+            rows = area_average(band, 0, ey[j0:j1 + 1], offset=s0)  # (contiguous sums first)
             del band
-            out[j0:j1] = area_average(cols, 0, ey[j0:j1 + 1], offset=s0)
+            out[j0:j1] = area_average(rows, 1, ex)
         return out
     except SceneError:
         raise
