@@ -14,6 +14,14 @@
   probe is at least a quarter of the spacing above the highest sample inside the slab. Probes
   that still fall inside a solid (a slab between storeys) are moved out or invalidated by the
   bake's classifier (:func:`probegrid.bake.stages.classify_task`), with the same test.
+* **A default grid inside the geometry is refused** before any tracing, with a box to use
+  instead (:func:`suggested_bounds`: a layer beside the scene's thinnest side, +Y for no
+  thinnest): scene bounds thinner than :data:`FLAT_RATIO` of their longest side (a lone floor
+  plane), no free sample inside them (a lone floor slab), or more than :data:`INSIDE_LIMIT` of
+  the grid's probes inside solids.
+* **A probe volume** (``volume``: a scene node's box, :mod:`probegrid.scene.volume`): probes at
+  the centres of its cells, as an engine's irradiance volume samples its voxels, without the
+  free-space fit (the box is the author's).
 * **Relocation** (:func:`relocation_offsets`): the classifier tries the points of a small
   lattice around an invalid probe, within a fraction of a cell, nearest first.
 

@@ -2,7 +2,7 @@
 at a time, reduced on the way to what a bake resolves.
 
 A bake samples a texture where its rays hit: the primary rays of a probe's cube texel (a face
-of :attr:`~probegrid.bake.BakeSettings.face_size` 32 texels covers 90 degrees, about 2.8
+of ``face_size`` 32 texels (:class:`probegrid.bake.BakeSettings`) covers 90 degrees, about 2.8
 degrees a texel) and the gather and shadow rays of their hits, all of them averaged into maps
 of 8^2 (diffuse) to 32^2 texels. Texture detail finer than a ray's footprint only adds noise,
 and a 4096^2 texture decoded to float32 RGBA is 256 MiB. So, on load:
@@ -38,6 +38,7 @@ References: IEC 61966-2-1 (sRGB); glTF 2.0 specification, "Alpha Coverage".
 from __future__ import annotations
 
 import contextvars
+import io
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -138,6 +139,26 @@ def _band(image: object, y0: int, y1: int, channels: int, cutoff: float | None
     return out
 
 
+def _own_copy(image: object) -> object:
+    """A Pillow image not yet decoded, opened again from its encoded bytes: decoding it leaves
+    the caller's image undecoded (trimesh keeps every image of a scene; each decoded in place
+    would stay in memory until the scene is dropped). The image itself when it is decoded
+    already or its bytes cannot be read again."""
+    import PIL.Image
+
+    fp = getattr(image, "fp", None)
+    if fp is None or getattr(image, "_im", None) is not None:
+        return image
+    try:
+        where = fp.tell()
+        fp.seek(0)
+        data = fp.read()
+        fp.seek(where)
+        return PIL.Image.open(io.BytesIO(data))
+    except (OSError, ValueError, AttributeError):
+        return image
+
+
 def decode_texture(image: object, channels: int, what: str, *,
                    alpha_cutoff: float | None = None) -> NDArray[np.float32]:
     """A Pillow image (opened, maybe not yet decoded) -> ``(H', W', channels)`` float32 linear
@@ -152,6 +173,7 @@ def decode_texture(image: object, channels: int, what: str, *,
     try:
         w, h = (int(v) for v in image.size)  # type: ignore[attr-defined]
         check_texture_size(w, h, what)
+        image = _own_copy(image)
         image.load()  # type: ignore[attr-defined]
         oh, ow = reduced_shape(h, w, limits.max_size)
         out = np.empty((oh, ow, channels), dtype=np.float32)
