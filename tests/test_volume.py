@@ -218,3 +218,18 @@ def test_a_default_grid_inside_a_floor_slab_is_refused_before_tracing(tmp_path, 
     b = floor_gltf(tmp_path / "flat.gltf", thickness=1e-4)
     with pytest.raises(ValueError, match=r"the scene is flat.*--bounds -4.*,0.3125,"):
         grid_for(load_gltf(b))
+
+
+def test_a_binary_gltfs_volume_node_is_read_from_its_json_chunk(tmp_path):
+    """The same scene as a .glb (as Bevy ships IrradianceVolumeExample.glb): the node is found
+    from the JSON chunk alone."""
+    from probegrid.scene.gltf import _build_glb
+
+    f = floor_gltf(tmp_path / "f.gltf", [_node("IrradianceVolume", translation=(0, 1.5, 0),
+                                               scale=(8, 2, 8))])
+    doc = json.loads(f.read_text())
+    blob = base64.b64decode(doc["buffers"][0].pop("uri").split(",", 1)[1])
+    glb = tmp_path / "f.glb"
+    glb.write_bytes(_build_glb(doc, blob))
+    v = find_volume_node(glb)
+    np.testing.assert_allclose([v.lo, v.hi], [[-4, 0.5, -4], [4, 2.5, 4]])

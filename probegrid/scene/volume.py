@@ -69,13 +69,20 @@ class ProbeVolume:
 
 
 def _document(path: Path) -> dict:
-    """The glTF JSON of a ``.gltf`` or ``.glb`` file (no buffer or image read)."""
+    """The glTF JSON of a ``.gltf`` or ``.glb`` file (a ``.glb``'s JSON chunk only: no
+    buffer or image is read)."""
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as f:
+            data = f.read(20)
+            if data[:4] == _GLB_MAGIC and len(data) == 20:
+                length = int.from_bytes(data[12:16], "little")
+                data += f.read(length)  # (the first chunk, JSON; checked by _parse_glb)
+                head = bytearray(data)
+                head[8:12] = len(data).to_bytes(4, "little")  # the container's length: to here
+                return _parse_glb(bytes(head), path.name)[0]
+            data += f.read()
     except OSError as exc:
         raise SceneError(f"cannot read {path}: {exc.strerror or exc}") from None
-    if data[:4] == _GLB_MAGIC:
-        return _parse_glb(data, path.name)[0]
     try:
         doc = json.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
