@@ -9,12 +9,14 @@ load (:mod:`probegrid.scene.texels`). Both scenes bake through the command
 (``probegrid bake``, local worker processes, the same settings: fixed 2 bounces, ``--samples
 1``); the big one a 16 x 8 x 16 grid over the hall, the room a 4 x 3 x 4 grid.
 
-Printed for each: triangles, texture bytes (files, decoded), probes, wall time, the bake's own
-rays/s, the peak resident memory of the whole process tree (the command and its workers,
-sampled every 0.2 s with psutil), then time per probe, memory per triangle and the ratios of
-the big scene to the room: the growth of time per probe against the growth in triangles
-(Embree's traversal is about logarithmic in triangles), and of memory against triangles and
-texture bytes.
+Printed for each: triangles, texture bytes (files, decoded), probes, the command's wall time
+and the bake's passes' own seconds (``stage_seconds`` of the manifest), rays and rays/s over
+the passes, the peak resident memory of the whole process tree (the command and its workers,
+sampled every 0.2 s with psutil; pages a forked worker shares are counted in each process),
+then the passes' time per probe and per ray, memory per triangle
+and the ratios of the big scene to the room: the growth of time per probe against the growth
+in triangles (Embree's traversal is about logarithmic in triangles), and of memory against
+triangles and texture bytes.
 
 Run: ``nice .venv/bin/python benchmarks/bench_scale.py [--face-size 8] [--workers 2]
 [--cache DIR] [--only small|big]``. The figures are in docs/benchmarks.md.
@@ -174,8 +176,10 @@ def run_bake(scene: Path, grid: str, extra: list[str], *, face: int, workers: in
     rate = re.search(r"([0-9.]+) Mrays/s", text)
     manifest = json.loads((out / "manifest.json").read_text())
     inputs = manifest.get("inputs", {}).get("scene", {})
+    stages = float(sum(manifest["quality"]["stage_seconds"].values()))
     return {"wall": wall, "peak": peak[0], "mrays_s": float(rate.group(1)) if rate else 0.0,
-            "rays": manifest["quality"]["rays"], "triangles": inputs.get("triangles", 0),
+            "stages": stages, "rays": manifest["quality"]["rays"],
+            "triangles": inputs.get("triangles", 0),
             "probes": manifest["grid"]["counts"][0] * manifest["grid"]["counts"][1]
             * manifest["grid"]["counts"][2]}
 
@@ -204,18 +208,25 @@ def main() -> None:
         rows.append(("hall", hall.stat().st_size, tex, r))
     print(f"face size {a.face_size}, 2 bounces, 1 sample, {a.workers} local workers; "
           f"load average {os.getloadavg()[0]:.1f}")
+    print("wall: the whole command; stages: the bake's passes (classify, trace, bounces, "
+          "final; the rest is loading the scene, starting workers, writing the store)")
     print(f"{'scene':6} {'triangles':>10} {'tex MB':>7} {'probes':>6} {'wall s':>7} "
-          f"{'Mrays/s':>7} {'peak MiB':>8} {'s/probe':>8} {'KiB/tri':>8}")
+          f"{'stages s':>8} {'rays':>9} {'Mrays/s':>7} {'peak MiB':>8} {'s/probe':>8} "
+          f"{'us/ray':>7} {'KiB/tri':>8}")
     for name, _, tex, r in rows:
+        per = r["stages"] / r["probes"]
         print(f"{name:6} {r['triangles']:>10,} {tex / 1e6:>7.0f} {r['probes']:>6} "
-              f"{r['wall']:>7.1f} {r['mrays_s']:>7.2f} {r['peak'] / 2**20:>8.0f} "
-              f"{r['wall'] / r['probes']:>8.3f} {r['peak'] / 1024 / max(1, r['triangles']):>8.2f}")
+              f"{r['wall']:>7.1f} {r['stages']:>8.1f} {r['rays']:>9,} "
+              f"{r['rays'] / r['stages'] / 1e6:>7.3f} {r['peak'] / 2**20:>8.0f} {per:>8.3f} "
+              f"{1e6 * r['stages'] / r['rays']:>7.1f} "
+              f"{r['peak'] / 1024 / max(1, r['triangles']):>8.2f}")
     if len(rows) == 2:
         s, b = rows[0][3], rows[1][3]
         print(f"hall / room: triangles x{b['triangles'] / s['triangles']:,.0f}, probes "
-              f"x{b['probes'] / s['probes']:.0f}, time per probe "
-              f"x{(b['wall'] / b['probes']) / (s['wall'] / s['probes']):.2f}, rays/s "
-              f"x{b['mrays_s'] / max(s['mrays_s'], 1e-9):.2f}, peak memory "
+              f"x{b['probes'] / s['probes']:.0f}, stage time per probe "
+              f"x{(b['stages'] / b['probes']) / (s['stages'] / s['probes']):.2f}, rays per "
+              f"probe x{(b['rays'] / b['probes']) / (s['rays'] / s['probes']):.2f}, rays/s "
+              f"x{(b['rays'] / b['stages']) / (s['rays'] / s['stages']):.2f}, peak memory "
               f"x{b['peak'] / s['peak']:.2f}")
 
 
