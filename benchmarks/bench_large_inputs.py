@@ -38,14 +38,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 _LOAD = """
 import resource, sys, time, tracemalloc
-import numpy, PIL.Image, trimesh
+import numpy, PIL.Image, psutil, trimesh
 from probegrid.scene import load_gltf
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+base = psutil.Process().memory_info().rss / 1024  # (now: the imports' peak may be higher)
 tracemalloc.start()
 t = time.perf_counter()
 scene = load_gltf(sys.argv[1])
 print(time.perf_counter() - t, tracemalloc.get_traced_memory()[1],
-      (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) * 1024,
+      int((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) * 1024),
       scene.materials[0].base_color_texture.shape)
 """
 
@@ -111,7 +111,8 @@ def _run(tree: Path, args: list[str]) -> tuple[int, str, float]:
     """(exit code, output, wall seconds) of ``python args`` with ``tree`` first on the path."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     t = time.perf_counter()
-    p = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True)
+    p = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True,
+                       cwd=tree)  # (``-c`` puts the working directory first on the path)
     return p.returncode, p.stdout + p.stderr, time.perf_counter() - t
 
 
