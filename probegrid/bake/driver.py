@@ -40,9 +40,9 @@ records the settings, the scene and environment hash, the conventions and the qu
 (``bounces`` reached, ``bounce_passes``, ``bounce_residual``, ``bounce_energy`` per level,
 ``bounce_extrapolation`` and ``bounce_energy_limit``). A killed bake leaves only
 ``.partial``/``.work`` directories, which never load as a store, and the same command resumes
-from the probes it finished; a bake that fails on its own verdict (a :class:`ProbegridError`
-or ``ValueError``: no light, a bad input found late) deletes its work directory and partial
-store. The work directory is keyed by the scene, the grid and the plan: a
+from the probes it finished; a bake that fails on its own verdict (a ``ValueError``: no light,
+a bad input found late) deletes its work directory and partial store (a lost worker or a full
+disk does not: the bake resumes). The work directory is keyed by the scene, the grid and the plan: a
 bake with another key deletes what it holds (and the final stage's ``.partial``) and starts
 clean. A symbolic link at the work directory's name is unlinked, never followed; the finished
 store is published by :func:`probegrid._fs.publish_directory` (the path holds the old or the
@@ -91,7 +91,6 @@ from probegrid.core import probefilter
 from probegrid.core.conventions import conventions
 from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.grid import GridSpec
-from probegrid.errors import ProbegridError
 from probegrid.scene import Scene
 from probegrid.store import (
     ArraySpec,
@@ -286,10 +285,10 @@ def bake(
             return _bake_locked(scene, grid, out, work, st, env, ex, plan, geometry, scene_hash,
                                 progress=progress, overwrite=overwrite, scene_file=scene_file,
                                 allow_black=allow_black, inputs=inputs, on_start=on_start)
-        except (ProbegridError, ValueError):
+        except ValueError:
             # a bake that failed on its own verdict (no light, a bad input found late) leaves
-            # nothing behind; an interrupted one (a signal, a lost worker, a full disk) keeps
-            # its work files and resumes
+            # nothing behind; an interrupted one (a signal, a lost worker: ExecutorError, a
+            # full disk: OSError) keeps its work files and resumes
             remove_path(partial_path(out))
             remove_path(work)
             raise

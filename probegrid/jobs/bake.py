@@ -195,7 +195,6 @@ def run_bake(job: BakeJob) -> BakeReport:
         detect_file_layout(job.environment[0], option="--environment-layout")
     check_bake_inputs(job.out, settings=job.settings, overwrite=job.overwrite)
     check_scene_file(job.scene)  # (what needs no parsing, before any process starts)
-    volume = probe_volume(job)  # (the glTF JSON only)
     executor = make_executor(workers=job.workers, scheduler=job.scheduler,
                              preload=("probegrid.bake.preload",))
     # local processes start (and import the bake) while this one imports it and loads the scene
@@ -209,6 +208,7 @@ def run_bake(job: BakeJob) -> BakeReport:
 
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
+        volume = probe_volume(job)  # (the glTF JSON only: refused before the scene loads)
         limits = {k: v for k, v in (("max_pixels", job.max_texture_pixels),
                                     ("max_size", job.max_texture_size)) if v is not None}
         scene = load_gltf(job.scene, allow_paths=job.allow_paths,
