@@ -3,7 +3,7 @@
 The big scene is built here (cached in ``--cache``): a 40 x 40 floor slab under an 8 x 8 array
 of instanced icospheres (5 subdivisions, 20,480 triangles each: 1.31 M triangles with the
 floor), textured with four 4096^2 RGBA PNG images of noise (64 MiB each decoded, about as
-large encoded: 268 MB of textures, incompressible on purpose), lit by a sun
+large encoded: 260 MB of PNG, incompressible on purpose), lit by a sun
 (``KHR_lights_punctual``) and a constant sky. The loader reduces each texture to 1024^2 on
 load (:mod:`probegrid.scene.texels`). Both scenes bake through the command
 (``probegrid bake``, local worker processes, the same settings: fixed 2 bounces, ``--samples
