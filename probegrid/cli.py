@@ -200,6 +200,10 @@ def _add_filter(sub: argparse._SubParsersAction) -> None:
             help="keep negative input pixels (by default they are set to 0 and counted)")
     _option(p, F, "lut_size", help="DFG LUT size")
     _option(p, F, "previews", "--no-previews", help="skip the PNG previews")
+    p.add_argument("--max-pixels", type=_positive_int, metavar="N",
+                   help="most pixels an input image may have, checked from its header "
+                        "(default: 2^28 = 268 M); a larger input than the cube needs is read "
+                        "reduced, in bands, whatever its size")
     p.set_defaults(handler=_run_filter)
 
 
@@ -208,7 +212,8 @@ def _run_filter(args: argparse.Namespace) -> int:
     from probegrid.jobs.filter import run_filter
 
     settings = FilterSettings(**_given(args, FilterSettings))
-    result = run_filter(args.env, args.out, settings, progress=_stderr_progress)
+    result = run_filter(args.env, args.out, settings, progress=_stderr_progress,
+                        max_pixels=args.max_pixels)
     print(result.summary())
     return 0
 
@@ -267,7 +272,13 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
             help="probes exactly S (or SX,SY,SZ) apart, centred in the box (scene units)")
     _option(p, J, "bounds", help="grid box x0,y0,z0,x1,y1,z1 (default: the scene bounds, "
             "probes at the centres of the grid's cells)")
-    _option(p, J, "margin", help="grow (or, negative, shrink) the scene bounds by this much")
+    _option(p, J, "volume_node", metavar="NAME",
+            help="grid box from the glTF node NAME: the unit cube -0.5..0.5 by the node's world "
+            "transform, as Bevy's light probes (a rotated node: the box's axis-aligned bounds); "
+            "probes at the centres of its cells. Default: the one node named like a probe "
+            "volume (IrradianceVolume, LightProbe, ProbeVolume), if any")
+    _option(p, J, "margin", help="grow (or, negative, shrink) the scene bounds (or the volume "
+            "node's box) by this much")
     e = p.add_mutually_exclusive_group()
     _option(e, J, "environment", type=Path, nargs=1, metavar="FILE",
             help="HDR environment image (any layout; see --environment-layout)")
@@ -315,6 +326,12 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "ignore_extensions", "--ignore-extension", action="append", metavar="NAME",
             help="bake a glTF that requires this extension with the extension ignored (the "
             "bake names it among what it does not honour); repeat for more, * for all")
+    _option(p, J, "max_texture_pixels", metavar="N",
+            help="most pixels a texture image may have (refused from its header before any "
+            "decoding; 2^27 = 134 M by default)")
+    _option(p, J, "max_texture_size", metavar="N",
+            help="longest side of a texture as the bake samples it: a larger texture is "
+            "area-averaged down on load, its mean colour kept (default: 1024)")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 

@@ -80,6 +80,7 @@ References
 from __future__ import annotations
 
 import errno
+import math
 import os
 import re
 from collections.abc import Callable, Mapping, Sequence
@@ -102,17 +103,20 @@ from probegrid.core.color import (
     tonemap_preview,
 )
 from probegrid.core.cubemap import check_cube, texel_solid_angles
+from probegrid.core.reduce import area_average, area_edges, row_bands
 from probegrid.core.layouts import (
     LAYOUTS,
     Layout,
     default_face_size,
     detect_layout,
     from_cube,
+    layout_shape,
     to_cube,
 )
 from probegrid.errors import ImageError
 
 __all__ = [
+    "BAND_PIXELS",
     "FACE_NAMES",
     "FACE_ORDER_HELP",
     "FACE_SUFFIXES",
@@ -138,6 +142,7 @@ __all__ = [
     "read_environment",
     "read_image",
     "read_metadata",
+    "reduced_environment_shape",
     "srgb_to_linear",
     "stored_pixel_type",
     "tonemap_preview",
@@ -275,13 +280,16 @@ def _open(p: Path) -> oiio.ImageInput:
     return inp
 
 
-#: Most pixels :func:`read_image` decodes (2^28: a 23170^2 image, 3 GiB as float32 RGB); a
-#: header that declares more is refused before any pixel is read or memory allocated.
+#: Most pixels :func:`read_image` decodes by default (2^28: a 23170^2 image, 16384 x 16384);
+#: a header that declares more is refused before any pixel is read or memory allocated.
 MAX_PIXELS: Final[int] = 1 << 28
+#: Source pixels a reduced read (:func:`read_image` with ``shape``) holds at a time.
+BAND_PIXELS: Final[int] = 1 << 20
 
 
-def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None
-               ) -> NDArray[np.float32]:
+def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None,
+               shape: tuple[int, int] | None = None, option: str | None = None,
+               equirect: bool = False) -> NDArray[np.float32]:
     """Read an image as linear RGB.
 
     Parameters
@@ -291,7 +299,16 @@ def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None
     max_pixels : int, optional
         Largest ``width x height`` read (default :data:`MAX_PIXELS`); more is an ImageError
         raised from the header alone (OpenImageIO itself refuses a header that declares far
-        more pixels than the file holds; this bounds what a real file may cost).
+        more pixels than the file holds; this bounds what a real file may cost). ``option``
+        names the option that raises it in the message (e.g. ``--max-pixels``).
+    shape : (H', W'), optional
+        Read the image reduced to this size: scanlines are read a band of about
+        :data:`BAND_PIXELS` pixels at a time, decoded to linear and area-averaged
+        (:mod:`probegrid.core.reduce`: every output pixel the mean over its footprint, the
+        image's mean kept), so memory holds a band and the output, never the whole image.
+        Must be no larger than the image along either axis. ``equirect``: rows are averaged
+        weighted by their solid angle (``sin`` of their edges' latitudes), so that the light
+        the image carries, ``sum L dOmega``, is what the reduction keeps exactly.
 
     Returns
     -------
@@ -315,10 +332,13 @@ def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None
             )
         max_pixels = MAX_PIXELS if max_pixels is None else max_pixels
         if w * h > max_pixels:
+            fix = (f"{option} N raises it" if option is not None else "downsample it first")
             raise ImageError(f"{p}: {w}x{h} is {w * h} pixels, over the limit of {max_pixels} "
-                             "an image may have here; downsample it first.")
+                             f"an image may have here; {fix}.")
         integer = spec.format.basetype not in (oiio.BASETYPE.HALF, oiio.BASETYPE.FLOAT,
                                                oiio.BASETYPE.DOUBLE)
+        if shape is not None and tuple(shape) != (h, w):
+            return _read_reduced(inp, p, (h, w, c), tuple(shape), integer, equirect)
         data = inp.read_image(0, 0, 0, c, oiio.FLOAT)
         error = inp.geterror() if inp.has_error else ""
     finally:
@@ -333,6 +353,66 @@ def read_image(path: str | os.PathLike[str], *, max_pixels: int | None = None
     a = a.reshape(h, w, c)
     rgb = np.repeat(a[..., :1], 3, axis=-1) if c < 3 else a[..., :3]
     return srgb_to_linear(rgb) if integer else np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def _read_reduced(inp: oiio.ImageInput, p: Path, hwc: tuple[int, int, int],
+                  shape: tuple[int, ...], integer: bool, equirect: bool
+                  ) -> NDArray[np.float32]:
+    """:func:`read_image` of an open image reduced to ``shape``, a band at a time."""
+    h, w, c = hwc
+    weights = None
+    if equirect:  # (each row's solid angle over 2 pi / W)
+        weights = -np.diff(np.sin(0.5 * np.pi - np.arange(h + 1) * (np.pi / h)))
+    oh, ow = (int(v) for v in shape)
+    if not (1 <= oh <= h and 1 <= ow <= w):
+        raise ValueError(f"cannot reduce a {w}x{h} image to {ow}x{oh}")
+    out = np.empty((oh, ow, 3), dtype=np.float32)
+    ex, ey = area_edges(w, ow), area_edges(h, oh)
+    kept = np.empty((0, w, 3), dtype=np.float32)  # the rows read last, from row ``start`` on
+    start = 0
+    for j0, j1, s0, s1 in row_bands(h, oh, max(1, BAND_PIXELS // w)):
+        first = max(s0, start + len(kept))  # (scanlines are read in order, each once)
+        data = inp.read_scanlines(0, 0, first, s1, 0, 0, c, oiio.FLOAT)
+        if data is None or inp.has_error:
+            raise ImageError(f"{p}: truncated or corrupt image data "
+                             f"({_one_line(inp.geterror())}).")
+        a = np.asarray(data, dtype=np.float32)
+        if a.size != (s1 - first) * w * c:
+            raise ImageError(f"{p}: truncated image: read {a.size} values of rows {first} to "
+                             f"{s1}, expected {(s1 - first) * w * c} ({w}x{h}x{c}).")
+        a = a.reshape(s1 - first, w, c)
+        rgb = np.repeat(a[..., :1], 3, axis=-1) if c < 3 else a[..., :3]
+        rgb = srgb_to_linear(rgb) if integer else rgb
+        band = np.concatenate([kept[s0 - start:], rgb]) if first > s0 else rgb
+        # (rows first: contiguous sums that leave the column pass a band of output rows)
+        rows = area_average(band, 0, ey[j0:j1 + 1], offset=s0,
+                            weights=None if weights is None else weights[s0:s0 + len(band)])
+        out[j0:j1] = area_average(rows, 1, ex)
+        kept, start = band, s0
+    return out
+
+
+def reduced_environment_shape(height: int, width: int, layout: Layout, size: int
+                              ) -> tuple[int, int] | None:
+    """The size an environment image of ``layout`` is read at for a cube of face ``size``:
+    the layout at twice the face size (every cube texel still covers at least two source
+    pixels across: equirect ``8 size x 4 size``, crosses ``2 size`` a face, angular
+    ``ceil(2 pi size)``; :func:`probegrid.core.layouts.default_face_size` is the inverse), or
+    None when the image is not larger than that or its proportions are not the layout's
+    exactly (then it is read whole and the resampler judges it)."""
+    m = 2 * int(size)
+    if layout == "equirect":
+        need = layout_shape("equirect", 2 * m)
+    elif layout == "angular":
+        need = layout_shape("angular", math.ceil(math.pi * m))
+    elif layout in ("hcross", "vcross", "faces"):
+        need = layout_shape(layout, m)
+    else:
+        return None
+    nh, nw = need
+    if height <= nh or width <= nw or height * nw != width * nh:
+        return None
+    return nh, nw
 
 
 def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
@@ -443,7 +523,9 @@ def read_environment(
         (:func:`probegrid.core.layouts.detect_layout`) and means ``"faces"`` for six files.
     size : int, optional
         Output face size; default :func:`probegrid.core.layouts.default_face_size` of the source
-        (e.g. 1024 x 512 equirect -> 256).
+        (e.g. 1024 x 512 equirect -> 256). A source more than twice as fine as that needs is
+        read reduced (:func:`reduced_environment_shape`, a band of rows at a time): its memory
+        is bounded by the output's size, not the file's.
     max_size : int, optional
         Upper bound on the default face size (ignored when ``size`` is given).
     clamp : float, optional
@@ -474,11 +556,18 @@ def read_environment(
         not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 1
     ):
         raise ValueError(f"size must be a positive integer, got {size!r}.")
+    def face_size(h: int, w: int, lay: Layout) -> int:
+        n = default_face_size(h, w, lay) if size is None else int(size)
+        return min(n, max_size) if size is None and max_size is not None else n
+
     if len(plist) == 6:
         if layout not in ("auto", "faces"):
             raise ValueError(f"six files are six faces; layout {layout!r} needs one file.")
         plist = order_face_files(plist)
-        images = [_read_checked(p, clamp) for p in plist]
+        fw, fh = image_size(plist[0])
+        need = reduced_environment_shape(fh, fw, "faces", face_size(fh, fw, "faces"))
+        images = [_read_checked(p, clamp, shape=need if image_size(p) == (fw, fh) else None)
+                  for p in plist]
         shapes = {im.shape for im in images}
         first = images[0].shape
         if len(shapes) != 1 or first[0] != first[1]:
@@ -491,8 +580,7 @@ def read_environment(
     elif len(plist) == 1:
         if layout == "faces":
             raise ValueError("layout 'faces' needs six files (+X, -X, +Y, -Y, +Z, -Z).")
-        source = _read_checked(plist[0], clamp)
-        h, w = source.shape[:2]
+        w, h = image_size(plist[0])  # (the layout and the size read from the header)
         if layout == "auto":
             try:
                 lay = detect_layout(h, w)
@@ -500,6 +588,8 @@ def read_environment(
                 raise ImageError(f"{plist[0]}: {exc}") from None
         else:
             lay = layout
+        need = reduced_environment_shape(h, w, lay, face_size(h, w, lay))
+        source = _read_checked(plist[0], clamp, shape=need, equirect=lay == "equirect")
     else:
         raise ValueError(f"give one environment image or six face files, got {len(plist)} paths.")
     negative = int(np.count_nonzero(source < 0))
@@ -509,9 +599,7 @@ def read_environment(
             what = plist[0].name if len(plist) == 1 else "the six faces"
             report(f"note: {negative} negative values of {what} "
                    "set to 0 (radiance is never negative)")
-    n = default_face_size(h, w, lay) if size is None else size
-    if size is None and max_size is not None:
-        n = min(n, max_size)
+    n = face_size(h, w, lay)  # (of the file's size: a reduced source keeps it)
     try:
         return to_cube(source, lay, n)
     except ValueError as exc:
@@ -520,8 +608,9 @@ def read_environment(
         raise ImageError(f"{plist[0]}: {exc}") from None
 
 
-def _read_checked(p: Path, clamp: float | None) -> NDArray[np.float32]:
-    image = read_image(p)
+def _read_checked(p: Path, clamp: float | None, *, shape: tuple[int, int] | None = None,
+                  equirect: bool = False) -> NDArray[np.float32]:
+    image = read_image(p, shape=shape, equirect=equirect)
     if clamp is not None:
         return clamp_radiance(image, clamp)
     bad = count_nonfinite(image)

@@ -141,9 +141,16 @@ def test_the_command_writes_the_library_arrays_bit_for_bit(tmp_path):
     settings = FilterSettings(size=16, diffuse_size=4, lut_size=8, half=False, previews=False,
                               sh_bands=4)
     run_filter(SKY, tmp_path / "out", settings, workers=1)
-    env = filter_environment(imageio.read_image(SKY), settings=settings)
+    # (the command reads the 512 x 256 sky reduced to twice what a 16^2 cube needs)
+    w, h = imageio.image_size(SKY)
+    shape = imageio.reduced_environment_shape(h, w, "equirect", 16)
+    assert (w, h) == (512, 256) and shape == (64, 128)
+    env = filter_environment(imageio.read_image(SKY, shape=shape, equirect=True),
+                             settings=settings)
     out = tmp_path / "out"
     manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["input"]["source_size"] == [128, 64]
+    assert manifest["input"]["file_size"] == [512, 256]
 
     def faces(stem: str) -> np.ndarray:
         return np.stack([imageio.read_image(out / f"{stem}{s}.exr")

@@ -88,21 +88,22 @@ def test_a_scene_without_light_is_refused_before_any_work(tmp_path, scene_file, 
     assert "nan" not in capsys.readouterr().out
 
 
-def test_an_all_black_bake_exits_non_zero_and_resumes_with_allow_black(tmp_path, scene_file,
-                                                                        capsys):
+def test_an_all_black_bake_exits_non_zero_and_leaves_nothing(tmp_path, scene_file, capsys):
     """The scene has a light, but it is shut in a box: every valid probe stays black. The
-    bake stops before finishing the store, with the reason; --allow-black resumes it."""
+    bake stops before finishing the store, with the reason, and leaves no store, partial
+    store or work files; --allow-black bakes it black."""
     scene = scene_file(_dark_room(boxed_light=True))
     out = tmp_path / "black.probes"
     args = ["bake", scene, "--out", str(out), "--grid", "2x2x2", *FAST]
     assert main(args) == EXIT_BAD_INPUT
     line = _one_line(capsys, only=False)  # after the estimate and the bake's own lines
     assert "came out black" in line and "none of the 8 valid probes" in line
+    assert "--allow-black" in line
     with pytest.raises(StoreError):
         open_store(out)
-    assert partial_path(out).exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no .partial, no .work
     assert main([*args, "--allow-black"]) == 0
-    assert "8 probes resumed" in capsys.readouterr().out
+    assert "resumed" not in capsys.readouterr().out
     q = open_store(out).manifest.quality
     assert q["light"] == NO_LIGHT and q["energy_max_error"] == NO_LIGHT
     # the same room with the light in the open: lit, finished, figures are numbers
@@ -266,15 +267,36 @@ def test_bake_reads_files_outside_the_scene_folder_only_under_allow_path(tmp_pat
     assert "no light" in line
 
 
+def _interrupt_final_pass(monkeypatch) -> None:
+    """The next bake is interrupted (as by Ctrl-C) in its final pass, once the earlier
+    stages are done; later bakes run whole."""
+    from probegrid.bake import driver
+
+    real = driver.final_task
+    calls = []
+
+    def final_task(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(driver, "final_task", final_task)
+
+
 def test_a_rerun_with_other_settings_says_it_starts_clean_and_never_resumes(tmp_path,
-                                                                            scene_file, capsys):
-    """An interrupted bake (stopped black before its store was finished) re-run with another
-    grid starts clean and says so, instead of "resuming" and failing; the same command again
-    resumes."""
+                                                                            scene_file, capsys,
+                                                                            monkeypatch):
+    """An interrupted bake re-run with another grid starts clean and says so, instead of
+    "resuming" and failing; the same command again resumes."""
+    from probegrid.cli import EXIT_INTERRUPTED
+
     scene = scene_file(_dark_room(boxed_light=True))
     out = tmp_path / "black.probes"
     args = ["bake", scene, "--out", str(out), *FAST]
-    assert main([*args, "--grid", "2x2x2"]) == EXIT_BAD_INPUT
+    _interrupt_final_pass(monkeypatch)
+    assert main([*args, "--grid", "2x2x2", "--allow-black"]) == EXIT_INTERRUPTED
+    assert out.with_name("black.probes.work").is_dir()  # interrupted: kept, resumable
     capsys.readouterr()
     assert main([*args, "--grid", "3x2x2", "--allow-black"]) == 0
     got = capsys.readouterr()
@@ -282,11 +304,12 @@ def test_a_rerun_with_other_settings_says_it_starts_clean_and_never_resumes(tmp_
     assert "had another scene, grid or other settings" in got.err and "starts clean" in got.err
     assert open_store(out).grid.n_probes == 12
     assert main([*args, "--grid", "2x2x2"]) == EXIT_BAD_INPUT  # (the store exists)
-    assert main([*args, "--grid", "2x2x2", "--overwrite"]) == EXIT_BAD_INPUT  # black again
+    _interrupt_final_pass(monkeypatch)
+    assert main([*args, "--grid", "2x2x2", "--overwrite", "--allow-black"]) == EXIT_INTERRUPTED
     capsys.readouterr()
     assert main([*args, "--grid", "2x2x2", "--overwrite", "--allow-black"]) == 0
     got = capsys.readouterr()
-    assert "resuming the interrupted bake" in got.err and "8 probes resumed" in got.out
+    assert "resuming the interrupted bake" in got.err
     assert "starts clean" not in got.err
 
 

@@ -40,7 +40,9 @@ records the settings, the scene and environment hash, the conventions and the qu
 (``bounces`` reached, ``bounce_passes``, ``bounce_residual``, ``bounce_energy`` per level,
 ``bounce_extrapolation`` and ``bounce_energy_limit``). A killed bake leaves only
 ``.partial``/``.work`` directories, which never load as a store, and the same command resumes
-from the probes it finished. The work directory is keyed by the scene, the grid and the plan: a
+from the probes it finished; a bake that fails on its own verdict (a ``ValueError``: no light,
+a bad input found late) deletes its work directory and partial store (a lost worker or a full
+disk does not: the bake resumes). The work directory is keyed by the scene, the grid and the plan: a
 bake with another key deletes what it holds (and the final stage's ``.partial``) and starts
 clean. A symbolic link at the work directory's name is unlinked, never followed; the finished
 store is published by :func:`probegrid._fs.publish_directory` (the path holds the old or the
@@ -285,171 +287,190 @@ def bake(
             "filters": probefilter.describe(st.face_size, st.diffuse_size)}
     work = _work_directory(out)
     with _bake_lock(work, out):
-        recover_publish(out)
-        # The work directory is keyed by the scene, the grid and the plan (its stamp
-        # ``bake.json``): an interrupted bake of the same key resumes; anything else in it
-        # (another scene, grid or plan, an unreadable stamp) is dropped with the final
-        # stage's partial store, so a re-run with other settings starts clean, --overwrite
-        # or not.
-        stamp = work / "bake.json"
-        fingerprint = json.dumps({"scene": scene_hash, "grid": grid.as_dict(),
-                                  "plan": _jsonable(plan)}, sort_keys=True)
-        dropped = False
-        if not (stamp.is_file() and not stamp.is_symlink()
-                and stamp.read_text(errors="replace") == fingerprint):
-            dropped = any(work.iterdir())
-            for child in work.iterdir():
-                remove_path(child)
-            partial = partial_path(out)
-            if StoreWriter.resumable(out, arrays=store_arrays(st), grid=grid,
-                                     conventions=conventions(), scene_hash=scene_hash,
-                                     bake=plan):
-                pass  # (the final stage of this very bake, its work directory gone)
-            elif partial.is_dir() and not partial.is_symlink():
-                dropped = True
-                with directory_lock(partial, busy=f"another process is writing {partial}"):
-                    remove_path(partial)
-            elif partial.is_symlink() or partial.exists():
-                dropped = True
+        try:
+            return _bake_locked(scene, grid, out, work, st, env, ex, plan, geometry, scene_hash,
+                                progress=progress, overwrite=overwrite, scene_file=scene_file,
+                                allow_black=allow_black, inputs=inputs, on_start=on_start)
+        except ValueError:
+            # a bake that failed on its own verdict (no light, a bad input found late) leaves
+            # nothing behind; an interrupted one (a signal, a lost worker: ExecutorError, a
+            # full disk: OSError) keeps its work files and resumes
+            remove_path(partial_path(out))
+            remove_path(work)
+            raise
+
+
+def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSettings,
+                 env: Environment, ex: Executor, plan: dict[str, Any], geometry: Any,
+                 scene_hash: str, *, progress: ProgressFn | None, overwrite: bool,
+                 scene_file: str | Path | None, allow_black: bool, inputs: BakeInputs | None,
+                 on_start: Callable[[bool], None] | None) -> BakeReport:
+    """:func:`bake` under its lock on the work directory ``work``."""
+    recover_publish(out)
+    # The work directory is keyed by the scene, the grid and the plan (its stamp
+    # ``bake.json``): an interrupted bake of the same key resumes; anything else in it
+    # (another scene, grid or plan, an unreadable stamp) is dropped with the final
+    # stage's partial store, so a re-run with other settings starts clean, --overwrite
+    # or not.
+    stamp = work / "bake.json"
+    fingerprint = json.dumps({"scene": scene_hash, "grid": grid.as_dict(),
+                              "plan": _jsonable(plan)}, sort_keys=True)
+    dropped = False
+    if not (stamp.is_file() and not stamp.is_symlink()
+            and stamp.read_text(errors="replace") == fingerprint):
+        dropped = any(work.iterdir())
+        for child in work.iterdir():
+            remove_path(child)
+        partial = partial_path(out)
+        if StoreWriter.resumable(out, arrays=store_arrays(st), grid=grid,
+                                 conventions=conventions(), scene_hash=scene_hash,
+                                 bake=plan):
+            pass  # (the final stage of this very bake, its work directory gone)
+        elif partial.is_dir() and not partial.is_symlink():
+            dropped = True
+            with directory_lock(partial, busy=f"another process is writing {partial}"):
                 remove_path(partial)
-        atomic_write_text(stamp, fingerprint)
-        if on_start is not None:
-            on_start(dropped)
-        runner = _StageRunner(ex, plan, scene_hash, progress)
-        t0 = time.perf_counter()
-        base = StageContext(scene, env, st, grid, geometry,
-                             key=hashlib.sha256((fingerprint + repr(geometry)).encode()).hexdigest())
+        elif partial.is_symlink() or partial.exists():
+            dropped = True
+            remove_path(partial)
+    atomic_write_text(stamp, fingerprint)
+    if on_start is not None:
+        on_start(dropped)
+    runner = _StageRunner(ex, plan, scene_hash, progress)
+    t0 = time.perf_counter()
+    base = StageContext(scene, env, st, grid, geometry,
+                         key=hashlib.sha256((fingerprint + repr(geometry)).encode()).hexdigest())
 
-        # 1. classify
-        w, resumed = runner.run("classify", work / "classify.probes", classify_arrays(),
-                                classify_task, base)
-        cls_store = w.finish() if isinstance(w, StoreWriter) else w
-        positions = np.array(cls_store["positions"])
-        valid = np.array(cls_store["valid"])
-        lattice = grid.positions()
-        relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
-        # Workers on this machine memory-map the grid-sized arrays from the work directory; others
-        # (a Dask cluster) receive them.
-        files = ex.shares_files
-        probe_pos: NDArray[np.float64] | str = positions
-        probe_valid: NDArray[np.bool_] | str = valid
-        if files:
-            probe_pos = str(work / "classify.probes" / "positions.npy")
-            probe_valid = str(work / "classify.probes" / "valid.npy")
+    # 1. classify
+    w, resumed = runner.run("classify", work / "classify.probes", classify_arrays(),
+                            classify_task, base)
+    cls_store = w.finish() if isinstance(w, StoreWriter) else w
+    positions = np.array(cls_store["positions"])
+    valid = np.array(cls_store["valid"])
+    lattice = grid.positions()
+    relocated = int(np.count_nonzero(np.any(positions != lattice, axis=1)))
+    # Workers on this machine memory-map the grid-sized arrays from the work directory; others
+    # (a Dask cluster) receive them.
+    files = ex.shares_files
+    probe_pos: NDArray[np.float64] | str = positions
+    probe_valid: NDArray[np.bool_] | str = valid
+    if files:
+        probe_pos = str(work / "classify.probes" / "positions.npy")
+        probe_valid = str(work / "classify.probes" / "valid.npy")
 
-        # 2. trace once: every probe's rays, kept as per-hit records by the workers; bounce 0
-        records = (str(work / "records") if files
-                   else "probegrid-records-" + hashlib.sha256(
-                       (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
-        schedule = BounceSchedule.of(st)
+    # 2. trace once: every probe's rays, kept as per-hit records by the workers; bounce 0
+    records = (str(work / "records") if files
+               else "probegrid-records-" + hashlib.sha256(
+                   (str(out.resolve()) + fingerprint).encode()).hexdigest()[:16])
+    schedule = BounceSchedule.of(st)
 
-        # one worker process on this machine reads every block it wrote: its records stay in
-        # its memory (written only if they outgrow it); several workers share them as files
-        base = dataclasses.replace(base, record_files=not (files and ex.workers == 1))
-        ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
-        w, _ = runner.run(schedule.label(0), work / "trace.probes", trace_arrays(st),
-                          trace_task, ctx)
-        tstore = w.finish() if isinstance(w, StoreWriter) else w
-        moments_all: NDArray[np.float32] | str = np.array(tstore["moments"])
-        bordered = bordered_cubes(tstore["moments"])
-        moments_b: NDArray[np.float32] | str = bordered
-        if files:
-            moments_all = str(work / "trace.probes" / "moments.npy")
-            moments_b = str(_save_npy(work / "moments_bordered.npy", bordered))
+    # one worker process on this machine reads every block it wrote: its records stay in
+    # its memory (written only if they outgrow it); several workers share them as files
+    base = dataclasses.replace(base, record_files=not (files and ex.workers == 1))
+    ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid, records=records)
+    w, _ = runner.run(schedule.label(0), work / "trace.probes", trace_arrays(st),
+                      trace_task, ctx)
+    tstore = w.finish() if isinstance(w, StoreWriter) else w
+    moments_all: NDArray[np.float32] | str = np.array(tstore["moments"])
+    bordered = bordered_cubes(tstore["moments"])
+    moments_b: NDArray[np.float32] | str = bordered
+    if files:
+        moments_all = str(work / "trace.probes" / "moments.npy")
+        moments_b = str(_save_npy(work / "moments_bordered.npy", bordered))
 
-        def grid_cubes(store: StoreWriter | ProbeStore, k: int) -> NDArray[np.float32] | str:
-            cubes = bordered_cubes(store["irradiance"])
-            return str(_save_npy(work / f"irradiance{k}.npy", cubes)) if files else cubes
+    def grid_cubes(store: StoreWriter | ProbeStore, k: int) -> NDArray[np.float32] | str:
+        cubes = bordered_cubes(store["irradiance"])
+        return str(_save_npy(work / f"irradiance{k}.npy", cubes)) if files else cubes
 
-        def grid_energy(store: StoreWriter | ProbeStore) -> float:
-            return float(np.sum(np.asarray(store["energy"])[valid]))
+    def grid_energy(store: StoreWriter | ProbeStore) -> float:
+        return float(np.sum(np.asarray(store["energy"])[valid]))
 
-        cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
-        irradiance_at = {0: tstore["irradiance"]}
-        schedule.passed(grid_energy(tstore))
+    cubes_at: dict[int, NDArray[np.float32] | str] = {0: grid_cubes(tstore, 0)}
+    irradiance_at = {0: tstore["irradiance"]}
+    schedule.passed(grid_energy(tstore))
 
-        # 3. bounces: a pass over the records per level, as long as the schedule asks
-        while (k := schedule.next_pass()) is not None:
-            ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
-                                      records=records, level=k, moments_bordered=moments_b,
-                                      cubes=cubes_at.get(schedule.reads(k)))
-            w, _ = runner.run(schedule.label(k), work / f"bounce{k}.probes", bounce_arrays(st),
-                              bounce_task, ctx)
-            bstore = w.finish() if isinstance(w, StoreWriter) else w
-            cubes_at[k] = grid_cubes(bstore, k)
-            irradiance_at[k] = bstore["irradiance"]
-            schedule.passed(grid_energy(bstore))
-        level = schedule.level
-        assert level is not None
-        final_cubes = cubes_at.get(schedule.reads(level)) if level > 0 else None
-        final_grid = irradiance_at.get(schedule.reads(level)) if level > 0 else None
-        if schedule.extrapolates:  # the final pass reads the grid's extrapolated limit
-            final_grid = schedule.limit(irradiance_at)
-            cubes = bordered_cubes(final_grid)
-            final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
-                           else cubes)
-
-        # 4. final
-        energy = np.full(grid.n_probes, np.nan)
-        seam = np.full(grid.n_probes, np.nan)
-
-        def keep(batch: NDArray[np.int64], result: dict[str, Any]) -> None:
-            energy[batch] = result["_energy"]
-            seam[batch] = result["_seam"]
-
+    # 3. bounces: a pass over the records per level, as long as the schedule asks
+    while (k := schedule.next_pass()) is not None:
         ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
-                                  records=records, level=level, moments_bordered=moments_b,
-                                  cubes=final_cubes, moments=moments_all)
-        w, resumed = runner.run(schedule.label(level, final=True), out, store_arrays(st),
-                                final_task, ctx, overwrite=overwrite, intermediate=False,
-                                extra=keep)
-        assert isinstance(w, StoreWriter)
-        # quality over every probe (resumed ones included): recompute from the stored arrays
-        dif = w.array("diffuse")
-        sh_min = w.array("sh_min")
-        back = w.array("backface_fraction")
-        missing = np.isnan(seam)
-        if missing.any():
-            from probegrid.core import seams
+                                  records=records, level=k, moments_bordered=moments_b,
+                                  cubes=cubes_at.get(schedule.reads(k)))
+        w, _ = runner.run(schedule.label(k), work / f"bounce{k}.probes", bounce_arrays(st),
+                          bounce_task, ctx)
+        bstore = w.finish() if isinstance(w, StoreWriter) else w
+        cubes_at[k] = grid_cubes(bstore, k)
+        irradiance_at[k] = bstore["irradiance"]
+        schedule.passed(grid_energy(bstore))
+    level = schedule.level
+    assert level is not None
+    final_cubes = cubes_at.get(schedule.reads(level)) if level > 0 else None
+    final_grid = irradiance_at.get(schedule.reads(level)) if level > 0 else None
+    if schedule.extrapolates:  # the final pass reads the grid's extrapolated limit
+        final_grid = schedule.limit(irradiance_at)
+        cubes = bordered_cubes(final_grid)
+        final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
+                       else cubes)
 
-            stored_sh = w.array("sh")
-            for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
-                d = np.asarray(dif[i])
-                seam[i] = seams.seam_score(d)
-                energy[i] = energy_ratio(d, incoming_integral_from_sh(stored_sh[i]))
-        valid_e = energy[~np.isnan(energy)]
-        quality = {
-            "invalid_probes": int(np.count_nonzero(~valid)),
-            "relocated_probes": relocated,
-            "backface_ray_fraction": float(np.mean(back)),
-            "energy_max_error": float(np.max(np.abs(1 - valid_e))) if valid_e.size else None,
-            "energy_check": "solid-angle integral of each probe's diffuse map over that of its "
-                            "incoming cube (1 for a correct, energy-conserving filter)",
-            "sh_min_irradiance_over_pi": float(np.min(sh_min)),
-            "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
-            "seam_score_mean": float(np.nanmean(seam)),
-            "bounces": level,
-            "bounce_residual": schedule.residual,
-            "bounce_passes": schedule.passes,
-            "bounce_energy": schedule.energies,
-            "rays": runner.rays,
-            "stage_seconds": {k: round(v, 3) for k, v in runner.seconds.items()},
-        }
-        if schedule.state.factor is not None:  # converged by extrapolation (bake.converge)
-            quality["bounce_extrapolation"] = schedule.state.factor
-            quality["bounce_energy_limit"] = schedule.state.limit
-        quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
-        # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
-        t_cache = time.perf_counter()
-        cache_rays = write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
-                                        gather=st.gather_levels() > 0, face_size=st.face_size,
-                                        settings=st, geometry=geometry, level=level)
-        quality["stage_seconds"]["surface cache"] = round(time.perf_counter() - t_cache, 3)
-        quality["surface_cache_rays"] = cache_rays
-        store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
-        remove_path(work)  # (a Linux flock lives on the open directory, not on its name)
-        if not files:  # (this machine's Dask workers' record directory, emptied block by block)
-            shutil.rmtree(resolve_directory(records), ignore_errors=True)
+    # 4. final
+    energy = np.full(grid.n_probes, np.nan)
+    seam = np.full(grid.n_probes, np.nan)
 
-        seconds = time.perf_counter() - t0
-        return BakeReport(store, seconds, runner.rays, grid.n_probes, resumed, quality)
+    def keep(batch: NDArray[np.int64], result: dict[str, Any]) -> None:
+        energy[batch] = result["_energy"]
+        seam[batch] = result["_seam"]
+
+    ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
+                              records=records, level=level, moments_bordered=moments_b,
+                              cubes=final_cubes, moments=moments_all)
+    w, resumed = runner.run(schedule.label(level, final=True), out, store_arrays(st),
+                            final_task, ctx, overwrite=overwrite, intermediate=False,
+                            extra=keep)
+    assert isinstance(w, StoreWriter)
+    # quality over every probe (resumed ones included): recompute from the stored arrays
+    dif = w.array("diffuse")
+    sh_min = w.array("sh_min")
+    back = w.array("backface_fraction")
+    missing = np.isnan(seam)
+    if missing.any():
+        from probegrid.core import seams
+
+        stored_sh = w.array("sh")
+        for i in np.flatnonzero(missing):  # probes finished by an earlier, interrupted run
+            d = np.asarray(dif[i])
+            seam[i] = seams.seam_score(d)
+            energy[i] = energy_ratio(d, incoming_integral_from_sh(stored_sh[i]))
+    valid_e = energy[~np.isnan(energy)]
+    quality = {
+        "invalid_probes": int(np.count_nonzero(~valid)),
+        "relocated_probes": relocated,
+        "backface_ray_fraction": float(np.mean(back)),
+        "energy_max_error": float(np.max(np.abs(1 - valid_e))) if valid_e.size else None,
+        "energy_check": "solid-angle integral of each probe's diffuse map over that of its "
+                        "incoming cube (1 for a correct, energy-conserving filter)",
+        "sh_min_irradiance_over_pi": float(np.min(sh_min)),
+        "sh_min_negative_probes": int(np.count_nonzero(np.min(sh_min, axis=1) < 0)),
+        "seam_score_mean": float(np.nanmean(seam)),
+        "bounces": level,
+        "bounce_residual": schedule.residual,
+        "bounce_passes": schedule.passes,
+        "bounce_energy": schedule.energies,
+        "rays": runner.rays,
+        "stage_seconds": {k: round(v, 3) for k, v in runner.seconds.items()},
+    }
+    if schedule.state.factor is not None:  # converged by extrapolation (bake.converge)
+        quality["bounce_extrapolation"] = schedule.state.factor
+        quality["bounce_energy_limit"] = schedule.state.limit
+    quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
+    # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
+    t_cache = time.perf_counter()
+    cache_rays = write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
+                                    gather=st.gather_levels() > 0, face_size=st.face_size,
+                                    settings=st, geometry=geometry, level=level)
+    quality["stage_seconds"]["surface cache"] = round(time.perf_counter() - t_cache, 3)
+    quality["surface_cache_rays"] = cache_rays
+    store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
+    remove_path(work)  # (a Linux flock lives on the open directory, not on its name)
+    if not files:  # (this machine's Dask workers' record directory, emptied block by block)
+        shutil.rmtree(resolve_directory(records), ignore_errors=True)
+
+    seconds = time.perf_counter() - t0
+    return BakeReport(store, seconds, runner.rays, grid.n_probes, resumed, quality)

@@ -7,9 +7,9 @@ Two checks and one rule:
   bake`` job refuses it in one line unless asked for a black bake (``--allow-black``).
 * **At the end of a bake** (:func:`light_quality`, called by the driver before the store is
   finished): when no *valid* probe received any light -- every probe inside geometry, or every
-  light hidden from the probes -- the bake stops with the reason and the store is left
-  unfinished (``.partial``: nothing that loads as a store); the same command with
-  ``--allow-black`` resumes it and finishes the black store. A probe received light when its
+  light hidden from the probes -- the bake stops with the reason, and like every failed bake
+  leaves no store and no work files (:func:`probegrid.bake.driver.bake`); the same command
+  with ``--allow-black`` bakes the black store. A probe received light when its
   incoming cube's integral, ``2 sqrt(pi) L_00`` of its stored SH (all channels), is positive:
   the cube is non-negative, so a zero integral is an all-black cube.
 * **Quality figures are never NaN**: a figure that has nothing to measure (the energy ratio of
@@ -90,8 +90,8 @@ def light_quality(quality: dict[str, Any], sh: NDArray[Any], valid: NDArray[np.b
         reason = (f"every one of the {len(v)} probes is inside geometry" if n_valid == 0 else
                   f"none of the {n_valid} valid probes receives any light (every source is "
                   "hidden from them)")
-        raise NoLightError(f"the bake came out black: {reason}; the store was not finished "
-                           "(rerun with --allow-black to keep the black bake; it resumes)")
+        raise NoLightError(f"the bake came out black: {reason}; no store was written "
+                           "(rerun with --allow-black to bake it black anyway)")
     out = {k: (NO_LIGHT if v_ is None or (isinstance(v_, float) and math.isnan(v_)) else v_)
            for k, v_ in quality.items()}
     out["light"] = "lit" if n_lit else NO_LIGHT

@@ -14,6 +14,14 @@
   probe is at least a quarter of the spacing above the highest sample inside the slab. Probes
   that still fall inside a solid (a slab between storeys) are moved out or invalidated by the
   bake's classifier (:func:`probegrid.bake.stages.classify_task`), with the same test.
+* **A default grid inside the geometry is refused** before any tracing, with a box to use
+  instead (:func:`suggested_bounds`: a layer beside the scene's thinnest side, +Y for no
+  thinnest): scene bounds thinner than :data:`FLAT_RATIO` of their longest side (a lone floor
+  plane), no free sample inside them (a lone floor slab), or more than :data:`INSIDE_LIMIT` of
+  the grid's probes inside solids.
+* **A probe volume** (``volume``: a scene node's box, :mod:`probegrid.scene.volume`): probes at
+  the centres of its cells, as an engine's irradiance volume samples its voxels, without the
+  free-space fit (the box is the author's).
 * **Relocation** (:func:`relocation_offsets`): the classifier tries the points of a small
   lattice around an invalid probe, within a fraction of a cell, nearest first.
 
@@ -28,15 +36,16 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from probegrid.core.grid import GridSpec, parse_bounds, parse_grid, parse_spacing
 
 if TYPE_CHECKING:  # (Embree and numba load when a default grid is fitted)
     from probegrid.scene import Scene
 
-__all__ = ["DEFAULT_LAYERS", "FIT_SAMPLES", "MAX_PROBES", "check_grid_options",
-           "default_counts", "default_grid", "grid_for", "relocation_offsets"]
+__all__ = ["DEFAULT_LAYERS", "FIT_SAMPLES", "FLAT_RATIO", "INSIDE_LIMIT", "MAX_PROBES",
+           "check_grid_options", "default_counts", "default_grid", "grid_for",
+           "relocation_offsets", "suggested_bounds"]
 
 #: Most probes a grid may have.
 MAX_PROBES = 10_000_000
@@ -74,12 +83,25 @@ def _option(parse: Callable[[str], object], name: str, text: str) -> Any:
 
 def grid_for(scene: Scene, *, grid: str | None = None, spacing: str | None = None,
              bounds: str | None = None, margin: float | None = None,
+             volume: tuple[ArrayLike, ArrayLike] | None = None,
              say: Callable[[str], None] | None = None) -> GridSpec:
     """The probe grid the options describe (see the module docstring); ``say`` receives the
-    description of a default grid."""
+    description of a default grid. ``volume`` is a probe volume's box ``(lo, hi)`` (a scene
+    node's, :mod:`probegrid.scene.volume`): probes at the centres of its cells, as an engine's
+    irradiance volume samples its voxels, ``margin`` growing it; no free-space fit."""
+    fit = True
     if bounds is not None:
+        if volume is not None:
+            raise ValueError("give either --bounds or --volume-node, not both")
         lo, hi = (np.asarray(v, dtype=np.float64) for v in parse_bounds(bounds))
         inset = False
+    elif volume is not None:
+        lo, hi = (np.array(v, dtype=np.float64) for v in volume)
+        if margin is not None:
+            lo, hi = lo - margin, hi + margin
+            if np.any(hi <= lo):
+                raise ValueError(f"margin {margin} leaves an empty box")
+        inset, fit = True, False
     else:
         lo, hi = (np.array(v, dtype=np.float64) for v in scene.bounds)
         inset = margin is None
@@ -102,7 +124,7 @@ def grid_for(scene: Scene, *, grid: str | None = None, spacing: str | None = Non
         _check_probe_count(counts_f)
         return GridSpec.from_spacing(lo, hi, step)
     if grid is None:
-        g, text = default_grid(scene, lo, hi, centred=inset)
+        g, text = default_grid(scene, lo, hi, centred=inset, fit=fit)
         if say is not None:
             say(text)
         return g
@@ -132,12 +154,14 @@ def default_counts(extent: NDArray[np.float64], spacing: float, *, centred: bool
 
 
 def default_grid(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float64], *,
-                 centred: bool) -> tuple[GridSpec, str]:
+                 centred: bool, fit: bool = True) -> tuple[GridSpec, str]:
     """The default grid over the box ``[lo, hi]`` and its description (module docstring).
 
-    ``centred`` (the box is the scene's bounds): the box is fitted to the scene's free space
-    first and the probes sit at the centres of equal cells; otherwise (a box the user gave) the
-    lattice includes the box's corners.
+    ``centred`` (the box is the scene's bounds, or a probe volume's): the probes sit at the
+    centres of equal cells; with ``fit`` (the scene's bounds) the box is fitted to the scene's
+    free space first, and a grid that would sit inside the geometry is refused
+    (:func:`_refuse_inside`); otherwise (a box the user gave) the lattice includes the box's
+    corners.
     """
     lo, hi = np.array(lo, dtype=np.float64), np.array(hi, dtype=np.float64)
     longest = float((hi - lo).max())
@@ -145,8 +169,15 @@ def default_grid(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float64],
         raise ValueError("the scene has no extent; give --bounds")
     step = longest / (DEFAULT_LAYERS if centred else DEFAULT_LAYERS - 1)
     note = ""
-    if centred:
+    fitted = centred and fit
+    if fitted:
+        scene_lo, scene_hi = lo, hi
+        if np.min(hi - lo) < FLAT_RATIO * longest:
+            _refuse_inside(scene_lo, scene_hi, step, "the scene is flat")
         lo, hi, note = _fit_free_space(scene, lo, hi, step)
+        if note.startswith(_NO_FREE):
+            _refuse_inside(scene_lo, scene_hi, step, "no point inside the scene's bounds is "
+                           "outside its solids")
     extent = hi - lo
     counts = default_counts(extent, step, centred=centred)
     _check_probe_count(counts)
@@ -154,6 +185,14 @@ def default_grid(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float64],
         half = extent / (2 * counts)
         lo, hi = lo + half, hi - half
     g = GridSpec.from_counts(lo, hi, tuple(int(c) for c in counts))
+    if fitted:
+        from probegrid.bake.inside import inside_solid
+        from probegrid.raytrace import RayTracer
+
+        inside = inside_solid(RayTracer.shared(scene), scene, g.positions())
+        if np.mean(inside) > INSIDE_LIMIT:
+            _refuse_inside(scene_lo, scene_hi, step, f"{np.count_nonzero(inside)} of its "
+                           f"{g.n_probes} probes are inside solids")
     cells = np.where(np.array(g.counts) > 1, extent / (counts if centred else counts - 1), 0.0)
     text = (f"default grid {g.label} = {g.n_probes} probes, spacing "
             + " x ".join(f"{c:.4g}" for c in cells)
@@ -161,6 +200,41 @@ def default_grid(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float64],
             + "probes from " + ",".join(f"{v:.4g}" for v in g.lo) + " to "
             + ",".join(f"{v:.4g}" for v in g.hi) + note)
     return g, text
+
+
+#: A scene's bounds thinner than this fraction of their longest side along an axis are flat:
+#: a default grid over them would put its probes in the geometry.
+FLAT_RATIO = 0.01
+#: Most probes of a default grid that may be inside solids before the grid is refused.
+INSIDE_LIMIT = 0.5
+_NO_FREE = "; no free space found"
+
+
+def suggested_bounds(lo: NDArray[np.float64], hi: NDArray[np.float64], step: float
+                     ) -> NDArray[np.float64]:
+    """``x0,y0,z0,x1,y1,z1`` of a box over a scene whose default grid sits inside it: along
+    the scene's thinnest axis (+Y, glTF's up, when no axis is thinner than the others), from a
+    quarter of the default spacing ``step`` beyond the scene's bounds to a quarter of its
+    longest side beyond them; along the others, the bounds inset by half a spacing."""
+    ext = hi - lo
+    a = int(np.argmin(ext)) if np.min(ext) < np.max(ext) else 1
+    blo = np.minimum(lo + 0.5 * step, 0.5 * (lo + hi))
+    bhi = np.maximum(hi - 0.5 * step, 0.5 * (lo + hi))
+    blo[a] = hi[a] + 0.25 * step
+    bhi[a] = hi[a] + 0.25 * float(np.max(ext))
+    return np.concatenate([blo, bhi])
+
+
+def _refuse_inside(lo: NDArray[np.float64], hi: NDArray[np.float64], step: float,
+                   why: str) -> None:
+    """Refuse (one-line ValueError) a default grid inside the scene's geometry, suggesting a
+    box (:func:`suggested_bounds`) and the options that place a grid."""
+    ext = hi - lo
+    box = ",".join(f"{v:.4g}" for v in suggested_bounds(lo, hi, step))
+    raise ValueError(
+        "a default grid would sit inside the scene's geometry (" + why + "; its bounds are "
+        + " x ".join(f"{v:.4g}" for v in ext) + "): give --bounds, e.g. --bounds " + box
+        + " (a layer beside it), or --volume-node NAME (a node marking the volume), or --margin")
 
 
 def _fit_free_space(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float64],
@@ -182,7 +256,7 @@ def _fit_free_space(scene: Scene, lo: NDArray[np.float64], hi: NDArray[np.float6
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     free = ~inside_solid(RayTracer.shared(scene), scene, pts)
     if not free.any():
-        return lo, hi, "; no free space found inside the scene's bounds: probes inside solids"
+        return lo, hi, _NO_FREE + " inside the scene's bounds: probes inside solids"
     half = 0.5 * extent / m
     flo = np.maximum(lo, pts[free].min(axis=0) - half)
     fhi = np.minimum(hi, pts[free].max(axis=0) + half)

@@ -14,10 +14,12 @@ in the library, and every refusal there is a one-line error the CLI prints as it
 * **no silent black**: a scene with no emissive material, no punctual light and no
   environment is refused before any work (:func:`probegrid.bake.nolight.require_light`);
   ``--allow-black`` bakes it anyway. A bake none of whose valid probes received light stops
-  before its store is finished and says why (the same command with ``--allow-black`` resumes
-  and finishes it);
-* the grid (:func:`probegrid.bake.placement.grid_for`; a default grid that fits the scene is
-  printed);
+  before its store is finished and says why, leaving no work files (the same command with
+  ``--allow-black`` bakes it black);
+* the probe volume a scene node marks (``--volume-node NAME``, or the one node named like a
+  probe volume, found by itself: :mod:`probegrid.scene.volume`; printed), then the grid
+  (:func:`probegrid.bake.placement.grid_for`; a default grid that fits the scene is printed, one
+  that would sit inside the scene's geometry is refused with a box to use instead);
 * **the estimate before work** (:func:`probegrid.bake.estimate.estimate`): probes, rays, the
   store's size, the bake's work files and the peak memory of a worker are printed, and a bake
   whose store and work files do not fit on the target's file system is refused with the
@@ -45,9 +47,10 @@ if TYPE_CHECKING:  # the heavy modules (Embree, numba, trimesh) load when a bake
     from probegrid.bake.driver import BakeReport
     from probegrid.bake.environment import Environment
     from probegrid.scene import Scene
+    from probegrid.scene.volume import ProbeVolume
     from probegrid.store import BakeInputs
 
-__all__ = ["BakeJob", "bake_inputs", "load_environment", "run_bake"]
+__all__ = ["BakeJob", "bake_inputs", "load_environment", "probe_volume", "run_bake"]
 
 
 class BakeJob(BaseModel):
@@ -68,6 +71,7 @@ class BakeJob(BaseModel):
     grid: str | None = None
     spacing: str | None = None
     bounds: str | None = None
+    volume_node: str | None = None
     margin: float | None = None
     environment: list[Path] | None = None
     environment_layout: InputLayout = "auto"
@@ -81,6 +85,8 @@ class BakeJob(BaseModel):
     allow_black: bool = False
     allow_paths: list[Path] = []
     ignore_extensions: list[str] = []
+    max_texture_pixels: int | None = Field(default=None, ge=1)  # (None: the loader's)
+    max_texture_size: int | None = Field(default=None, ge=1)
 
 
 #: Largest default face size of a bake's environment cube (each worker holds a copy).
@@ -157,6 +163,21 @@ def bake_inputs(job: BakeJob, scene: Scene, env: Environment) -> BakeInputs:
     return BakeInputs(scene=scene_in, environment=env_in)
 
 
+def probe_volume(job: BakeJob) -> ProbeVolume | None:
+    """The probe volume of the node ``job.volume_node`` names; without it (and without
+    ``bounds``), of the one node the scene names like a probe volume
+    (:func:`probegrid.scene.volume.find_volume_node`), else None."""
+    from probegrid.scene.volume import find_volume_node, node_volume
+
+    if job.volume_node is not None:
+        if job.bounds is not None:
+            raise ValueError("give either --bounds or --volume-node, not both")
+        return node_volume(job.scene, job.volume_node)
+    if job.bounds is not None:
+        return None
+    return find_volume_node(job.scene)
+
+
 def run_bake(job: BakeJob) -> BakeReport:
     """Run ``probegrid bake``: every option was checked when ``job`` was built; then the bake's
     inputs and the scene file's header, the executor (its processes start now), the scene and
@@ -184,11 +205,16 @@ def run_bake(job: BakeJob) -> BakeReport:
     from probegrid.bake.nolight import require_light
     from probegrid.bake.placement import grid_for
     from probegrid.scene import load_gltf
+    from probegrid.scene.texels import TextureLimits
 
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
+        volume = probe_volume(job)  # (the glTF JSON only: refused before the scene loads)
+        limits = {k: v for k, v in (("max_pixels", job.max_texture_pixels),
+                                    ("max_size", job.max_texture_size)) if v is not None}
         scene = load_gltf(job.scene, allow_paths=job.allow_paths,
-                          ignore_extensions=job.ignore_extensions)
+                          ignore_extensions=job.ignore_extensions,
+                          textures=TextureLimits(**limits))
         env = load_environment(job.environment, layout=job.environment_layout,
                                color=job.environment_color,
                                intensity=job.environment_intensity,
@@ -197,8 +223,11 @@ def run_bake(job: BakeJob) -> BakeReport:
         notes: list[str] = []  # printed once every check passed: an error stays one line
         if scene.unhonoured:
             notes.append(f"scene: not honoured: {'; '.join(scene.unhonoured)}")
+        if volume is not None:
+            notes.append(volume.describe())
         grid = grid_for(scene, grid=job.grid, spacing=job.spacing, bounds=job.bounds,
-                        margin=job.margin, say=notes.append)
+                        margin=job.margin, say=notes.append,
+                        volume=None if volume is None else (volume.lo, volume.hi))
         est = estimate(job.settings, grid, scene, env, shares_files=executor.shares_files)
         notes.append(est.summary())
         check_disk(job.out, est)

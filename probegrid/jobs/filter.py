@@ -41,7 +41,13 @@ from probegrid._types import ImageFormat
 from probegrid._version import __version__
 from probegrid.core.color import PREVIEW_TONE_MAPPING
 from probegrid.core.conventions import conventions
-from probegrid.filter import FilteredEnvironment, FilterSettings, Progress, check_settings
+from probegrid.filter import (
+    FilteredEnvironment,
+    FilterSettings,
+    Progress,
+    check_settings,
+    default_cube_size,
+)
 
 __all__ = ["FILTER_FORMAT", "FilterResult", "prepare_output_dir", "run_filter"]
 
@@ -165,11 +171,16 @@ def run_filter(
     *,
     progress: Progress | None = None,
     workers: int | None = None,
+    max_pixels: int | None = None,
 ) -> FilterResult:
     """Run the whole filter job; see the module docstring. Returns what was written.
 
     ``workers`` threads filter and write (default: the process's cores,
     :func:`probegrid._machine.available_cores`); the files do not depend on it.
+    ``max_pixels`` (default :data:`probegrid.imageio.MAX_PIXELS`, 2^28) bounds an input
+    image's pixels, checked from the headers before any work (``--max-pixels``); an input more
+    than twice as fine as the cube needs is read reduced, a band of rows at a time, so memory
+    follows the output's size (:func:`probegrid.imageio.reduced_environment_shape`).
 
     Raises ``ValueError`` (``probegrid.imageio.ImageError`` for files) with a one-line message
     for bad input, before anything is written to ``out_dir``. Every option combination and the
@@ -187,10 +198,19 @@ def run_filter(
         from probegrid.imageio import detect_file_layout
 
         detect_file_layout(paths[0], option="--layout")
+    from probegrid.imageio import MAX_PIXELS, ImageError, image_size
+
+    limit = MAX_PIXELS if max_pixels is None else max_pixels
+    for path in paths:  # (from the headers: refused before any work)
+        w, h = image_size(path)
+        if w * h > limit:
+            raise ImageError(f"{path}: {w}x{h} is {w * h} pixels, over the limit of {limit} an "
+                             "image may have here; --max-pixels N raises it.")
     with staged_output(out, lambda final: prepare_output_dir(final, FILTER_FORMAT,
                                                              create=False)) as stage:
         manifest, files = _filter_into(stage, paths, settings, progress,
-                                       available_cores() if workers is None else workers)
+                                       available_cores() if workers is None else workers,
+                                       max_pixels)
     return FilterResult(out, manifest, files)
 
 
@@ -208,13 +228,38 @@ def _environment_files(paths: Sequence[Path], settings: FilterSettings) -> list[
     raise ValueError(f"give one environment image or six face files, got {len(paths)} files")
 
 
-def _read_environment(files: Sequence[Path]) -> NDArray[np.float32]:
-    """The pixels of one image, or of six square face files of one size as ``(6, n, n, C)``."""
+def _read_environment(files: Sequence[Path], settings: FilterSettings, *,
+                      max_pixels: int | None = None, say: Progress | None = None
+                      ) -> NDArray[np.float32]:
+    """The pixels of one image, or of six square face files of one size as ``(6, n, n, C)``;
+    an input more than twice as fine as the cube needs is read reduced to that
+    (:func:`probegrid.imageio.reduced_environment_shape`), a band of rows at a time."""
     from probegrid import imageio
+    from probegrid.core.layouts import detect_layout
+
+    def need(path: Path, layout: str) -> tuple[tuple[int, int] | None, str]:
+        w, h = imageio.image_size(path)
+        if layout == "auto":
+            try:
+                layout = detect_layout(h, w)
+            except ValueError:
+                return None, layout  # (the pipeline says why)
+        n = settings.size or default_cube_size(h, w, layout)
+        shape = imageio.reduced_environment_shape(h, w, layout, n)  # type: ignore[arg-type]
+        if shape is not None and say is not None:
+            say(f"reading {path.name} ({w}x{h}) area-averaged to {shape[1]}x{shape[0]}, "
+                f"twice what a {n}^2 cube needs")
+        return shape, layout
+
+    def read(path: Path, shape: tuple[int, int] | None, layout: str) -> NDArray[np.float32]:
+        return imageio.read_image(path, max_pixels=max_pixels, shape=shape,
+                                  option="--max-pixels", equirect=layout == "equirect")
 
     if len(files) == 1:
-        return imageio.read_image(files[0])
-    images = [imageio.read_image(p) for p in files]
+        return read(files[0], *need(files[0], settings.layout))
+    sizes = {imageio.image_size(p) for p in files}
+    shape = need(files[0], "faces")[0] if len(sizes) == 1 else None
+    images = [read(p, shape, "faces") for p in files]
     if len({im.shape for im in images}) != 1 or images[0].shape[0] != images[0].shape[1]:
         raise ValueError(
             "six face files must be square images of one size, got "
@@ -225,20 +270,23 @@ def _read_environment(files: Sequence[Path]) -> NDArray[np.float32]:
 
 def _filter_into(
     out: Path, paths: Sequence[str | os.PathLike[str]], settings: FilterSettings,
-    progress: Progress | None, workers: int,
+    progress: Progress | None, workers: int, max_pixels: int | None = None,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Read the environment, filter it, then write everything into the (staging) directory
     ``out``; returns the manifest and its file list."""
     from probegrid import usercache
     from probegrid.filter import filter_environment
 
+    from probegrid.imageio import image_size as imageio_size
+
     say: Progress = progress or (lambda _m: None)
     t0 = time.perf_counter()
     files = _environment_files([Path(p) for p in paths], settings)
+    file_size = imageio_size(files[0])  # (the source_size is what was read: maybe reduced)
     read = [0.0]
 
     def source() -> NDArray[np.float32]:
-        pixels = _read_environment(files)
+        pixels = _read_environment(files, settings, max_pixels=max_pixels, say=say)
         read[0] = time.perf_counter() - t0
         return pixels
 
@@ -281,6 +329,7 @@ def _filter_into(
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "input": {"paths": [str(p) for p in paths], "layout": env.layout,
                   "source_size": list(env.source_size),
+                  "file_size": list(file_size),
                   "nonfinite_values_replaced": env.nonfinite,
                   "negative_values": {"count": env.negative, "action": env.negative_action},
                   "cube_size": env.cube_size, "diffuse_source_size": env.diffuse_source_size},

@@ -17,7 +17,9 @@ Conventions
   (glTF spec, "Metallic-Roughness Material") and are decoded to linear once on load with the
   exact sRGB EOTF (IEC 61966-2-1); alpha stays linear. Textures are filtered bilinearly in
   linear space, wrapping as the texture's sampler says (default REPEAT), like a GPU with an
-  sRGB texture format.
+  sRGB texture format. A texture over the pixel limit is refused from its header; one larger
+  than the bake resolves is area-averaged down on load, its mean kept
+  (:mod:`probegrid.scene.texels`: 2^27 pixels, 1024 texels a side by default).
 * Shading albedo = ``baseColorFactor.rgb * baseColorTexture.rgb * COLOR_0.rgb`` (glTF: COLOR_0
   "acts as an additional linear multiplier to base color"). Emission (radiance, cd/m^2 in the
   photometric reading of :mod:`probegrid.core.lights`) = ``emissiveFactor *
@@ -80,10 +82,10 @@ from urllib.parse import unquote
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid.core.color import srgb_to_linear
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.scene.accessors import DECODED_URI, plain_geometry
 from probegrid.scene.model import Material, Scene, SceneError
+from probegrid.scene.texels import TextureLimits, decode_texture, texture_limits
 from probegrid.scene.textures import TexCoord, texture_transform
 
 __all__ = ['HONOURED_EXTENSIONS', 'check_scene_file', 'gltf_mesh_count', 'load_gltf',
@@ -359,23 +361,9 @@ def _parse_lights(header: dict, name: str) -> tuple[Light, ...]:
 
 
 def _texture_array(image: object, channels: int, what: str) -> NDArray[np.float32]:
-    """A PIL image (as trimesh decoded it) -> (H, W, channels) float32 linear RGB(A)."""
-    try:
-        a = np.asarray(image)
-        if a.dtype == np.uint16 or a.dtype == np.int32:  # 16-bit greyscale PNG modes
-            a = np.clip(a.astype(np.float64) / 65535.0, 0.0, 1.0)
-            a = np.repeat(a[..., None], 3, axis=-1) if a.ndim == 2 else a
-            if channels == 4:
-                a = np.concatenate([a[..., :3], np.ones_like(a[..., :1])], axis=-1)
-        else:
-            mode = "RGBA" if channels == 4 else "RGB"
-            rgb = image.convert(mode)  # type: ignore[attr-defined]
-            a = np.asarray(rgb, dtype=np.float64) / 255.0
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise SceneError(f"{what} could not be decoded ({exc}).") from None
-    out = np.array(a[..., :channels], dtype=np.float64)
-    out[..., :3] = srgb_to_linear(out[..., :3])
-    return out.astype(np.float32)
+    """A PIL image (as trimesh opened it) -> (H, W, channels) float32 linear RGB(A), within
+    the current texture limits (:mod:`probegrid.scene.texels`)."""
+    return decode_texture(image, channels, what)
 
 
 def _texture_source(tex: dict) -> int | None:
@@ -437,6 +425,8 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
     emissive = np.array(mj.get("emissiveFactor", [0.0, 0.0, 0.0]), dtype=np.float64)
     emissive = emissive * float(strength.get("emissiveStrength", 1.0))
     transmission = float(ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0))
+    alpha_mode = str(mj.get("alphaMode", "OPAQUE"))
+    alpha_cutoff = float(mj.get("alphaCutoff", 0.5))
     textures: dict[str, NDArray[np.float32] | None] = {}
     wraps: dict[str, tuple[str, str]] = {}
     coords: dict[str, TexCoord] = {}
@@ -454,6 +444,19 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
         image = getattr(tm_material, attr, None)
         if image is None:
             raise SceneError(f"{what} is missing or could not be decoded.")
+        if slot == "baseColorTexture" and alpha_mode == "MASK":
+            # a cut-out's alpha is thresholded per source texel before any reduction: a
+            # reduced texture's alpha is then the share of its footprint that stops rays,
+            # which BLEND's stochastic coverage honours on average (a re-threshold would not)
+            factor_a = float(pbr.get("baseColorFactor", [1.0] * 4)[3])
+            cutoff = alpha_cutoff / factor_a if factor_a > 0 else np.inf
+            textures[slot] = decode_texture(image, channels, what, alpha_cutoff=cutoff)
+            if textures[slot].shape[:2] != tuple(int(v) for v in image.size)[::-1]:
+                alpha_mode, alpha_cutoff = "BLEND", 0.5
+                if factor_a > 0:  # (the factor multiplies it back: the share stopped)
+                    np.minimum(textures[slot][..., 3] / factor_a, 1.0,
+                               out=textures[slot][..., 3])
+            continue
         textures[slot] = _texture_array(image, channels, what)
     try:
         return Material(
@@ -465,8 +468,8 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
             name=mname,
             base_color_wrap=wraps["baseColorTexture"],  # type: ignore[arg-type]
             emissive_wrap=wraps["emissiveTexture"],  # type: ignore[arg-type]
-            alpha_mode=str(mj.get("alphaMode", "OPAQUE")),
-            alpha_cutoff=float(mj.get("alphaCutoff", 0.5)),
+            alpha_mode=alpha_mode,
+            alpha_cutoff=alpha_cutoff,
             transmission=transmission,
             base_color_uv=coords["baseColorTexture"],
             emissive_uv=coords["emissiveTexture"],
@@ -487,7 +490,8 @@ def _vertex_colors(raw: NDArray) -> NDArray[np.float64]:
 
 
 def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]] = (),
-              ignore_extensions: Sequence[str] = ()) -> Scene:
+              ignore_extensions: Sequence[str] = (),
+              textures: TextureLimits | None = None) -> Scene:
     """Load a glTF 2.0 scene (.gltf or .glb) into world space.
 
     trimesh reads the meshes, the node hierarchy and the images; factors, samplers, the
@@ -509,6 +513,10 @@ def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]]
         Extensions a file may require that the loader does not honour, loaded with them
         ignored (the CLI's ``--ignore-extension``; ``"*"``: all); they are named in
         :attr:`Scene.unhonoured`.
+    textures : TextureLimits, optional
+        The most pixels a texture image may have and the longest side textures are reduced
+        to (area-averaged, the mean kept; :mod:`probegrid.scene.texels`); default 2^27 and
+        1024.
 
     Returns
     -------
@@ -524,8 +532,9 @@ def load_gltf(path: str | Path, *, allow_paths: Sequence[str | os.PathLike[str]]
     label = p.name
     data = p.read_bytes()
     try:
-        return _load_gltf_data(p, data, [Path(a) for a in allow_paths],
-                               frozenset(str(e) for e in ignore_extensions))
+        with texture_limits(textures or TextureLimits()):
+            return _load_gltf_data(p, data, [Path(a) for a in allow_paths],
+                                   frozenset(str(e) for e in ignore_extensions))
     except SceneError:
         raise
     except (AttributeError, TypeError, KeyError, IndexError, ValueError, RecursionError) as exc:
