@@ -462,6 +462,34 @@ def test_alpha_modes_and_transmission_load(tmp_path) -> None:
     assert p[0] in (0.0, 0.75)
 
 
+def test_a_reduced_cutout_keeps_the_share_of_rays_its_holes_pass(tmp_path) -> None:
+    """A 64x64 MASK texture of fine 50 % holes (alpha 0.6 beside 0.2, cutoff 0.5) read at a
+    16-texel limit: every reduced texel's alpha averages to 0.4, which a re-threshold would
+    make all holes; the loader keeps the coverage (half the rays stop) as stochastic BLEND."""
+    from PIL import Image
+
+    from probegrid.scene.texels import TextureLimits
+
+    tex = np.full((64, 64, 4), 255, np.uint8)
+    tex[..., 3] = np.where((np.indices((64, 64)).sum(0) % 2) == 0, 153, 51)  # 0.6 / 0.2
+    buf = io.BytesIO()
+    Image.fromarray(tex, "RGBA").save(buf, format="PNG")
+    material = {"alphaMode": "MASK", "alphaCutoff": 0.5,
+                "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}
+    path = _write(tmp_path, _quad_document(
+        material=material, images=[{"uri": _data_uri(buf.getvalue(), "image/png")}]))
+    full = load_gltf(path)
+    reduced = load_gltf(path, textures=TextureLimits(max_size=16))
+    assert full.materials[0].alpha_mode == "MASK"
+    assert reduced.materials[0].alpha_mode == "BLEND"
+    assert reduced.materials[0].base_color_texture.shape[:2] == (16, 16)
+    o, d = _vertical_rays(20000)
+    o, d = o * 0.19 + [0.0, 1.0, 0.0], -d  # (down onto the 4 m quad, from 1 m above)
+    for scene in (full, reduced):
+        stopped = RayTracer.from_scene(scene).intersect(o, d).prim_id >= 0
+        assert abs(stopped.mean() - 0.5) < 0.02, stopped.mean()
+
+
 def test_webp_and_basisu_textures(tmp_path) -> None:
     """EXT_texture_webp is decoded (Pillow); KHR_texture_basisu reads the fallback image its
     texture names; one without a fallback is refused, naming the option that bakes it with the
