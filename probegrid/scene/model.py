@@ -33,6 +33,7 @@ from typing import Any, Final, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid._jit import frozen
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import SceneError
 from probegrid.scene.kernels import SurfaceTables, hit_surfaces, multiply_texture
@@ -362,9 +363,9 @@ class Scene:
     @cached_property
     def surface_tables(self) -> SurfaceTables:
         """The triangles and material factors as the compiled kernels read them
-        (:class:`probegrid.scene.kernels.SurfaceTables`: contiguous, built once)."""
+        (:class:`probegrid.scene.kernels.SurfaceTables`: contiguous, read-only, built once)."""
         base, emis = self._factor_tables
-        return SurfaceTables(*self._kernel_tables, base, emis, self._kernel_colors)
+        return frozen(SurfaceTables(*self._kernel_tables, base, emis, self._kernel_colors))
 
     @cached_property
     def _kernel_uvs(self) -> NDArray[np.float64]:
@@ -399,9 +400,9 @@ class Scene:
             for tex, wrap, target in ((m.base_color_texture, m.base_color_wrap, albedo),
                                       (m.emissive_texture, m.emissive_wrap, emission)):
                 if tex is not None:
-                    multiply_texture(target, sel, (pid, u, v), tris, uvs,
-                                     np.ascontiguousarray(tex, dtype=np.float32),
-                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])))
+                    multiply_texture(target, sel, *frozen((
+                        (pid, u, v), tris, uvs, np.asarray(tex, dtype=np.float32))),
+                        (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])))
 
     def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
         """Position, geometric normal, albedo and emission at barycentric points of triangles.
