@@ -690,49 +690,60 @@ def _geometric_pyramid(n: int) -> NDArray[np.float64]:
 
 
 @lru_cache(maxsize=2)
-def _chain_layout(n: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-    """The symmetries of the concatenated mip chain of an ``n``-cube as index arithmetic
-    (read-only): ``coef (48, 6 L, 3)`` and ``rows (total, 3)``, such that symmetry ``k`` sends
-    chain row ``q`` (texel ``(i, j)`` of face ``f`` of level ``l``; ``rows[q] = (6 l + f, i,
-    j)``) to row ``c0 + i c1 + j c2`` with ``(c0, c1, c2) = coef[k, 6 l + f]``.
+def _chain_layout(n: int) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    """The symmetries of the concatenated mip chain of an ``n``-cube in three small tables
+    (read-only), from which :func:`_chain_permute` composes where symmetry ``k`` sends chain
+    row ``q`` (texel ``(i, j)`` of face ``f`` of level ``l``):
 
-    Each symmetry moves a face onto a face and its rows and columns onto ``j, i, m - 1 - j`` or
-    ``m - 1 - i`` (:func:`probegrid.core.cubemap._texel_maps`): a linear function of ``(i,
-    j)`` per face and level. 12 bytes per chain row (6 MB at 256^2), where the table of every
-    symmetry of every row would take 48 x 4 (100 MB)."""
+    * ``face (total,)``: ``6 l + f`` of each row;
+    * ``moves (48 * 6 L,)``: for ``(k, 6 l + f)``, ``8 x`` the first row of the face ``f'`` that
+      ``k`` moves face ``f`` onto, plus which of the 8 moves of a square ``k`` applies;
+    * ``within (8, total)``: each move's image of each row within its face,
+      ``source_row * m + source_column`` (sources ``j, i, m - 1 - j, m - 1 - i``,
+      :func:`probegrid.core.cubemap._texel_maps`).
+
+    About 36 bytes per chain row (19 MB at 256^2), where the table of every symmetry of every
+    row takes 192 (100 MB)."""
     sizes = mip_sizes(n)
     table = _symmetry_face_table()                                 # (48, 6): g', col, row src
-    g2, col_src, row_src = table[..., 0], table[..., 1], table[..., 2]
-    coef_i, coef_j = np.array([0, 1, 0, -1]), np.array([1, 0, -1, 0])
-    coef = np.empty((48, 6 * len(sizes), 3), dtype=np.int32)
-    rows = []
+    pairs, which = np.unique(table[..., 2] * 4 + table[..., 1], return_inverse=True)
+    which = which.reshape(48, 6)
+    assert len(pairs) <= 8  # (the dihedral group of the square)
+    total = sum(6 * m * m for m in sizes)
+    face = np.empty(total, dtype=np.int32)
+    within = np.zeros((8, total), dtype=np.int32)
+    moves = np.empty((48, 6 * len(sizes)), dtype=np.int32)
     off = 0
     for level, m in enumerate(sizes):
-        const = np.array([0, 0, m - 1, m - 1])
-        part = coef[:, 6 * level:6 * level + 6]
-        part[..., 0] = off + (g2 * m + const[row_src]) * m + const[col_src]
-        part[..., 1] = coef_i[row_src] * m + coef_i[col_src]
-        part[..., 2] = coef_j[row_src] * m + coef_j[col_src]
+        rows = slice(off, off + 6 * m * m)
         f, i, j = np.meshgrid(np.arange(6), np.arange(m), np.arange(m), indexing="ij")
-        rows.append(np.stack([6 * level + f, i, j], axis=-1).reshape(-1, 3))
+        face[rows] = (6 * level + f).reshape(-1)
+        sources = (j, i, m - 1 - j, m - 1 - i)
+        for d, pair in enumerate(pairs):
+            within[d, rows] = (sources[pair // 4] * m + sources[pair % 4]).reshape(-1)
+        moves[:, 6 * level:6 * level + 6] = (off + table[..., 0] * m * m) * 8 + which
         off += 6 * m * m
-    out = (coef, np.concatenate(rows).astype(np.int32))
-    for a in out:
-        a.setflags(write=False)
+    out = (face, moves.reshape(-1), within)
+    for x in out:
+        x.setflags(write=False)
     return out
 
 
 def _chain_permute(n: int, sym: NDArray[np.integer], q: NDArray[np.integer]
                    ) -> NDArray[np.int32]:
     """:func:`symmetry_permutations` of the concatenated mip chain of an ``n``-cube: where
-    symmetry ``sym`` sends chain row ``q`` (broadcast), by :func:`_chain_layout`'s index
-    arithmetic."""
-    coef, rows = _chain_layout(n)
-    rq = np.take(rows, q, axis=0)                                  # (..., 3)
-    c = coef[sym, rq[..., 0]]                                      # (..., 3)
-    out = rq[..., 1] * c[..., 1]
-    out += rq[..., 2] * c[..., 2]
-    out += c[..., 0]
+    symmetry ``sym`` sends chain row ``q`` (broadcast), composed from :func:`_chain_layout`'s
+    tables (int32)."""
+    face, moves, within = _chain_layout(n)
+    q = np.asarray(q)
+    key = np.take(face, q) + np.asarray(sym, dtype=np.int32) * np.int32(len(moves) // 48)
+    move = np.take(moves, key)
+    del key
+    out = move >> 3
+    move &= 7
+    move *= np.int32(within.shape[1])
+    move += q
+    out += np.take(within, move)
     return out
 
 
