@@ -403,7 +403,8 @@ def _run_export(args: argparse.Namespace) -> int:
 
         if args.layout != "faces" or args.format != "exr" or args.half:
             raise ValueError("--layout, --format and --half apply to image exports (--probe "
-                             "without --target); --target writes KTX2 (see --vk-format)")
+                             "without --target); --target writes the engine's own files "
+                             "(KTX2, or KTX1 for filament)")
 
         written = export_grid(args.store, args.out, target=args.target,
                               vk_format=args.vk_format, zstd=args.zstd, probe=args.probe,
