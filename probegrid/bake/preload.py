@@ -12,12 +12,12 @@ Importing this module:
 1. imports the bake (:mod:`probegrid.bake.driver`; numpy's OpenBLAS stops its threads before a
    fork, and each worker limits BLAS to one thread in its ``setup``);
 2. bakes a tiny built-in scene (a closed box with an emissive panel, a textured floor, a point
-   light, a constant environment; 2 probes, 8^2 faces) in this process into a temporary directory, which calls
-   every kernel a bake calls with the argument types of a real bake (one per kernel: the
-   callers pass their inputs through :func:`probegrid._jit.frozen`), so numba loads each from
-   its cache (or compiles it on a machine's first bake, while :mod:`probegrid.jobs.bake` shows
-   it: :mod:`probegrid.bake.compiled`). Its result is discarded. A failure
-   here is ignored: the workers then load what they need as they go.
+   light, a constant environment; 2 probes, 8^2 faces) in this process into a temporary
+   directory, which calls every kernel a bake calls with the argument types of a real bake
+   (one per kernel: the callers pass their inputs through :func:`probegrid._jit.frozen`), so
+   numba loads each from its cache (or compiles it on a machine's first bake, while
+   :mod:`probegrid.jobs.bake` shows it: :mod:`probegrid.bake.compiled`). Its result is
+   discarded. A failure here is ignored: the workers then load what they need as they go.
 
 Importing it anywhere else works the same (it is only slower to import).
 """

@@ -113,7 +113,8 @@ class BakeProgress:
         stage = COMPILING
         if stage != self._stage:
             self.close()
-            self._stage, self._t0, self._last_line = stage, self.clock(), -PLAIN_INTERVAL
+            self._stage, self._t0 = stage, self.clock()
+            self._last_line = self._t0 - PLAIN_INTERVAL  # (the first call prints a line)
         if self.terminal:
             from tqdm import tqdm
 
