@@ -64,7 +64,7 @@ MapFormat = Literal["exr", "hdr", "ktx2", "gltf", "filament"]
 #: store's), three.js' (x mirrored) or Bevy's (z mirrored).
 CubeConvention = Literal["gltf", "threejs", "bevy"]
 #: Engines a probe grid is exported for (``probegrid export --target``).
-EngineTarget = Literal["threejs", "bevy", "ktx2"]
+EngineTarget = Literal["threejs", "bevy", "ktx2", "filament"]
 #: Which SH a query returns: deringed per probe (irradiance never negative) or as stored.
 SHKind = Literal["deringed", "raw"]
 #: KTX2 texel formats probegrid writes (Vulkan names without ``VK_FORMAT_``).

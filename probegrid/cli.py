@@ -392,7 +392,9 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
                    "box I0,J0,K0:I1,J1,K1 (corners included): a folder I_J_K per probe")
     p.add_argument("--target", choices=choices(EngineTarget),
                    help="the whole grid as an engine loads it (three.js LightProbeGrid atlas, "
-                        "Bevy IrradianceVolume, KTX2 cube-map arrays); see manifest.json")
+                        "Bevy IrradianceVolume, KTX2 cube-map arrays), or with --probe one "
+                        "probe as Filament's KTX1 IBL and skybox (filament: needs a store "
+                        "baked with --store-incoming); see manifest.json")
     p.add_argument("--vk-format", help="KTX2 format: R16G16B16A16_SFLOAT, R32G32B32A32_SFLOAT "
                    "or E5B9G9R9_UFLOAT_PACK32 (default: the target's)")
     p.add_argument("--zstd", action="store_true", help="Zstandard-supercompressed KTX2")
@@ -428,7 +430,8 @@ def _run_export(args: argparse.Namespace) -> int:
 
         if args.layout != "faces" or args.format != "exr" or args.half:
             raise ValueError("--layout, --format and --half apply to image exports (--probe "
-                             "without --target); --target writes KTX2 (see --vk-format)")
+                             "without --target); --target writes the engine's own files "
+                             "(KTX2, or KTX1 for filament)")
 
         written = export_grid(args.store, args.out, target=args.target,
                               vk_format=args.vk_format, zstd=args.zstd, probe=args.probe,
@@ -438,7 +441,7 @@ def _run_export(args: argparse.Namespace) -> int:
         return 0
     if args.probe is None:
         raise ValueError("export needs --probe I,J,K (one probe's maps) or --target "
-                         "threejs|bevy|ktx2 (the grid)")
+                         "threejs|bevy|ktx2 (the grid) or filament (with --probe)")
     if args.vk_format is not None or args.zstd or args.cube_convention != "gltf":
         raise ValueError("--vk-format, --zstd and --cube-convention apply to --target exports")
     if args.probe.strip() == "all" or ":" in args.probe:

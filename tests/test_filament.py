@@ -196,3 +196,71 @@ def test_refusals(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert words in err and "filament" in err.lower(), err
         assert len(err.splitlines()) == 1 and not (tmp_path / "o").exists()
+
+
+# --- export --target filament: a store's probe, filtered again at Filament's roughness --------
+
+def _store_with_incoming(path: Path, cube: np.ndarray, *, incoming: bool = True):
+    """A 2-probe store whose probe (1, 0, 0) saw ``cube`` (its raw SH the cube's projection);
+    probe (0, 0, 0) a dimmer copy. The chain arrays are probegrid's (``r = k / (levels - 1)``)."""
+    from probegrid.core.cubemap import mip_sizes
+    from probegrid.core.grid import GridSpec
+    from probegrid.core.specular import ggx_prefilter
+    from tests.probe_stores import write_store
+
+    grid = GridSpec.from_counts((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (2, 1, 1))
+    cubes = np.stack([0.5 * cube, cube]).astype(np.float32)
+    arrays = {"sh": np.stack([shlib.project_cube(c) for c in cubes]).astype(np.float32),
+              "diffuse": np.ones((2, 6, 4, 4, 3), np.float32),
+              "valid": np.ones(2, dtype=bool),
+              "positions": grid.positions().astype(np.float32)}
+    chains = [ggx_prefilter(c, levels=len(mip_sizes(cube.shape[1]))) for c in cubes]
+    for k in range(len(chains[0])):
+        arrays[f"specular_{k}"] = np.stack([ch[k] for ch in chains]).astype(np.float32)
+    if incoming:
+        arrays["incoming"] = cubes
+    return write_store(path, grid, arrays)
+
+
+def test_export_target_filament_writes_what_filter_writes_of_the_probe(exported, tmp_path):
+    tmp, cube = exported
+    _store_with_incoming(tmp_path / "s.probes", cube)
+    assert main(["export", str(tmp_path / "s.probes"), "--target", "filament", "--probe",
+                 "1,0,0", "--sh", "raw", "--out", str(tmp_path / "f")]) == 0
+    ours = read_ktx1(tmp_path / "f" / filament.IBL_FILE)
+    theirs = read_ktx1(tmp / "out" / filament.IBL_FILE)  # filter --format filament, same cube
+    strip = {"bytesOfKeyValueData"}  # (the SH's last digits: the store keeps float32 SH)
+    assert {k: v for k, v in ours[0].items() if k not in strip} == \
+           {k: v for k, v in theirs[0].items() if k not in strip}
+    assert set(ours[1]) == set(theirs[1]) == {"sh"}
+    assert [m.shape for m in ours[2]] == [m.shape for m in theirs[2]]
+    for a, b in zip(ours[2], theirs[2], strict=True):  # the chain at Filament's roughness
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(parse_sh(ours[1]["sh"]), parse_sh(theirs[1]["sh"]), rtol=1e-6,
+                               atol=1e-7)
+    # not the store's own chain (probegrid's r = k / (levels - 1)): mip 1 differs
+    store_m1 = ggx_filter(cube, 0.5 ** 2, SIZE // 2)
+    assert np.abs(filament.decode_r11g11b10(ours[2][1]) - store_m1).max() > 0.05 * cube.max()
+    assert read_ktx1(tmp_path / "f" / filament.SKYBOX_FILE)[2][0].shape == (6, SIZE, SIZE)
+    man = json.loads((tmp_path / "f" / "manifest.json").read_text())
+    assert man["target"] == "filament" and man["probe"] == [1, 0, 0]
+    assert man["sh"]["kind"] == "raw" and "IndirectLight" in man["consumer"]
+
+
+def test_export_target_filament_refusals(tmp_path, capsys):
+    cube = sky(32)
+    _store_with_incoming(tmp_path / "none.probes", cube, incoming=False)
+    _store_with_incoming(tmp_path / "small.probes", sky(16))
+    _store_with_incoming(tmp_path / "ok.probes", cube)
+    for store, extra, words in (
+            ("none", ["--probe", "0,0,0"], "--store-incoming"),
+            ("small", ["--probe", "0,0,0"], "--face-size 32"),
+            ("ok", [], "--probe I,J,K"),
+            ("ok", ["--probe", "0,0,0", "--zstd"], "KTX1"),
+            ("ok", ["--probe", "5,0,0"], "outside the grid")):
+        capsys.readouterr()
+        assert main(["export", str(tmp_path / f"{store}.probes"), "--target", "filament",
+                     "--out", str(tmp_path / "o"), *extra]) != 0
+        err = capsys.readouterr().err.strip()
+        assert words in err, err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "o").exists()

@@ -86,9 +86,9 @@ on the real HDRs, measured on a 128^2 chain forced through it (``benchmarks/benc
 level 1 RMS relative error ~2e-3 (venice) and ~1.4e-2 (studio's small bright softboxes), max 7 %
 next to the brightest sources; whole-level dense stages are exact over their source texels.
 Filament's cmgen at 1024 samples: 2-8 % (venice) and 8-80 % (studio) RMS. Time (one thread,
-cold, CPU): ~1.9 s for a 256^2 chain. Memory: the cached plans and symmetry table
-(:func:`_chain_permutations`, 100 MB at 256^2) plus chunked temporaries: peak ~380 MB for 256^2
-(whole process); :func:`clear_caches` drops the cached geometry. The dense chain of a 128^2
+cold, CPU): ~1.9 s for a 256^2 chain. Memory: the cached plans plus chunked temporaries (the
+symmetries of the chain's texels by index arithmetic, :func:`_chain_permute`, not a 100 MB
+table at 256^2); :func:`clear_caches` drops the cached geometry. The dense chain of a 128^2
 cube holds the 48 permuted copies of the input (57 MB) while it runs.
 Tests: constant, linear (analytic lobe mean), near-delta and real-HDR inputs against the
 reference, symmetry.
@@ -116,6 +116,7 @@ from probegrid._types import GGXMethod
 from probegrid.core import lobes
 from probegrid.core.arrays import one_blas_thread
 from probegrid.core.cubemap import (
+    _symmetry_face_table,
     check_cube,
     mip_sizes,
     symmetry_permutations,
@@ -689,20 +690,61 @@ def _geometric_pyramid(n: int) -> NDArray[np.float64]:
 
 
 @lru_cache(maxsize=2)
-def _chain_permutations(n: int) -> NDArray[np.int32]:
-    """:func:`symmetry_permutations` of the concatenated mip chain of an ``n``-cube, flattened:
-    ``out[k * total + q]``. (48 total,) int32, read-only: 48 x 8 n^2 int32 (25 MB at n = 128,
-    100 MB at 256), the main memory cost of the tiered filter."""
+def _chain_layout(n: int) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    """The symmetries of the concatenated mip chain of an ``n``-cube in three small tables
+    (read-only), from which :func:`_chain_permute` composes where symmetry ``k`` sends chain
+    row ``q`` (texel ``(i, j)`` of face ``f`` of level ``l``):
+
+    * ``face (total,)``: ``6 l + f`` of each row;
+    * ``moves (48 * 6 L,)``: for ``(k, 6 l + f)``, ``8 x`` the first row of the face ``f'`` that
+      ``k`` moves face ``f`` onto, plus which of the 8 moves of a square ``k`` applies;
+    * ``within (8, total)``: each move's image of each row within its face,
+      ``source_row * m + source_column`` (sources ``j, i, m - 1 - j, m - 1 - i``,
+      :func:`probegrid.core.cubemap._texel_maps`).
+
+    About 36 bytes per chain row (19 MB at 256^2), where the table of every symmetry of every
+    row takes 192 (100 MB)."""
     sizes = mip_sizes(n)
+    table = _symmetry_face_table()                                 # (48, 6): g', col, row src
+    pairs, which = np.unique(table[..., 2] * 4 + table[..., 1], return_inverse=True)
+    which = which.reshape(48, 6)
+    assert len(pairs) <= 8  # (the dihedral group of the square)
     total = sum(6 * m * m for m in sizes)
-    perm = np.empty((48, total), dtype=np.int32)
+    face = np.empty(total, dtype=np.int32)
+    within = np.zeros((8, total), dtype=np.int32)
+    moves = np.empty((48, 6 * len(sizes)), dtype=np.int32)
     off = 0
-    for m in sizes:
-        np.add(symmetry_permutations.__wrapped__(m), off, out=perm[:, off:off + 6 * m * m])
+    for level, m in enumerate(sizes):
+        rows = slice(off, off + 6 * m * m)
+        f, i, j = np.meshgrid(np.arange(6), np.arange(m), np.arange(m), indexing="ij")
+        face[rows] = (6 * level + f).reshape(-1)
+        sources = (j, i, m - 1 - j, m - 1 - i)
+        for d, pair in enumerate(pairs):
+            within[d, rows] = (sources[pair // 4] * m + sources[pair % 4]).reshape(-1)
+        moves[:, 6 * level:6 * level + 6] = (off + table[..., 0] * m * m) * 8 + which
         off += 6 * m * m
-    perm = perm.reshape(-1)
-    perm.setflags(write=False)
-    return perm
+    out = (face, moves.reshape(-1), within)
+    for x in out:
+        x.setflags(write=False)
+    return out
+
+
+def _chain_permute(n: int, sym: NDArray[np.integer], q: NDArray[np.integer]
+                   ) -> NDArray[np.int32]:
+    """:func:`symmetry_permutations` of the concatenated mip chain of an ``n``-cube: where
+    symmetry ``sym`` sends chain row ``q`` (broadcast), composed from :func:`_chain_layout`'s
+    tables (int32)."""
+    face, moves, within = _chain_layout(n)
+    q = np.asarray(q)
+    key = np.take(face, q) + np.asarray(sym, dtype=np.int32) * np.int32(len(moves) // 48)
+    move = np.take(moves, key)
+    del key
+    out = move >> 3
+    move &= 7
+    move *= np.int32(within.shape[1])
+    move += q
+    out += np.take(within, move)
+    return out
 
 
 def _moment_pyramid(src: NDArray[np.float32], dtype: type = np.float32) -> NDArray:
@@ -746,8 +788,6 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
     texel ``q'`` replaced by ``S_k(q')``. Sparse stages gather per entry; dense stages instead
     permute the whole source mip once per symmetry and multiply (BLAS)."""
     c = pyramid.shape[1] // 4
-    total = pyramid.shape[0]
-    perm = _chain_permutations(n)
     src_levels = mip_sizes(n)
     offsets = np.cumsum([0] + [6 * m * m for m in src_levels[:-1]])
     acc = np.zeros((6, size, size, c + 1), dtype=np.float64)
@@ -785,8 +825,8 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
             m = src_levels[st.level]
             rows_m = 6 * m * m
             base = offsets[st.level] + np.arange(rows_m)
-            sym = owner_sym.astype(np.intp)[:, None] * total
-            idx = np.take(perm, base[None, :] + sym) - offsets[st.level]  # (6 g^2, 6 m^2)
+            idx = (_chain_permute(n, owner_sym[:, None], base[None, :])
+                   - offsets[st.level])                            # (6 g^2, 6 m^2)
             out_rows = np.arange(6 * g * g)[:, None]
             block = pyramid[offsets[st.level]:offsets[st.level] + rows_m]
             w0 = np.zeros((6 * g * g, rows_m), dtype=np.float32)
@@ -805,8 +845,7 @@ def _apply_plan(pyramid: NDArray[np.float32], n: int, stages: tuple[PlanStage, .
                 p_only = np.ascontiguousarray(pyramid[:, :c])
             for i in range(0, 6 * g * g, chunk):
                 fr = owner_row[i:i + chunk]
-                idx = np.take(perm, cols[fr] + (owner_sym[i:i + chunk].astype(np.intp)
-                                                 * total)[:, None])
+                idx = _chain_permute(n, owner_sym[i:i + chunk][:, None], cols[fr])
                 if st.level == 0:                                  # input texels: P only
                     x = np.take(p_only, idx, axis=0)               # (r, K, C)
                     part[i:i + chunk, :c] = np.matmul(ww[fr, :1], x)[:, 0]
@@ -1209,7 +1248,7 @@ def ggx_prefilter(
     # different levels instead (numpy releases the GIL in the gathers and products).
     with one_blas_thread():
         pyramid = _moment_pyramid(src)
-        _chain_permutations(n)  # shared caches, built once before any thread needs them
+        _chain_layout(n)  # shared caches, built once before any thread needs them
         _geometric_pyramid(n)
 
         def level(k: int) -> NDArray[np.float32]:
@@ -1229,7 +1268,7 @@ def ggx_prefilter(
 def clear_caches() -> None:
     """Drop the cached geometry of the tiered filter (plans, symmetry tables: ~150 MB after a
     256^2 chain); the next call rebuilds what it needs."""
-    for f in (ggx_tier_plan, _chain_permutations, _geometric_pyramid, symmetry_permutations,
+    for f in (ggx_tier_plan, _chain_layout, _geometric_pyramid, symmetry_permutations,
               _fundamental_domain):
         f.cache_clear()
 

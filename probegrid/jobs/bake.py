@@ -200,6 +200,7 @@ def run_bake(job: BakeJob) -> BakeReport:
                              preload=("probegrid.bake.preload",))
     # local processes start (and import the bake) while this one imports it and loads the scene
     executor.start()
+    compiling = _kernels_to_compile(executor)
     from probegrid.bake.driver import bake
     from probegrid.bake.estimate import check_disk, estimate
     from probegrid.bake.nolight import require_light
@@ -237,6 +238,9 @@ def run_bake(job: BakeJob) -> BakeReport:
               f"{executor.description}", file=sys.stderr)
         print(size_note(job.settings, grid.n_probes), file=sys.stderr)
 
+        if compiling:
+            _wait_compiling(executor, compiling, bar)
+
         def on_start(dropped: bool) -> None:
             if dropped:
                 print(f"note: the interrupted bake of {job.out} had another scene, grid or other "
@@ -251,3 +255,30 @@ def run_bake(job: BakeJob) -> BakeReport:
     finally:
         bar.close()
         executor.close()
+
+
+def _kernels_to_compile(executor: object) -> list[str]:
+    """The bake's kernels numba's cache lacks, when local workers will compile them as they
+    start (:mod:`probegrid.bake.compiled`); empty otherwise (a warm cache, or remote workers)."""
+    from probegrid.bake.executors import LocalExecutor
+
+    if not isinstance(executor, LocalExecutor):
+        return []
+    from probegrid.bake.compiled import uncached_kernels
+
+    return uncached_kernels()
+
+
+def _wait_compiling(executor: Any, kernels: list[str], bar: BakeProgress) -> None:
+    """Wait for the local workers, whose fork server compiles ``kernels`` (a machine's first
+    bake), showing how many of them numba's cache holds so far."""
+    from probegrid.bake.compiled import bake_kernels, is_cached
+
+    todo = [d for d in bake_kernels()
+            if f"{d.py_func.__module__}.{d.py_func.__name__}" in set(kernels)]
+    while True:
+        started = executor.wait_started(timeout=1.0)
+        done = sum(is_cached(d) for d in todo)
+        bar.compiling(done, len(todo), finished=started)
+        if started:
+            return

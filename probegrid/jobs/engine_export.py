@@ -24,6 +24,13 @@ Targets (layouts and conventions in :mod:`probegrid.export.engines`):
     -Z in the OpenGL/KTX2 table (``cube_convention="gltf"``), or mirrored for three.js (x) or
     Bevy (z) so that their lookups read each world direction's light
     (:func:`probegrid.export.engines.mirror_cube`); ``RGBA16F`` by default.
+``filament``
+    One probe (``probe=(i, j, k)``: Filament's ``IndirectLight`` is one environment) as the
+    KTX1 files ``probegrid filter --format filament`` writes (:mod:`probegrid.export.filament`:
+    ``environment_ibl.ktx`` with the SH in its ``sh`` key, ``environment_skybox.ktx``): the
+    probe's stored incoming cube (a bake with ``--store-incoming``) filtered again at the
+    roughness each mip has for Filament, ``r_k = 1 - sqrt(1 - k / (levels - 1))``, since the
+    store's chain is at probegrid's ``r = k / (levels - 1)``; a face size of at least 32.
 
 Invalid probes are filled from their valid neighbours first (the manifest says how many).
 Everything is read and checked before the output directory is touched; the manifest is written
@@ -68,6 +75,10 @@ _CONSUMERS = {
     "ktx2": ("any KTX2 loader: cube maps (arrays) in the OpenGL/Vulkan/KTX2 face table; the "
              "glTF Sample Viewer and Bevy's EnvironmentMapLight read the same face table as "
              "glTF-IBL-Sampler writes"),
+    "filament": ("Filament IndirectLight and Skybox: image::ktx::createTexture of "
+                 "environment_ibl.ktx (reflections, and its 'sh' key through "
+                 "Ktx1Bundle::getSphericalHarmonics for IndirectLight::Builder::irradiance(3, "
+                 "sh)) and of environment_skybox.ktx, as cmgen's files are loaded"),
 }
 
 
@@ -121,6 +132,9 @@ def export_grid(
     """
     if target not in TARGETS:
         raise ValueError(f"--target must be one of {', '.join(TARGETS)}, got {target!r}")
+    if target == "filament":
+        return _export_filament(store_path, out_dir, vk_format=vk_format, zstd=zstd,
+                                probe=probe, cube_convention=cube_convention, sh=sh)
     fmt = _format_code(target, vk_format)
     if probe is not None and target != "ktx2":
         raise ValueError("--probe applies to --target ktx2 (three.js and Bevy take the grid)")
@@ -288,3 +302,74 @@ def export_grid(
     atomic_write_json(out / "manifest.json", manifest)
     written.append(out / "manifest.json")
     return written
+
+
+def _export_filament(store_path: str | os.PathLike[str], out_dir: str | os.PathLike[str], *,
+                     vk_format: int | str | None, zstd: bool,
+                     probe: str | tuple[int, int, int] | None, cube_convention: str,
+                     sh: SHKind) -> list[Path]:
+    """:func:`export_grid` for ``target="filament"`` (module docstring): one probe's incoming
+    cube filtered at Filament's roughness, written by
+    :func:`probegrid.export.filament.write_filament_ibl`."""
+    from probegrid.export import filament
+
+    if vk_format is not None or zstd:
+        raise ValueError("--vk-format and --zstd apply to KTX2 targets; --target filament "
+                         "writes KTX1 R11F_G11F_B10F, as cmgen does")
+    if cube_convention != "gltf":
+        raise ValueError("--cube-convention applies to --target ktx2 (Filament reads the "
+                         "OpenGL/KTX2 face table in glTF's frame)")
+    if probe is None:
+        raise ValueError("--target filament needs --probe I,J,K (Filament's IndirectLight is "
+                         "one environment)")
+    if sh not in SH_MEANING:
+        raise ValueError(f"--sh must be one of {', '.join(SH_MEANING)}, got {sh!r}")
+    t0 = time.perf_counter()
+    store = open_store(store_path)
+    ijk = parse_probe(probe, store) if isinstance(probe, str) else tuple(probe)
+    parse_probe(",".join(map(str, ijk)), store)
+    if "incoming" not in store.names:
+        raise ValueError(f"{store_path}: the store has no incoming cubes, which --target "
+                         "filament filters again at Filament's roughness; bake it with "
+                         "--store-incoming")
+    index = int(store.probe_index(*ijk))
+    cube = np.asarray(store["incoming"][index], dtype=np.float32)
+    size = int(cube.shape[1])
+    try:
+        filament.check_size(size)
+    except ValueError:
+        raise ValueError(f"{store_path}: --target filament needs a face size of at least "
+                         f"{2 * filament.MIN_MIP} (a power of two: mips down to "
+                         f"{filament.MIN_MIP}^2), the store's is {size}; bake with "
+                         f"--face-size {2 * filament.MIN_MIP} or more") from None
+    coeffs = read_sh(store, sh, index=index)
+    for name, a in (("incoming", cube), ("sh", coeffs)):
+        _finite(store.path, name, a)
+    output_format = "probegrid.export.filament"
+    out = prepare_output_dir(out_dir, output_format, create=False)  # refuse early
+    recorded = store.valid_mask()
+    valid = None if recorded is None else bool(recorded[index])
+    chain = filament.specular_chain(cube)
+
+    previous = listed_files(out)
+    prepare_output_dir(out, output_format)
+    remove_stale(out, previous, {filament.IBL_FILE, filament.SKYBOX_FILE, "manifest.json"})
+    files = filament.write_filament_ibl(out, chain, coeffs)
+    grid = store.grid
+    manifest = {
+        "format": output_format, "format_version": 1, "probegrid_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "store": str(Path(store_path)), "target": "filament",
+        "consumer": _CONSUMERS["filament"],
+        "grid": {"counts": list(grid.counts), "bounds_min": list(grid.bounds_min),
+                 "bounds_max": list(grid.bounds_max),
+                 "probe_position": "bounds_min + (i, j, k) * (max - min) / (counts - 1)"},
+        "probe": list(ijk), "probe_valid": valid,
+        "sh": {"kind": sh, "meaning": SH_MEANING[sh]},
+        "filament": {"source": "the probe's stored incoming cube, filtered at Filament's "
+                               "roughness (the store's chain is at r = k / (levels - 1))"},
+        "conventions": conventions(), "files": files,
+        "seconds": round(time.perf_counter() - t0, 4),
+    }
+    atomic_write_json(out / "manifest.json", manifest)
+    return [out / filament.IBL_FILE, out / filament.SKYBOX_FILE, out / "manifest.json"]

@@ -11,7 +11,9 @@
 Rates are shown only once they mean something: after :data:`RATE_AFTER` seconds of the stage
 *and* at least two updates, measured from the stage's first update (not from before its first
 batch, whose work was done before the clock started: that gave figures such as
-"578524 probe/s, 0.00 Mrays/s"). :func:`resume_note` says, as a bake starts, whether it
+"578524 probe/s, 0.00 Mrays/s"). A machine's first bake first compiles its kernels
+(:meth:`BakeProgress.compiling`: ``bake: compiling kernels (first run only, numba caches them):
+12/36 kernels, 20 s so far``). :func:`resume_note` says, as a bake starts, whether it
 resumes an interrupted one and from where; :func:`size_note` what the store will take with
 float32 and with half-float maps.
 """
@@ -29,12 +31,14 @@ if TYPE_CHECKING:
     from probegrid.bake.executors import Progress
     from probegrid.bake.settings import BakeSettings
 
-__all__ = ["PLAIN_INTERVAL", "RATE_AFTER", "BakeProgress", "resume_note", "size_note"]
+__all__ = ["COMPILING", "PLAIN_INTERVAL", "RATE_AFTER", "BakeProgress", "resume_note", "size_note"]
 
 #: Seconds between two plain progress lines (stderr not a terminal).
 PLAIN_INTERVAL = 10.0
 #: Seconds of a stage before a rate is shown.
 RATE_AFTER = 1.0
+#: How the progress names the compiling of the bake's kernels (a machine's first bake).
+COMPILING = "compiling kernels (first run only, numba caches them)"
 
 
 def _duration(seconds: float) -> str:
@@ -100,6 +104,36 @@ class BakeProgress:
         if finished or now - self._last_line >= PLAIN_INTERVAL:
             self._last_line = now
             print(self.line(stage, p, rates), file=self.stream, flush=True)
+
+    def compiling(self, done: int, total: int, *, finished: bool = False) -> None:
+        """Show the compiling of the bake's kernels (a machine's first bake): ``done`` of
+        ``total`` kernels in numba's cache so far; ``finished`` once the workers run."""
+        if not self.enabled:
+            return
+        stage = COMPILING
+        if stage != self._stage:
+            self.close()
+            self._stage, self._t0 = stage, self.clock()
+            self._last_line = self._t0 - PLAIN_INTERVAL  # (the first call prints a line)
+        if self.terminal:
+            from tqdm import tqdm
+
+            if self._bar is None:
+                self._bar = tqdm(total=total, desc=stage, unit="kernel", file=self.stream,
+                                 ncols=min(shutil.get_terminal_size((100, 24)).columns or 100,
+                                           120), mininterval=0.5)
+            self._bar.n = total if finished else done
+            self._bar.refresh()
+            if finished:
+                self.close()
+            return
+        now = self.clock()
+        if finished or now - self._last_line >= PLAIN_INTERVAL:
+            self._last_line = now
+            text = f"bake: {stage}: {total if finished else done}/{total} kernels"
+            text += (f", done in {_duration(now - self._t0)}" if finished
+                     else f", {_duration(now - self._t0)} so far")
+            print(text, file=self.stream, flush=True)
 
     def line(self, stage: str, p: Progress, rates: tuple[float, float] | None) -> str:
         """One plain progress line."""

@@ -41,6 +41,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid._jit import frozen
 from probegrid.raytrace.kernels import embree_hits, embree_rays, segment_rays
 from probegrid.raytrace.rays import EmbreeRays, Hits
 
@@ -250,10 +251,10 @@ class RayTracer:
         The shift and the re-centring are done in float64, each value rounded to float32 once
         (:func:`probegrid.raytrace.kernels.embree_rays`).
         """
-        org, dir32, far, ok = embree_rays(
+        org, dir32, far, ok = embree_rays(*frozen((
             o if len(o) == 1 else o[s:e], d[s:e],
             lo.reshape(1) if lo.ndim == 0 else lo[s:e],
-            hi.reshape(1) if hi.ndim == 0 else hi[s:e], self.centre)
+            hi.reshape(1) if hi.ndim == 0 else hi[s:e], self.centre)))
         if not ok:
             raise ValueError("ray origins and directions must be finite (and within float32).")
         # (tmax = inf stays inf; tmax <= tmin never hits)

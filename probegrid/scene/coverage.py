@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._jit import frozen
 from probegrid.scene.kernels import multiply_texture
 from probegrid.scene.textures import _WRAPS
 
@@ -108,10 +109,10 @@ class Coverage:
             rows = np.flatnonzero(mat == i)
             if rows.size:
                 uvs, xform = sc.kernel_texcoords(m.base_color_uv)
-                multiply_texture(out.reshape(-1, 1), rows, (prim, u, v), tris, uvs,
-                                 np.ascontiguousarray(m.base_color_texture, np.float32),
-                                 (_WRAPS.index(m.base_color_wrap[0]),
-                                  _WRAPS.index(m.base_color_wrap[1])), xform, 3)
+                multiply_texture(out.reshape(-1, 1), rows, *frozen((
+                    (prim, u, v), tris, uvs, np.asarray(m.base_color_texture, np.float32))),
+                    (_WRAPS.index(m.base_color_wrap[0]), _WRAPS.index(m.base_color_wrap[1])),
+                    frozen(xform), 3)
         return out
 
     def stop_probability(self, prim: NDArray[np.int64], u: NDArray[np.float64],

@@ -39,6 +39,7 @@ from typing import Any, Final, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from probegrid._jit import frozen
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import SceneError
 from probegrid.scene.coverage import Coverage
@@ -436,9 +437,9 @@ class Scene:
     @cached_property
     def surface_tables(self) -> SurfaceTables:
         """The triangles and material factors as the compiled kernels read them
-        (:class:`probegrid.scene.kernels.SurfaceTables`: contiguous, built once)."""
+        (:class:`probegrid.scene.kernels.SurfaceTables`: contiguous, read-only, built once)."""
         base, emis = self._factor_tables
-        return SurfaceTables(*self._kernel_tables, base, emis, self._kernel_colors)
+        return frozen(SurfaceTables(*self._kernel_tables, base, emis, self._kernel_colors))
 
     @cached_property
     def _kernel_uvs(self) -> NDArray[np.float64]:
@@ -490,9 +491,9 @@ class Scene:
                     (m.emissive_texture, m.emissive_wrap, m.emissive_uv, emission)):
                 if tex is not None:
                     uvs, xform = self.kernel_texcoords(tc)
-                    multiply_texture(target, sel, (pid, u, v), tris, uvs,
-                                     np.ascontiguousarray(tex, dtype=np.float32),
-                                     (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])), xform, 0)
+                    multiply_texture(target, sel, *frozen((
+                        (pid, u, v), tris, uvs, np.asarray(tex, dtype=np.float32))),
+                        (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])), frozen(xform), 0)
 
     def surface_at(self, prim_ids: ArrayLike, u: ArrayLike, v: ArrayLike) -> Surface:
         """Position, geometric normal, albedo and emission at barycentric points of triangles.

@@ -162,6 +162,7 @@ class LocalExecutor(Executor):
         self._preload = tuple(str(m) for m in preload)
         self._pool: cf.ProcessPoolExecutor | None = None
         self._starting: threading.Thread | None = None
+        self._asked: list[cf.Future[int]] = []  # (the first task of each process)
 
     @property
     def workers(self) -> int:
@@ -248,16 +249,31 @@ class LocalExecutor(Executor):
                 initargs=(os.getpid(), self._preload),
             )
 
+            asked = self._asked = []
+
             def ask() -> None:
                 with contextlib.suppress(RuntimeError):  # (closed before they started)
                     for _ in range(self._workers):  # one task each: every process starts now
-                        pool.submit(os.getpid)
+                        asked.append(pool.submit(os.getpid))
 
             self._starting = threading.Thread(target=ask, name="probegrid-start-workers",
                                               daemon=True)
             self._starting.start()
             self._pool = pool
         return self._pool
+
+    def wait_started(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for every worker process to run (their fork server's
+        ``preload`` done: on a machine's first bake, the compiling of the kernels); returns
+        whether they all do. Starts them if :meth:`start` has not."""
+        self.start()
+        starting = self._starting
+        if starting is not None:
+            starting.join(timeout)
+            if starting.is_alive():
+                return False
+        pending = cf.wait(self._asked, timeout=timeout).not_done
+        return not pending
 
     def _started(self) -> cf.ProcessPoolExecutor:
         """The pool, once :meth:`start` has asked for every process."""

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._jit import frozen
 from probegrid.bake.kernels.cube import CUBE_AXES
 from probegrid.bake.kernels.grid import (
     GridLattice,
@@ -182,8 +183,8 @@ def _level_weights(level: Level, data: GridData
     counts = np.array(g.counts, dtype=np.int64)
     bias = DEFAULT_NORMAL_BIAS * g.smallest_cell()
     return hit_probe_weights(
-        np.ascontiguousarray(level.position, dtype=np.float64),
-        np.ascontiguousarray(level.normal), np.flatnonzero(level.kind == 1),
+        frozen(np.asarray(level.position, dtype=np.float64)),
+        frozen(level.normal), np.flatnonzero(level.kind == 1),
         GridLattice(g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS),
         ProbeTable(np.ascontiguousarray(data.valid, dtype=bool),
                    np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
@@ -229,10 +230,10 @@ def _smooth_gathered(records: Records, settings: BakeSettings,
     kind = rays.kind
     total = len(kind)
     zeros = np.zeros((total, 3), np.float32)
-    _, at_hit = replay_radiance(  # albedo * G alone
+    _, at_hit = replay_radiance(*frozen((  # albedo * G alone
         ReplayRecords(kind, zeros, zeros, zeros, rays.albedo, rays.normal, rays.weight_index,
                       rays.weight),
-        (cubes, g), CUBE_AXES, 1, np.zeros((0, 3), np.float32))
+        (cubes, g), CUBE_AXES, 1, np.zeros((0, 3), np.float32))))
     front = kind == 1
     corr = np.where(front[:, None], rays.albedo.astype(np.float64) * gathered
                     - at_hit.astype(np.float64), 0.0)
@@ -271,11 +272,11 @@ def _replay_level(records: Level, depth: int, level: int, grid: NDArray[np.float
                                "grid without their probe weights")
         wi, ww = np.zeros((0, 8), np.int32), np.zeros((0, 8), np.float32)
     none = np.zeros((0, 3), np.float32)  # (a gather level keeps no emission, and normals
-    return replay_radiance(  # only where its hits read the grid)
+    return replay_radiance(*frozen((  # only where its hits read the grid)
         ReplayRecords(records.kind, none if records.emission is None else records.emission,
                       records.light_punctual, records.light_emitters, records.albedo,
                       none if records.normal is None else records.normal, wi, ww),
-        (grid, g), CUBE_AXES, level, gathered)
+        (grid, g), CUBE_AXES, level, gathered)))
 
 
 def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: int,
@@ -323,7 +324,7 @@ def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: in
                                      below, g)
         primary = levels[d].primary
         assert primary is not None
-        below = mean_per_parent(primary, reflected, parents)
+        below = mean_per_parent(*frozen((primary, reflected)), parents)
     rad, bnc = _replay_level(levels[0], 0, level, empty if depth else grid, below, g)
     wts = (np.stack([sample_pattern(settings, int(i))[1].reshape(-1) for i in probes])
            if s > 1 else None)
