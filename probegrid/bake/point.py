@@ -26,6 +26,7 @@ at a probe.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass
 from typing import Any
@@ -149,9 +150,10 @@ class PointTracer:
                  geometry: TraceGeometry, grid_data: GridData, *, level: int, diffuse_size: int,
                  specular_levels: int, tracer: RayTracer | None = None) -> None:
         self.settings = settings
-        self.data = grid_data
         self.level = int(level)
         self.records = RecordTracer(scene, environment, settings, geometry, tracer=tracer)
+        # the hits' probes tested for visibility by the scene's tracer, as the bake tests them
+        self.data = dataclasses.replace(grid_data, tracer=self.records.tracer)
         self.diffuse_size = int(diffuse_size)
         self.specular_levels = int(specular_levels)
         n = settings.face_size

@@ -76,12 +76,14 @@ from probegrid.core.ddgi import (
 )
 from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.lights import splat_delta
+from probegrid.raytrace import RayTracer
 
 __all__ = [
     "GATHER_BLOCK",
     "GridData",
     "all_hit_weights",
     "grid_level_read",
+    "hidden_corners",
     "hit_weights",
     "irradiance_cubes",
     "irradiance_size",
@@ -139,8 +141,9 @@ def irradiance_cubes(cubes: NDArray[np.float32], size: int) -> NDArray[np.float3
 @dataclass(frozen=True, eq=False)
 class GridData:
     """What a pass reads of the whole grid: probe validity and positions, the distance moments
-    (bordered, for the weights) and the previous level's irradiance cubes (bordered, flat
-    ``(P * 6 (g + 2)^2, 3)``, or None for a black grid)."""
+    (bordered, for the weights), the previous level's irradiance cubes (bordered, flat
+    ``(P * 6 (g + 2)^2, 3)``, or None for a black grid) and the scene's tracer that tests
+    which probes a hit sees."""
 
     grid: GridSpec
     valid: NDArray[np.bool_]
@@ -148,6 +151,9 @@ class GridData:
     moments: NDArray[np.float32]
     moments_n: int
     cubes: NDArray[np.float32] | None
+    #: The scene's tracer for the exact visibility of the probes at hits
+    #: (:func:`hidden_corners`); None: the moments' Chebyshev estimate alone.
+    tracer: RayTracer | None = None
 
 
 def grid_level_read(level: int, depth: int) -> int:
@@ -179,14 +185,57 @@ def _level_weights(level: Level, data: GridData
     g = data.grid
     counts = np.array(g.counts, dtype=np.int64)
     bias = DEFAULT_NORMAL_BIAS * g.smallest_cell()
+    points = np.ascontiguousarray(level.position, dtype=np.float64)
+    rows = np.flatnonzero(level.kind == 1)
+    valid = np.ascontiguousarray(data.valid, dtype=bool)
+    positions = np.ascontiguousarray(data.positions, dtype=np.float64)
+    hidden = (np.zeros((0, 8), bool) if data.tracer is None else
+              hidden_corners(points, level.normal, rows, g, valid, positions, bias,
+                             data.tracer))
     return hit_probe_weights(
-        np.ascontiguousarray(level.position, dtype=np.float64),
-        np.ascontiguousarray(level.normal), np.flatnonzero(level.kind == 1),
+        points, np.ascontiguousarray(level.normal), rows,
         GridLattice(g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS),
-        ProbeTable(np.ascontiguousarray(data.valid, dtype=bool),
-                   np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
-                   data.moments_n),
-        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES)
+        ProbeTable(valid, positions, data.moments, data.moments_n),
+        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES, hidden)
+
+
+#: Length left out at both ends of a hit's segment to a probe, in units of the smallest cell
+#: (:func:`hidden_corners`): a probe standing on a surface does not hide itself.
+SEGMENT_MARGIN = 1e-3
+
+
+def hidden_corners(points: NDArray[np.float64], normals: NDArray[np.floating],
+                   rows: NDArray[np.int64], grid: GridSpec, valid: NDArray[np.bool_],
+                   positions: NDArray[np.float64], bias: float, tracer: RayTracer
+                   ) -> NDArray[np.bool_]:
+    """``(n, 8)`` whether geometry lies between each hit ``rows`` of ``points (n, 3)`` and each
+    of its cell's 8 probes (corner order of :meth:`probegrid.core.grid.GridSpec.corners`).
+
+    The segment runs from the hit moved ``bias`` along its unit normal (off its own surface,
+    to the side the hit is lit from) to the probe's (possibly moved) position. Only valid
+    probes with a trilinear weight are traced; the others and the rows not listed are False.
+    This is the exact test that keeps light out of a room: a gather hit on the inside of a wall
+    must not read the probes that stand beyond it in the sun (the moments' Chebyshev bound is
+    soft: a coarse moments texel straddling the wall's edge, or a probe moved out of a roof
+    slab, passes light through; :mod:`probegrid.core.ddgi` "Exact visibility" for queries).
+    """
+    out = np.zeros((len(points), 8), bool)
+    cell = grid.smallest_cell()
+    if not len(rows) or cell <= 0:  # (a single probe: no cell to bias or margin by)
+        return out
+    p = points[rows]
+    nrm = np.asarray(normals[rows], np.float64)
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    idx, tri, _ = grid.corners(p)
+    live = (tri > 0) & valid[idx]
+    r, c = np.nonzero(live)
+    if not len(r):
+        return out
+    start = p[r] + bias * nrm[r]
+    hit = tracer.segments_occluded(start, positions[idx[r, c]],
+                                   margin=SEGMENT_MARGIN * cell)
+    out[rows[r[hit]], c[hit]] = True
+    return out
 
 
 #: Side, in texels, of the blocks of a probe's faces over which :func:`_smooth_gathered`
