@@ -68,13 +68,13 @@ def stats(e: NDArray[np.float64]) -> str:
 
 
 def bake_store(scene: Any, env: Any, grid: Any, out: Path, *, face: int, seed: int = 0,
-               workers: int = 2) -> tuple[Any, float, Any]:
+               workers: int = 2, bounces: int | str = "converge") -> tuple[Any, float, Any]:
     """Bake ``grid`` into ``out``; returns the open store, the seconds and the report."""
     from probegrid.bake import BakeSettings, bake
     from probegrid.bake.executors import LocalExecutor
     from probegrid.store import open_store
 
-    settings = BakeSettings(face_size=face, seed=seed, store_incoming=True)
+    settings = BakeSettings(face_size=face, seed=seed, store_incoming=True, bounces=bounces)
     with LocalExecutor(workers=workers, preload=("probegrid.bake.preload",)) as ex:
         t0 = time.perf_counter()
         report = bake(scene, grid, out, settings=settings, environment=env, executor=ex,
@@ -83,7 +83,14 @@ def bake_store(scene: Any, env: Any, grid: Any, out: Path, *, face: int, seed: i
     return open_store(out), seconds, report
 
 
-def building_grids() -> tuple[Any, Any, NDArray[np.int64]]:
+#: Layers of probes added to the interior grid (below and above along x, y, z): outside the
+#: walls along z and above the roof (the y = 4 m layer falls in the roof slab: its probes are
+#: moved just under the ceiling, or stand in the skylights' openings), or outside all four
+#: walls only.
+EXTENSIONS = {"walls-roof": ((0, 0, 1), (0, 2, 1)), "walls": ((1, 0, 1), (1, 0, 1))}
+
+
+def building_grids(extend: str = "walls-roof") -> tuple[Any, Any, NDArray[np.int64]]:
     """The interior grid, the extended grid and the interior probes' indices in it."""
     from probegrid.core.grid import GridSpec
 
@@ -91,9 +98,11 @@ def building_grids() -> tuple[Any, Any, NDArray[np.int64]]:
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     inner = GridSpec.from_counts(tuple(lo), tuple(hi), (4, 3, 3))
     step = (hi - lo) / (np.array([4, 3, 3]) - 1)
-    lo2 = lo - np.array([0.0, 0.0, 1.0]) * step
-    hi2 = hi + np.array([0.0, 2.0, 1.0]) * step
-    outer = GridSpec.from_counts(tuple(lo2), tuple(hi2), (4, 5, 5))
+    below, above = (np.array(v) for v in EXTENSIONS[extend])
+    lo2 = lo - below * step
+    hi2 = hi + above * step
+    outer = GridSpec.from_counts(tuple(lo2), tuple(hi2), tuple(np.array([4, 3, 3]) + below
+                                                                + above))
     pos = outer.positions()
     idx = np.array([int(np.argmin(np.linalg.norm(pos - p, axis=1)))
                     for p in inner.positions()])
@@ -123,16 +132,20 @@ def two_grids(args: argparse.Namespace, work: Path) -> None:
     from probegrid.bake.point import PointTracer
 
     scene, env = scenes.sunlit_building()
-    inner, outer, idx = building_grids()
-    pts = inner.positions()
-    print("sunlit building: interior 4x3x3 grid alone and inside a 4x5x5 grid (64 probes "
-          "outside)", flush=True)
-    alone, t1, _ = bake_store(scene, env, inner, work / "inner.probes", face=args.face_size)
-    ext, t2, _ = bake_store(scene, env, outer, work / "outer.probes", face=args.face_size)
+    inner, outer, idx = building_grids(args.extend)
+    print(f"sunlit building: interior 4x3x3 grid alone and inside a "
+          f"{'x'.join(map(str, outer.counts))} grid ({outer.n_probes - 36} probes added, "
+          f"{args.extend})", flush=True)
+    alone, t1, _ = bake_store(scene, env, inner, work / "inner.probes", face=args.face_size,
+                              bounces=args.bounces)
+    ext, t2, _ = bake_store(scene, env, outer, work / "outer.probes", face=args.face_size,
+                            bounces=args.bounces)
+    print(f"  bounces: {alone.manifest.quality['bounces']} alone, "
+          f"{ext.manifest.quality['bounces']} extended", flush=True)
     # (the reference where the probes stand: two interior points on the cabinet's face are
     # moved off it, the same way in both grids)
     pts = np.asarray(alone["positions"], np.float64)
-    assert np.array_equal(pts, np.asarray(ext["positions"])[idx])
+    assert np.allclose(pts, np.asarray(ext["positions"])[idx], rtol=0, atol=1e-9)
     ref_d, _ = reference(scene, env, pts, args)
     ok = np.asarray(ext["valid"])
     print(f"  extended grid: {int(ok.sum())} of {len(ok)} valid, "
@@ -183,6 +196,10 @@ def main() -> None:
     p.add_argument("--face-size", type=int, default=16)
     p.add_argument("--diffuse", type=int, default=8)
     p.add_argument("--spp", type=int, default=128)
+    p.add_argument("--extend", choices=tuple(EXTENSIONS), default="walls-roof",
+                   help="where the extended grid adds probes")
+    p.add_argument("--bounces", default="converge",
+                   help="the bakes' --bounces (default converge)")
     p.add_argument("--cache", type=Path, default=Path("/tmp/leaks-cache"))
     p.add_argument("--only", choices=("building", "spheres", "references"), default=None)
     p.add_argument("--work", type=Path, default=None,

@@ -1,8 +1,10 @@
 """Light through walls by the grid reads, and emitters of many triangles: physics on small cases.
 
 * A hit reads only the probes it sees (:func:`probegrid.bake.records.replay.hidden_corners`):
-  a probe beyond a wall gets weight 0 whatever its distance moments say, and a bake's inside
-  probe is unchanged by probes added outside a sunlit wall (to 1 %).
+  a probe beyond a wall gets weight 0 whatever its distance moments say; a hit that sees none
+  reads the probe whose rays reached it; a bake's inside probe is unchanged by probes added
+  outside a sunlit wall (to 1 %).
+* A probe's random numbers depend on where it stands, not on its index.
 * An icosphere of thousands of emitting triangles (over the exact integral's edge limit) lights
   a point as the analytic sphere does, ``E = pi L (r / d)^2 cos``, within 2 %, for any seed
   (:meth:`probegrid.bake.emitters.Emitters.irradiance` by clusters).
@@ -10,11 +12,19 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from probegrid.bake.emitters import MAX_ANALYTIC, Emitters, emitter_clusters
-from probegrid.bake.records.replay import GridData, _level_weights, hidden_corners
+from probegrid.bake.records.replay import (
+    GridData,
+    _level_weights,
+    _own_probes,
+    hidden_corners,
+    visible_probe,
+)
 from probegrid.bake.records.schema import Level
 from probegrid.core.grid import GridSpec
 from probegrid.raytrace import RayTracer
@@ -87,18 +97,47 @@ def test_hidden_corners_traces_only_weighted_valid_probes() -> None:
     assert not hid.any()
 
 
-def test_a_point_that_sees_no_probe_keeps_the_moments_weights() -> None:
+def test_a_hit_that_sees_no_probe_reads_the_probe_that_reached_it() -> None:
+    """Hits on the wall's far face (x = +0.1, facing +x) of a grid whose two probes stand at
+    x < -0.1 see neither: with the probe whose rays reached each hit (an index of the grid),
+    they read it alone; with none (-1) they read nothing. The soft moments' weights, which
+    may favour a probe beyond a wall, are kept only without a tracer."""
     tracer = RayTracer.from_scene(_wall_scene())
-    # hits on the wall's far face (x = +0.1, facing +x) of a grid whose probes both stand at
-    # x < -0.1: both hidden; the weights fall back to the soft estimate (they still sum to 1)
     grid = GridSpec(bounds_min=(-2.0, 0.0, 0.0), bounds_max=(-1.0, 0.0, 0.0), counts=(2, 1, 1))
-    level = Level(kind=np.ones(2, np.uint8), position=np.array([[0.1, 0.0, 0.0],
-                                                                [0.1, 0.3, 0.0]]),
-                  normal=np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (2, 1)))
+    level = Level(kind=np.ones(3, np.uint8), position=np.array([[0.1, 0.0, 0.0],
+                                                                [0.1, 0.3, 0.0],
+                                                                [0.1, -0.3, 0.0]]),
+                  normal=np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (3, 1)))
     data = GridData(grid, np.ones(2, bool), grid.positions(), np.zeros((0, 2), np.float32), 0,
                     None, tracer)
-    _, w = _level_weights(level, data)
+    idx, w = _level_weights(level, data, np.array([1, 0, -1]))
+    np.testing.assert_array_equal(idx[:2, 0], [1, 0])
+    np.testing.assert_array_equal(w[:2], np.eye(8, dtype=np.float32)[[0, 0]])
+    np.testing.assert_array_equal(w[2], 0.0)
+    _, w = _level_weights(level, dataclasses.replace(data, tracer=None))
     np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-6)
+
+
+def test_own_probes_follow_the_gather_rays_to_their_probe() -> None:
+    arrays = {"probes": np.array([5, 9]), "rays_per_probe": np.array(3),
+              "kind": np.ones(6, np.uint8), "gather_kind": np.ones(4, np.uint8),
+              "gather_primary": np.array([0, 2, 3, 5], np.int32),
+              "gather2_kind": np.ones(4, np.uint8),
+              "gather2_primary": np.array([3, 2, 1, 0], np.int32)}
+    np.testing.assert_array_equal(_own_probes(arrays, 2, None), [9, 9, 5, 5])
+    np.testing.assert_array_equal(_own_probes(arrays, 1, None), [5, 5, 9, 9])
+    np.testing.assert_array_equal(_own_probes(arrays, 0, np.array([-1, 2])),
+                                  [-1, -1, -1, 2, 2, 2])
+
+
+def test_a_point_stands_in_by_the_probe_it_sees() -> None:
+    tracer = RayTracer.from_scene(_wall_scene())
+    grid = GridSpec(bounds_min=(-1.0, 0.0, 0.0), bounds_max=(1.0, 0.0, 0.0), counts=(2, 1, 1))
+    pts = np.array([[-0.5, 0.0, 0.0], [0.8, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    near = visible_probe(pts, grid, np.ones(2, bool), grid.positions(), tracer)
+    np.testing.assert_array_equal(near, [0, 1, 1])  # each sees only its side's probe
+    near = visible_probe(pts, grid, np.array([True, False]), grid.positions(), tracer)
+    np.testing.assert_array_equal(near, [0, -1, -1])
 
 
 # -------------------------------------------------------------------------- emitters
@@ -206,3 +245,80 @@ def test_clusters_split_a_long_tube_and_keep_compact_pieces() -> None:
     assert len(tube) >= 8
     assert c.radius[tube].max() < 0.2
     np.testing.assert_allclose(c.power.sum(), area.sum(), rtol=1e-12)
+
+
+# -------------------------------------------------------------------------- random streams
+def test_a_probe_draws_by_where_it_stands_not_by_its_index() -> None:
+    """Two grids with a probe at one point (its index, and its coordinates' last bits, differ:
+    ``0.1 + 0.2`` against ``0.3``) trace it with the same random numbers; another point draws
+    others."""
+    from probegrid.bake.environment import Environment
+    from probegrid.bake.records import RecordTracer
+    from probegrid.bake.settings import BakeSettings, TraceGeometry
+
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    b.add_box((-2.0, -2.0, -2.0), (2.0, 2.0, 2.0), material=m, inward=True)
+    lamp = b.add_material(Material.diffuse(0.0, emission=np.full(3, 2.0)))
+    b.add_quad((-0.3, 1.9, -0.3), (0.6, 0.0, 0.0), (0.0, 0.0, 0.6), material=lamp)
+    scene = b.build(name="box")
+    st = BakeSettings(face_size=4, gather_samples=2)
+    tracer = RecordTracer(scene, Environment(), st, TraceGeometry())
+    here = np.array([[0.1, 0.2, 0.3]])
+    there = np.array([[0.1, 0.2, 0.1 + 0.2]])  # the same point, a rounding apart
+    assert here[0, 2] != there[0, 2] and abs(here[0, 2] - there[0, 2]) < 1e-12
+    a, _, _ = tracer.trace(here, np.array([3]))
+    c, _, _ = tracer.trace(there, np.array([17]))
+    d, _, _ = tracer.trace(here + 0.01, np.array([3]))
+    keys = [k for k in a if k.endswith("light_emitters")]  # (the sampled light, each level)
+    assert len(keys) == 1 + st.gather_levels()
+    for key in keys:
+        np.testing.assert_array_equal(a[key], c[key])
+        assert not np.array_equal(a[key], d[key])
+
+
+# -------------------------------------------------------------------------- a whole bake
+def _sunlit_room():
+    """A closed 4 x 3 x 4 m room of 20 cm solid slabs with a 1 m skylight, a sun and a sky,
+    on an open ground."""
+    from probegrid.bake.environment import Environment
+    from probegrid.core.lights import DirectionalLight
+
+    b = SceneBuilder()
+    wall = b.add_material(Material.diffuse(0.7))
+    ground = b.add_material(Material.diffuse(0.4))
+    b.add_quad((-20.0, 0.0, 20.0), (40.0, 0.0, 0.0), (0.0, 0.0, -40.0), material=ground)
+    w = 0.2
+    b.add_box((-2.0 - w, 0.0, -2.0 - w), (-2.0, 3.0, 2.0 + w), material=wall)
+    b.add_box((2.0, 0.0, -2.0 - w), (2.0 + w, 3.0, 2.0 + w), material=wall)
+    b.add_box((-2.0, 0.0, -2.0 - w), (2.0, 3.0, -2.0), material=wall)
+    b.add_box((-2.0, 0.0, 2.0), (2.0, 3.0, 2.0 + w), material=wall)
+    for lo, hi in (((-2.0 - w, 3.0, -2.0 - w), (-0.5, 3.0 + w, 2.0 + w)),
+                   ((0.5, 3.0, -2.0 - w), (2.0 + w, 3.0 + w, 2.0 + w)),
+                   ((-0.5, 3.0, -2.0 - w), (0.5, 3.0 + w, -0.5)),
+                   ((-0.5, 3.0, 0.5), (0.5, 3.0 + w, 2.0 + w))):
+        b.add_box(lo, hi, material=wall)  # the roof around a 1 m opening
+    b.add_light(DirectionalLight((0.3, -0.9, 0.2), (1.0, 1.0, 1.0), 40.0))
+    return b.build(name="sunlit_room"), Environment(color=np.array([0.5, 0.7, 1.0]))
+
+
+@pytest.mark.slow
+def test_probes_outside_a_sunlit_wall_do_not_light_the_room(tmp_path) -> None:
+    """Two probes inside the room baked alone, then with a layer of probes outside its east
+    wall, in the sun: the inside probes' maps (their later bounces read the grid at gather
+    hits on that wall) change by less than 1 %."""
+    from probegrid.bake import BakeSettings, bake
+    from probegrid.store import open_store
+
+    scene, env = _sunlit_room()
+    st = BakeSettings(face_size=8, bounces=4)
+    alone = GridSpec(bounds_min=(-1.0, 1.5, 0.0), bounds_max=(1.0, 1.5, 0.0), counts=(2, 1, 1))
+    more = GridSpec(bounds_min=(-1.0, 1.5, 0.0), bounds_max=(3.0, 1.5, 0.0), counts=(3, 1, 1))
+    out = []
+    for name, grid in (("alone", alone), ("more", more)):
+        bake(scene, grid, tmp_path / f"{name}.probes", settings=st, environment=env)
+        out.append(np.asarray(open_store(tmp_path / f"{name}.probes")["diffuse"], np.float64))
+    a, m = out[0], out[1][:2]
+    assert out[1][2].sum() > 2 * a[1].sum()  # the outside probe is in the sun
+    change = np.abs(m - a).sum(axis=(1, 2, 3, 4)) / a.sum(axis=(1, 2, 3, 4))
+    assert change.max() < 0.01, change

@@ -65,6 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid._fs import atomic_write_text, recover_publish, remove_path
+from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
@@ -152,7 +153,8 @@ class BakeReport:
             + (" (ringing: the deringed SH that /sh serves is >= 0)"
                if (self.quality.get("sh_min_irradiance_over_pi") or 0.0) < 0 else "") + "; "
             f"seam score {q['seam_score_mean']:.2e}"),
-        ])
+        ] + ([f"  emitters: {q['emitter_sampling']}"]
+             if self.quality.get("emitter_sampling", "no emitters") != "no emitters" else []))
 
 
 def _jsonable(obj: Any) -> Any:
@@ -428,6 +430,8 @@ def bake(
             "bounce_energy": schedule.energies,
             "rays": runner.rays,
             "stage_seconds": {k: round(v, 3) for k, v in runner.seconds.items()},
+            # how the emitters' light is sampled at hits (exact integral, or clusters)
+            "emitter_sampling": Emitters.from_scene(scene).sampling(),
         }
         if schedule.state.factor is not None:  # converged by extrapolation (bake.converge)
             quality["bounce_extrapolation"] = schedule.state.factor

@@ -316,8 +316,9 @@ class Emitters:
         if self.analytic:
             return (f"{len(self)} emitting triangles: exact unoccluded integral over "
                     f"{len(self.outlines[0])} outline edges, shadowed by sampled rays")
-        return (f"{len(self)} emitting triangles (outlines over {MAX_ANALYTIC} edges): sampled "
-                f"by solid angle over {len(self.clusters.radius)} clusters, no exact integral")
+        return (f"{len(self)} emitting triangles (over the exact integral's {MAX_ANALYTIC} "
+                f"outline edges or {MAX_OUTLINED} triangles): sampled by solid angle over "
+                f"{len(self.clusters.radius)} clusters, no exact integral")
 
     @cached_property
     def control(self) -> NDArray[np.float64]:

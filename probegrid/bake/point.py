@@ -43,7 +43,7 @@ from probegrid.bake.records import (
     grid_level_read,
     hit_weights,
 )
-from probegrid.bake.records.replay import replay
+from probegrid.bake.records.replay import replay, visible_probe
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.core import probefilter
 from probegrid.core.sampling import resample
@@ -239,9 +239,12 @@ class PointTracer:
         cubes = None
         if self.level > 0 and self.data.cubes is not None:
             rec = dict(rec)
-            rec.update(all_hit_weights(rec, self.data))
+            # a hit that sees none of its cell's probes reads the probe the point sees
+            near = visible_probe(pos, self.data.grid, self.data.valid, self.data.positions,
+                                 self.records.tracer)
+            rec.update(all_hit_weights(rec, self.data, stand_in=near))
             if gather_depth(rec) and self.level >= 2:
-                rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
+                rec["weight_index"], rec["weight"] = hit_weights(rec, self.data, stand_in=near)
             cubes = self.data.cubes
         back = np.asarray(rec["backface_fraction"], np.float64)
         cube, _ = replay(rec, self.settings, self.level, cubes, final=True)

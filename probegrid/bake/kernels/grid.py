@@ -110,6 +110,7 @@ def hit_probe_weights(
     weighting: Weighting,
     axes: CubeAxes,
     hidden: NDArray[np.bool_],
+    fallback: NDArray[np.int64],
 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """The 8 probes around surface points ``rows`` of ``points (n, 3)`` (unit ``normals``) and
     their normalised DDGI weights (the other rows, misses say, stay 0).
@@ -126,8 +127,10 @@ def hit_probe_weights(
     segment from the biased point to the probe): a hidden probe gets weight 0 and a visible
     one its normal-facing term without the Chebyshev estimate, as
     :func:`probegrid.core.ddgi.probe_weights` with ``occluded``. A point that sees none of its
-    valid probes falls back to the moments' weights (no probe is known to see it; the soft
-    estimate is the grid's best guess).
+    valid probes reads, when ``fallback (n,)`` is not empty, probe ``fallback[i]`` alone
+    (weight 1 in the first slot: the probe whose rays reached the point, in the same free
+    space by construction) or nothing where that is -1 or invalid; with an empty
+    ``fallback``, the moments' weights (whose soft test can favour a probe beyond a wall).
 
     Returns
     -------
@@ -240,6 +243,12 @@ def hit_probe_weights(
                 w[c] = tw
                 total += tw
             if total > 0:
+                break
+            if exact and fallback.shape[0] > 0:  # sees none: the probe that reached it
+                f = fallback[i]
+                if f >= 0 and valid[f]:
+                    out_i[i, 0] = f
+                    out_w[i, 0] = 1.0
                 break
         if total <= 0:
             continue

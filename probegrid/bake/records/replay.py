@@ -88,6 +88,7 @@ __all__ = [
     "irradiance_cubes",
     "irradiance_size",
     "replay",
+    "visible_probe",
 ]
 
 
@@ -162,26 +163,49 @@ def grid_level_read(level: int, depth: int) -> int:
     return level - 1 - depth
 
 
-def all_hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData) -> RecordArrays:
+def all_hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData, *,
+                    stand_in: NDArray[np.int64] | None = None) -> RecordArrays:
     """The probe weights of every hit a bounce reads the grid at: the deepest gather level's
     hits when a block's stored arrays have gather rays (the hits above read the light gathered
-    below), else the rays' own hits. Returns the arrays to add to the stored records."""
+    below), else the rays' own hits. Returns the arrays to add to the stored records.
+
+    A hit that sees none of its cell's probes reads the probe whose rays reached it (in the
+    same free space by construction): the block's ``probes``, or ``stand_in (B,)``, the grid
+    probe standing for each (-1: none; points traced between the probes,
+    :class:`probegrid.bake.point.PointTracer`)."""
     depth = gather_depth(arrays)
-    wi, ww = _level_weights(Level.read(arrays, depth), data)
+    level = Level.read(arrays, depth)
+    wi, ww = _level_weights(level, data, _own_probes(arrays, depth, stand_in))
     return {stored_name(depth, "weight_index"): wi, stored_name(depth, "weight"): ww}
 
 
-def hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData
+def hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData, *,
+                stand_in: NDArray[np.int64] | None = None
                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Each front hit's 8 probes and normalised DDGI weights (0 for misses and back hits) of
     the probes' own rays (level 0 of a block's stored arrays: ``kind``, ``position`` and
-    ``normal``)."""
-    return _level_weights(Level.read(arrays, 0), data)
+    ``normal``); ``stand_in`` as :func:`all_hit_weights`."""
+    return _level_weights(Level.read(arrays, 0), data, _own_probes(arrays, 0, stand_in))
 
 
-def _level_weights(level: Level, data: GridData
+def _own_probes(arrays: Mapping[str, NDArray[Any]], depth: int,
+                stand_in: NDArray[np.int64] | None) -> NDArray[np.int64]:
+    """``(k,)`` the grid index of the probe whose rays reached each hit of level ``depth``
+    (following each gather ray's parent up to the probe's own ray): the block's ``probes``,
+    or ``stand_in`` for them."""
+    k = len(arrays[stored_name(depth, "kind")])
+    row = np.arange(k)
+    for d in range(depth, 0, -1):  # each gather level's rows to their parents' rows
+        row = np.asarray(arrays[stored_name(d, "primary")], np.int64)[row]
+    own = np.asarray(arrays["probes"] if stand_in is None else stand_in, np.int64)
+    return own[row // int(arrays["rays_per_probe"])]
+
+
+def _level_weights(level: Level, data: GridData,
+                   fallback: NDArray[np.int64] | None = None
                    ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
-    """:func:`hit_weights` of one level's records."""
+    """:func:`hit_weights` of one level's records; ``fallback (k,)`` each hit's own probe
+    (-1: none) for a hit that sees none of its cell's probes (None: the moments' weights)."""
     g = data.grid
     counts = np.array(g.counts, dtype=np.int64)
     bias = DEFAULT_NORMAL_BIAS * g.smallest_cell()
@@ -196,7 +220,26 @@ def _level_weights(level: Level, data: GridData
         points, np.ascontiguousarray(level.normal), rows,
         GridLattice(g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS),
         ProbeTable(valid, positions, data.moments, data.moments_n),
-        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES, hidden)
+        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES, hidden,
+        np.zeros(0, np.int64) if fallback is None or data.tracer is None
+        else np.ascontiguousarray(fallback, dtype=np.int64))
+
+
+def visible_probe(points: NDArray[np.float64], grid: GridSpec, valid: NDArray[np.bool_],
+                  positions: NDArray[np.float64], tracer: RayTracer) -> NDArray[np.int64]:
+    """``(B,)`` for each of ``points (B, 3)`` (in free space), the valid probe of its cell
+    that it sees with the largest trilinear weight, -1 where it sees none: what stands for a
+    point that is not a probe when its rays' hits see none of theirs."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    idx, tri, _ = grid.corners(p)
+    live = (tri > 0) & valid[idx]
+    r, c = np.nonzero(live)
+    seen = np.zeros(idx.shape, bool)
+    if len(r):
+        seen[r, c] = ~tracer.segments_occluded(
+            p[r], positions[idx[r, c]], margin=SEGMENT_MARGIN * grid.smallest_cell(1.0))
+    best = np.argmax(np.where(seen, tri, -1.0), axis=1)
+    return np.where(seen.any(axis=1), idx[np.arange(len(p)), best], -1).astype(np.int64)
 
 
 #: Length left out at both ends of a hit's segment to a probe, in units of the smallest cell

@@ -78,13 +78,20 @@ def _stream_keys(seed: int, positions: NDArray[np.float64], purpose: int
                  ) -> NDArray[np.uint64]:
     """The keys of the probes' random streams for one purpose (independent of the sample
     pattern's): 64 bits of ``SeedSequence(seed, spawn_key=(x, y, z, purpose))`` each, ``x, y,
-    z`` the bits of the probe's float64 coordinates, for
-    :func:`probegrid.bake.kernels.sampling.stream_uniforms`. Keyed by where the probe stands,
-    not by its index: a probe draws the same numbers in any grid that has a probe there (a grid
-    extended by layers keeps its inner probes' bits wherever their light is the same)."""
-    bits = np.ascontiguousarray(positions, dtype="<f8").reshape(-1, 3).view("<u8")
+    z`` the probe's coordinates in units of :data:`STREAM_STEP` (rounded, as 64-bit two's
+    complement), for :func:`probegrid.bake.kernels.sampling.stream_uniforms`. Keyed by where
+    the probe stands, not by its index: a probe draws the same numbers in any grid that has a
+    probe there (a grid extended by layers keeps its inner probes' bits wherever their light is
+    the same; ``lo + 3 * step`` and ``lo' + 4 * step``, a rounding apart, are one point)."""
+    q = np.round(np.asarray(positions, dtype=np.float64).reshape(-1, 3) / STREAM_STEP)
+    q = np.clip(q, -2.0**62, 2.0**62).astype(np.int64).view(np.uint64)
     return np.array([np.random.SeedSequence(int(seed), spawn_key=(*map(int, b), purpose))
-                     .generate_state(1, np.uint64)[0] for b in bits], np.uint64)
+                     .generate_state(1, np.uint64)[0] for b in q], np.uint64)
+
+
+#: The resolution of the positions that key the probes' random streams (metres, scene units):
+#: 2^-20, about a micrometre.
+STREAM_STEP = 2.0**-20
 
 
 class RecordTracer:
