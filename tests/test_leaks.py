@@ -97,6 +97,23 @@ def test_hidden_corners_traces_only_weighted_valid_probes() -> None:
     assert not hid.any()
 
 
+def test_a_probe_behind_the_hit_plane_is_hidden_even_in_view() -> None:
+    """A ceiling hit (normal down) and a probe level with the ceiling in a skylight's opening,
+    in view but on the surface's other side: hidden; the probe below the ceiling is not."""
+    b = SceneBuilder()
+    m = b.add_material(Material.diffuse(0.5))
+    b.add_quad((10.0, -5.0, 10.0), (1.0, 0.0, 0.0), (0.0, 0.0, -1.0), material=m)  # far away
+    tracer = RayTracer.from_scene(b.build(name="far"))
+    grid = GridSpec(bounds_min=(0.0, -1.0, 0.0), bounds_max=(0.0, 0.05, 0.0), counts=(1, 2, 1))
+    pos = grid.positions()
+    hit = np.array([[0.3, 0.0, 0.0]])
+    hid = hidden_corners(hit, np.array([[0.0, -1.0, 0.0]]), np.array([0]), grid,
+                         np.ones(2, bool), pos, 0.1, tracer)
+    idx, tri, _ = grid.corners(hit)
+    live = tri[0] > 0
+    np.testing.assert_array_equal(hid[0][live], pos[idx[0][live], 1] > 0)
+
+
 def test_a_hit_that_sees_no_probe_reads_the_probe_that_reached_it() -> None:
     """Hits on the wall's far face (x = +0.1, facing +x) of a grid whose two probes stand at
     x < -0.1 see neither: with the probe whose rays reached each hit (an index of the grid),

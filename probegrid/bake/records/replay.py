@@ -3,7 +3,13 @@ grid's small per-probe data, and no ray is cast.
 
 Once every probe's distance moments are known, each hit's 8 surrounding probes and their DDGI
 weights are computed once (:func:`all_hit_weights`,
-:func:`probegrid.bake.kernels.grid.hit_probe_weights`) and kept beside the records. A bounce is
+:func:`probegrid.bake.kernels.grid.hit_probe_weights`) and kept beside the records. A hit reads
+only the probes it sees: each is tested by a traced segment (:func:`hidden_corners`), and a
+hit that sees none reads the probe whose rays reached it (:func:`_own_probes`). Measured on a
+sunlit hall (``benchmarks/bench_leaks.py``): probes added outside its walls, tested by the
+moments' Chebyshev bound alone, lit its inside through the gather's reads of hits behind its
+furniture, which saw none of their probes and leaned on the soft weights of those beyond the
+wall. A bounce is
 then a pass over the records (:func:`replay`, :func:`probegrid.bake.kernels.grid.replay_radiance`)
 that reads each probe's irradiance cube of the previous bounce (:func:`irradiance_cubes`).
 
@@ -251,12 +257,12 @@ def hidden_corners(points: NDArray[np.float64], normals: NDArray[np.floating],
                    rows: NDArray[np.int64], grid: GridSpec, valid: NDArray[np.bool_],
                    positions: NDArray[np.float64], bias: float, tracer: RayTracer
                    ) -> NDArray[np.bool_]:
-    """``(n, 8)`` whether geometry lies between each hit ``rows`` of ``points (n, 3)`` and each
-    of its cell's 8 probes (corner order of :meth:`probegrid.core.grid.GridSpec.corners`).
-
-    The segment runs from the hit moved ``bias`` along its unit normal (off its own surface,
-    to the side the hit is lit from) to the probe's (possibly moved) position. Only valid
-    probes with a trilinear weight are traced; the others and the rows not listed are False.
+    """``(n, 8)`` whether each hit ``rows`` of ``points (n, 3)`` is hidden from each of its
+    cell's 8 probes (corner order of :meth:`probegrid.core.grid.GridSpec.corners`): the probe
+    stands behind the plane through the hit moved ``bias`` along its unit normal (off its own
+    surface, to the side the hit is lit from), or geometry lies on the segment from that point
+    to the probe's (possibly moved) position. Only valid probes with a trilinear weight are
+    tested; the others and the rows not listed are False.
     This is the exact test that keeps light out of a room: a gather hit on the inside of a wall
     must not read the probes that stand beyond it in the sun (the moments' Chebyshev bound is
     soft: a coarse moments texel straddling the wall's edge, or a probe moved out of a roof
@@ -275,8 +281,15 @@ def hidden_corners(points: NDArray[np.float64], normals: NDArray[np.floating],
     if not len(r):
         return out
     start = p[r] + bias * nrm[r]
-    hit = tracer.segments_occluded(start, positions[idx[r, c]],
-                                   margin=SEGMENT_MARGIN * cell)
+    end = positions[idx[r, c]]
+    # behind the plane through the biased point: on the surface's other side (a probe in a
+    # skylight's opening, level with the ceiling: not the light under the ceiling)
+    behind = np.einsum("ij,ij->i", end - start, nrm[r]) <= 0.0
+    hit = behind.copy()
+    front = np.flatnonzero(~behind)
+    if len(front):
+        hit[front] = tracer.segments_occluded(start[front], end[front],
+                                              margin=SEGMENT_MARGIN * cell)
     out[rows[r[hit]], c[hit]] = True
     return out
 
