@@ -181,7 +181,8 @@ def all_hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData, *,
     :class:`probegrid.bake.point.PointTracer`)."""
     depth = gather_depth(arrays)
     level = Level.read(arrays, depth)
-    wi, ww = _level_weights(level, data, _own_probes(arrays, depth, stand_in))
+    wi, ww = _level_weights(level, data, None if data.tracer is None
+                            else _own_probes(arrays, depth, stand_in))
     return {stored_name(depth, "weight_index"): wi, stored_name(depth, "weight"): ww}
 
 
@@ -191,7 +192,8 @@ def hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData, *,
     """Each front hit's 8 probes and normalised DDGI weights (0 for misses and back hits) of
     the probes' own rays (level 0 of a block's stored arrays: ``kind``, ``position`` and
     ``normal``); ``stand_in`` as :func:`all_hit_weights`."""
-    return _level_weights(Level.read(arrays, 0), data, _own_probes(arrays, 0, stand_in))
+    return _level_weights(Level.read(arrays, 0), data, None if data.tracer is None
+                          else _own_probes(arrays, 0, stand_in))
 
 
 def _own_probes(arrays: Mapping[str, NDArray[Any]], depth: int,
