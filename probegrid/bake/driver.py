@@ -67,6 +67,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid._fs import atomic_write_text, recover_publish, remove_path
+from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
@@ -154,7 +155,9 @@ class BakeReport:
             + (" (ringing: the deringed SH that /sh serves is >= 0)"
                if (self.quality.get("sh_min_irradiance_over_pi") or 0.0) < 0 else "") + "; "
             f"seam score {q['seam_score_mean']:.2e}"),
-        ] + self._unhonoured_lines())
+        ] + ([f"  emitters: {q['emitter_sampling']}"]
+             if self.quality.get("emitter_sampling", "no emitters") != "no emitters" else [])
+          + self._unhonoured_lines())
 
     def _unhonoured_lines(self) -> list[str]:
         """What the scene file uses that the bake did not honour (manifest ``inputs``)."""
@@ -455,6 +458,8 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
         "bounce_energy": schedule.energies,
         "rays": runner.rays,
         "stage_seconds": {k: round(v, 3) for k, v in runner.seconds.items()},
+        # how the emitters' light is sampled at hits (exact integral, or clusters)
+        "emitter_sampling": Emitters.from_scene(scene).sampling(),
     }
     if schedule.state.factor is not None:  # converged by extrapolation (bake.converge)
         quality["bounce_extrapolation"] = schedule.state.factor

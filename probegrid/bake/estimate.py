@@ -72,6 +72,10 @@ class BakeEstimate:
         every hit, and one more from each of theirs per further gather level) and at most the
         shadow rays of all their hits (one per punctual light, and ``--light-samples`` toward
         the emitters and the environment each; one each at a gather ray's hit).
+    visibility_rays : int
+        At most the segments that test which probes a hit reads the grid through see it (8 per
+        hit that reads the grid: the deepest gather level's, and the probes' own;
+        :func:`probegrid.bake.records.replay.hidden_corners`).
     store_bytes : int
         Size of the finished store: every array's ``.npy`` file and the manifest.
     work_bytes : int
@@ -91,11 +95,13 @@ class BakeEstimate:
     store_bytes: int
     work_bytes: int
     worker_bytes: int
+    visibility_rays: int = 0
 
     @property
     def rays(self) -> int:
-        """All rays, shadow rays at their most."""
-        return self.classify_rays + self.primary_rays + self.gather_rays + self.shadow_rays
+        """All rays, shadow and visibility rays at their most."""
+        return (self.classify_rays + self.primary_rays + self.gather_rays + self.shadow_rays
+                + self.visibility_rays)
 
     @property
     def disk_bytes(self) -> int:
@@ -105,8 +111,9 @@ class BakeEstimate:
     def summary(self) -> str:
         return (f"estimate: {self.probes} probes, {self.rays / 1e6:.3g} M rays "
                 f"({self.classify_rays / 1e6:.3g} M classify, {self.primary_rays / 1e6:.3g} M "
-                f"primary, up to {self.gather_rays / 1e6:.3g} M gather and "
-                f"{self.shadow_rays / 1e6:.3g} M shadow), store "
+                f"primary, up to {self.gather_rays / 1e6:.3g} M gather, "
+                f"{self.shadow_rays / 1e6:.3g} M shadow and {self.visibility_rays / 1e6:.3g} M "
+                f"visibility), store "
                 f"{_size(self.store_bytes)} (+ {_size(self.work_bytes)} work files), peak "
                 f"worker memory {_size(self.worker_bytes)}")
 
@@ -145,6 +152,10 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     shadow = (primary * per_hit + gather * (lights + int(emitters) + int(sky))
               + (p * lights if st.direct else 0))
     classify = p * (6 * CLASSIFY_FACE_SIZE**2 + DIRECTIONS)
+    # the grid read at the deepest gather level's hits (K per primary hit) and at the probes'
+    # own hits, 8 probes each (none without bounces that read the grid)
+    reads = st.bounces == "converge" or int(st.bounces) >= 1
+    visibility = 8 * primary * ((st.gather_samples + 1) if st.gather_levels() else 1) * reads
 
     def npy(shape: tuple[int, ...], dtype: str) -> int:
         return NPY_HEADER_BYTES + p * math.prod(shape) * np.dtype(dtype).itemsize
@@ -188,7 +199,8 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
               + min(RECORDS_MEMORY, records))
     if not shares_files:  # positions, validity, the previous bounce's SH, coefficients, moments
         worker += p * (24 + 1 + 2 * 216 + 6 * (m + 2) ** 2 * 8)
-    return BakeEstimate(p, classify, primary, gather, shadow, store, work, worker)
+    return BakeEstimate(p, classify, primary, gather, shadow, store, work, worker,
+                        int(visibility))
 
 
 def check_disk(out: Path, est: BakeEstimate) -> None:

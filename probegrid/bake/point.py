@@ -34,6 +34,7 @@ at a probe.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import threading
@@ -54,7 +55,7 @@ from probegrid.bake.records import (
     grid_level_read,
     hit_weights,
 )
-from probegrid.bake.records.replay import replay
+from probegrid.bake.records.replay import replay, visible_probe
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA, SurfaceCache
 from probegrid.core import probefilter
@@ -236,7 +237,6 @@ class PointTracer:
                  cache: SurfaceCache | None = None, direct: str = "sample",
                  threads: int | None = None) -> None:
         self.settings = settings
-        self.data = grid_data
         self.level = int(level)
         #: The surface cache the rays' hits read their indirect light from (None: gathered).
         self.cache = cache
@@ -248,6 +248,8 @@ class PointTracer:
             self.records.light_samples = 0
         elif cache is not None:  # sampled where the lattice is coarser than a texel
             self.records.sample_where = self.samples_direct
+        # the hits' probes tested for visibility by the scene's tracer, as the bake tests them
+        self.data = dataclasses.replace(grid_data, tracer=self.records.tracer)
         self.diffuse_size = int(diffuse_size)
         self.specular_levels = int(specular_levels)
         n = settings.face_size
@@ -356,9 +358,12 @@ class PointTracer:
         cubes = None
         if self.level > 0 and self.data.cubes is not None:
             rec = dict(rec)
-            rec.update(all_hit_weights(rec, self.data))
+            # a hit that sees none of its cell's probes reads the probe the point sees
+            near = visible_probe(pos, self.data.grid, self.data.valid, self.data.positions,
+                                 self.records.tracer)
+            rec.update(all_hit_weights(rec, self.data, stand_in=near))
             if gather_depth(rec) and self.level >= 2:
-                rec["weight_index"], rec["weight"] = hit_weights(rec, self.data)
+                rec["weight_index"], rec["weight"] = hit_weights(rec, self.data, stand_in=near)
             cubes = self.data.cubes
         back = np.asarray(rec["backface_fraction"], np.float64)
         cube, _ = replay(rec, self.settings, self.level, cubes, final=True, positions=pos)

@@ -142,7 +142,8 @@ class StageContext:
             data = GridData(self.grid, valid, positions,
                             np.ascontiguousarray(mb).reshape(-1, mb.shape[-1]),
                             mb.shape[2] - 2,
-                            None if cubes is None else np.ascontiguousarray(cubes).reshape(-1, 3))
+                            None if cubes is None else np.ascontiguousarray(cubes).reshape(-1, 3),
+                            tracer.tracer)
         return StageState(tracer, self, data, positions, valid, _array(self.moments))
 
 

@@ -41,6 +41,7 @@ chunks.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -52,7 +53,7 @@ from probegrid.bake.kernels.grid import mean_per_parent
 from probegrid.bake.kernels.surfacecache import cache_lookup
 from probegrid.bake.records.replay import GridData, _level_weights, _replay_level, irradiance_size
 from probegrid.bake.records.schema import Level, gather_keys
-from probegrid.bake.records.tracer import RecordTracer, _stream_keys
+from probegrid.bake.records.tracer import STREAM_STEP, RecordTracer, _stream_keys
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
@@ -82,8 +83,10 @@ MAX_RESOLUTION = 64
 MAX_VERTICES = 1 << 21
 #: Lattice vertices stand this fraction of the way from the triangle's edge to its centroid.
 INSET = 1e-3
-#: The random streams' index of the cache (beyond every probe's and query point's, < 2^62).
-CACHE_STREAM = (1 << 62) + 1
+#: Where the cache's random streams are keyed (streams are keyed by position,
+#: :func:`probegrid.bake.records.tracer._stream_keys`): the far corner of the keys' range,
+#: -4.4e12 m on each axis, beyond every probe and query point (the service takes |x| <= 1e12).
+CACHE_STREAM = np.full((1, 3), -(2.0**62) * STREAM_STEP)
 #: Vertices shaded together.
 CHUNK = 4096
 
@@ -216,6 +219,8 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     st = settings.model_copy(update={"gather_samples": CACHE_GATHER if depth else 0,
                                      "gather_depth": max(depth, 1)})
     rt = RecordTracer(scene, environment, st, geometry, tracer=tracer)
+    # the gather hits' probes tested for visibility by the scene's tracer, as the bake's are
+    data = dataclasses.replace(data, tracer=rt.tracer)
     eps = geometry.ray_offset
     total = len(pos)
     light = np.zeros((total, 2, 3), np.float32)
@@ -223,7 +228,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
 
     def draw(purpose: int, per: int, width: int, rows: NDArray[np.int64]) -> NDArray[np.float64]:
         if purpose not in keys:
-            keys[purpose] = _stream_keys(settings.seed, np.array([CACHE_STREAM]), purpose)
+            keys[purpose] = _stream_keys(settings.seed, CACHE_STREAM, purpose)
         u = np.asarray(_draw_rows(keys[purpose], per, rows, width))
         if purpose == 3:  # a vertex's first gather rays: stratified over the unit square
             u = stratified(u, rows % CACHE_GATHER, CACHE_GATHER)

@@ -79,7 +79,8 @@ lowered the mean ``E(n)`` error of the blended SH (Cornell box 4^3: 54 -> 22 %, 
 8x6x8: 8.8 -> 6.7 %) where half a cell and clamping did worse, and the normal-facing term made
 points worse than no normal at all (it moves weight onto probes in front of the surface,
 which can sit in other light) where the normal used for visibility only did not (one room point
-by 0.6 points). The bake's reads of its own grid keep the defaults (clamping, facing term).
+by 0.6 points). The bake's reads of its own grid keep the defaults (clamping, facing term) with
+the exact segment test (:func:`probegrid.bake.records.replay.hidden_corners`).
 
 Every factor is a continuous function of the point (the moment lookup is seamless bilinear), and
 across a cell face only the 4 shared corners have non-zero trilinear weight, so the weights, and

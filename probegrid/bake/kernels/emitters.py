@@ -6,6 +6,8 @@ the exact texel coverage of a probe's view.
 * :func:`emitter_shadow_rays`, :func:`emitter_samples`, :func:`emitter_estimate` -- the light
   sampled on the emitters at hits (:class:`probegrid.bake.emitters.Emitters`: its ratio
   estimator, with the exact integral as control variate);
+* :func:`cluster_samples` -- directions toward compact clusters of emitting triangles, by
+  solid angle (the emitters too many edges for the exact integral);
 * :func:`texel_emitter_coverage` -- the exact solid angle of every (cube texel, emitting
   triangle) overlap seen from a probe.
 
@@ -30,11 +32,13 @@ from probegrid.bake.kernels.sampling import _alias_pick
 from probegrid.raytrace.kernels import Vector, _embree_ray
 
 __all__ = [
+    "EmitterClusters",
     "EmitterOutlines",
     "EmitterTriangles",
     "emitter_estimate",
     "emitter_irradiance",
     "emitter_samples",
+    "cluster_samples",
     "emitter_shadow_rays",
     "polygon_irradiance",
     "texel_emitter_coverage",
@@ -651,3 +655,165 @@ def emitter_estimate(n: int, which: NDArray[np.int64], blocked: NDArray[np.bool_
             else:
                 out[i, c] = analytic[i, c] + plain[i, c]
     return out
+
+
+class EmitterClusters(NamedTuple):
+    """Emitting triangles grouped into compact clusters, each bounded by a sphere, as
+    :func:`cluster_samples` picks them (``K`` clusters,
+    :func:`probegrid.bake.emitters.emitter_clusters`)."""
+
+    #: (K, 3) float64 bounding spheres' centres.
+    centre: NDArray[np.float64]
+    #: (K,) float64 bounding spheres' radii.
+    radius: NDArray[np.float64]
+    #: (K,) float64 ``sum area * mean(radiance)`` of the cluster's triangles.
+    power: NDArray[np.float64]
+    #: (K, 3) float64 the axis of the cone holding the triangles' normals.
+    axis: NDArray[np.float64]
+    #: (K,) float64 the cosine of that cone's half-angle (-1: normals in every direction).
+    spread: NDArray[np.float64]
+
+
+@inline_kernel
+def _cluster_importance(clusters: EmitterClusters, c: int, px: float, py: float, pz: float,
+                        nx: float, ny: float, nz: float) -> float:
+    """An upper-bound-shaped estimate of the irradiance cluster ``c`` gives a point ``p`` with
+    normal ``n``: ``power / d^2`` times the largest receiver cosine over the cluster's bounding
+    cap and the largest emitter cosine its normal cone allows (Estevez & Kulla 2018); 0 only
+    where the cluster cannot light the point (its cap below the horizon, or every triangle
+    facing away)."""
+    centre, radius, power, axis, spread = clusters
+    wx, wy, wz = centre[c, 0] - px, centre[c, 1] - py, centre[c, 2] - pz
+    d2 = wx * wx + wy * wy + wz * wz
+    r = radius[c]
+    if d2 <= r * r:  # inside the bounding sphere: no direction can be ruled out
+        return power[c] / max(r * r, 1e-300)
+    d = math.sqrt(d2)
+    wx, wy, wz = wx / d, wy / d, wz / d
+    sin_c = r / d
+    cos_c = math.sqrt(max(1.0 - sin_c * sin_c, 0.0))
+    cos_a = wx * nx + wy * ny + wz * nz
+    if cos_a >= cos_c:
+        receiver = 1.0
+    else:  # cos(a - theta_c): the cap's point nearest the normal
+        receiver = cos_a * cos_c + math.sqrt(max(1.0 - cos_a * cos_a, 0.0)) * sin_c
+        if receiver <= 0.0:
+            return 0.0
+    emitter = 1.0
+    if spread[c] > -1.0:  # the triangles' normals within a cone: the side they face
+        cos_b = -(wx * axis[c, 0] + wy * axis[c, 1] + wz * axis[c, 2])
+        b = math.acos(min(max(cos_b, -1.0), 1.0))
+        slack = b - math.acos(min(max(spread[c], -1.0), 1.0)) - math.asin(min(sin_c, 1.0))
+        if slack >= 0.5 * math.pi:
+            return 0.0
+        emitter = math.cos(max(slack, 0.0))
+    return power[c] * receiver * emitter / d2
+
+
+@inline_kernel
+def _cap_solid_angle(clusters: EmitterClusters, c: int, px: float, py: float, pz: float
+                     ) -> tuple[float, float, float, float, float]:
+    """The cone of directions from ``p`` toward cluster ``c``'s bounding sphere: its unit axis
+    ``(x, y, z)``, the cosine of its half-angle (-1: the point is inside, every direction) and
+    its solid angle ``2 pi (1 - cos)`` (computed without cancellation)."""
+    centre, radius = clusters[0], clusters[1]
+    wx, wy, wz = centre[c, 0] - px, centre[c, 1] - py, centre[c, 2] - pz
+    d2 = wx * wx + wy * wy + wz * wz
+    r = radius[c]
+    if d2 <= r * r:
+        return 0.0, 0.0, 1.0, -1.0, 4.0 * math.pi
+    d = math.sqrt(d2)
+    s2 = r * r / d2
+    cos_c = math.sqrt(max(1.0 - s2, 0.0))
+    return wx / d, wy / d, wz / d, cos_c, 2.0 * math.pi * s2 / (1.0 + cos_c)
+
+
+@kernel
+def cluster_samples(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    random: NDArray[np.float64],
+    clusters: EmitterClusters,
+    eps: float,
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Directions toward emitter clusters, for next-event estimation by solid angle
+    (:meth:`probegrid.bake.emitters.Emitters.irradiance` when the emitters' outlines are too
+    many edges for the exact integral).
+
+    Point ``i`` (unit ``normals``, facing the lit side) draws ``L`` samples from
+    ``random (n, L, 3)``: a cluster ``c`` with probability ``P(c)``, its
+    :func:`_cluster_importance` over their sum (``random[..., 0]``), then a direction uniform
+    in the cone of its bounding sphere (``random[..., 1:]``; the whole sphere of directions
+    from inside it). The direction's density is the mixture over every cluster whose cone
+    holds it, ``p(w) = sum_c P(c) [w in cone_c] / Omega_c``, so the estimate
+    ``sum Le(w) cos(w) / (p(w) L)`` over the rays' first hits (an emitter's front, else 0) is
+    unbiased, and for a sphere-like cluster nearly constant per sample: its cone is what the
+    sphere covers, whatever its number of triangles.
+
+    Returns
+    -------
+    point : (k,) int64
+        The point each ray belongs to (samples below the horizon cast none).
+    origins, directions : (k, 3) float64
+        ``point + eps normal`` and the unit directions.
+    weight : (k,) float64
+        ``cos / (p(w) L)``: the ray's first hit's radiance times it is its contribution (lux).
+    """
+    n, ns = random.shape[0], random.shape[1]
+    k_count = clusters[1].shape[0]
+    which = np.empty(n * ns, np.int64)
+    org = np.empty((n * ns, 3))
+    dirs = np.empty((n * ns, 3))
+    weight = np.empty(n * ns)
+    cdf = np.empty(k_count)
+    k = 0
+    for i in range(n):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        total = 0.0
+        for c in range(k_count):
+            total += _cluster_importance(clusters, c, px, py, pz, nx, ny, nz)
+            cdf[c] = total
+        if not total > 0.0:
+            continue
+        for s in range(ns):
+            target = random[i, s, 0] * total
+            pick = k_count - 1
+            for c in range(k_count):
+                if target < cdf[c]:
+                    pick = c
+                    break
+            ax, ay, az, cos_max, _ = _cap_solid_angle(clusters, pick, px, py, pz)
+            r1, r2 = random[i, s, 1], random[i, s, 2]
+            cos_t = 1.0 - r1 * (1.0 - cos_max)
+            sin_t = math.sqrt(max(1.0 - cos_t * cos_t, 0.0))
+            phi = 2.0 * math.pi * r2
+            # an orthonormal frame around the cone's axis (Duff et al. 2017)
+            sign = 1.0 if az >= 0.0 else -1.0
+            a = -1.0 / (sign + az)
+            b = ax * ay * a
+            tx, ty, tz = 1.0 + sign * ax * ax * a, sign * b, -sign * ax
+            bx, by, bz = b, sign + ay * ay * a, -ay
+            cp, sp = math.cos(phi) * sin_t, math.sin(phi) * sin_t
+            dx = tx * cp + bx * sp + ax * cos_t
+            dy = ty * cp + by * sp + ay * cos_t
+            dz = tz * cp + bz * sp + az * cos_t
+            dl = math.sqrt(dx * dx + dy * dy + dz * dz)
+            dx, dy, dz = dx / dl, dy / dl, dz / dl
+            cos_r = dx * nx + dy * ny + dz * nz
+            if not cos_r > 0.0:
+                continue
+            pdf = 0.0
+            for c in range(k_count):
+                pc = cdf[c] - (cdf[c - 1] if c > 0 else 0.0)
+                if pc <= 0.0:
+                    continue
+                cx, cy, cz, cos_c, omega = _cap_solid_angle(clusters, c, px, py, pz)
+                if c == pick or cos_c < -0.5 or dx * cx + dy * cy + dz * cz >= cos_c:
+                    pdf += pc / (total * omega)
+            which[k] = i
+            org[k, 0], org[k, 1], org[k, 2] = px + eps * nx, py + eps * ny, pz + eps * nz
+            dirs[k, 0], dirs[k, 1], dirs[k, 2] = dx, dy, dz
+            weight[k] = cos_r / (pdf * ns)
+            k += 1
+    return which[:k], org[:k], dirs[:k], weight[:k]

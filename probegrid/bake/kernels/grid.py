@@ -109,6 +109,8 @@ def hit_probe_weights(
     probes: ProbeTable,
     weighting: Weighting,
     axes: CubeAxes,
+    hidden: NDArray[np.bool_],
+    fallback: NDArray[np.int64],
 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """The 8 probes around surface points ``rows`` of ``points (n, 3)`` (unit ``normals``) and
     their normalised DDGI weights (the other rows, misses say, stay 0).
@@ -119,6 +121,16 @@ def hit_probe_weights(
     light, so a bake computes them once per hit and every bounce reuses them. The grid's
     ``lattice``, its ``probes`` and the ``weighting`` constants are the tables below; ``axes``
     the cube's (:data:`~probegrid.bake.kernels.cube.CUBE_AXES`, for the moments' lookup).
+
+    ``hidden (n, 8)`` (corner order of :func:`hit_corners`), when not empty, is the exact
+    visibility test (:func:`probegrid.bake.records.replay.hidden_corners`: geometry on the
+    segment from the biased point to the probe): a hidden probe gets weight 0 and a visible
+    one its normal-facing term without the Chebyshev estimate, as
+    :func:`probegrid.core.ddgi.probe_weights` with ``occluded``. A point that sees none of its
+    valid probes reads, when ``fallback (n,)`` is not empty, probe ``fallback[i]`` alone
+    (weight 1 in the first slot: the probe whose rays reached the point, in the same free
+    space by construction) or nothing where that is -1 or invalid; with an empty
+    ``fallback``, the moments' weights (whose soft test can favour a probe beyond a wall).
 
     Returns
     -------
@@ -144,6 +156,7 @@ def hit_probe_weights(
     base = np.empty(3, np.int64)
     frac = np.empty(3)
     cp = np.empty(3)
+    has_hidden = hidden.shape[0] > 0
     for j in range(rows.shape[0]):
         i = rows[j]
         nx = np.float64(normals[i, 0])  # (float() keeps a float32)
@@ -167,65 +180,76 @@ def hit_probe_weights(
                 frac[a] = 0.0
         qx, qy, qz = cp[0] + bias * nx, cp[1] + bias * ny, cp[2] + bias * nz
         total = 0.0
-        for c in range(8):
-            ii = min(base[0] + corner_offsets[c, 0], counts[0] - 1)
-            jj = min(base[1] + corner_offsets[c, 1], counts[1] - 1)
-            kk = min(base[2] + corner_offsets[c, 2], counts[2] - 1)
-            p = (ii * counts[1] + jj) * counts[2] + kk
-            out_i[i, c] = p
-            tw = 1.0
-            for a in range(3):
-                f = frac[a]
-                tw *= f if corner_offsets[c, a] == 1 else 1.0 - f
-            if not valid[p]:
-                tw *= 0.0
-            if tw == 0.0:
-                w[c] = 0.0
-                continue
-            ex = positions[p, 0] - cp[0]
-            ey = positions[p, 1] - cp[1]
-            ez = positions[p, 2] - cp[2]
-            el = math.sqrt(ex * ex + ey * ey + ez * ez)
-            if el > 1e-300:
-                dot = (ex * nx + ey * ny + ez * nz) / el
-            else:
-                dot = 0.0
-            s = ((dot + 1.0) * 0.5) ** 2 + normal_floor
-            if use_moments:
-                ox = qx - positions[p, 0]
-                oy = qy - positions[p, 1]
-                oz = qz - positions[p, 2]
-                r = math.sqrt(ox * ox + oy * oy + oz * oz)
-                face, u, v = _face_uv(ox, oy, oz, face_u, face_v)
-                x = (u + 1.0) * half + 0.5
-                y = (v + 1.0) * half + 0.5
-                x0 = min(math.floor(x), float(m))
-                y0 = min(math.floor(y), float(m))
-                fx, fy = x - x0, y - y0
-                gx, gy = 1.0 - fx, 1.0 - fy
-                t0 = p * texels + (face * mb + int(y0)) * mb + int(x0)
-                w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
-                mean = (moments[t0, 0] * w00 + moments[t0 + 1, 0] * w01
-                        + moments[t0 + mb, 0] * w10 + moments[t0 + mb + 1, 0] * w11)
-                if not r <= mean:
-                    mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
-                               + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
-                    var = abs(mean_sq - mean * mean)
-                    excess = max(r - mean, 0.0)
-                    den = var + excess * excess
-                    if excess > 0:
-                        cheb = var / den if den != 0 else math.nan
-                    else:
-                        cheb = 1.0
-                    if math.isnan(cheb):
-                        cheb = 0.0
-                    s *= cheb * cheb * cheb
-            s = max(s, min_weight)
-            if s < crush:
-                s = s * s * s / crush2
-            tw *= s
-            w[c] = tw
-            total += tw
+        for attempt in range(2 if has_hidden else 1):  # the exact test, then the moments'
+            exact = has_hidden and attempt == 0
+            total = 0.0
+            for c in range(8):
+                ii = min(base[0] + corner_offsets[c, 0], counts[0] - 1)
+                jj = min(base[1] + corner_offsets[c, 1], counts[1] - 1)
+                kk = min(base[2] + corner_offsets[c, 2], counts[2] - 1)
+                p = (ii * counts[1] + jj) * counts[2] + kk
+                out_i[i, c] = p
+                tw = 1.0
+                for a in range(3):
+                    f = frac[a]
+                    tw *= f if corner_offsets[c, a] == 1 else 1.0 - f
+                if not valid[p] or (exact and hidden[i, c]):
+                    tw *= 0.0
+                if tw == 0.0:
+                    w[c] = 0.0
+                    continue
+                ex = positions[p, 0] - cp[0]
+                ey = positions[p, 1] - cp[1]
+                ez = positions[p, 2] - cp[2]
+                el = math.sqrt(ex * ex + ey * ey + ez * ez)
+                if el > 1e-300:
+                    dot = (ex * nx + ey * ny + ez * nz) / el
+                else:
+                    dot = 0.0
+                s = ((dot + 1.0) * 0.5) ** 2 + normal_floor
+                if use_moments and not exact:
+                    ox = qx - positions[p, 0]
+                    oy = qy - positions[p, 1]
+                    oz = qz - positions[p, 2]
+                    r = math.sqrt(ox * ox + oy * oy + oz * oz)
+                    face, u, v = _face_uv(ox, oy, oz, face_u, face_v)
+                    x = (u + 1.0) * half + 0.5
+                    y = (v + 1.0) * half + 0.5
+                    x0 = min(math.floor(x), float(m))
+                    y0 = min(math.floor(y), float(m))
+                    fx, fy = x - x0, y - y0
+                    gx, gy = 1.0 - fx, 1.0 - fy
+                    t0 = p * texels + (face * mb + int(y0)) * mb + int(x0)
+                    w00, w01, w10, w11 = gy * gx, gy * fx, fy * gx, fy * fx
+                    mean = (moments[t0, 0] * w00 + moments[t0 + 1, 0] * w01
+                            + moments[t0 + mb, 0] * w10 + moments[t0 + mb + 1, 0] * w11)
+                    if not r <= mean:
+                        mean_sq = (moments[t0, 1] * w00 + moments[t0 + 1, 1] * w01
+                                   + moments[t0 + mb, 1] * w10 + moments[t0 + mb + 1, 1] * w11)
+                        var = abs(mean_sq - mean * mean)
+                        excess = max(r - mean, 0.0)
+                        den = var + excess * excess
+                        if excess > 0:
+                            cheb = var / den if den != 0 else math.nan
+                        else:
+                            cheb = 1.0
+                        if math.isnan(cheb):
+                            cheb = 0.0
+                        s *= cheb * cheb * cheb
+                s = max(s, min_weight)
+                if s < crush:
+                    s = s * s * s / crush2
+                tw *= s
+                w[c] = tw
+                total += tw
+            if total > 0:
+                break
+            if exact and fallback.shape[0] > 0:  # sees none: the probe that reached it
+                f = fallback[i]
+                if f >= 0 and valid[f]:
+                    out_i[i, 0] = f
+                    out_w[i, 0] = 1.0
+                break
         if total <= 0:
             continue
         for c in range(8):

@@ -3,7 +3,13 @@ grid's small per-probe data, and no ray is cast.
 
 Once every probe's distance moments are known, each hit's 8 surrounding probes and their DDGI
 weights are computed once (:func:`all_hit_weights`,
-:func:`probegrid.bake.kernels.grid.hit_probe_weights`) and kept beside the records. A bounce is
+:func:`probegrid.bake.kernels.grid.hit_probe_weights`) and kept beside the records. A hit reads
+only the probes it sees: each is tested by a traced segment (:func:`hidden_corners`), and a
+hit that sees none reads the probe whose rays reached it (:func:`_own_probes`). Measured on a
+sunlit hall (``benchmarks/bench_leaks.py``): probes added outside its walls, tested by the
+moments' Chebyshev bound alone, lit its inside through the gather's reads of hits behind its
+furniture, which saw none of their probes and leaned on the soft weights of those beyond the
+wall. A bounce is
 then a pass over the records (:func:`replay`, :func:`probegrid.bake.kernels.grid.replay_radiance`)
 that reads each probe's irradiance cube of the previous bounce (:func:`irradiance_cubes`).
 
@@ -79,16 +85,19 @@ from probegrid.core.ddgi import (
 )
 from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.lights import splat_delta
+from probegrid.raytrace import RayTracer
 
 __all__ = [
     "GATHER_SMOOTHING",
     "GridData",
     "all_hit_weights",
     "grid_level_read",
+    "hidden_corners",
     "hit_weights",
     "irradiance_cubes",
     "irradiance_size",
     "replay",
+    "visible_probe",
 ]
 
 
@@ -142,8 +151,9 @@ def irradiance_cubes(cubes: NDArray[np.float32], size: int) -> NDArray[np.float3
 @dataclass(frozen=True, eq=False)
 class GridData:
     """What a pass reads of the whole grid: probe validity and positions, the distance moments
-    (bordered, for the weights) and the previous level's irradiance cubes (bordered, flat
-    ``(P * 6 (g + 2)^2, 3)``, or None for a black grid)."""
+    (bordered, for the weights), the previous level's irradiance cubes (bordered, flat
+    ``(P * 6 (g + 2)^2, 3)``, or None for a black grid) and the scene's tracer that tests
+    which probes a hit sees."""
 
     grid: GridSpec
     valid: NDArray[np.bool_]
@@ -151,6 +161,9 @@ class GridData:
     moments: NDArray[np.float32]
     moments_n: int
     cubes: NDArray[np.float32] | None
+    #: The scene's tracer for the exact visibility of the probes at hits
+    #: (:func:`hidden_corners`); None: the moments' Chebyshev estimate alone.
+    tracer: RayTracer | None = None
 
 
 def grid_level_read(level: int, depth: int) -> int:
@@ -159,37 +172,131 @@ def grid_level_read(level: int, depth: int) -> int:
     return level - 1 - depth
 
 
-def all_hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData) -> RecordArrays:
+def all_hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData, *,
+                    stand_in: NDArray[np.int64] | None = None) -> RecordArrays:
     """The probe weights of every hit a bounce reads the grid at: the deepest gather level's
     hits when a block's stored arrays have gather rays (the hits above read the light gathered
-    below), else the rays' own hits. Returns the arrays to add to the stored records."""
+    below), else the rays' own hits. Returns the arrays to add to the stored records.
+
+    A hit that sees none of its cell's probes reads the probe whose rays reached it (in the
+    same free space by construction): the block's ``probes``, or ``stand_in (B,)``, the grid
+    probe standing for each (-1: none; points traced between the probes,
+    :class:`probegrid.bake.point.PointTracer`)."""
     depth = gather_depth(arrays)
-    wi, ww = _level_weights(Level.read(arrays, depth), data)
+    level = Level.read(arrays, depth)
+    wi, ww = _level_weights(level, data, None if data.tracer is None
+                            else _own_probes(arrays, depth, stand_in))
     return {stored_name(depth, "weight_index"): wi, stored_name(depth, "weight"): ww}
 
 
-def hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData
+def hit_weights(arrays: Mapping[str, NDArray[Any]], data: GridData, *,
+                stand_in: NDArray[np.int64] | None = None
                 ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
     """Each front hit's 8 probes and normalised DDGI weights (0 for misses and back hits) of
     the probes' own rays (level 0 of a block's stored arrays: ``kind``, ``position`` and
-    ``normal``)."""
-    return _level_weights(Level.read(arrays, 0), data)
+    ``normal``); ``stand_in`` as :func:`all_hit_weights`."""
+    return _level_weights(Level.read(arrays, 0), data, None if data.tracer is None
+                          else _own_probes(arrays, 0, stand_in))
 
 
-def _level_weights(level: Level, data: GridData
+def _own_probes(arrays: Mapping[str, NDArray[Any]], depth: int,
+                stand_in: NDArray[np.int64] | None) -> NDArray[np.int64]:
+    """``(k,)`` the grid index of the probe whose rays reached each hit of level ``depth``
+    (following each gather ray's parent up to the probe's own ray): the block's ``probes``,
+    or ``stand_in`` for them."""
+    k = len(arrays[stored_name(depth, "kind")])
+    row = np.arange(k)
+    for d in range(depth, 0, -1):  # each gather level's rows to their parents' rows
+        row = np.asarray(arrays[stored_name(d, "primary")], np.int64)[row]
+    own = np.asarray(arrays["probes"] if stand_in is None else stand_in, np.int64)
+    return own[row // int(arrays["rays_per_probe"])]
+
+
+def _level_weights(level: Level, data: GridData,
+                   fallback: NDArray[np.int64] | None = None
                    ) -> tuple[NDArray[np.int32], NDArray[np.float32]]:
-    """:func:`hit_weights` of one level's records."""
+    """:func:`hit_weights` of one level's records; ``fallback (k,)`` each hit's own probe
+    (-1: none) for a hit that sees none of its cell's probes (None: the moments' weights)."""
     g = data.grid
     counts = np.array(g.counts, dtype=np.int64)
     bias = DEFAULT_NORMAL_BIAS * g.smallest_cell()
+    points = np.ascontiguousarray(level.position, dtype=np.float64)
+    rows = np.flatnonzero(level.kind == 1)
+    valid = np.ascontiguousarray(data.valid, dtype=bool)
+    positions = np.ascontiguousarray(data.positions, dtype=np.float64)
+    hidden = (np.zeros((0, 8), bool) if data.tracer is None else
+              hidden_corners(points, level.normal, rows, g, valid, positions, bias,
+                             data.tracer))
     return hit_probe_weights(
-        frozen(np.asarray(level.position, dtype=np.float64)),
-        frozen(level.normal), np.flatnonzero(level.kind == 1),
+        frozen(points), frozen(level.normal), rows,
         GridLattice(g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS),
-        ProbeTable(np.ascontiguousarray(data.valid, dtype=bool),
-                   np.ascontiguousarray(data.positions, dtype=np.float64), data.moments,
-                   data.moments_n),
-        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES)
+        ProbeTable(valid, positions, data.moments, data.moments_n),
+        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES, frozen(hidden),
+        frozen(np.zeros(0, np.int64) if fallback is None or data.tracer is None
+               else np.ascontiguousarray(fallback, dtype=np.int64)))
+
+
+def visible_probe(points: NDArray[np.float64], grid: GridSpec, valid: NDArray[np.bool_],
+                  positions: NDArray[np.float64], tracer: RayTracer) -> NDArray[np.int64]:
+    """``(B,)`` for each of ``points (B, 3)`` (in free space), the valid probe of its cell
+    that it sees with the largest trilinear weight, -1 where it sees none: what stands for a
+    point that is not a probe when its rays' hits see none of theirs."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    idx, tri, _ = grid.corners(p)
+    live = (tri > 0) & valid[idx]
+    r, c = np.nonzero(live)
+    seen = np.zeros(idx.shape, bool)
+    if len(r):
+        seen[r, c] = ~tracer.segments_occluded(
+            p[r], positions[idx[r, c]], margin=SEGMENT_MARGIN * grid.smallest_cell(1.0))
+    best = np.argmax(np.where(seen, tri, -1.0), axis=1)
+    return np.where(seen.any(axis=1), idx[np.arange(len(p)), best], -1).astype(np.int64)
+
+
+#: Length left out at both ends of a hit's segment to a probe, in units of the smallest cell
+#: (:func:`hidden_corners`): a probe standing on a surface does not hide itself.
+SEGMENT_MARGIN = 1e-3
+
+
+def hidden_corners(points: NDArray[np.float64], normals: NDArray[np.floating],
+                   rows: NDArray[np.int64], grid: GridSpec, valid: NDArray[np.bool_],
+                   positions: NDArray[np.float64], bias: float, tracer: RayTracer
+                   ) -> NDArray[np.bool_]:
+    """``(n, 8)`` whether each hit ``rows`` of ``points (n, 3)`` is hidden from each of its
+    cell's 8 probes (corner order of :meth:`probegrid.core.grid.GridSpec.corners`): the probe
+    stands behind the plane through the hit moved ``bias`` along its unit normal (off its own
+    surface, to the side the hit is lit from), or geometry lies on the segment from that point
+    to the probe's (possibly moved) position. Only valid probes with a trilinear weight are
+    tested; the others and the rows not listed are False.
+    This is the exact test that keeps light out of a room: a gather hit on the inside of a wall
+    must not read the probes that stand beyond it in the sun (the moments' Chebyshev bound is
+    soft: a coarse moments texel straddling the wall's edge, or a probe moved out of a roof
+    slab, passes light through; :mod:`probegrid.core.ddgi` "Exact visibility" for queries).
+    """
+    out = np.zeros((len(points), 8), bool)
+    cell = grid.smallest_cell()
+    if not len(rows) or cell <= 0:  # (a single probe: no cell to bias or margin by)
+        return out
+    p = points[rows]
+    nrm = np.asarray(normals[rows], np.float64)
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    idx, tri, _ = grid.corners(p)
+    live = (tri > 0) & valid[idx]
+    r, c = np.nonzero(live)
+    if not len(r):
+        return out
+    start = p[r] + bias * nrm[r]
+    end = positions[idx[r, c]]
+    # behind the plane through the biased point: on the surface's other side (a probe in a
+    # skylight's opening, level with the ceiling: not the light under the ceiling)
+    behind = np.einsum("ij,ij->i", end - start, nrm[r]) <= 0.0
+    hit = behind.copy()
+    front = np.flatnonzero(~behind)
+    if len(front):
+        hit[front] = tracer.segments_occluded(start[front], end[front],
+                                              margin=SEGMENT_MARGIN * cell)
+    out[rows[r[hit]], c[hit]] = True
+    return out
 
 
 #: How :func:`_smooth_gathered` spreads the gather rays' noise over a probe's texels

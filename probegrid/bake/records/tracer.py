@@ -24,9 +24,10 @@ what is seen: read at the hit itself, it is the irradiance where the probes stan
 the hit is (a ceiling above a floor's hot spot read a probe nearer the spot: 1.97x too bright;
 ``tests/test_bake.py``). ``gather_samples = 0`` reads the grid at the hit.
 
-Random numbers come from counter-based streams, one per probe and purpose
+Random numbers come from counter-based streams, one per probe position and purpose
 (:func:`probegrid.bake.kernels.sampling.stream_uniforms`): what a probe draws depends only on
-its stream and the row, not on its batch, so a block traced again gives the same bits.
+its stream and the row, not on its batch or its index, so a block traced again gives the same
+bits, and a probe at the same point of another grid draws the same numbers.
 """
 
 from __future__ import annotations
@@ -77,12 +78,24 @@ def _light_draw(draw: Callable[[int, int, int, NDArray[np.int64]], NDArray[np.fl
     return lambda rows: draw(purpose, per, samples * 3, rows).reshape(-1, samples, 3)
 
 
-def _stream_keys(seed: int, indices: NDArray[np.int64], purpose: int) -> NDArray[np.uint64]:
+def _stream_keys(seed: int, positions: NDArray[np.float64], purpose: int
+                 ) -> NDArray[np.uint64]:
     """The keys of the probes' random streams for one purpose (independent of the sample
-    pattern's): 64 bits of ``SeedSequence(seed, spawn_key=(index, purpose))`` each, for
-    :func:`probegrid.bake.kernels.sampling.stream_uniforms`."""
-    return np.array([np.random.SeedSequence(int(seed), spawn_key=(int(i), purpose))
-                     .generate_state(1, np.uint64)[0] for i in indices], np.uint64)
+    pattern's): 64 bits of ``SeedSequence(seed, spawn_key=(x, y, z, purpose))`` each, ``x, y,
+    z`` the probe's coordinates in units of :data:`STREAM_STEP` (rounded, as 64-bit two's
+    complement), for :func:`probegrid.bake.kernels.sampling.stream_uniforms`. Keyed by where
+    the probe stands, not by its index: a probe draws the same numbers in any grid that has a
+    probe there (a grid extended by layers keeps its inner probes' bits wherever their light is
+    the same; ``lo + 3 * step`` and ``lo' + 4 * step``, a rounding apart, are one point)."""
+    q = np.round(np.asarray(positions, dtype=np.float64).reshape(-1, 3) / STREAM_STEP)
+    q = np.clip(q, -2.0**62, 2.0**62).astype(np.int64).view(np.uint64)
+    return np.array([np.random.SeedSequence(int(seed), spawn_key=(*map(int, b), purpose))
+                     .generate_state(1, np.uint64)[0] for b in q], np.uint64)
+
+
+#: The resolution of the positions that key the probes' random streams (metres, scene units):
+#: 2^-20, about a micrometre.
+STREAM_STEP = 2.0**-20
 
 
 class RecordTracer:
@@ -264,7 +277,7 @@ class RecordTracer:
             # probe: row r of the batch is row r % per of probe r // per. What a probe draws
             # depends only on its stream and the row, not on its batch or the other rows
             if purpose not in keys:
-                keys[purpose] = _stream_keys(st.seed, idx, purpose)
+                keys[purpose] = _stream_keys(st.seed, pos, purpose)
             return stream_uniforms(keys[purpose], per, rows, width)
 
         # a probe's misses see the environment at their texels' centres (_shade)
