@@ -109,7 +109,7 @@ def test_direct_light_is_counted_once_at_every_bounce(tmp_path):
                           **{**FAST, "face_size": 16})
         s = bake(scene, grid, tmp_path / f"f{bounces}.probes", settings=st).store
         p = np.asarray(s["positions"][probe])
-        d = sample_pattern(st, probe)[0][3, :, :, 0]  # the -Y face's rays: all see the floor
+        d = sample_pattern(st)[0][3, :, :, 0]  # the -Y face's rays: all see the floor
         hit = p + (-p[1] / d[..., 1])[..., None] * d
         to_light = light - hit
         dist = np.linalg.norm(to_light, axis=-1)
@@ -603,7 +603,7 @@ def test_cornell_ceiling_reads_zero_after_one_bounce(tmp_path, real_data):
     tracer = RayTracer.from_scene(scene)
     checked = 0
     for p in range(grid.n_probes):
-        d = sample_pattern(st, p)[0].reshape(-1, 3)  # the probe's own rays, one per texel
+        d = sample_pattern(st)[0].reshape(-1, 3)  # the probe's own rays, one per texel
         pos = np.asarray(s["positions"][p])
         hits = tracer.intersect(np.repeat(pos[None], len(d), 0), d)
         pt = pos + hits.t[:, None] * d

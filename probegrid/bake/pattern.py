@@ -8,7 +8,7 @@ mean radiance over its solid angle (:func:`sample_pattern`): a box filter over t
 footprint. The samples of a texel are the first ``samples`` points of the R2 low-discrepancy
 sequence (Roberts 2018), stratified over the texel, shifted by a random offset of that texel
 (Cranley-Patterson rotation): one sample is a uniformly random point of its texel. Every texel
-and every probe draws its own offset, so sharp patterns smaller than a texel (sun through a
+draws its own offset, so sharp patterns smaller than a texel (sun through a
 mullioned skylight, seen on a floor) are sampled to their area fraction on average instead of
 being aliased by rays through the texel centres, the same way in every texel (a regular pattern
 of rays beats against a regular pattern of light: moire). On the sunlit hall of
@@ -19,18 +19,20 @@ more rays per texel reduce (4 rays: 3.5 %, against 6.5 % with one offset for eve
 
 Determinism
 -----------
-A probe's offsets come from :func:`probegrid.bake.executors.probe_rng` (the bake's seed and the
-probe's linear index), so its pattern does not depend on which batch or process traced it.
+The offsets come from the bake's seed alone (:data:`PATTERN_STREAM`), the same for every probe
+and every point the service traces: a probe's pattern depends neither on its batch or process
+nor on its index, so a grid extended by layers of probes traces its inner probes with the same
+rays (their random streams are keyed by position, :mod:`probegrid.bake.records.tracer`).
 """
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from probegrid.bake.executors import probe_rng
 from probegrid.bake.kernels.cube import CUBE_AXES, cube_sample_directions
 
 if TYPE_CHECKING:
@@ -43,10 +45,13 @@ _PLASTIC = 1.32471795724474602596
 _R2 = np.array([1.0 / _PLASTIC, 1.0 / _PLASTIC**2])
 
 
-def sample_pattern(settings: BakeSettings, probe_index: int) -> tuple[
-    NDArray[np.float64], NDArray[np.float64]
-]:
-    """Ray directions of one probe and their weights within their texels.
+#: The spawn key of the pattern's offsets (beyond any probe's index: its own stream).
+PATTERN_STREAM = (1 << 62) + 2
+
+
+def sample_pattern(settings: BakeSettings) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Ray directions of a probe and their weights within their texels (read-only arrays,
+    computed once per face size, sample count and seed).
 
     Returns
     -------
@@ -55,15 +60,22 @@ def sample_pattern(settings: BakeSettings, probe_index: int) -> tuple[
     weights : (6, n, n, s) float64
         Area-element weights normalised to sum to 1 over each texel's samples.
     """
-    return _pattern(settings.face_size, _jitter(settings, probe_index))
+    return _cached_pattern(settings.face_size, settings.samples, settings.seed)
 
 
-def _jitter(settings: BakeSettings, probe_index: int) -> NDArray[np.float64]:
-    """``(6 n^2, s, 2)`` positions of a probe's samples inside each of its texels, in
-    ``[0, 1)^2``: the R2 sequence shifted by each texel's random offset (drawn from the probe's
-    generator, :func:`probegrid.bake.executors.probe_rng`)."""
-    n, s = settings.face_size, settings.samples
-    shift = probe_rng(settings.seed, probe_index).random((6 * n * n, 1, 2))
+@functools.lru_cache(maxsize=8)
+def _cached_pattern(n: int, s: int, seed: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    dirs, wts = _pattern(n, _jitter(n, s, seed))
+    dirs.flags.writeable = False
+    wts.flags.writeable = False
+    return dirs, wts
+
+
+def _jitter(n: int, s: int, seed: int) -> NDArray[np.float64]:
+    """``(6 n^2, s, 2)`` positions of the samples inside each texel, in ``[0, 1)^2``: the R2
+    sequence shifted by each texel's random offset (:data:`PATTERN_STREAM` of ``seed``)."""
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(PATTERN_STREAM,)))
+    shift = rng.random((6 * n * n, 1, 2))
     return np.mod(0.5 + np.arange(1, s + 1)[None, :, None] * _R2[None, None, :] + shift, 1.0)
 
 

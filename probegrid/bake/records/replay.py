@@ -433,7 +433,8 @@ def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: in
         assert primary is not None
         below = mean_per_parent(*frozen((primary, reflected)), parents)
     rad, bnc = _replay_level(levels[0], 0, level, empty if depth else grid, below, g)
-    wts = (np.stack([sample_pattern(settings, int(i))[1].reshape(-1) for i in probes])
+    wts = (np.broadcast_to(sample_pattern(settings)[1].reshape(1, -1),
+                           (b, 6 * n * n * s))
            if s > 1 else None)
     if (final and depth and level >= 2 and grid.shape[0]
             and levels[0].weight_index is not None):

@@ -258,9 +258,9 @@ class RecordTracer:
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         idx = np.asarray(indices, dtype=np.int64).reshape(-1)
         b = len(pos)
-        patterns = [sample_pattern(st, int(i)) for i in idx]
-        dirs = np.stack([p[0].reshape(-1, 3) for p in patterns])
-        wts = np.stack([p[1].reshape(-1) for p in patterns])
+        pattern = sample_pattern(st)  # (every probe's: module docstring of bake.pattern)
+        dirs = np.broadcast_to(pattern[0].reshape(1, -1, 3), (b, pattern[0][..., 0].size, 3))
+        wts = np.broadcast_to(pattern[1].reshape(1, -1), (b, pattern[1].size))
         nr = dirs.shape[1]
         flat = dirs.reshape(-1, 3)
         origins = np.repeat(pos, nr, axis=0)
