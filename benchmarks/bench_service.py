@@ -13,6 +13,8 @@ sent in ``--rounds`` rounds that visit every endpoint in turn, so a change in th
 * ``bare``: ``GET /healthz``, a fixed small JSON document from the same app (the reference);
 * ``sh``: ``GET /v1/grids/G/sh?x=&y=&z=`` at positions spread over the grid box;
 * ``sh+normal``: the same with ``nx, ny, nz`` (DDGI visibility weights);
+* ``sh+normal[probes]``: the same with ``source=probes``: the probes' blend where the store
+  has an SH field (``sh`` then interpolates the field; ``--store`` a bake's store to compare);
 * ``maps``: ``GET /v1/grids/G/maps/diffuse?...&format=npy`` (the 16^2 diffuse cube);
 * ``sh[seg]``, ``sh+normal[seg]``, ``maps[seg]`` (synthetic store only): the same queries of a
   second grid, the synthetic store plus the extras a bake writes (format 2): a scene of about
@@ -278,6 +280,10 @@ def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray, *, seg_grid: str |
             "sh": [f"/v1/grids/{g}/sh?{q(p)}".encode() for p in pts],
             "sh+normal": [f"/v1/grids/{g}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}&nz={n[2]:.4f}"
                           .encode() for p, n in zip(pts, nrm, strict=True)],
+            # the probes' blend (the same as sh for a store without an SH field)
+            "sh+normal[probes]": [f"/v1/grids/{g}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}"
+                                  f"&nz={n[2]:.4f}&source=probes".encode()
+                                  for p, n in zip(pts, nrm, strict=True)],
             "maps": [f"/v1/grids/{g}/maps/diffuse?{q(p)}&format=npy".encode() for p in pts],
         }
 

@@ -313,7 +313,8 @@ def test_side_by_side_three_lightprobegrid_is_fed_by_the_export(viewer, server):
     # offset) is the service's plain trilinear blend there (all eight probes valid), to half
     # float rounding
     x, y, z = got["query"]["position"]
-    plain = httpx.get(f"{server.url}/v1/grids/room/sh", params={"x": x, "y": y, "z": z}).json()
+    plain = httpx.get(f"{server.url}/v1/grids/room/sh",
+                      params={"x": x, "y": y, "z": z, "source": "probes"}).json()
     assert len(plain["probes"]) == 8 and not plain["flags"]["unlit"]
     centre = np.array([[x, y, z]] * len(normals))
     at_centre = three_lightprobegrid(header, atlas, centre, normals, offset=0.0)

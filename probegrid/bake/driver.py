@@ -68,6 +68,7 @@ from probegrid._fs import atomic_write_text, recover_publish, remove_path
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
+from probegrid.bake.shfield import write_sh_field
 from probegrid.bake.inputs import check_bake_inputs
 from probegrid.bake.maps import energy_ratio, incoming_integral_from_sh
 from probegrid.bake.nolight import light_quality, printable
@@ -436,6 +437,12 @@ def bake(
         # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
         write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
                            gather=st.gather_levels() > 0, face_size=st.face_size)
+        if st.sh_field > 0:  # the SH field /sh interpolates (probegrid.bake.shfield)
+            t_field = time.perf_counter()
+            write_sh_field(w, scene, plan=plan, level=level, refine=st.sh_field,
+                           face_size=st.sh_field_face_size,
+                           invalid_threshold=st.invalid_threshold)
+            quality["stage_seconds"]["sh field"] = round(time.perf_counter() - t_field, 3)
         store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
         remove_path(work)  # (a Linux flock lives on the open directory, not on its name)
         if not files:  # (this machine's Dask workers' record directory, emptied block by block)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from probegrid.core.ddgi import ProbeWeights
 from probegrid.core.grid import GridSpec
 
@@ -15,12 +17,20 @@ def _used(weights: ProbeWeights, row: int) -> list[tuple[int, float]]:
                                    strict=True) if w != 0]
 
 
-def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dict[str, Any]]:
-    """The probes with non-zero weight for one point, in corner order, as
-    :class:`service.schemas.ProbeUse` dicts."""
+def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0, *,
+                positions: bool = False) -> list[dict[str, Any]]:
+    """The probes (or lattice points) of ``grid`` with non-zero weight for one point, in corner
+    order, as :class:`service.schemas.ProbeUse` dicts (with their ``position`` on the lattice
+    if asked)."""
     _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.core.grid
-    return [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
-            for i, w in _used(weights, row)]
+    out = [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
+           for i, w in _used(weights, row)]
+    if positions and out:
+        at = (np.asarray(grid.bounds_min) + np.array([p["ijk"] for p in out])
+              * np.asarray(grid.spacing)).tolist()
+        for p, xyz in zip(out, at, strict=True):
+            p["position"] = xyz
+    return out
 
 
 def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, Any]:

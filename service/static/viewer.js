@@ -641,17 +641,19 @@ function showWeights(sh) {
     `<td>${p.weight.toFixed(3)} <span class="bar" style="width:${Math.round(60 * p.weight)}px"></span></td></tr>`);
   $('used').tBodies[0].innerHTML = rows.join('') || '<tr><td colspan="3">none (unlit)</td></tr>';
   const f = sh.flags;
-  $('flags').textContent = [f.visibility ? 'visibility-aware (DDGI) weights' : 'trilinear weights',
+  $('flags').textContent = [sh.source === 'field' ? 'diffuse: the SH field' : 'diffuse: the probes',
+    f.visibility ? 'visibility-aware (DDGI) weights' : 'trilinear weights',
     f.outside ? 'outside the grid: clamped' : '', f.unlit ? 'unlit: no valid probe' : '',
     PG.lastQuery && PG.lastQuery.method ? `reflections: ${PG.lastQuery.method === 'trace' ? 'traced at the object' : 'blended from the probes'}` : '']
     .filter(Boolean).join(' · ');
   const pos = [];
   const col = [];
   const o = object.position;
-  for (const p of sh.probes) {
+  for (const p of sh.probes) {  // the probes, or the SH field's lattice points (p.position)
     const i = p.index;
     const q = PG.probes.positions;
-    pos.push(o.x, o.y, o.z, q[3 * i], q[3 * i + 1], q[3 * i + 2]);
+    const at = p.position || [q[3 * i], q[3 * i + 1], q[3 * i + 2]];
+    pos.push(o.x, o.y, o.z, at[0], at[1], at[2]);
     const w = Math.min(1, p.weight * 2);
     col.push(0.4, 0.7, 1, 0.4 * w + 0.2 * w, 0.7 * w, w);
   }
