@@ -305,6 +305,8 @@ def main() -> None:
     parser.add_argument("--max-seconds", type=float, default=300.0,
                         help="time bound of each phase")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--only", default="",
+                        help="endpoints to measure besides bare (comma-separated names)")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
@@ -328,6 +330,9 @@ def main() -> None:
                     time.sleep(0.1)
             paths = endpoint_paths(name, grid.lo, grid.hi,
                                    seg_grid="benchseg" if len(stores) > 1 else None)
+            if args.only:
+                keep = {"bare", *args.only.split(",")}
+                paths = {k: v for k, v in paths.items() if k in keep}
             results = measure(port, paths, args.requests, args.connections, args.rounds,
                               args.max_seconds)
             print(f"{args.requests} requests per endpoint and measurement in {args.rounds} "
@@ -355,7 +360,7 @@ def main() -> None:
                 print(in_process_visibility_cost(stores[0], stores[1], grid.lo, grid.hi))
 
             server = psutil.Process(proc.pid)
-            mixed = paths["sh"] + paths["sh+normal"] + paths["maps"]
+            mixed = [u for k in ("sh", "sh+normal", "maps") for u in paths.get(k, [])]
             asyncio.run(load(port, mixed, 2000, args.connections, args.max_seconds))
             rss0 = server.memory_info().rss
             t0 = time.perf_counter()

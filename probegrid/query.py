@@ -278,14 +278,24 @@ class ProbeField:
 
     # -- the SH field -------------------------------------------------------------------------
     @cached_property
-    def sh_field(self) -> tuple[GridSpec, NDArray[np.bool_]] | None:
-        """The store's SH field lattice and its points' validity (None: the store has none)."""
+    def sh_field(self) -> tuple[GridSpec, NDArray[np.bool_], NDArray[np.float32]] | None:
+        """The store's SH field lattice, its points' validity and positions (None: the store
+        has none)."""
         from probegrid.bake.shfield import SH_FIELD_EXTRAS, lattice_from_extra
 
         if not set(SH_FIELD_EXTRAS) <= set(self.store.manifest.extras):
             return None
         lattice = lattice_from_extra(self.store.arrays["sh_field_lattice"])
-        return lattice, np.array(self.store.arrays["sh_field_valid"], dtype=bool)
+        # (float32 positions, as a store's: the weights' compiled kernels take those)
+        return (lattice, np.array(self.store.arrays["sh_field_valid"], dtype=bool),
+                np.ascontiguousarray(lattice.positions(), dtype=np.float32))
+
+    @cached_property
+    def _sh_field_bias(self) -> float:
+        """The normal bias on the SH field's lattice: the probes' offset, in its cells."""
+        assert self.sh_field is not None
+        return self.normal_bias * (self.grid.smallest_cell(default=1.0)
+                                   / self.sh_field[0].smallest_cell(default=1.0))
 
     def sh_source(self, kind: SHKind = "deringed") -> str:
         """Where :meth:`sh` takes the ``kind`` coefficients from: ``"store"`` or, for deringed
@@ -305,11 +315,10 @@ class ProbeField:
             raise ValueError(f"source must be one of {', '.join(SH_SOURCES)}, got {source!r}.")
         if source == "probes" or self.sh_field is None:
             return self.weights(points, normals=normals), "probes"
-        lattice, valid = self.sh_field
-        bias = self.normal_bias * (self.grid.smallest_cell(default=1.0)
-                                   / lattice.smallest_cell(default=1.0))
+        lattice, valid, positions = self.sh_field
         return probe_weights(lattice, points, valid=valid, normals=normals,
-                             normal_bias=bias, occluded=self._occluded,
+                             probe_positions=positions, normal_bias=self._sh_field_bias,
+                             occluded=self._occluded,
                              extrapolate=QUERY_EXTRAPOLATION, facing=False), "field"
 
     def sh_at(self, points: ArrayLike, *, normals: ArrayLike | None = None,

@@ -232,7 +232,7 @@ def test_baked_field_is_traced_sh_at_its_lattice(baked):
 
     f, scene = baked
     assert set(SH_FIELD_EXTRAS) <= set(f.store.manifest.extras)
-    lattice, valid = f.sh_field
+    lattice, valid, _ = f.sh_field
     assert lattice == field_lattice(f.grid, 2.0) and lattice.counts == (5, 5, 5)
     raw = np.asarray(f.store.arrays["sh_field_raw"])
     tracer = PointTracer.from_store(f.store, scene, settings=PointSettings(face_size=8))

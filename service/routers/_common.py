@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from probegrid.core.ddgi import ProbeWeights
 from probegrid.core.grid import GridSpec
 
@@ -25,11 +23,11 @@ def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0, *,
     _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.core.grid
     out = [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
            for i, w in _used(weights, row)]
-    if positions and out:
-        at = (np.asarray(grid.bounds_min) + np.array([p["ijk"] for p in out])
-              * np.asarray(grid.spacing)).tolist()
-        for p, xyz in zip(out, at, strict=True):
-            p["position"] = xyz
+    if positions and out:  # (lattice point: bounds_min + ijk (bounds_max - bounds_min) / (n - 1))
+        lo, hi, n = grid.bounds_min, grid.bounds_max, grid.counts
+        for p in out:
+            p["position"] = [lo[a] + p["ijk"][a] * (hi[a] - lo[a]) / (n[a] - 1) if n[a] > 1
+                             else lo[a] for a in range(3)]
     return out
 
 
