@@ -156,6 +156,11 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     if environment is not None and environment.faces is not None:
         e = min(int(environment.faces.shape[1]), max(LIGHT_SIZE, n))
         store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
+    if st.sh_field > 0:  # the SH field (probegrid.bake.shfield): SH twice and a validity a point
+        from probegrid.bake.shfield import field_lattice
+
+        k = field_lattice(grid, st.sh_field).n_probes
+        store += 4 * NPY_HEADER_BYTES + 9 * 8 + k * (2 * 9 * 3 * 4 + 1)
     # work files: the classification, the per-hit records of every traced ray (kept until the
     # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
     # moments, the done masks
