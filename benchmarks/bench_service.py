@@ -13,6 +13,8 @@ sent in ``--rounds`` rounds that visit every endpoint in turn, so a change in th
 * ``bare``: ``GET /healthz``, a fixed small JSON document from the same app (the reference);
 * ``sh``: ``GET /v1/grids/G/sh?x=&y=&z=`` at positions spread over the grid box;
 * ``sh+normal``: the same with ``nx, ny, nz`` (DDGI visibility weights);
+* ``sh+normal[probes]``: the same with ``source=probes``: the probes' blend where the store
+  has an SH field (``sh`` then interpolates the field; ``--store`` a bake's store to compare);
 * ``maps``: ``GET /v1/grids/G/maps/diffuse?...&format=npy`` (the 16^2 diffuse cube);
 * ``sh[seg]``, ``sh+normal[seg]``, ``maps[seg]`` (synthetic store only): the same queries of a
   second grid, the synthetic store plus the extras a bake writes (format 2): a scene of about
@@ -278,6 +280,10 @@ def endpoint_paths(grid: str, lo: np.ndarray, hi: np.ndarray, *, seg_grid: str |
             "sh": [f"/v1/grids/{g}/sh?{q(p)}".encode() for p in pts],
             "sh+normal": [f"/v1/grids/{g}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}&nz={n[2]:.4f}"
                           .encode() for p, n in zip(pts, nrm, strict=True)],
+            # the probes' blend (the same as sh for a store without an SH field)
+            "sh+normal[probes]": [f"/v1/grids/{g}/sh?{q(p)}&nx={n[0]:.4f}&ny={n[1]:.4f}"
+                                  f"&nz={n[2]:.4f}&source=probes".encode()
+                                  for p, n in zip(pts, nrm, strict=True)],
             "maps": [f"/v1/grids/{g}/maps/diffuse?{q(p)}&format=npy".encode() for p in pts],
         }
 
@@ -299,6 +305,8 @@ def main() -> None:
     parser.add_argument("--max-seconds", type=float, default=300.0,
                         help="time bound of each phase")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--only", default="",
+                        help="endpoints to measure besides bare (comma-separated names)")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory(prefix="bench-service-") as tmp:
@@ -322,6 +330,9 @@ def main() -> None:
                     time.sleep(0.1)
             paths = endpoint_paths(name, grid.lo, grid.hi,
                                    seg_grid="benchseg" if len(stores) > 1 else None)
+            if args.only:
+                keep = {"bare", *args.only.split(",")}
+                paths = {k: v for k, v in paths.items() if k in keep}
             results = measure(port, paths, args.requests, args.connections, args.rounds,
                               args.max_seconds)
             print(f"{args.requests} requests per endpoint and measurement in {args.rounds} "
@@ -349,7 +360,7 @@ def main() -> None:
                 print(in_process_visibility_cost(stores[0], stores[1], grid.lo, grid.hi))
 
             server = psutil.Process(proc.pid)
-            mixed = paths["sh"] + paths["sh+normal"] + paths["maps"]
+            mixed = [u for k in ("sh", "sh+normal", "maps") for u in paths.get(k, [])]
             asyncio.run(load(port, mixed, 2000, args.connections, args.max_seconds))
             rss0 = server.memory_info().rss
             t0 = time.perf_counter()

@@ -16,6 +16,14 @@ visibility the service applies:
   for the visibility segments' start; ``offset``: the weights of the point moved
   ``normal_bias`` cells along the normal, no reweighting.
 
+And the SH field (:mod:`probegrid.bake.shfield`, what ``/sh`` interpolates by default): ``field
+none`` / ``field normal`` (:meth:`probegrid.query.ProbeField.sh_at`, the normal used for the
+visibility segments' start), next to ``at point``: the SH of a probe traced at the point itself
+at the bake's face size (the estimator's own error; the interpolation's share is the rest).
+``--refine 1,2,3`` also traces fields of other densities on the same store (``--field-face``
+texels a face) and prints their error against their cost: CPU seconds over the bake's (the
+store's ``stage_seconds``, and the default field's own stage when the store has one).
+
 Prints a per-point table, per-variant mean / worst, and how many points a normal makes worse
 than no normal (by more than 0.5 %). Run::
 
@@ -26,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +67,10 @@ def main(argv: list[str] | None = None) -> None:
     from probegrid.bake.placement import grid_for
     from probegrid.bake import BakeSettings
     from probegrid.core import sh
-    from probegrid.core.ddgi import probe_weights
+    from probegrid.bake.point import PointSettings, PointTracer
+    from probegrid.bake.shfield import field_lattice, trace_sh_field
+    from probegrid.core.ddgi import blend, probe_weights
+    from probegrid.core.sh.dering import dering
     from probegrid.jobs.bake import load_environment
     from probegrid.query import ProbeField
     from probegrid.scene import load_gltf
@@ -73,6 +85,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", type=Path,
                     default=Path.home() / ".cache" / "probegrid-bench" / "query")
+    ap.add_argument("--refine", default="",
+                    help="SH field densities (lattice steps per probe cell, comma-separated) "
+                         "to trace on the store and compare")
+    ap.add_argument("--field-face", default="8",
+                    help="their face sizes (comma-separated)")
+    ap.add_argument("--field-gather", default="",
+                    help="their gather samples and depth, S:D (default: the bake's)")
     ap.add_argument("--cells", default="",
                     help="extra extrapolation limits (cells, comma-separated) to compare, "
                          "with the normal used for visibility only")
@@ -114,14 +133,70 @@ def main(argv: list[str] | None = None) -> None:
             blended = field.sh(w)
             err[v] = np.array([bqa.irradiance_error(blended[i], sh_ref[i], nrms[i])
                                for i in range(len(pts))])
+
+        def errors(coeffs: np.ndarray) -> np.ndarray:
+            return np.array([bqa.irradiance_error(coeffs[i], sh_ref[i], nrms[i])
+                             for i in range(len(pts))])
+
+        if field.sh_field is not None:
+            err["field none"] = errors(field.sh_at(pts, source="field")[0])
+            err["field normal"] = errors(field.sh_at(pts, normals=nrms, source="field")[0])
+        tracer = field.point_tracer()
+        err["at point"] = errors(np.array([sh.project_cube(c) for c in tracer.incoming(pts)]))
+        columns = [*variants, *(k for k in ("field none", "field normal", "at point")
+                                if k in err)]
+        quality = open_store(store_path).manifest.quality
+        stages = quality.get("stage_seconds", {})
+        bake_s = sum(v for k, v in stages.items() if k != "sh field")
+        curve = []
+        for face in (int(x) for x in args.field_face.split(",") if args.refine):
+            gs, gd = ((int(x) for x in args.field_gather.split(":")) if args.field_gather
+                      else (None, None))
+            ft = PointTracer.from_store(open_store(store_path), scene, tracer=field.tracer,
+                                        settings=PointSettings(face_size=face,
+                                                               gather_samples=gs,
+                                                               gather_depth=gd))
+            ft.incoming(pts[:1])  # compiled before timing
+            inv = float(open_store(store_path).manifest.bake["settings"]["invalid_threshold"])
+            for r in (float(x) for x in args.refine.split(",")):
+                lattice = field_lattice(field.grid, r)
+                t0 = time.process_time()
+                raw, fvalid = trace_sh_field(ft, lattice, invalid_threshold=inv)
+                cpu = time.process_time() - t0
+                der = dering(raw)[0]
+                wf = probe_weights(lattice, pts, valid=fvalid, normals=nrms,
+                                   normal_bias=field.normal_bias * field.grid.smallest_cell()
+                                   / lattice.smallest_cell(), occluded=field._occluded,
+                                   extrapolate=0.25, facing=False)
+                e = errors(blend(der, wf))
+                curve.append((r, face, lattice, cpu, e))
         print(f"\n== {label}, grid {grid.label}: {len(pts)} points, {int(outside.sum())} outside "
               f"the probes' box; E(n) error %, per point")
-        print(f"{'#':>3s} {'kind':10s} {'out':3s} " + " ".join(f"{v:>19s}" for v in variants))
+        print(f"{'#':>3s} {'kind':10s} {'out':3s} " + " ".join(f"{v:>19s}" for v in columns))
         for i in range(len(pts)):
             print(f"{i:3d} {kinds[i]:10s} {'yes' if outside[i] else '':3s} "
-                  + " ".join(f"{100 * err[v][i]:19.2f}" for v in variants))
-        print(f"{'mean':18s}" + " ".join(f"{100 * err[v].mean():19.2f}" for v in variants))
-        print(f"{'worst':18s}" + " ".join(f"{100 * err[v].max():19.2f}" for v in variants))
+                  + " ".join(f"{100 * err[v][i]:19.2f}" for v in columns))
+        print(f"{'mean':18s}" + " ".join(f"{100 * err[v].mean():19.2f}" for v in columns))
+        print(f"{'worst':18s}" + " ".join(f"{100 * err[v].max():19.2f}" for v in columns))
+        if "field normal" in err:
+            gained = err["extrap.25 trilinear"] - err["field normal"]
+            worse = err["field normal"] > err["field none"] + 0.005
+            print(f"SH field (what /sh answers with, lattice {field.sh_field[0].label}) against "
+                  f"the probes' blend (extrap.25 trilinear): mean "
+                  f"{100 * err['extrap.25 trilinear'].mean():.2f} -> "
+                  f"{100 * err['field normal'].mean():.2f} %, worst "
+                  f"{100 * err['extrap.25 trilinear'].max():.2f} -> "
+                  f"{100 * err['field normal'].max():.2f} %; better at "
+                  f"{int((gained > 0.005).sum())}, worse at {int((gained < -0.005).sum())} of "
+                  f"{len(pts)} points; the normal makes it worse at {int(worse.sum())}")
+            if "sh field" in stages:
+                print(f"its bake stage: {stages['sh field']:.1f} s over the rest of the bake's "
+                      f"{bake_s:.1f} s (x{1 + stages['sh field'] / bake_s:.2f} the bake's time)")
+        for r, face, lattice, cpu, e in curve:
+            print(f"field refine {r:g} (lattice {lattice.label}, {lattice.n_probes} points, "
+                  f"face {face}): E(n) mean {100 * e.mean():.2f} %, worst "
+                  f"{100 * e.max():.2f} %; traced in {cpu:.1f} CPU s, the store's bake "
+                  f"{bake_s:.1f} s wall (x{1 + cpu / bake_s:.2f})")
         for mode in ("extrap", "extrap.25"):
             print(f"{mode} against clamp (no normal): better at "
                   f"{int((err[f'{mode} none'] < err['clamp none'] - 0.005).sum())}, worse at "

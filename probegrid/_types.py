@@ -25,10 +25,11 @@ __all__ = [
     "MapMethod",
     "PixelType",
     "SHKind",
-    "TraceQuality",
+    "SHSource",
     "SHWindow",
     "SeamMode",
     "StartMethod",
+    "TraceQuality",
     "VkFormatName",
     "WindowKind",
     "Wrap",
@@ -67,6 +68,9 @@ CubeConvention = Literal["gltf", "threejs", "bevy"]
 EngineTarget = Literal["threejs", "bevy", "ktx2", "filament"]
 #: Which SH a query returns: deringed per probe (irradiance never negative) or as stored.
 SHKind = Literal["deringed", "raw"]
+#: What an SH query interpolates: the store's SH field (a finer lattice reaching the walls,
+#: where the store has one) or the probes.
+SHSource = Literal["field", "probes"]
 #: KTX2 texel formats probegrid writes (Vulkan names without ``VK_FORMAT_``).
 VkFormatName = Literal["R16G16B16A16_SFLOAT", "R32G32B32A32_SFLOAT", "E5B9G9R9_UFLOAT_PACK32"]
 #: Pixel types of written image files.

@@ -312,6 +312,10 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, S, "store_incoming", help="also store the raw cubes")
     _option(p, S, "relocate", "--no-relocate", help="do not move probes that are inside geometry")
     _option(p, S, "batch_size", help="probes per task")
+    _option(p, S, "sh_field", help="lattice steps per probe cell of the SH field /sh "
+            "interpolates: radiance SH traced on a lattice finer than the probes' whose outer "
+            "layers sit just inside the walls (0: none, /sh blends the probes)")
+    _option(p, S, "sh_field_face_size", help="face size the SH field's points are traced at")
     _option(p, S, "dtype", help="map arrays (diffuse, specular, incoming) as float32, or as "
             "half floats: half the size, 11 significant bits, values above 65504 (a direct "
             "sun) clamped; the bake prints both sizes")

@@ -60,7 +60,7 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind, MapMethod, SHKind, TraceQuality, choices
+from probegrid._types import MapKind, MapMethod, SHKind, SHSource, TraceQuality, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
 from probegrid.errors import ProbegridError
@@ -240,6 +240,9 @@ class SHSample:
         the default) or ``"raw"``.
     sh_source : str
         ``"store"``, or ``"computed"`` when the server deringed an older store's SH itself.
+    source : str
+        What was interpolated: ``"field"``, the store's SH field (then ``probes`` are indices
+        of its lattice), or ``"probes"``.
     """
 
     coefficients: NDArray[np.float64]
@@ -252,6 +255,7 @@ class SHSample:
     visibility_test: str = "none"
     sh: str = "raw"
     sh_source: str = "store"
+    source: str = "probes"
 
 
 @dataclass(frozen=True, eq=False)
@@ -468,12 +472,17 @@ class _BaseClient:
 
     @staticmethod
     def _sh_call(grid: str, position: ArrayLike, normal: ArrayLike | None,
-                 sh: str = "deringed") -> _Call:
+                 sh: str = "deringed", source: str = "field") -> _Call:
         if sh not in _SH_KINDS:
             raise InvalidArgumentError(f"sh must be one of {', '.join(_SH_KINDS)}, got {sh!r}.")
+        if source not in _SH_SOURCES:
+            raise InvalidArgumentError(
+                f"source must be one of {', '.join(_SH_SOURCES)}, got {source!r}.")
         params = _position_params(position, normal)
         if sh != "deringed":
             params["sh"] = sh
+        if source != "field":
+            params["source"] = source
         return _Call("GET", f"/v1/grids/{_segment(grid)}/sh", params)
 
     @staticmethod
@@ -496,6 +505,7 @@ class _BaseClient:
             visibility_test=str(doc["flags"].get("visibility_test", "none")),
             sh=str(doc.get("sh", "raw")),
             sh_source=str(doc.get("sh_source", "store")),
+            source=str(doc.get("source", "probes")),
         )
 
     @staticmethod
@@ -607,6 +617,7 @@ class _BaseClient:
 
 #: The ``sh`` choices of :meth:`ProbeGridClient.sh_at` (the service's ``/sh?sh=``).
 _SH_KINDS = choices(SHKind)
+_SH_SOURCES = choices(SHSource)
 #: The ``method`` choices of :meth:`ProbeGridClient.map_at` (the service's ``/maps?method=``).
 _MAP_METHODS = choices(MapMethod)
 _QUALITIES = choices(TraceQuality)
@@ -687,11 +698,14 @@ class ProbeGridClient(_BaseClient):
         return self._grid_result(self._send(self._grid_call(name)))
 
     def sh_at(self, grid: str, position: ArrayLike, *, normal: ArrayLike | None = None,
-              sh: Literal["deringed", "raw"] = "deringed") -> SHSample:
-        """Blended SH radiance coefficients at a position (visibility-aware with a normal):
-        deringed (each probe's irradiance non-negative everywhere) or ``sh="raw"``; the
-        result's ``sh`` and ``visibility_test`` say which SH and which visibility test."""
-        return self._sh_result(self._send(self._sh_call(grid, position, normal, sh)))
+              sh: Literal["deringed", "raw"] = "deringed",
+              source: Literal["field", "probes"] = "field") -> SHSample:
+        """SH radiance coefficients at a position (visibility-aware with a normal), from the
+        store's SH field where it has one (``source="probes"``: the probes' blend): deringed
+        (irradiance non-negative everywhere) or ``sh="raw"``; the result's ``sh``, ``source``
+        and ``visibility_test`` say which SH, what was interpolated and which visibility
+        test."""
+        return self._sh_result(self._send(self._sh_call(grid, position, normal, sh, source)))
 
     def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                level: int = 0, normal: ArrayLike | None = None,
@@ -806,8 +820,10 @@ class AsyncProbeGridClient(_BaseClient):
         return self._grid_result(await self._send(self._grid_call(name)))
 
     async def sh_at(self, grid: str, position: ArrayLike, *, normal: ArrayLike | None = None,
-                    sh: Literal["deringed", "raw"] = "deringed") -> SHSample:
-        return self._sh_result(await self._send(self._sh_call(grid, position, normal, sh)))
+                    sh: Literal["deringed", "raw"] = "deringed",
+                    source: Literal["field", "probes"] = "field") -> SHSample:
+        return self._sh_result(await self._send(self._sh_call(grid, position, normal, sh,
+                                                              source)))
 
     async def map_at(self, grid: str, position: ArrayLike, *, kind: MapKind = "diffuse",
                      level: int = 0, normal: ArrayLike | None = None,

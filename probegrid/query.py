@@ -27,6 +27,14 @@ emitter and environment tables; the BVH is the field's) is built on first use, a
 the last :data:`TRACE_CACHE` traced points are kept (a client fetching a chain asks once per
 level).
 
+SH at points: the SH field
+--------------------------
+A store baked with an SH field (:mod:`probegrid.bake.shfield`: radiance SH traced on a lattice
+about twice as fine as the probes' whose outer layers sit just inside the walls) answers
+:meth:`ProbeField.sh_at` from it: trilinear weights on that lattice with the same exact segment
+visibility and quarter-cell extrapolation as the probes' (:meth:`ProbeField.sh_weights`).
+``source="probes"`` (and a store without the field) blends the probes' SH instead.
+
 SH without ringing
 ------------------
 :meth:`ProbeField.sh` blends the *deringed* radiance SH by default (each probe windowed so that
@@ -47,7 +55,7 @@ from typing import TYPE_CHECKING, Any, Final, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid._types import MapKind, MapMethod, SHKind, choices
+from probegrid._types import MapKind, MapMethod, SHKind, SHSource, choices
 from probegrid.core.cubemap import CubeMap
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
@@ -72,7 +80,8 @@ if TYPE_CHECKING:
     from probegrid.bake.point import PointMaps, PointSettings, PointTracer
     from probegrid.scene import Scene
 
-__all__ = ['MAP_METHODS', 'SH_KINDS', 'TRACE_CACHE', 'MapMethod', 'ProbeField', 'SHKind']
+__all__ = ['MAP_METHODS', 'SH_KINDS', 'SH_SOURCES', 'TRACE_CACHE', 'MapMethod', 'ProbeField',
+           'SHKind', 'SHSource']
 
 #: How :meth:`ProbeField.cube_at` makes a map: traced at the point (default) or blended.
 MAP_METHODS: Final[tuple[str, ...]] = choices(MapMethod)
@@ -82,6 +91,9 @@ TRACE_CACHE: Final = 16
 
 #: Which SH :meth:`ProbeField.sh` blends: the deringed coefficients (default) or the raw ones.
 SH_KINDS: Final[tuple[str, ...]] = choices(SHKind)
+
+#: What :meth:`ProbeField.sh_at` interpolates: the SH field (default, where stored) or the probes.
+SH_SOURCES: Final[tuple[str, ...]] = choices(SHSource)
 
 #: Length left out at both ends of a visibility segment, in units of the smallest cell size
 #: (a point on a surface or a probe does not hide itself; far below any wall thickness).
@@ -248,12 +260,6 @@ class ProbeField:
         deringed, window, _ = dering(np.asarray(self.store.arrays["sh"], dtype=np.float64))
         return deringed, window
 
-    def sh_source(self, kind: SHKind = "deringed") -> str:
-        """Where :meth:`sh` takes the ``kind`` coefficients from: ``"store"`` or, for deringed
-        SH of a store without them, ``"computed"`` (deringed on first use)."""
-        self._check_sh_kind(kind)
-        return "store" if kind == "raw" or self._stored_deringed else "computed"
-
     @staticmethod
     def _check_sh_kind(kind: str) -> None:
         if kind not in SH_KINDS:
@@ -280,6 +286,64 @@ class ProbeField:
         """``(n, 9, 3)`` float64 blended SH radiance coefficients: deringed (each probe's
         irradiance non-negative everywhere, the default) or ``kind="raw"``."""
         return blend(self.sh_array(kind), weights)
+
+    # -- the SH field -------------------------------------------------------------------------
+    @cached_property
+    def sh_field(self) -> tuple[GridSpec, NDArray[np.bool_], NDArray[np.float32]] | None:
+        """The store's SH field lattice, its points' validity and positions (None: the store
+        has none)."""
+        from probegrid.bake.shfield import SH_FIELD_EXTRAS, lattice_from_extra
+
+        if not set(SH_FIELD_EXTRAS) <= set(self.store.manifest.extras):
+            return None
+        lattice = lattice_from_extra(self.store.arrays["sh_field_lattice"])
+        # (float32 positions, as a store's: the weights' compiled kernels take those)
+        return (lattice, np.array(self.store.arrays["sh_field_valid"], dtype=bool),
+                np.ascontiguousarray(lattice.positions(), dtype=np.float32))
+
+    @cached_property
+    def _sh_field_bias(self) -> float:
+        """The normal bias on the SH field's lattice: the probes' offset, in its cells."""
+        assert self.sh_field is not None
+        return self.normal_bias * (self.grid.smallest_cell(default=1.0)
+                                   / self.sh_field[0].smallest_cell(default=1.0))
+
+    def sh_source(self, kind: SHKind = "deringed") -> str:
+        """Where :meth:`sh` takes the ``kind`` coefficients from: ``"store"`` or, for deringed
+        SH of a store without them, ``"computed"`` (deringed on first use)."""
+        self._check_sh_kind(kind)
+        return "store" if kind == "raw" or self._stored_deringed else "computed"
+
+    def sh_weights(self, points: ArrayLike, *, normals: ArrayLike | None = None,
+                   source: SHSource = "field") -> tuple[ProbeWeights, SHSource]:
+        """The weights :meth:`sh_at` blends with and what they index: the SH field's lattice
+        points (``"field"``, where the store has one) or the probes (:meth:`weights`). On the
+        field: trilinear weights of its valid points, each tested with the exact segments when
+        the store keeps the scene (the normal moves the segments' start off the surface by the
+        same length as for the probes), extrapolated linearly up to a quarter lattice step
+        outside its box."""
+        if source not in SH_SOURCES:
+            raise ValueError(f"source must be one of {', '.join(SH_SOURCES)}, got {source!r}.")
+        if source == "probes" or self.sh_field is None:
+            return self.weights(points, normals=normals), "probes"
+        lattice, valid, positions = self.sh_field
+        return probe_weights(lattice, points, valid=valid, normals=normals,
+                             probe_positions=positions, normal_bias=self._sh_field_bias,
+                             occluded=self._occluded,
+                             extrapolate=QUERY_EXTRAPOLATION, facing=False), "field"
+
+    def sh_at(self, points: ArrayLike, *, normals: ArrayLike | None = None,
+              kind: SHKind = "deringed", source: SHSource = "field"
+              ) -> tuple[NDArray[np.float64], ProbeWeights, SHSource]:
+        """``(n, 9, 3)`` float64 radiance SH at points, the weights used and what they index
+        (:meth:`sh_weights`): interpolated on the SH field where the store has one (deringed
+        at each lattice point, or ``kind="raw"``), else blended from the probes (:meth:`sh`)."""
+        self._check_sh_kind(kind)
+        w, used = self.sh_weights(points, normals=normals, source=source)
+        if used == "probes":
+            return self.sh(w, kind=kind), w, used
+        name = "sh_field" if kind == "deringed" else "sh_field_raw"
+        return blend(self.store.arrays[name], w), w, used
 
     def cube(self, weights: ProbeWeights, kind: MapKind, *, level: int = 0) -> NDArray[np.float32]:
         """``(n, 6, s, s, 3)`` float32 blended cube of one map kind and level."""

@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, FiniteFloat, model_validator
 
-from probegrid._types import SHKind
+from probegrid._types import SHKind, SHSource
 
 __all__ = [
     "CubeFormat",
@@ -37,6 +37,7 @@ __all__ = [
     "ProbesOut",
     "QueryFlags",
     "SHKind",
+    "SHSource",
     "SHOut",
     "ShadeOut",
     "ShadeRequest",
@@ -134,10 +135,14 @@ class GridDetail(GridSummary):
 
 # ------------------------------------------------------------------------------ probe queries
 class ProbeUse(_Model):
-    index: int = Field(description="Linear probe index (i * ny + j) * nz + k.")
+    index: int = Field(description="Linear probe index (i * ny + j) * nz + k (of the SH "
+                       "field's lattice when an SH query's source is 'field').")
     ijk: tuple[int, int, int]
     weight: float = Field(description="Blending weight; the weights of a query sum to 1 "
                           "(negative for a linear extrapolation beyond the probes' box).")
+    position: tuple[float, float, float] | None = Field(
+        default=None, description="Where the SH field's lattice point is (SH queries answered "
+                                  "by the field; the probes' are in /probes).")
 
 
 class QueryFlags(_Model):
@@ -172,6 +177,11 @@ class SHOut(_Model):
     sh_source: Literal["store", "computed"] = Field(
         description="'store': read from the store; 'computed': deringed by the server (a store "
         "baked before deringed SH was stored).")
+    source: SHSource = Field(
+        default="probes",
+        description="What was interpolated: 'field', the store's SH field (radiance SH traced "
+        "on a lattice about twice as fine as the probes', reaching the walls), or 'probes' "
+        "(a store without the field, or asked with source=probes).")
     probes: list[ProbeUse]
     flags: QueryFlags
 

@@ -27,7 +27,9 @@ FAST = {"face_size": 8, "diffuse_size": 4, "moments_size": 4, "batch_size": 4}
 
 
 def _arrays(store):
-    return {name: np.asarray(store[name]) for name in store.names}
+    """Every array of a store, its extras (the SH field, ...) included."""
+    return {name: np.asarray(store.arrays[name])
+            for name in [*store.names, *store.manifest.extras]}
 
 
 @pytest.mark.parametrize("bounces", [0, 1, 2, 3])

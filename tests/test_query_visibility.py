@@ -88,10 +88,12 @@ def test_store_keeps_the_scene_and_the_baked_rooms_are_as_built(field, stores):
     s = field.store
     assert s.manifest.format_version == 2
     # (and what a probe traced at a point reads: the grid the final pass read, bordered moments,
-    # the surface light cache; a black environment is stated in the manifest, not stored)
+    # the surface light cache, and the SH field /sh interpolates; a black environment is stated
+    # in the manifest, not stored)
     assert set(s.extras) == {"sh_deringed", "sh_window", "scene_vertices", "scene_triangles",
                              "grid_irradiance", "moments_bordered", "surface_lattice",
-                             "surface_light"}
+                             "surface_light", "sh_field", "sh_field_raw", "sh_field_valid",
+                             "sh_field_lattice"}
     scene = two_rooms()
     np.testing.assert_array_equal(s["scene_vertices"], scene.vertices.astype(np.float32))
     np.testing.assert_array_equal(s["scene_triangles"], scene.triangles)

@@ -313,7 +313,8 @@ def test_side_by_side_three_lightprobegrid_is_fed_by_the_export(viewer, server):
     # offset) is the service's plain trilinear blend there (all eight probes valid), to half
     # float rounding
     x, y, z = got["query"]["position"]
-    plain = httpx.get(f"{server.url}/v1/grids/room/sh", params={"x": x, "y": y, "z": z}).json()
+    plain = httpx.get(f"{server.url}/v1/grids/room/sh",
+                      params={"x": x, "y": y, "z": z, "source": "probes"}).json()
     assert len(plain["probes"]) == 8 and not plain["flags"]["unlit"]
     centre = np.array([[x, y, z]] * len(normals))
     at_centre = three_lightprobegrid(header, atlas, centre, normals, offset=0.0)
@@ -663,4 +664,133 @@ def test_three_ktx2loader_reads_the_threejs_and_bevy_grid_exports(ktx2_page, sto
     print(f"\nBevy volume through the GPU: worst error {err.max():.2e} of the texel's largest "
           f"channel (E5B9G9R9); three.js atlas: half floats, bit-exact")
     assert volume.max() > 0 and err.max() <= 2.0**-8
+    assert watch.problems == []
+
+
+# ---------------------------------------------------------------------------- a mirror and one light
+#: Three places of the sphere in the Cornell box, each between probes of its 3 x 3 x 3 grid
+#: (near cell centres), where the probes see the ceiling's panel from different places.
+MIRROR_POINTS = ((-194.6, 420.0, -195.6), (-361.4, 400.0, -363.0), (-194.6, 250.0, -363.0))
+
+
+@pytest.fixture(scope="module")
+def cornell(tmp_path_factory, real_data):
+    """The CornellBox baked with its panel seen directly and nothing lit by it (``bounces=0``):
+    in a mirror, the panel is the only light. (panel centre, store)."""
+    from probegrid.bake import BakeSettings, bake
+    from probegrid.scene import load_gltf
+
+    glb = real_data / "gltf" / "CornellBox.glb"
+    scene = load_gltf(glb)
+    lo, hi = scene.bounds
+    centre = (lo + hi) / 2
+    grid = GridSpec.from_counts(centre - 0.3 * (hi - lo), centre + 0.3 * (hi - lo), (3, 3, 3))
+    path = tmp_path_factory.mktemp("mirror") / "cornell.probes"
+    bake(scene, grid, path, settings=BakeSettings(bounces=0, face_size=16, sh_field=0),
+         scene_file=glb)
+    emissive = np.array([m.emissive.max() > 0 for m in scene.materials])[scene.material]
+    panel = scene.vertices[scene.triangles[emissive]].reshape(-1, 3)
+    return panel.mean(axis=0), path
+
+
+#: ``readObject`` of every pixel of the sphere, sent as flat arrays (far faster to serialise).
+READ_ALL = """() => {
+    const g = window.probegrid.readObject(1 << 20);
+    return { size: g.size, camera: g.camera, specular: g.specular, covered: g.covered,
+             pixel: g.pixels.map((p) => p.pixel), rgb: g.pixels.flatMap((p) => p.rgb),
+             normal: g.pixels.flatMap((p) => p.normal) };
+}"""
+
+
+def _read_all(page) -> dict:
+    got = page.evaluate(READ_ALL)
+    got["pixel"] = np.array(got["pixel"], np.int64)
+    got["rgb"] = np.array(got["rgb"]).reshape(-1, 3)
+    got["normal"] = np.array(got["normal"]).reshape(-1, 3)
+    return got
+
+
+def _blobs(got: dict, threshold: float = 0.25) -> tuple[list[np.ndarray], np.ndarray]:
+    """The bright regions of a read-back sphere (pixels over ``threshold`` of the brightest,
+    8-connected in the image): the pixels' indices into ``got['pixel']`` per region, largest
+    first, and every pixel's luminance."""
+    from scipy import ndimage
+
+    w, h = got["size"]
+    lum = got["rgb"].mean(axis=1)
+    index = got["pixel"]
+    image = np.zeros(w * h, bool)
+    image[index[lum > threshold * lum.max()]] = True
+    labels, n = ndimage.label(image.reshape(h, w), structure=np.ones((3, 3)))
+    at = labels.reshape(-1)[index]
+    regions = sorted((np.flatnonzero(at == k) for k in range(1, n + 1)), key=len, reverse=True)
+    return regions, lum
+
+
+def _mirror_normal(centre: np.ndarray, radius: float, camera: np.ndarray,
+                   light: np.ndarray) -> np.ndarray:
+    """The normal of the sphere's point whose mirror reflection of the camera's ray goes along
+    ``light`` (a unit direction): n = normalize(v + light), v from the point to the camera
+    (solved by fixed-point iteration; the point moves with n)."""
+    n = light.copy()
+    for _ in range(50):
+        v = camera - (centre + radius * n)
+        v /= np.linalg.norm(v)
+        n = (v + light) / np.linalg.norm(v + light)
+    return n
+
+
+@pytest.mark.slow
+def test_mirror_sphere_shows_the_light_once_where_it_is(browser, cornell, tmp_path):
+    """A mirror sphere moved through the Cornell box reflects its one ceiling panel as one
+    bright spot, where the mirror reflection toward the panel's centre lands on the sphere: the
+    viewer asks for the map traced at the sphere (``method=trace``). The probes' blend
+    (``method=blend``) shows the panel as seen from several probes: more than one spot."""
+    panel, store = cornell
+    with serve([store], tmp_path / "server.log") as live:
+        page = browser.new_page(viewport=VIEWPORT)
+        watch = PageWatch(page)
+        page.goto(live.url + "/")
+        page.wait_for_function(READY, polling=20, timeout=30_000)
+        q = page.evaluate("window.probegrid.setMaterial('smooth')")
+        assert q["level"] == 0 and q["method"] == "trace"
+        radius = page.evaluate("window.probegrid.scene.getObjectByName('object').scale.x")
+        seen = {}
+        for method in ("trace", "blend"):
+            page.evaluate(f"window.probegrid.setMapMethod('{method}')")
+            for point in MIRROR_POINTS:
+                t0 = time.perf_counter()
+                q = page.evaluate("window.probegrid.moveObject(%r, %r, %r)" % point)
+                assert q["position"] == list(point) and q["method"] == method
+                t1 = time.perf_counter()
+                got = _read_all(page)
+                print(f"\n{method} at {point}: query {t1 - t0:.2f} s, read back "
+                      f"{time.perf_counter() - t1:.2f} s")
+                assert got["specular"] == 1 and got["covered"] > 20_000
+                regions, lum = _blobs(got)
+                seen[method, point] = len(regions)
+                if method == "blend":
+                    continue
+                # where the reflection toward the panel lands: the pixel with that normal
+                centre, camera = np.array(point), np.array(got["camera"])
+                light = (panel - centre) / np.linalg.norm(panel - centre)
+                n_star = _mirror_normal(centre, radius, camera, light)
+                normals = got["normal"] / np.linalg.norm(got["normal"], axis=1, keepdims=True)
+                aim = int(np.argmax(normals @ n_star))
+                spot = regions[0]
+                w = got["size"][0]
+                xy = np.stack([got["pixel"] % w, got["pixel"] // w], axis=1).astype(float)
+                centroid = np.average(xy[spot], axis=0, weights=lum[spot])
+                apart = float(np.linalg.norm(centroid - xy[aim]))
+                spread = float(np.sqrt(len(spot) / np.pi))  # the spot's radius in pixels
+                print(f"\nmirror at {point}: {len(regions)} spot(s), {len(spot)} pixels; its "
+                      f"centre {apart:.1f} px from the analytic reflection of the panel's "
+                      f"centre (spot radius {spread:.1f} px)")
+                assert len(regions) == 1
+                assert aim in spot
+                assert apart < 0.5 * spread + 2
+        page.close()
+    print(f"spots seen: {seen}")
+    assert all(seen["blend", p] > 1 for p in MIRROR_POINTS)
+    assert "request_failed" not in live.log_text()
     assert watch.problems == []

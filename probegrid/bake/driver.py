@@ -71,6 +71,7 @@ from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import write_store_extras
+from probegrid.bake.shfield import write_sh_field
 from probegrid.bake.inputs import check_bake_inputs
 from probegrid.bake.maps import energy_ratio, incoming_integral_from_sh
 from probegrid.bake.nolight import light_quality, printable
@@ -472,6 +473,12 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
                                     settings=st, geometry=geometry, level=level)
     quality["stage_seconds"]["surface cache"] = round(time.perf_counter() - t_cache, 3)
     quality["surface_cache_rays"] = cache_rays
+    if st.sh_field > 0:  # the SH field /sh interpolates (probegrid.bake.shfield)
+        t_field = time.perf_counter()
+        write_sh_field(w, scene, plan=plan, level=level, refine=st.sh_field,
+                       face_size=st.sh_field_face_size,
+                       invalid_threshold=st.invalid_threshold)
+        quality["stage_seconds"]["sh field"] = round(time.perf_counter() - t_field, 3)
     store = w.finish(quality=quality, scene_file=scene_file, inputs=inputs)
     remove_path(work)  # (a Linux flock lives on the open directory, not on its name)
     if not files:  # (this machine's Dask workers' record directory, emptied block by block)

@@ -170,6 +170,11 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
         store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
     # the surface light cache (probegrid.bake.surfacecache): at most its budget's vertices
     store += 2 * NPY_HEADER_BYTES + 24 * (cache_vertices(st, p) + scene.n_triangles)
+    if st.sh_field > 0:  # the SH field (probegrid.bake.shfield): SH twice and a validity a point
+        from probegrid.bake.shfield import field_lattice
+
+        k = field_lattice(grid, st.sh_field).n_probes
+        store += 4 * NPY_HEADER_BYTES + 9 * 8 + k * (2 * 9 * 3 * 4 + 1)
     # work files: the classification, the per-hit records of every traced ray (kept until the
     # last pass; probegrid.bake.records), two levels of per-probe irradiance cubes and the
     # moments, the done masks

@@ -111,6 +111,9 @@ class PointSettings:
         Gather levels (at most the bake's), when gathering.
     light_samples : int or None
         Emitter and environment samples per hit.
+    face_size : int or None
+        Texel rays per face (the bake's face size by default; lower for SH only, which
+        needs about 8).
     """
 
     indirect: Literal["cache", "gather"] | None = None
@@ -118,6 +121,7 @@ class PointSettings:
     gather_samples: int | None = None
     gather_depth: int | None = None
     light_samples: int | None = None
+    face_size: int | None = None
 
     @classmethod
     def preset(cls, name: str) -> PointSettings:
@@ -316,6 +320,7 @@ class PointTracer:
         # the record tracer reads its light and gather samples from the settings: the bake's,
         # lowered where ``settings`` asks (gather_levels() then gives ``depth``)
         queried = baked.model_copy(update={
+            "face_size": baked.face_size if ps.face_size is None else int(ps.face_size),
             "light_samples": (baked.light_samples if ps.light_samples is None
                               else int(ps.light_samples)),
             "gather_samples": gather if depth and not use_cache else 0,

@@ -79,6 +79,10 @@ class BakeSettings(BaseModel):
     ray_offset: float | None = Field(default=None, gt=0)
     batch_size: int = Field(default=8, ge=1, le=4096)
     dtype: MapDType = "float"  # map arrays as float32 or float16 (probegrid.bake.precision)
+    # the SH field /sh interpolates (probegrid.bake.shfield): lattice steps per probe cell
+    # (0: none) and the face size its points are traced at
+    sh_field: float = Field(default=2.0, ge=0, le=4)
+    sh_field_face_size: int = Field(default=8, ge=2, le=64)
 
     @field_validator("bounces", mode="before")
     @classmethod

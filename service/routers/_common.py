@@ -15,12 +15,20 @@ def _used(weights: ProbeWeights, row: int) -> list[tuple[int, float]]:
                                    strict=True) if w != 0]
 
 
-def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0) -> list[dict[str, Any]]:
-    """The probes with non-zero weight for one point, in corner order, as
-    :class:`service.schemas.ProbeUse` dicts."""
+def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0, *,
+                positions: bool = False) -> list[dict[str, Any]]:
+    """The probes (or lattice points) of ``grid`` with non-zero weight for one point, in corner
+    order, as :class:`service.schemas.ProbeUse` dicts (with their ``position`` on the lattice
+    if asked)."""
     _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.core.grid
-    return [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
-            for i, w in _used(weights, row)]
+    out = [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
+           for i, w in _used(weights, row)]
+    if positions and out:  # (lattice point: bounds_min + ijk (bounds_max - bounds_min) / (n - 1))
+        lo, hi, n = grid.bounds_min, grid.bounds_max, grid.counts
+        for p in out:
+            p["position"] = [lo[a] + p["ijk"][a] * (hi[a] - lo[a]) / (n[a] - 1) if n[a] > 1
+                             else lo[a] for a in range(3)]
+    return out
 
 
 def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, Any]:

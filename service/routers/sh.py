@@ -11,7 +11,7 @@ from service.deps import POINT_PARAMETERS, ProbeQueryDep, plain_query, probe_que
 from service.encoding import conditional_response
 from service.fastroute import FastPathRoute, fast_path
 from service.routers._common import flags_json, probes_json
-from service.schemas import ErrorOut, SHKind, SHOut
+from service.schemas import ErrorOut, SHKind, SHOut, SHSource
 
 router = APIRouter(prefix="/v1/grids/{grid}", tags=["probes"], route_class=FastPathRoute)
 
@@ -24,12 +24,14 @@ def resolve_sh(request: Request) -> dict[str, Any] | None:
         return None
     query = probe_query(request, params)
     kind = params.get("sh", "deringed")
-    if kind not in _SH_KINDS:
+    source = params.get("source", "field")
+    if kind not in _SH_KINDS or source not in _SH_SOURCES:
         return None
-    return {"request": request, "query": query, "sh": kind}
+    return {"request": request, "query": query, "sh": kind, "source": source}
 
 
 _SH_KINDS = frozenset(get_args(SHKind))
+_SH_SOURCES = frozenset(get_args(SHSource))
 
 
 @router.get(
@@ -47,8 +49,15 @@ async def get_sh(
                                             "so that its irradiance is >= 0 everywhere; "
                                             "'raw': the projection, which may ring.")
                   ] = "deringed",
+    source: Annotated[SHSource, Query(description="'field' (default): the store's SH field "
+                                                  "(a lattice about twice as fine as the "
+                                                  "probes', reaching the walls), where it has "
+                                                  "one; 'probes': the probes' blend.")
+                      ] = "field",
 ) -> Response:
-    """The 9 RGB radiance coefficients at ``(x, y, z)``, blended from the surrounding probes.
+    """The 9 RGB radiance coefficients at ``(x, y, z)``: interpolated on the store's SH field
+    (``source=field``, the default, where the store has one) or blended from the surrounding
+    probes (``source=probes``); ``source`` in the response says which.
 
     Deringed by default (``sh=raw`` for the raw projection; ``sh`` in the response says which).
     Probes hidden from the point by the scene get no weight where the store keeps the scene's
@@ -59,15 +68,19 @@ async def get_sh(
     """
     grid, point = query.grid, query.point
     field = grid.field
-    w = field.weights(point.position, normals=point.normal)
+    coefficients, w, used = field.sh_at(point.position, normals=point.normal, kind=sh,
+                                        source=source)
+    on_field = used == "field"
+    lattice = field.sh_field[0] if on_field and field.sh_field else grid.store.grid
     doc = {  # an SHOut, serialised directly (this is the service's hottest path)
         "grid": grid.name,
         "position": point.position.tolist(),
         "sampled_position": w.points[0].tolist(),
-        "coefficients": field.sh(w, kind=sh)[0].tolist(),
+        "coefficients": coefficients[0].tolist(),
         "sh": sh,
-        "sh_source": field.sh_source(sh),
-        "probes": probes_json(grid.store.grid, w),
+        "sh_source": "store" if on_field else field.sh_source(sh),
+        "source": used,
+        "probes": probes_json(lattice, w, positions=on_field),
         "flags": flags_json(w, visibility=point.normal is not None),
     }
     body = to_json(doc, inf_nan_mode="null")

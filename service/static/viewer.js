@@ -15,7 +15,10 @@
 // * every probe (GET /v1/grids/{grid}/probes) as an instanced sphere shaded E(n)/pi by its own SH;
 // * a sphere you can drag: each move queries /sh and /maps/specular at its centre with the normal
 //   toward the camera, at most one query in flight, the latest position winning; it is shaded
-//   with the split sum, out = albedo (1 - s) E(n)/pi + s Prefiltered(R), s = F0 A + B;
+//   with the split sum, out = albedo (1 - s) E(n)/pi + s Prefiltered(R), s = F0 A + B. The
+//   specular map is asked with method=trace (a probe traced at the object's centre: a mirror
+//   shows each light once, where it is) unless the "reflections" choice says blend (the
+//   surrounding probes' maps blended: a light seen from up to 8 places);
 // * side by side (the "three.js LightProbeGridWebGL" toggle): right of the object's centre the
 //   view shows the same sphere drawn by three.js itself, a MeshLambertMaterial (albedo 0.8) lit
 //   by the vendored LightProbeGridWebGL whose texture is the service's three.js export of the
@@ -41,7 +44,8 @@ const PG = {
   tti: null,            // ms from navigation start to interactive
   grid: null,           // GridDetail of the shown grid
   probeCount: 0,
-  lastQuery: null,      // {position, normal, sh: SHOut, level}
+  lastQuery: null,      // {position, normal, sh: SHOut, level, method: the map's X-Probegrid-Method}
+  mapMethod: 'trace',   // method= of the specular map query: 'trace' or 'blend'
   stats: { sh: 0, maps: 0, coalesced: 0 },
   errors: [],
   timings: {},          // ms from navigation start at each loading stage
@@ -519,6 +523,11 @@ function setMaterial(key) {
   requestRender();
 }
 
+function setMapMethod(m) {
+  PG.mapMethod = m === 'blend' ? 'blend' : 'trace';
+  scheduleQuery();
+}
+
 function specularLevel() {
   const m = MATERIALS[PG.material];
   if (!m.specular || !PG.grid || !PG.grid.kinds.includes('specular')) return null;
@@ -575,6 +584,7 @@ async function pump() {
       const q = queryParams();
       const last = PG.lastQuery;
       const same = last && last.grid === PG.grid.name && last.level === specularLevel()
+        && last.asked === (specularLevel() === null ? null : PG.mapMethod)
         && String(last.position) === String(q.position) && String(last.normal) === String(q.normal);
       if (!same) await runQuery(q);  // an unchanged query is not asked again
     } while (pending);
@@ -597,10 +607,12 @@ async function runQuery(q) {
   PG.stats.sh++;
   const shReq = getJSON(`${api.grid(grid)}/sh?${where}`);
   let mapReq = null;
+  const asked = level === null ? null : PG.mapMethod;
+  let method = null;
   if (level !== null) {
     PG.stats.maps++;
-    mapReq = fetchOk(`${api.grid(grid)}/maps/specular?${where}&level=${level}&format=npy`)
-      .then((r) => r.arrayBuffer());
+    mapReq = fetchOk(`${api.grid(grid)}/maps/specular?${where}&level=${level}&format=npy&method=${asked}`)
+      .then((r) => { method = r.headers.get('X-Probegrid-Method'); return r.arrayBuffer(); });
   }
   const [sh, mapBuf] = await Promise.all([shReq, mapReq]);
   sh.coefficients.forEach((c, i) => objUniforms.uSH.value[i].fromArray(c));
@@ -612,7 +624,7 @@ async function runQuery(q) {
   } else {
     objUniforms.uSpecOn.value = 0;
   }
-  PG.lastQuery = { grid, position: q.position, normal: q.normal, sh, level };
+  PG.lastQuery = { grid, position: q.position, normal: q.normal, sh, level, asked, method };
   showWeights(sh);
   if ($('inspector').open) updateInspector(where);
   requestRender();
@@ -629,16 +641,19 @@ function showWeights(sh) {
     `<td>${p.weight.toFixed(3)} <span class="bar" style="width:${Math.round(60 * p.weight)}px"></span></td></tr>`);
   $('used').tBodies[0].innerHTML = rows.join('') || '<tr><td colspan="3">none (unlit)</td></tr>';
   const f = sh.flags;
-  $('flags').textContent = [f.visibility ? 'visibility-aware (DDGI) weights' : 'trilinear weights',
-    f.outside ? 'outside the grid: clamped' : '', f.unlit ? 'unlit: no valid probe' : '']
+  $('flags').textContent = [sh.source === 'field' ? 'diffuse: the SH field' : 'diffuse: the probes',
+    f.visibility ? 'visibility-aware (DDGI) weights' : 'trilinear weights',
+    f.outside ? 'outside the grid: clamped' : '', f.unlit ? 'unlit: no valid probe' : '',
+    PG.lastQuery && PG.lastQuery.method ? `reflections: ${PG.lastQuery.method === 'trace' ? 'traced at the object' : 'blended from the probes'}` : '']
     .filter(Boolean).join(' · ');
   const pos = [];
   const col = [];
   const o = object.position;
-  for (const p of sh.probes) {
+  for (const p of sh.probes) {  // the probes, or the SH field's lattice points (p.position)
     const i = p.index;
     const q = PG.probes.positions;
-    pos.push(o.x, o.y, o.z, q[3 * i], q[3 * i + 1], q[3 * i + 2]);
+    const at = p.position || [q[3 * i], q[3 * i + 1], q[3 * i + 2]];
+    pos.push(o.x, o.y, o.z, at[0], at[1], at[2]);
     const w = Math.min(1, p.weight * 2);
     col.push(0.4, 0.7, 1, 0.4 * w + 0.2 * w, 0.7 * w, w);
   }
@@ -691,7 +706,7 @@ canvas.addEventListener('pointerup', () => { drag = null; controls.enabled = tru
 // ---------------------------------------------------------------------------- inspector, facts
 function updateInspector(where) {
   const g = api.grid(PG.grid.name);
-  $('insp-diffuse').src = `${g}/maps/diffuse?${where}&format=png&layout=cross`;
+  $('insp-diffuse').src = `${g}/maps/diffuse?${where}&format=png&layout=cross&method=${PG.mapMethod}`;
   const box = $('insp-specular');
   const levels = PG.grid.kinds.includes('specular') ? PG.grid.specular_levels : 0;
   if (box.childElementCount !== levels) {
@@ -703,7 +718,7 @@ function updateInspector(where) {
     }
   }
   [...box.querySelectorAll('img')].forEach((img, k) => {
-    img.src = `${g}/maps/specular?${where}&level=${k}&format=png&layout=cross`;
+    img.src = `${g}/maps/specular?${where}&level=${k}&format=png&layout=cross&method=${PG.mapMethod}`;
   });
 }
 $('inspector').addEventListener('toggle', () => {
@@ -878,12 +893,12 @@ PG.readObject = function readObject(count = 64, source = 'service') {
   const pixels = [];
   for (let i = 0; i < inside.length && pixels.length < count; i += step) {
     const t = inside[i];
-    pixels.push({ rgb: [shaded[4 * t], shaded[4 * t + 1], shaded[4 * t + 2]],
+    pixels.push({ pixel: t, rgb: [shaded[4 * t], shaded[4 * t + 1], shaded[4 * t + 2]],
                   normal: [normals[4 * t], normals[4 * t + 1], normals[4 * t + 2]],
                   position: [positions[4 * t], positions[4 * t + 1], positions[4 * t + 2]] });
   }
   requestRender();
-  return { covered: inside.length, pixels, camera: cam.position.toArray(),
+  return { covered: inside.length, pixels, size: [w, h], camera: cam.position.toArray(),
            albedo: objUniforms.uAlbedo.value.toArray(), f0: objUniforms.uF0.value.toArray(),
            roughness: objUniforms.uRoughness.value, specular: objUniforms.uSpecOn.value,
            query: PG.lastQuery, source,
@@ -892,6 +907,7 @@ PG.readObject = function readObject(count = 64, source = 'service') {
 };
 PG.moveObject = async (x, y, z) => { moveObject(x, y, z); return waitForQuery(); };
 PG.setMaterial = (key) => { $('material').value = key; setMaterial(key); return waitForQuery(); };
+PG.setMapMethod = (m) => { $('map-method').value = m; setMapMethod(m); return waitForQuery(); };
 PG.setToneMapping = (key) => { $('tonemap').value = key; renderer.toneMapping = TONEMAPS[key]; requestRender(); };
 PG.render = () => draw();
 PG.setCompare = setCompare;
@@ -911,6 +927,7 @@ $('show-probes').addEventListener('change', (e) => { probeRoot.visible = e.targe
 $('show-scene').addEventListener('change', (e) => { sceneRoot.visible = e.target.checked; requestRender(); });
 $('probe-size').addEventListener('input', (e) => setProbeSize(Number(e.target.value)));
 $('material').addEventListener('change', (e) => setMaterial(e.target.value));
+$('map-method').addEventListener('change', (e) => setMapMethod(e.target.value));
 $('compare').addEventListener('change', (e) => setCompare(e.target.checked).catch(report));
 ['x', 'y', 'z'].forEach((c) => $(`o${c}`).addEventListener('change', () => {
   moveObject(Number($('ox').value), Number($('oy').value), Number($('oz').value));
