@@ -303,6 +303,7 @@ def test_killed_bake_leaves_nothing_loadable_and_resumes(tmp_path):
         assert np.array_equal(a[k], b[k]), k
 
 
+@pytest.mark.slow
 def test_sigterm_stops_a_bake_cleanly(tmp_path):
     """``kill PID`` stops a CLI bake like Ctrl-C: exit code 130, one line, its worker
     processes and temporary context file gone, nothing loadable left."""
@@ -651,6 +652,7 @@ def test_converged_bounces_match_the_furnace_series(tmp_path, depth):
             < 0.1 * np.abs(fixed["sh"][:, 0] - dc).max())
 
 
+@pytest.mark.slow
 def test_progress_names_the_bounces(tmp_path):
     scene = box_scene((-1, -1, -1), (1, 1, 1), albedo=0.5, emission=1.0, inward=True)
     grid = GridSpec.from_counts((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), (2, 1, 1))

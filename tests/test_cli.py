@@ -315,6 +315,7 @@ def _check_inputs_as_given(store: Path, info: str) -> None:
     assert doc["manifest"]["inputs"] == m["inputs"]
 
 
+@pytest.mark.slow
 def test_serve_refuses_bad_stores_and_settings_before_announcing(tmp_path, cli_bake):
     import socket
 

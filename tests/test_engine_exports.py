@@ -292,6 +292,7 @@ def test_lopsided_environment_lands_where_each_engine_looks(lopsided, tmp_path):
 
 
 # ------------------------------------------------------------------------ files and CLI
+@pytest.mark.slow
 def test_cli_exports_every_target_and_ktx_parse_reads_them(store, tmp_path, tmp_path_factory,
                                                            capsys):
     for target in ("threejs", "bevy", "ktx2"):
@@ -400,6 +401,7 @@ def test_sh_forms_evaluate_to_the_same_irradiance_in_each_consumer():
     np.testing.assert_allclose(three, want, rtol=1e-5, atol=2e-5)  # three: 6-digit constants
 
 
+@pytest.mark.slow
 def test_filter_format_ktx2_matches_the_exr_maps(tmp_path, tmp_path_factory):
     from probegrid import imageio
     from probegrid.filter import FilterSettings
@@ -505,6 +507,7 @@ def test_service_maps_answer_format_ktx2(store):
 
 
 # ------------------------------------------------------------ many probes: --probe all / a box
+@pytest.mark.slow
 def test_export_probe_all_and_box_write_every_probe_and_name_the_invalid(tmp_path, capsys):
     from probe_stores import linear_arrays
 

@@ -51,6 +51,7 @@ def test_publish_over_a_link_replaces_the_link_not_its_target(tmp_path):
     assert (target / "f").read_text() == "theirs"
 
 
+@pytest.mark.slow
 def test_the_published_path_always_holds_a_store(tmp_path):
     """A reader polling the path while it is replaced 200 times never finds it missing
     (renameat2 RENAME_EXCHANGE on Linux)."""

@@ -241,6 +241,7 @@ def test_irradiance_coefficients_evaluate_to_the_irradiance_babylon_needs(gltf_o
     assert e_x[0] > 2 * e_x[1]  # glTF +X is the red side
 
 
+@pytest.mark.slow
 def test_gltf_validator_finds_no_errors(gltf_out, tmp_path_factory, tmp_path):
     out, _ = gltf_out
     base = node_package_dir(tmp_path_factory, "gltf-validator")

@@ -35,6 +35,7 @@ def _in_box(p, lo, hi):
     return np.all((p > np.asarray(lo)) & (p < np.asarray(hi)), axis=1)
 
 
+@pytest.mark.slow
 def test_a_double_sided_cube_larger_than_a_cell_invalidates_every_probe_inside_and_none_outside(
         tmp_path):
     """Cube 2 units wide, cells 1 unit: the 8 probes inside sit half a cell from its walls

@@ -147,6 +147,7 @@ def test_outputs_refuse_other_kinds_of_output_and_replace_their_own(store, sky, 
     assert (other / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_a_rerun_removes_what_the_previous_run_wrote_and_nothing_else(store, tmp_path):
     """filter into its earlier output: the earlier chain's extra levels (and previews) go, the
     user's files stay; the same for a many-probe export and an engine export."""

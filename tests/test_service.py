@@ -663,6 +663,7 @@ def test_create_app_refuses_bad_stores(stores, tmp_path):
     assert grid_name("/a/b/atrium.probes") == "atrium"
 
 
+@pytest.mark.slow
 def test_multiple_workers_share_the_stores(stores, tmp_path):
     with (
         serve([stores["lin"]], tmp_path / "w2.log", workers=2, settings=LIMITS) as live,

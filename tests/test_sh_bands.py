@@ -167,6 +167,7 @@ def test_window_factors_any_order():
                                sh.window_factors("gauss", 2.0, bands=5)[sh.band_of(5)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bands", [2, 5, 9])
 def test_min_over_sphere_any_order_against_dense_search(bands):
     rng = np.random.default_rng(bands)

@@ -157,7 +157,9 @@ def test_page_becomes_interactive_without_errors(viewer):
     assert watch.problems == []
     assert page.evaluate("window.probegrid.errors") == []
     assert page.locator("body").get_attribute("data-ready") == "1"
-    assert 0 < tti < 10  # the target (2 s) is reported, not asserted: SwiftShader on 2 cores
+    # a hang guard, not a timer: the time to interactive (target 2 s) is reported above and in
+    # benchmarks/bench_viewer.py (SwiftShader on 2 cores shared with the rest of the suite)
+    assert 0 < tti < 60
 
 
 def test_probe_spheres_match_the_manifest(viewer, server, stores):
@@ -277,6 +279,7 @@ def three_lightprobegrid(header: dict, atlas: np.ndarray, points: np.ndarray,
     return np.maximum(e, 0.0)
 
 
+@pytest.mark.slow
 def test_side_by_side_three_lightprobegrid_is_fed_by_the_export(viewer, server):
     """The toggle draws the sphere with three.js' own LightProbeGridWebGL fed by the service's
     three.js export; its pixels are three's formula on the exported (half-float) SH."""
@@ -345,6 +348,7 @@ def test_moves_are_coalesced(viewer):
     assert watch.problems == []
 
 
+@pytest.mark.slow
 def test_dragging_the_object_moves_it_and_asks_the_service(viewer):
     page, watch, _ = viewer
     page.evaluate("window.probegrid.moveObject(0, 1.0, 0)")
@@ -370,6 +374,7 @@ def test_dragging_the_object_moves_it_and_asks_the_service(viewer):
     assert watch.problems == []
 
 
+@pytest.mark.slow
 def test_map_inspector_shows_the_maps_at_the_object(viewer):
     page, watch, _ = viewer
     page.click("#inspector summary")
@@ -392,6 +397,7 @@ def test_map_inspector_shows_the_maps_at_the_object(viewer):
     assert watch.problems == []
 
 
+@pytest.mark.slow
 def test_screenshot_is_not_blank(viewer, tmp_path):
     page, watch, _ = viewer
     from PIL import Image
@@ -429,6 +435,7 @@ def test_grid_selector_shows_a_grid_without_scene(viewer):
     assert watch.problems == []
 
 
+@pytest.mark.slow
 def test_sixteen_thousand_probes(viewer):
     page, watch, _ = viewer
     t0 = time.perf_counter()
@@ -448,6 +455,7 @@ def test_sixteen_thousand_probes(viewer):
 
 @pytest.mark.parametrize("path, rendered", [("/docs", ".swagger-ui .opblock"),
                                             ("/redoc", "[role=menuitem], .menu-content")])
+@pytest.mark.slow
 def test_docs_render_offline(browser, server, path, rendered):
     origin = urlsplit(server.url)
     blocked: list[str] = []
@@ -602,6 +610,7 @@ def _half_bits(values: np.ndarray) -> np.ndarray:
     return np.asarray(values, dtype=np.float32).astype(np.float16).view(np.uint16)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["specular", "diffuse"])
 def test_three_ktx2loader_reads_the_filters_cube_maps(ktx2_page, ktx2_files, name):
     """filter's RGBA16F cube KTX2 through three r187's KTX2Loader: every level's half floats, as
@@ -627,6 +636,7 @@ def test_three_ktx2loader_reads_the_filters_cube_maps(ktx2_page, ktx2_files, nam
     assert faces.max() > 0 and watch.problems == []
 
 
+@pytest.mark.slow
 def test_three_ktx2loader_reads_the_threejs_and_bevy_grid_exports(ktx2_page, stores):
     """The grid exports' 3D KTX2 files through three's KTX2Loader, read back texel by texel
     from the GPU: the three.js atlas (RGBA16F, Zstandard) equals the store's deringed SH (what
