@@ -47,6 +47,7 @@ NOT_BAKED: Final[frozenset[str]] = frozenset({
     "probegrid.bake.kernels.grid.texel_means",
     "probegrid.bake.kernels.surfaces.split_hits",
     "probegrid.bake.kernels.emitters.emitter_shadow_rays",
+    "probegrid.bake.kernels.emitters.cluster_samples",  # (emitters of many triangles only)
     "probegrid.bake.kernels.sampling.cosine_directions",
 })
 

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._jit import frozen
 from probegrid.bake.environment import Environment
 from probegrid.bake.kernels.grid import mean_per_parent
 from probegrid.bake.kernels.surfacecache import cache_lookup
@@ -291,7 +292,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
                                          grid if d == depth else empty, below, g)
             primary = levels[d].primary
             assert primary is not None
-            below = mean_per_parent(primary, reflected, parents)
+            below = mean_per_parent(*frozen((primary, reflected)), parents)
         light[v0:v1, 0] = below
     return lattice, light, rays
 

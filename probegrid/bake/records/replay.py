@@ -227,13 +227,13 @@ def _level_weights(level: Level, data: GridData,
     hidden = (np.zeros((0, 8), bool) if data.tracer is None else
               hidden_corners(points, level.normal, rows, g, valid, positions, bias,
                              data.tracer))
-    return hit_probe_weights(
-        frozen(points), frozen(level.normal), rows,
+    return hit_probe_weights(*frozen((
+        points, level.normal, rows,
         GridLattice(g.lo, g.hi, np.where(counts > 1, g.spacing, 1.0), counts, CORNER_OFFSETS),
         ProbeTable(valid, positions, data.moments, data.moments_n),
-        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES, frozen(hidden),
-        frozen(np.zeros(0, np.int64) if fallback is None or data.tracer is None
-               else np.ascontiguousarray(fallback, dtype=np.int64)))
+        Weighting(bias, NORMAL_TERM_FLOOR, MIN_WEIGHT, CRUSH_THRESHOLD), CUBE_AXES, hidden,
+        np.zeros(0, np.int64) if fallback is None or data.tracer is None
+        else np.ascontiguousarray(fallback, dtype=np.int64))))
 
 
 def visible_probe(points: NDArray[np.float64], grid: GridSpec, valid: NDArray[np.bool_],
@@ -433,8 +433,7 @@ def replay(arrays: Mapping[str, NDArray[Any]], settings: BakeSettings, level: in
         assert primary is not None
         below = mean_per_parent(*frozen((primary, reflected)), parents)
     rad, bnc = _replay_level(levels[0], 0, level, empty if depth else grid, below, g)
-    wts = (np.broadcast_to(sample_pattern(settings)[1].reshape(1, -1),
-                           (b, 6 * n * n * s))
+    wts = (np.repeat(sample_pattern(settings)[1].reshape(1, -1), b, axis=0)
            if s > 1 else None)
     if (final and depth and level >= 2 and grid.shape[0]
             and levels[0].weight_index is not None):

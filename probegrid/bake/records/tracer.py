@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from probegrid._jit import frozen
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment, EnvironmentLight
 from probegrid.bake.kernels.grid import distance_moments, texel_means
@@ -155,7 +156,8 @@ class RecordTracer:
         # surface (the normal turned toward the ray: the side it sees is shaded; emission leaves
         # the front as wound only)
         rows, p, nrm, back_off = shade_hits(
-            dirs, hits, (float(geo.max_distance), eps), sc.surface_tables, rd.double_sided,
+            frozen(dirs), hits, (float(geo.max_distance), eps), sc.surface_tables,
+            rd.double_sided,
             HitRecords(rec.kind, t, rec.position, rec.normal, rec.albedo, rec.emission))
         sc.apply_textures(hits.prim_id, hits.u, hits.v, rec.albedo, rec.emission, rows)
         if rec.primitive is not None and rec.barycentric is not None:  # (asked: Level.empty)
@@ -259,8 +261,8 @@ class RecordTracer:
         idx = np.asarray(indices, dtype=np.int64).reshape(-1)
         b = len(pos)
         pattern = sample_pattern(st)  # (every probe's: module docstring of bake.pattern)
-        dirs = np.broadcast_to(pattern[0].reshape(1, -1, 3), (b, pattern[0][..., 0].size, 3))
-        wts = np.broadcast_to(pattern[1].reshape(1, -1), (b, pattern[1].size))
+        dirs = np.repeat(pattern[0].reshape(1, -1, 3), b, axis=0)  # (new, writable arrays:
+        wts = np.repeat(pattern[1].reshape(1, -1), b, axis=0)  # one kernel signature)
         nr = dirs.shape[1]
         flat = dirs.reshape(-1, 3)
         origins = np.repeat(pos, nr, axis=0)
