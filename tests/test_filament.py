@@ -206,7 +206,7 @@ def _store_with_incoming(path: Path, cube: np.ndarray, *, incoming: bool = True)
     from probegrid.core.cubemap import mip_sizes
     from probegrid.core.grid import GridSpec
     from probegrid.core.specular import ggx_prefilter
-    from tests.probe_stores import write_store
+    from probe_stores import write_store
 
     grid = GridSpec.from_counts((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (2, 1, 1))
     cubes = np.stack([0.5 * cube, cube]).astype(np.float32)
