@@ -226,6 +226,7 @@ def cli_bake(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     return store, r
 
 
+@pytest.mark.slow
 def test_bake_info_export_on_the_sample_room(tmp_path, cli_bake):
     store, r = cli_bake
     assert r.returncode == 0, r.stderr

@@ -56,7 +56,7 @@ from probegrid.core.grid import GridSpec
 from probegrid.core.shading import shade_split_sum
 from probegrid.export import engines
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]  # (a real Chromium: minutes on 2 cores)
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
