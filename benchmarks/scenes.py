@@ -17,6 +17,7 @@ the scene has a sky) that Mitsuba 3 converts with the same physics
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
 
 from probegrid.bake.environment import Environment
@@ -105,39 +106,6 @@ def building_interior_points() -> NDArray[np.float64]:
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
 
 
-def _icosphere(subdivisions: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """A unit icosphere (outward winding): 20 * 4**subdivisions triangles."""
-    t = (1.0 + 5.0 ** 0.5) / 2.0
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
-                 dtype=np.float64)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]], dtype=np.int64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    for _ in range(subdivisions):
-        a, b_, c = f[:, 0], f[:, 1], f[:, 2]
-        mids = np.concatenate([np.stack([a, b_], 1), np.stack([b_, c], 1), np.stack([c, a], 1)])
-        key = np.sort(mids, axis=1)
-        uniq, inv = np.unique(key, axis=0, return_inverse=True)
-        inv = inv.ravel()
-        m = v[uniq[:, 0]] + v[uniq[:, 1]]
-        m /= np.linalg.norm(m, axis=1, keepdims=True)
-        base = len(v)
-        v = np.concatenate([v, m])
-        n = len(f)
-        ab, bc, ca = inv[:n] + base, inv[n:2 * n] + base, inv[2 * n:] + base
-        f = np.concatenate([np.stack([a, ab, ca], 1), np.stack([b_, bc, ab], 1),
-                            np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)])
-    # Outward winding: flip any triangle whose normal points inward.
-    p = v[f]
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    inward = np.einsum("ij,ij->i", nrm, p.mean(axis=1)) < 0
-    f[inward] = f[inward][:, ::-1]
-    return v, f
-
-
 def emissive_spheres(*, subdivisions: int = 4, radiance: float = 8.0) -> Scene:
     """A 6 x 3 x 6 m grey room lit only by four emissive spheres (radius 0.25 m).
 
@@ -147,7 +115,8 @@ def emissive_spheres(*, subdivisions: int = 4, radiance: float = 8.0) -> Scene:
     room = b.add_material(Material.diffuse(0.6))
     colours = ((1.0, 0.85, 0.7), (0.7, 0.85, 1.0), (1.0, 1.0, 1.0), (0.9, 1.0, 0.8))
     b.add_box((-3.0, 0.0, -3.0), (3.0, 3.0, 3.0), material=room, inward=True)
-    v, f = _icosphere(subdivisions)
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)  # (unit radius, outward)
+    v, f = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
     centres = ((-1.6, 2.3, -1.6), (1.6, 2.3, -1.6), (-1.6, 0.6, 1.6), (1.6, 1.5, 1.6))
     for centre, colour in zip(centres, colours):
         mat = b.add_material(Material.diffuse(0.0, emission=np.asarray(colour) * radiance))

@@ -16,6 +16,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import trimesh
 
 from probegrid.bake.emitters import MAX_ANALYTIC, Emitters, emitter_clusters
 from probegrid.bake.records.replay import (
@@ -159,31 +160,9 @@ def test_a_point_stands_in_by_the_probe_it_sees() -> None:
 
 # -------------------------------------------------------------------------- emitters
 def _icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
-    """A unit icosphere, outward winding (20 * 4^subdivisions triangles)."""
-    t = (1.0 + 5.0 ** 0.5) / 2.0
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]],
-                 dtype=np.float64)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
-                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
-                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-                  [8, 6, 7], [9, 8, 1]], dtype=np.int64)
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    for _ in range(subdivisions):
-        tri = v[f]
-        mids = (tri + np.roll(tri, -1, axis=1)) / 2.0  # (F, 3, 3): ab, bc, ca
-        mids /= np.linalg.norm(mids, axis=2, keepdims=True)
-        a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-        ab, bc, ca = mids[:, 0], mids[:, 1], mids[:, 2]
-        tri = np.concatenate([np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1),
-                              np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)])
-        v, inv = np.unique(tri.reshape(-1, 3).round(12), axis=0, return_inverse=True)
-        f = inv.reshape(-1, 3)
-    p = v[f]
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    inward = np.einsum("ij,ij->i", nrm, p.mean(axis=1)) < 0
-    f[inward] = f[inward][:, ::-1]
-    return v, f
+    """A unit icosphere, outward winding (20 * 4^subdivisions triangles; trimesh's)."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    return np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
 
 
 RADIUS, RADIANCE = 0.25, 3.0
