@@ -172,6 +172,7 @@ class ProbeField:
         self._dering_lock = threading.Lock()
         self._point_settings = point_settings
         self._point_tracers: dict[str | None, PointTracer] = {}
+        self._scene_tracer: RayTracer | None = None  # (a scene with cut-outs or glass)
         self._trace_lock = threading.Lock()
         self._traced: OrderedDict[bytes, PointMaps] = OrderedDict()
         self._tracing: dict[bytes, Future[PointMaps]] = {}
@@ -378,17 +379,22 @@ class ProbeField:
         ps = self._point_settings if quality is None else PointSettings.preset(quality)
         with self._trace_lock:
             if quality not in self._point_tracers:
-                scene = self._scene
-                if scene is None:
+                if self._scene is None:  # (read once, for every preset)
                     from probegrid.scene import load_gltf
 
                     kept = self.store.manifest.scene_file
                     assert kept is not None
                     # (the bake had to ignore every extension it refused: the same scene)
-                    scene = load_gltf(self.store.path / kept.file, ignore_extensions=("*",))
+                    self._scene = load_gltf(self.store.path / kept.file,
+                                            ignore_extensions=("*",))
+                scene = self._scene
                 # the visibility tracer knows the triangles only; a scene with cut-outs or
-                # glass traces with its own (what a ray passes)
-                tracer = self.tracer if scene.coverage is None else None
+                # glass traces with its own (what a ray passes), built once for every preset
+                tracer = self.tracer
+                if scene.coverage is not None:
+                    if self._scene_tracer is None:
+                        self._scene_tracer = RayTracer.from_scene(scene)
+                    tracer = self._scene_tracer
                 self._point_tracers[quality] = PointTracer.from_store(
                     self.store, scene, tracer=tracer, settings=ps)
             return self._point_tracers[quality]
