@@ -316,6 +316,11 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
             "interpolates: radiance SH traced on a lattice finer than the probes' whose outer "
             "layers sit just inside the walls (0: none, /sh blends the probes)")
     _option(p, S, "sh_field_face_size", help="face size the SH field's points are traced at")
+    _option(p, S, "surface_cache_spacing", metavar="H",
+            help="lattice spacing of the surface light cache traced answers read (scene "
+            "units; 0: no cache). Default: from the scene's surface, the finest spacing with at "
+            "most one vertex a triangle side plus 8 per texel of a face (8192 at faces 32), "
+            "whatever the grid; at most 2^21 vertices (48 MB)")
     _option(p, S, "dtype", help="map arrays (diffuse, specular, incoming) as float32, or as "
             "half floats: half the size, 11 significant bits, values above 65504 (a direct "
             "sun) clamped; the bake prints both sizes")

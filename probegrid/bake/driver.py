@@ -468,11 +468,15 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
     quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
     # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
     t_cache = time.perf_counter()
-    cache_rays = write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
-                                    gather=st.gather_levels() > 0, face_size=st.face_size,
-                                    settings=st, geometry=geometry, level=level)
+    cache_rays, lattice = write_store_extras(w, scene, environment=env,
+                                             grid_irradiance=final_grid,
+                                             gather=st.gather_levels() > 0,
+                                             face_size=st.face_size, settings=st,
+                                             geometry=geometry, level=level)
     quality["stage_seconds"]["surface cache"] = round(time.perf_counter() - t_cache, 3)
     quality["surface_cache_rays"] = cache_rays
+    if lattice is not None:  # its spacing and why (the scene's, never the grid's)
+        quality["surface_cache"] = lattice.manifest()
     if st.sh_field > 0:  # the SH field /sh interpolates (probegrid.bake.shfield)
         t_field = time.perf_counter()
         write_sh_field(w, scene, plan=plan, level=level, refine=st.sh_field,

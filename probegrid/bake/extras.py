@@ -41,7 +41,13 @@ from probegrid.bake.environment import Environment
 from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, MOMENTS_EXTRA, environment_extra
 from probegrid.bake.records import GridData, grid_level_read, irradiance_size
 from probegrid.bake.settings import BakeSettings, TraceGeometry
-from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA, bake_surface_cache, cache_vertices
+from probegrid.bake.surfacecache import (
+    LATTICE_EXTRA,
+    LIGHT_EXTRA,
+    LatticePlan,
+    bake_surface_cache,
+    plan_lattice,
+)
 from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
@@ -55,14 +61,16 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                        grid_irradiance: NDArray[np.float32] | None = None,
                        gather: bool = True, face_size: int = 32,
                        settings: BakeSettings | None = None,
-                       geometry: TraceGeometry | None = None, level: int = 0) -> int:
+                       geometry: TraceGeometry | None = None, level: int = 0
+                       ) -> tuple[int, LatticePlan | None]:
     """Add ``sh_deringed``, ``sh_window``, ``scene_vertices`` and ``scene_triangles`` to the
     finished-but-unpublished store of ``writer`` (every probe written), and with an
     ``environment`` the ``grid_irradiance`` (``grid_irradiance``: the cubes the final pass read,
     None for none; ``gather``: the bake traced gather rays) and ``environment`` extras
     (``face_size``: the probes'), and with ``settings`` and ``geometry`` too the surface cache
     of the final pass at bounce ``level``; see the module docstring. Idempotent: a resumed bake
-    writes the same extras again. Returns the rays the surface cache cast."""
+    writes the same extras again. Returns the rays the surface cache cast and its lattice
+    (None: no settings, no cache asked of the bake)."""
     raw = np.asarray(writer.array("sh"), dtype=np.float64)
     deringed, window, _ = dering(raw)
     writer.add_extra("sh_deringed", deringed.astype(np.float32),
@@ -75,7 +83,7 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
     writer.add_extra("scene_triangles", np.asarray(scene.triangles, dtype=np.int32),
                      description="scene triangles: vertex indices into scene_vertices")
     if environment is None:
-        return 0
+        return 0, None
     if grid_irradiance is None:
         g = irradiance_size(gather)
         grid_irradiance = np.zeros((writer.n_probes, 6, g, g, 3), np.float32)
@@ -93,11 +101,13 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                          description="environment cube the rays saw, box-filtered, without the "
                                      "rotation and intensity of the manifest's bake.environment")
     if settings is None or geometry is None:
-        return 0
+        return 0, None
+    plan = plan_lattice(scene, settings.surface_cache_spacing,
+                        face_size=settings.face_size)
     got = surface_cache(writer, scene, environment, settings, geometry, bordered=bordered,
-                        level=level)
-    if got is None:  # more triangles than the budget: queries gather (no cache)
-        return 0
+                        level=level, plan=plan)
+    if got is None:  # no cache (spacing 0, or more triangles than its cap): queries gather
+        return 0, plan
     lattice, light, rays = got
     writer.add_extra(LATTICE_EXTRA, lattice,
                      description="surface light cache: per triangle the first lattice vertex of "
@@ -107,16 +117,15 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                      description="surface light cache: irradiance / pi at each lattice vertex "
                                  "of the light reflected at least once and of the emitters' "
                                  "and environment's direct light (memory-mappable)")
-    return rays
+    return rays, plan
 
 
 def surface_cache(writer: StoreWriter, scene: Scene, environment: Environment,
                   settings: BakeSettings, geometry: TraceGeometry, *,
-                  bordered: NDArray[np.float32], level: int
+                  bordered: NDArray[np.float32], level: int, plan: LatticePlan
                   ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
-    """The surface cache of a bake (:func:`probegrid.bake.surfacecache.bake_surface_cache`),
-    its vertex budget :data:`~probegrid.bake.surfacecache.CACHE_COST` of the bake's shading
-    points."""
+    """The surface cache of a bake (:func:`probegrid.bake.surfacecache.bake_surface_cache`)
+    over the lattice of ``plan`` (the scene's, never the grid's)."""
     moments = bordered_cubes(writer.array("moments"))
     depth = settings.gather_levels()
     data = GridData(writer.grid, np.asarray(writer.array("valid"), bool),
@@ -124,4 +133,4 @@ def surface_cache(writer: StoreWriter, scene: Scene, environment: Environment,
                     moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
                     bordered.reshape(-1, 3) if grid_level_read(level, depth) >= 0 else None)
     return bake_surface_cache(scene, environment, settings, geometry, data, level=level,
-                              vertices=cache_vertices(settings, writer.n_probes))
+                              plan=plan)
