@@ -29,8 +29,7 @@ double-sided triangle. Each vertex holds
 The lattice's spacing is the same on every triangle (each triangle's resolution is its longest
 edge over the spacing rounded down, 0 -- the centroid alone -- to :data:`MAX_RESOLUTION`) and
 depends on the scene and the probes' face size, never on the grid (:func:`plan_lattice`): the
-bake's
-``surface_cache_spacing`` (scene units; 0: no cache), or by default the finest spacing whose
+bake's ``surface_cache_spacing`` (scene units; 0: no cache), or by default the finest spacing whose
 lattice has at most one vertex a triangle side plus :data:`CACHE_TEXEL_VERTICES` per texel of
 a probe's face (``8 n^2``: about ``sqrt(A) / 2n`` over a surface of area ``A`` made of
 triangles longer than the spacing, a lattice cell seen from across a room about a mirror
@@ -161,7 +160,7 @@ class LatticePlan:
     vertices : int
         Its vertices, both sides of double-sided triangles counted.
     reason : str
-        Why this spacing (one sentence, for the manifest and the bake's summary).
+        Why this spacing (one sentence, for the manifest).
     """
 
     resolutions: NDArray[np.int64] | None
@@ -381,9 +380,9 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
         deepest = levels[depth]
         if grid.shape[0]:
             # a deepest hit that sees none of its cell's probes reads the probe its vertex
-            # sees (nothing where it sees none), as a probe's read its own: never the moments'
-            # soft weights, which can favour a probe beyond a wall (with probes added there,
-            # the light behind a cabinet changed 4x)
+            # sees (nothing where it sees none), as a probe's hits read the probe: never the
+            # moments' soft weights, which can favour a probe beyond a wall (with probes
+            # added there, the light behind a cabinet changed 4x)
             seen = visible_probe(p + bias * n, data.grid, data.valid, data.positions,
                                  rt.tracer)
             deepest.weight_index, deepest.weight = _level_weights(deepest, data, seen[owner])
