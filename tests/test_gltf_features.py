@@ -751,3 +751,80 @@ def test_encoded_geometry_bakes_bit_for_bit_as_the_plain_file(tmp_path) -> None:
             import shutil
 
             shutil.rmtree(p, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------------------------
+# EXT_mesh_gpu_instancing: every instance is placed
+
+
+def _instanced_document(translation: np.ndarray, rotation: np.ndarray | None = None,
+                        scale: np.ndarray | None = None) -> dict:
+    """:func:`_quad_document` (a 1 m quad at y = 0 facing +Y) under a node at y = 2 whose
+    EXT_mesh_gpu_instancing attributes place it ``len(translation)`` times; rotations as
+    normalized int16 quaternions (what the extension allows besides float)."""
+    doc = _quad_document(size=1.0, material={"doubleSided": True, "pbrMetallicRoughness": {
+        "metallicFactor": 0.0}})
+    parts = {"TRANSLATION": np.asarray(translation, np.float32)}
+    if rotation is not None:
+        parts["ROTATION"] = np.round(np.asarray(rotation) * 32767).astype(np.int16)
+    if scale is not None:
+        parts["SCALE"] = np.asarray(scale, np.float32)
+    blob, attrs = b"", {}
+    for name, a in parts.items():
+        pad = -len(blob) % 4
+        blob += b"\0" * pad
+        doc["bufferViews"].append({"buffer": 1, "byteOffset": len(blob),
+                                   "byteLength": a.nbytes})
+        doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1,
+                                 "componentType": 5122 if a.dtype == np.int16 else 5126,
+                                 "count": len(a), "type": f"VEC{a.shape[1]}",
+                                 **({"normalized": True} if a.dtype == np.int16 else {})})
+        attrs[name] = len(doc["accessors"]) - 1
+        blob += a.tobytes()
+    doc["buffers"].append({"byteLength": len(blob), "uri": _data_uri(blob)})
+    doc["nodes"] = [{"mesh": 0, "translation": [0.0, 2.0, 0.0],
+                     "extensions": {"EXT_mesh_gpu_instancing": {"attributes": attrs}}}]
+    doc["extensionsUsed"] = doc["extensionsRequired"] = ["EXT_mesh_gpu_instancing"]
+    return doc
+
+
+def test_gpu_instances_each_cast_their_shadow(tmp_path) -> None:
+    """Three instances of a 1 m quad under a node at y = 2: at x = -3, at x = 0 turned 45
+    degrees about +Y, at x = +3 scaled 2x along x. Sun rays straight up from the floor are
+    blocked exactly over each instance's footprint (the turned one a diamond, the scaled one
+    2 m wide) and nowhere else; the node's own mesh is not placed besides."""
+    s45 = np.sin(np.pi / 8)
+    doc = _instanced_document([[-3, 0, 0], [0, 0, 0], [3, 0, 0]],
+                              rotation=[[0, 0, 0, 1], [0, s45, 0, np.cos(np.pi / 8)],
+                                        [0, 0, 0, 1]],
+                              scale=[[1, 1, 1], [1, 1, 1], [2, 1, 1]])
+    scene = load_gltf(_write(tmp_path, doc))
+    assert scene.n_triangles == 6 and scene.unhonoured == ()
+    np.testing.assert_allclose(scene.vertices[:, 1], 2.0, atol=1e-6)
+    rng = np.random.default_rng(7)
+    o = np.c_[rng.uniform(-5, 5, 20000), np.zeros(20000), rng.uniform(-1.5, 1.5, 20000)]
+    x, z = o[:, 0], o[:, 2]
+    expected = ((np.abs(x + 3) < 0.5) & (np.abs(z) < 0.5)            # plain
+                | (np.abs(x) + np.abs(z) < 0.5 * 2**0.5)             # turned: a diamond
+                | ((np.abs(x - 3) < 1.0) & (np.abs(z) < 0.5)))       # scaled along x
+    edge = np.minimum.reduce([np.abs(np.abs(x + 3) - 0.5), np.abs(np.abs(z) - 0.5),
+                              np.abs(np.abs(x) + np.abs(z) - 0.5 * 2**0.5),
+                              np.abs(np.abs(x - 3) - 1.0)]) < 1e-4
+    shadow = RayTracer.from_scene(scene).occluded(o, np.tile([0.0, 1.0, 0.0], (len(o), 1)),
+                                                  5.0)
+    assert np.array_equal(shadow[~edge], expected[~edge])
+    assert 0.05 < expected.mean() < 0.3
+
+
+def test_bad_gpu_instances_are_one_line_errors(tmp_path) -> None:
+    doc = _instanced_document([[0, 0, 0], [1, 0, 0]], scale=[[1, 1, 1]])
+    with pytest.raises(SceneError, match="different counts") as e:
+        load_gltf(_write(tmp_path, doc))
+    assert "\n" not in str(e.value)
+    doc = _instanced_document([[0, 0, 0]])
+    doc["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]["SCALE"] = 99
+    with pytest.raises(SceneError, match="99 is not an accessor index"):
+        load_gltf(_write(tmp_path, doc))
+    doc = _instanced_document([[0, np.nan, 0]])
+    with pytest.raises(SceneError, match="must be finite"):
+        load_gltf(_write(tmp_path, doc))

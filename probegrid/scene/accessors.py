@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from probegrid.errors import SceneError
 
-__all__ = ["DECODED_URI", "plain_geometry", "read_accessor"]
+__all__ = ["DECODED_URI", "float_accessor", "plain_geometry", "read_accessor"]
 
 #: The URI under which the decoded data are handed to the mesh reader.
 DECODED_URI: Final[str] = "probegrid-decoded.bin"
@@ -158,6 +158,20 @@ def read_accessor(header: dict, buffers: Sequence[bytes], index: int, label: str
             raise SceneError(f"{label}: accessor {index} has sparse indices out of range.")
         out[idx] = np.frombuffer(vb, dtype, count=k * width, offset=vo).reshape(k, width)
     return out
+
+
+def float_accessor(header: dict, buffers: Sequence[bytes], index: object, label: str
+                   ) -> NDArray[np.float64]:
+    """Accessor ``index`` as ``(count, width)`` float64 values (normalized integers by
+    glTF's rule, :func:`_as_float`); a :class:`SceneError` for an index that is not one."""
+    accs = header.get("accessors", [])
+    if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(accs):
+        raise SceneError(f"{label}: {index!r} is not an accessor index.")
+    try:
+        raw = read_accessor(header, buffers, index, label)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise SceneError(f"{label}: accessor {index} cannot be read ({exc}).") from None
+    return _as_float(raw, bool(accs[index].get("normalized", False))).astype(np.float64)
 
 
 def _as_float(a: NDArray, normalized: bool) -> NDArray[np.float32]:
