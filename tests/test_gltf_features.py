@@ -828,3 +828,109 @@ def test_bad_gpu_instances_are_one_line_errors(tmp_path) -> None:
     doc = _instanced_document([[0, np.nan, 0]])
     with pytest.raises(SceneError, match="must be finite"):
         load_gltf(_write(tmp_path, doc))
+
+
+# --------------------------------------------------------------------------------------------
+# EXT_meshopt_compression's filters: each decodes to the values it encoded
+
+
+def _meshopt_filter(kind: str, values: np.ndarray, stride: int, bits: int) -> np.ndarray:
+    """``values (n, 4)`` (OCTAHEDRAL: xyz + w; QUATERNION: xyzw) or ``(n, k)`` (EXPONENTIAL)
+    encoded by meshoptimizer's own filter encoder (``meshopt_encodeFilter*`` of its library,
+    which the Python wrapper does not expose) into ``(n, stride)`` bytes."""
+    import ctypes
+
+    from meshoptimizer._loader import lib
+
+    data = np.ascontiguousarray(values, np.float32)
+    n = len(data)
+    out = np.zeros((n, stride), np.uint8)
+    args = [out.ctypes.data_as(ctypes.c_void_p), ctypes.c_size_t(n), ctypes.c_size_t(stride),
+            ctypes.c_int(bits), data.ctypes.data_as(ctypes.POINTER(ctypes.c_float))]
+    if kind == "EXPONENTIAL":
+        lib.meshopt_encodeFilterExp(*args, ctypes.c_int(0))  # (mode: separate exponents)
+    else:
+        getattr(lib, {"OCTAHEDRAL": "meshopt_encodeFilterOct",
+                      "QUATERNION": "meshopt_encodeFilterQuat"}[kind])(*args)
+    return out
+
+
+def _meshopt_view(doc: dict, view: int, raw: np.ndarray, kind: str) -> None:
+    """Buffer view ``view`` of ``doc`` replaced by ``raw`` (``(n, stride)`` filtered bytes)
+    meshopt-compressed (ATTRIBUTES mode, filter ``kind``) into a new buffer."""
+    import meshoptimizer
+
+    n, stride = raw.shape
+    blob = bytes(meshoptimizer.encode_vertex_buffer(raw.view(np.float32) if stride % 4 == 0
+                                                    else raw, n, stride))
+    size = len(blob)  # (the codec's own length: its tail ends the stream, padding does not)
+    blob += b"\0" * (-len(blob) % 4)
+    doc["buffers"].append({"byteLength": len(blob), "uri": _data_uri(blob)})
+    doc["bufferViews"][view] = {
+        "buffer": 0, "byteOffset": 0, "byteLength": n * stride, "byteStride": stride,
+        "extensions": {"EXT_meshopt_compression": {
+            "buffer": len(doc["buffers"]) - 1, "byteOffset": 0, "byteLength": size,
+            "byteStride": stride, "count": n, "mode": "ATTRIBUTES", "filter": kind}}}
+    used = set(doc.get("extensionsUsed", [])) | {"EXT_meshopt_compression"}
+    doc["extensionsUsed"] = doc["extensionsRequired"] = sorted(used)
+
+
+def test_meshopt_filters_decode_to_the_values_they_encode(tmp_path) -> None:
+    """EXPONENTIAL positions load as the plain positions (23-bit mantissas: to 2^-23
+    relative); QUATERNION instance rotations (int16, 12 bits) place the instances as the
+    plain float rotations do (to 1e-3 m); OCTAHEDRAL normals (int8 and int16) read back as
+    the plain unit normals to their quantization (2 / 2^bits per component)."""
+    from probegrid.scene.accessors import float_accessor
+
+    pos, idx, uv = _box_geometry()
+    plain = load_gltf(_write(tmp_path, _mesh_document(pos, idx, uv), "plain.gltf"))
+    doc = _mesh_document(pos, idx, uv)
+    _meshopt_view(doc, 0, _meshopt_filter("EXPONENTIAL", pos, 12, 23), "EXPONENTIAL")
+    exp = load_gltf(_write(tmp_path, doc, "exp.gltf"))
+    np.testing.assert_allclose(exp.vertices, plain.vertices, rtol=2**-22, atol=0)
+    assert not np.array_equal(_meshopt_filter("EXPONENTIAL", pos, 12, 23).view(np.float32),
+                              pos)  # (the filter changes the bytes: undone on load)
+
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(6, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    t = np.c_[np.arange(6) * 3.0, np.zeros(6), np.zeros(6)]
+    floats = _instanced_document(t)
+    floats["accessors"].append({"bufferView": len(floats["bufferViews"]),
+                                "componentType": 5126, "count": 6, "type": "VEC4"})
+    blob = q.astype(np.float32).tobytes()
+    floats["buffers"].append({"byteLength": len(blob), "uri": _data_uri(blob)})
+    floats["bufferViews"].append({"buffer": len(floats["buffers"]) - 1, "byteOffset": 0,
+                                  "byteLength": len(blob)})
+    ext = floats["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]
+    ext["ROTATION"] = len(floats["accessors"]) - 1
+    reference = load_gltf(_write(tmp_path, floats, "rot.gltf"))
+    coded = json.loads(json.dumps(floats))
+    coded["accessors"][-1].update(componentType=5122, normalized=True)
+    _meshopt_view(coded, len(coded["bufferViews"]) - 1,
+                  _meshopt_filter("QUATERNION", q, 8, 12), "QUATERNION")
+    quat = load_gltf(_write(tmp_path, coded, "quat.gltf"))
+    assert quat.n_triangles == reference.n_triangles == 12
+
+    def by_instance(scene: Scene) -> np.ndarray:  # (instances in the loader's order: sorted)
+        v = scene.vertices.reshape(6, -1, 3)
+        return v[np.argsort(v[:, :, 0].mean(axis=1))]
+
+    err = np.abs(by_instance(quat) - by_instance(reference)).max()
+    assert 0 < err < 1e-3, err
+
+    nrm = rng.normal(size=(50, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    for stride, bits, ctype in ((4, 8, 5120), (8, 16, 5122)):
+        raw = _meshopt_filter("OCTAHEDRAL", np.c_[nrm, np.zeros(50)], stride, bits)
+        d = _mesh_document(pos, idx, uv)
+        d["accessors"].append({"bufferView": 3, "componentType": ctype, "normalized": True,
+                               "count": 50, "type": "VEC3"})
+        d["bufferViews"].append({})
+        _meshopt_view(d, 3, raw, "OCTAHEDRAL")
+        buffers = [base64.b64decode(b["uri"].split(",", 1)[1]) if "uri" in b else b""
+                   for b in d["buffers"]]
+        got = float_accessor(d, buffers, 3, "normals")
+        np.testing.assert_allclose(got, nrm, atol=2.0 / 2 ** (bits - 1))
+        np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=2.0 / 2 ** (bits - 1))
+        load_gltf(_write(tmp_path, d, f"oct{bits}.gltf"))  # (a file with them loads)
