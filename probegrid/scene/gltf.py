@@ -31,8 +31,9 @@ Conventions
 * Each texture reads its ``texCoord`` set through its ``KHR_texture_transform`` (offset,
   rotation, scale, and the transform's ``texCoord`` override), :class:`TexCoord`.
 * What stops a ray: ``alphaMode`` (``MASK`` with ``alphaCutoff``, ``BLEND`` as stochastic
-  coverage) and ``KHR_materials_transmission``'s factor (thin, untinted), see
-  :mod:`probegrid.scene.coverage`.
+  coverage) and ``KHR_materials_transmission`` (thin: ``transmissionFactor`` times
+  ``transmissionTexture``'s R, linear, read through its own ``texCoord`` and transform; the
+  light through tinted by the base colour), see :mod:`probegrid.scene.coverage`.
 * Geometry: ``KHR_mesh_quantization``, normalized and sparse accessors,
   ``EXT_meshopt_compression`` and ``KHR_draco_mesh_compression`` are decoded into plain
   arrays first (:mod:`probegrid.scene.accessors`); images: ``EXT_texture_webp`` is read (Pillow
@@ -44,7 +45,7 @@ Conventions
 
 Not honoured, and named in :attr:`Scene.unhonoured` (the bake prints them and the store's
 manifest keeps them): metallic-roughness (every surface is Lambertian), normal and occlusion
-textures, ``transmissionTexture``, the material extensions of other lobes (sheen, clearcoat,
+textures, the material extensions of other lobes (sheen, clearcoat,
 specular, anisotropy, iridescence, volume, ior, dispersion, diffuse transmission...),
 and any other extension a file uses; morph targets and skins
 (the bind pose is used), points and lines (skipped). A file whose ``extensionsRequired`` names
@@ -75,7 +76,7 @@ import re
 import signal
 import struct
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Final
@@ -85,7 +86,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
-from probegrid.scene.accessors import DECODED_URI, float_accessor, plain_geometry
+from probegrid.scene.accessors import DECODED_URI, _view_bytes, float_accessor, plain_geometry
 from probegrid.scene.model import Material, Scene, SceneError
 from probegrid.scene.texels import TextureLimits, decode_texture, texture_limits
 from probegrid.scene.textures import TexCoord, texture_transform
@@ -417,8 +418,11 @@ def _texture_info(
 
 
 def _material_from_json(header: dict, index: int, tm_material: object | None,
-                        ignore: frozenset[str] = frozenset()) -> Material:
-    """Material ``index`` of the glTF JSON; texture pixels come from trimesh's decoded images."""
+                        ignore: frozenset[str] = frozenset(),
+                        image_of: Callable[[int], object] | None = None) -> Material:
+    """Material ``index`` of the glTF JSON; texture pixels come from trimesh's decoded images,
+    the transmission texture's (which trimesh does not keep) from ``image_of(source)``, a
+    Pillow image of the file's image ``source``."""
     mj = header["materials"][index]
     mname = str(mj.get("name", f"#{index}"))
     pbr = mj.get("pbrMetallicRoughness", {})
@@ -426,7 +430,17 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
     strength = ext.get("KHR_materials_emissive_strength", {})
     emissive = np.array(mj.get("emissiveFactor", [0.0, 0.0, 0.0]), dtype=np.float64)
     emissive = emissive * float(strength.get("emissiveStrength", 1.0))
-    transmission = float(ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0))
+    tx = ext.get("KHR_materials_transmission", {})
+    transmission = float(tx.get("transmissionFactor", 0.0))
+    tx_texture, tx_wrap, tx_uv = None, ("repeat", "repeat"), TexCoord()
+    found = (_texture_info(header, tx.get("transmissionTexture"), mname, "transmissionTexture",
+                           ignore) if transmission > 0 else None)
+    if found is not None and image_of is not None:
+        what, tx_wrap, tx_uv = found
+        source = _texture_source(header["textures"][int(tx["transmissionTexture"]["index"])])
+        if source is not None:  # (R: linear data, not colour)
+            tx_texture = np.ascontiguousarray(decode_texture(
+                image_of(int(source)), 3, what, linear=True)[..., :1])
     alpha_mode = str(mj.get("alphaMode", "OPAQUE"))
     alpha_cutoff = float(mj.get("alphaCutoff", 0.5))
     textures: dict[str, NDArray[np.float32] | None] = {}
@@ -475,6 +489,9 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
             transmission=transmission,
             base_color_uv=coords["baseColorTexture"],
             emissive_uv=coords["emissiveTexture"],
+            transmission_texture=tx_texture,
+            transmission_wrap=tx_wrap,  # type: ignore[arg-type]
+            transmission_uv=tx_uv,
         )
     except ValueError as exc:
         raise SceneError(f"material {mname!r} is invalid: {exc}") from None
@@ -680,20 +697,12 @@ def unhonoured_features(header: dict) -> tuple[str, ...]:
     for key in ("normalTexture", "occlusionTexture"):
         if any(key in m for m in mats):
             found.append(key)
-    if any("transmissionTexture" in m.get("extensions", {}).get("KHR_materials_transmission", {})
-           for m in mats):
-            found.append("transmissionTexture (the factor is used)")
     used = set(header.get("extensionsUsed", [])) | set(header.get("extensionsRequired", []))
     for m in mats:
         used |= set(m.get("extensions", {}))
     for name in sorted(used - HONOURED_EXTENSIONS):
         found.append(f"{name}" + (f": {_NOT_HONOURED_NOTES[name]}" if name in _NOT_HONOURED_NOTES
                                   else ""))
-    if any(any(float(c) > 0 for c in m.get("emissiveFactor", [])) and (
-            m.get("alphaMode", "OPAQUE") != "OPAQUE"
-            or "KHR_materials_transmission" in m.get("extensions", {})) for m in mats):
-        found.append("the alpha and transmission of emissive materials in light sampling "
-                     "(their whole area is sampled)")
     prims = [p for m in header.get("meshes", []) for p in m.get("primitives", [])]
     if header.get("skins"):
         found.append("skins (the bind pose is used)")
@@ -705,12 +714,14 @@ def unhonoured_features(header: dict) -> tuple[str, ...]:
 
 
 def _texcoord_sets(header: dict, ignore: frozenset[str]) -> dict[int, int]:
-    """The highest TEXCOORD set the base colour or emissive texture of each material reads
-    (materials reading only the first are left out)."""
+    """The highest TEXCOORD set the base colour, emissive or transmission texture of each
+    material reads (materials reading only the first are left out)."""
     top: dict[int, int] = {}
     for i, m in enumerate(header.get("materials", [])):
         for info in (m.get("pbrMetallicRoughness", {}).get("baseColorTexture"),
-                     m.get("emissiveTexture")):
+                     m.get("emissiveTexture"),
+                     m.get("extensions", {}).get("KHR_materials_transmission", {}).get(
+                         "transmissionTexture")):
             found = _texture_info(header, info, str(m.get("name", f"#{i}")), "texture", ignore)
             if found is not None and found[2].index > 0:
                 top[i] = max(top.get(i, 0), found[2].index)
@@ -838,7 +849,24 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = (),
     if not tris:
         raise SceneError(f"{label} has no triangles in its default scene.")
 
-    materials = [_material_from_json(header, i, tm_materials.get(i), ignore)
+    def image_of(source: int) -> object:
+        import PIL.Image
+
+        try:
+            img = header["images"][source]
+            if "uri" in img:
+                uri = str(img["uri"])
+                data = files[uri] if uri in files else _uri_bytes(
+                    uri, p.parent, f"{label}: image {source}", allow)
+            else:
+                data = _view_bytes(header, buffers, int(img["bufferView"]), label)
+            return PIL.Image.open(io.BytesIO(data))
+        except (KeyError, IndexError, TypeError, ValueError, OSError) as exc:
+            raise SceneError(f"{label}: image {source} cannot be read "
+                             f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})."
+                             ) from None
+
+    materials = [_material_from_json(header, i, tm_materials.get(i), ignore, image_of)
                  for i in range(n_json_mats)]
     material = np.concatenate(mats)
     if np.any(material == n_json_mats):
