@@ -197,3 +197,22 @@ def test_a_blended_emitter_emits_its_coverage_share(monkeypatch, analytic) -> No
         # (the probe's view: one visibility ray per sub-texel piece; the holes at 1/1024 m
         # are finer than the pieces, so the view reads them at the pieces' centres)
         np.testing.assert_allclose(seen / opaque_seen, share, rtol=1e-9 if not holes else 0.1)
+
+
+def test_the_emissive_texture_reads_its_own_texcoord_set(tmp_path) -> None:
+    """emissiveTexture with texCoord 1 reads TEXCOORD_1 (mirrored: the halves swap), while
+    the base colour texture keeps TEXCOORD_0: each texture the bake reads (base colour and
+    alpha, emissive, transmission) has its own coordinates."""
+    from test_gltf_features import _halves
+
+    uv1 = np.array([[1, 0], [0, 0], [0, 1], [1, 1]], np.float32)
+    images = [{"uri": _data_uri(_png_bytes(_halves()), "image/png")}]
+    material = {"emissiveFactor": [1.0, 1.0, 1.0], "emissiveTexture": {"index": 0, "texCoord": 1},
+                "pbrMetallicRoughness": {"baseColorTexture": {"index": 0},
+                                         "metallicFactor": 0.0}}
+    scene = load_gltf(_write(tmp_path, _quad_document(material=material, images=images,
+                                                      uv1=uv1)))
+    hit = RayTracer.from_scene(scene).intersect([-1.0, 1.0, 0.0], [0.0, -1.0, 0.0])
+    surf = scene.surface_at(hit.prim_id, hit.u, hit.v)
+    np.testing.assert_allclose(surf.albedo, [1.0, 0.0, 0.0], atol=1e-6)    # u 0.25: red
+    np.testing.assert_allclose(surf.emission, [0.0, 1.0, 0.0], atol=1e-6)  # u' 0.75: green
