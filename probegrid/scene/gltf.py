@@ -86,7 +86,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
-from probegrid.scene.accessors import DECODED_URI, _view_bytes, float_accessor, plain_geometry
+from probegrid.scene.accessors import DECODED_URI, float_accessor, plain_geometry, view_bytes
 from probegrid.scene.model import Material, Scene, SceneError
 from probegrid.scene.texels import TextureLimits, decode_texture, texture_limits
 from probegrid.scene.textures import TexCoord, texture_transform
@@ -859,7 +859,7 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = (),
                 data = files[uri] if uri in files else _uri_bytes(
                     uri, p.parent, f"{label}: image {source}", allow)
             else:
-                data = _view_bytes(header, buffers, int(img["bufferView"]), label)
+                data = view_bytes(header, buffers, int(img["bufferView"]), label)
             return PIL.Image.open(io.BytesIO(data))
         except (KeyError, IndexError, TypeError, ValueError, OSError) as exc:
             raise SceneError(f"{label}: image {source} cannot be read "
