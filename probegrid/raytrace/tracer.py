@@ -310,9 +310,9 @@ class RayTracer:
     @property
     def tinted(self) -> bool:
         """Whether a ray that passes a surface may carry a weight other than 1 (a tinted
-        transmission, :attr:`probegrid.scene.coverage.Coverage.tinted`): the weighted queries
-        (:meth:`intersect_weighted`, :meth:`shadow_weights`, :meth:`transmittance` with
-        ``rgb``) then differ from the plain ones."""
+        transmission: the ``tinted`` flag of :class:`probegrid.scene.coverage.Coverage`): the
+        weighted queries (:meth:`intersect_weighted`, :meth:`shadow_weights`,
+        :meth:`transmittance` with ``rgb``) then differ from the plain ones."""
         return bool(getattr(self.coverage, "tinted", False))
 
     def intersect_weighted(self, origins: ArrayLike, directions: ArrayLike, *,
