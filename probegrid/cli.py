@@ -341,6 +341,10 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "max_texture_size", metavar="N",
             help="longest side of a texture as the bake samples it: a larger texture is "
             "area-averaged down on load, its mean colour kept (default: 1024)")
+    _option(p, J, "max_environment_pixels", metavar="N",
+            help="most pixels an environment image may have, checked from its header before "
+            "any work (default: 2^28 = 268 M; a larger one than the cube needs is read "
+            "reduced, in bands), as filter's --max-pixels")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 
