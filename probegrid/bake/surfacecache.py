@@ -27,7 +27,7 @@ double-sided triangle. Each vertex holds
 The lattice's spacing is the same on every triangle (each triangle's resolution is its longest
 edge over the spacing rounded down, 0 -- the centroid alone -- to :data:`MAX_RESOLUTION`), the
 finest whose vertices cost at most :data:`CACHE_COST` of the bake's shading points
-(:func:`cache_vertices`, :func:`lattice_resolutions`; measured 1.20-1.24x the bake's time),
+(:func:`cache_vertices`, :func:`lattice_resolutions`; measured 1.44-1.48x the bake's time),
 and the bake's outputs are unchanged (the cache is an extra of the store). A scene with more
 triangle sides than that budget stores no cache (its queries gather). Lattice vertices stand a
 hair inside their triangle (:data:`INSET`), so that no gather ray starts on the edge of a
