@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> None:
     def row(label: str, values: np.ndarray, secs: float | None) -> None:
         e = np.abs(values[lit] / ref[lit] - 1.0)
         cost = "" if secs is None else f", {secs:6.1f} s ({secs / ref_secs:.2f}x the reference's)"
-        print(f"  {label:24s} median {100 * np.median(e):5.2f} %, p90 {100 * np.quantile(e, 0.9):5.2f} %, "
+        print(f"  {label:24s} median {100 * np.median(e):5.2f} %, "
+              f"p90 {100 * np.quantile(e, 0.9):5.2f} %, "
               f"RMS {100 * np.sqrt(np.mean(e ** 2)):5.2f} %{cost}")
 
     row("the store's cache", stored[:, 0].mean(axis=1), None)
