@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from probegrid.bake import BakeSettings, bake
+from probegrid.bake.environment import Environment
 from probegrid.bake.kernels.surfacecache import cache_lookup
 from probegrid.bake.point import POINT_PRESETS, PointSettings, PointTracer
 from probegrid.bake.surfacecache import (
@@ -315,3 +316,38 @@ def test_the_spacing_option_and_the_cap(monkeypatch):
     assert "coarsened to at most 200 vertices" in capped.reason and capped.spacing > 0.5 / 2
     with pytest.raises(ValueError):
         BakeSettings(surface_cache_spacing=-1.0)
+
+
+def test_each_vertex_gathers_its_reflected_light_to_a_few_percent(tmp_path, monkeypatch):
+    """A room lit by a small bright panel (the light reflected at least once comes from a few
+    bright patches): the cache's reflected light at its vertices is within 3 % (median) of
+    the same vertices gathered with 4x more rays (:data:`CACHE_GATHER`: 2.4 % here, 3.7 %
+    with the former 8 x 8 strata; on the Cornell box 3.5 % against 7 % of a 1024-ray gather),
+    whose noise a point traced a few centimetres off a wall sees as patches of its rough GGX
+    levels."""
+    import probegrid.bake.surfacecache as sc
+    from probegrid.bake.settings import TraceGeometry
+
+    b = SceneBuilder()
+    wall = b.add_material(Material(base_color=(0.6, 0.6, 0.6)))
+    lamp = b.add_material(Material(base_color=(0.0, 0.0, 0.0), emissive=(40.0, 40.0, 40.0)))
+    b.add_box((-1.0, 0.0, -0.5), (1.0, 1.0, 0.5), material=wall, inward=True)
+    b.add_box((-0.3, 0.0, -0.2), (0.1, 0.4, 0.2), material=wall)
+    b.add_quad((0.45, 0.97, -0.1), (0.2, 0, 0), (0, 0, 0.2), material=lamp)
+    scene = b.build()
+    store = bake(scene, GridSpec.from_counts((-0.6, 0.6, 0.0), (0.6, 0.6, 0.0), (2, 1, 1)),
+                 tmp_path / "p.probes", settings=BakeSettings(bounces=4, **FAST)).store
+    light = np.asarray(store[LIGHT_EXTRA], np.float64)
+    tracer = PointTracer.from_store(store, scene)
+    baked = BakeSettings.model_validate(store.manifest.bake["settings"])
+    rd = store.manifest.bake["render"]
+    geometry = TraceGeometry(ray_offset=rd["ray_offset"], max_distance=rd["max_distance"])
+    monkeypatch.setattr(sc, "CACHE_GATHER", 4 * sc.CACHE_GATHER)
+    lattice, dense, _ = sc.bake_surface_cache(scene, Environment(), baked, geometry,
+                                              tracer.data, level=tracer.level)
+    np.testing.assert_array_equal(lattice, store[LATTICE_EXTRA])
+    got, ref = light[:, 0].mean(axis=1), dense[:, 0].astype(np.float64).mean(axis=1)
+    lit = ref > 1e-3 * ref.max()
+    assert lit.mean() > 0.5
+    err = np.abs(got[lit] / ref[lit] - 1.0)
+    assert np.median(err) < 0.03, np.median(err)
