@@ -58,7 +58,12 @@ from numpy.typing import ArrayLike, NDArray
 from probegrid._types import MapKind, MapMethod, SHKind, SHSource, choices
 from probegrid.core.clearcells import ClearCells, clear_cells
 from probegrid.core.cubemap import CubeMap
-from probegrid.core.fieldgradient import first_order_term, limited_gradients, outer_cells
+from probegrid.core.fieldgradient import (
+    first_order_term,
+    gradient_table,
+    limited_gradients,
+    outer_cells,
+)
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
     MAP_KINDS,
@@ -379,21 +384,36 @@ class ProbeField:
         name = "sh_field" if kind == "deringed" else "sh_field_raw"
         coefficients = blend(self.store.arrays[name], w)
         if gradient:
-            outer = self._field_outer[w.indices[:, 0]] & ~w.unlit
-            if np.logical_or.reduce(outer, axis=None):
-                rows = np.flatnonzero(outer)
-                assert self.sh_field is not None
-                coefficients[rows] += first_order_term(
-                    self.field_gradients(kind), self.sh_field[2], w.indices[rows],
-                    w.weights[rows], w.points[rows])
+            if len(w) == 1:  # (one point: Python's flags, no array of rows)
+                if self._field_outer[1][int(w.indices[0, 0])] and not w.unlit[0]:
+                    coefficients += first_order_term(
+                        self._gradient_table(kind), w.indices, w.weights,
+                        w.points).reshape(coefficients.shape)
+            else:
+                rows = np.flatnonzero(self._field_outer[0][w.indices[:, 0]] & ~w.unlit)
+                if rows.size:
+                    coefficients[rows] += first_order_term(
+                        self._gradient_table(kind), w.indices[rows], w.weights[rows],
+                        w.points[rows]).reshape(-1, *coefficients.shape[1:])
         return coefficients, w, used
 
     @cached_property
-    def _field_outer(self) -> NDArray[np.bool_]:
+    def _field_outer(self) -> tuple[NDArray[np.bool_], list[bool]]:
         """Per SH field lattice point, whether its cell is one next to the walls
-        (:func:`probegrid.core.fieldgradient.outer_cells`)."""
+        (:func:`probegrid.core.fieldgradient.outer_cells`), as an array and a list."""
         assert self.sh_field is not None
-        return outer_cells(self.sh_field[0])
+        outer = outer_cells(self.sh_field[0])
+        return outer, outer.tolist()
+
+    def _gradient_table(self, kind: SHKind) -> NDArray[np.float64]:
+        """:func:`probegrid.core.fieldgradient.gradient_table` of :meth:`field_gradients`."""
+        got = self._gradients.get(f"table {kind}")
+        if got is None:
+            assert self.sh_field is not None
+            table = gradient_table(self.field_gradients(kind), self.sh_field[2])
+            with self._clear_lock:
+                got = self._gradients.setdefault(f"table {kind}", table)
+        return got
 
     def field_gradients(self, kind: SHKind = "deringed") -> NDArray[np.float64]:
         """``(M, 9, 3, 3)`` limited gradients of the SH field's ``kind`` coefficients

@@ -152,7 +152,7 @@ class ServedGrid:
         for lattice in ("probes", "field"):  # found now, not by the first query
             field.clear_cells(lattice)
         if field.sh_field is not None:
-            field.field_gradients()
+            field._gradient_table("deringed")
         arrays = store.manifest.arrays
         valid = int(np.count_nonzero(store.arrays["valid"])) if "valid" in arrays else None
         grid = store.grid

@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from probegrid.core.grid import GridSpec
 
-__all__ = ["first_order_term", "limited_gradients", "outer_cells"]
+__all__ = ["first_order_term", "gradient_table", "limited_gradients", "outer_cells"]
 
 
 def limited_gradients(values: ArrayLike, grid: GridSpec, *, valid: ArrayLike | None = None
@@ -65,7 +65,7 @@ def limited_gradients(values: ArrayLike, grid: GridSpec, *, valid: ArrayLike | N
         minmod = np.where(np.sign(fwd) == np.sign(bwd),
                           np.sign(fwd) * np.minimum(np.abs(fwd), np.abs(bwd)), 0.0)
         slope = np.where(has_f & has_b, minmod, np.where(has_f, fwd, np.where(has_b, bwd, 0.0)))
-        slope = slope * g[(...,) + extra]
+        slope = np.where(g[(...,) + extra], slope, 0.0)
         np.moveaxis(out[..., a], a, 0)[...] = slope
     return out.reshape(grid.n_probes, *v.shape[1:], 3)
 
@@ -79,16 +79,26 @@ def outer_cells(grid: GridSpec) -> NDArray[np.bool_]:
     return np.any(((ijk == 0) | (ijk == last)) & (n > 1), axis=1)
 
 
-def first_order_term(gradients: NDArray[np.float64], positions: ArrayLike,
-                     indices: NDArray[np.int64], weights: NDArray[np.float64],
-                     points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``(n, ...)`` float64 ``sum_c w_c g_c . (q - x_c)`` of points ``q (n, 3)`` over their
-    corners ``indices (n, 8)`` with ``weights (n, 8)``; ``positions (P, 3)`` the lattice
-    points' (``x_c``), ``gradients (P, ..., 3)`` from :func:`limited_gradients`. A corner of
-    weight 0 contributes nothing (its gradient is not read into the sum)."""
-    x = np.asarray(positions, dtype=np.float64)[indices]  # (n, 8, 3)
-    lever = np.where((weights != 0)[..., None], points[:, None, :] - x, 0.0) * weights[..., None]
-    g = gradients[indices]  # (n, 8, ..., 3)
-    flat = g.reshape(*g.shape[:2], -1, 3)
-    out = np.einsum("nca,ncka->nk", lever, flat)
-    return out.reshape(len(indices), *gradients.shape[1:-1])
+def gradient_table(gradients: ArrayLike, positions: ArrayLike) -> NDArray[np.float64]:
+    """``(P, K, 4)`` float64 per lattice point and value ``k`` (the ``...`` axes flattened)
+    ``(g_x, g_y, g_z, -g . x)``: the first-order term at ``q`` of corner ``c`` is
+    ``table[c] . (q, 1)``, so a point's term is the blend of the corners' rows dotted with
+    ``(q, 1)`` (:func:`first_order_term`)."""
+    g = np.asarray(gradients, dtype=np.float64)
+    g = g.reshape(g.shape[0], -1, 3)
+    x = np.asarray(positions, dtype=np.float64)
+    return np.concatenate([g, -np.einsum("pka,pa->pk", g, x)[..., None]], axis=-1)
+
+
+def first_order_term(table: NDArray[np.float64], indices: NDArray[np.int64],
+                     weights: NDArray[np.float64], points: NDArray[np.float64]
+                     ) -> NDArray[np.float64]:
+    """``(n, K)`` float64 ``sum_c w_c g_c . (q - x_c)`` of points ``q (n, 3)`` over their
+    corners ``indices (n, 8)`` with ``weights (n, 8)``, from :func:`gradient_table` (whose
+    rows are finite: an invalid point's gradient is 0, so a corner of weight 0 adds 0)."""
+    n, k = len(indices), table.shape[1]
+    q1 = np.concatenate([points, np.ones((n, 1))], axis=1)
+    if n == 1:  # one point: two small products
+        return ((weights[0] @ table[indices[0]].reshape(8, 4 * k)).reshape(k, 4) @ q1[0])[None]
+    blended = np.einsum("nc,nckd->nkd", weights, table[indices])
+    return np.einsum("nkd,nd->nk", blended, q1)
