@@ -229,15 +229,28 @@ async def load(port: int, paths: list[bytes], requests: int, connections: int,
     return latencies, wall
 
 
+def _cpu_seconds(server: psutil.Process | None) -> float:
+    """The server process's CPU seconds so far (user + system; 0 without one)."""
+    if server is None:
+        return 0.0
+    t = server.cpu_times()
+    return float(t.user + t.system)
+
+
 def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections: int,
-            rounds: int, max_seconds: float) -> dict[str, dict[str, float]]:
+            rounds: int, max_seconds: float, server: psutil.Process | None = None
+            ) -> dict[str, dict[str, float]]:
     """Latency (1 connection) and throughput (``connections``) of every endpoint, ``requests``
-    of each per endpoint, in ``rounds`` interleaved rounds (module docstring)."""
+    of each per endpoint, in ``rounds`` interleaved rounds (module docstring), and the
+    server's CPU time per request of the throughput phases (``server``'s: on a loaded
+    machine the requests per second follow the machine's load, the CPU time a request costs
+    the server much less)."""
     for p in paths.values():  # warm-up
         asyncio.run(load(port, p, min(300, requests), connections, 30))
     one: dict[str, list[float]] = {k: [] for k in paths}
     many: dict[str, list[float]] = {k: [] for k in paths}
     wall = dict.fromkeys(paths, 0.0)
+    cpu = dict.fromkeys(paths, 0.0)
     deadline = time.monotonic() + max_seconds
     per = -(-requests // rounds)
     for r in range(rounds):
@@ -245,7 +258,9 @@ def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections
             break
         for key, p in paths.items():
             one[key] += asyncio.run(load(port, p, per, 1, max_seconds, r * per))[0]
+            c0 = _cpu_seconds(server)
             lat, w = asyncio.run(load(port, p, per, connections, max_seconds, r * per))
+            cpu[key] += _cpu_seconds(server) - c0
             many[key] += lat
             wall[key] += w
     results = {}
@@ -254,6 +269,7 @@ def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections
         results[key] = {"p50_ms": float(np.percentile(a, 50)),
                         "p99_ms": float(np.percentile(a, 99)),
                         "rps": b.size / wall[key], "requests": float(a.size),
+                        "cpu_us": 1e6 * cpu[key] / max(b.size, 1),
                         "loaded_p50_ms": float(np.percentile(b, 50)),
                         "loaded_p99_ms": float(np.percentile(b, 99))}
     return results
@@ -334,19 +350,24 @@ def main() -> None:
                 keep = {"bare", *args.only.split(",")}
                 paths = {k: v for k, v in paths.items() if k in keep}
             results = measure(port, paths, args.requests, args.connections, args.rounds,
-                              args.max_seconds)
+                              args.max_seconds, psutil.Process(proc.pid))
             print(f"{args.requests} requests per endpoint and measurement in {args.rounds} "
                   f"interleaved rounds, one uvicorn worker ({server_stack()}), store "
                   f"{store.name} ({grid.label}); latency on 1 connection, throughput on "
                   f"{args.connections}")
-            print(f"{'endpoint':<15}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
-                  f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}")
+            print(f"{'endpoint':<18}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
+                  f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}{'cpu us':>9}{'1/cpu x':>9}")
             bare = results["bare"]
             for key, r in results.items():
                 r.update(p50_ratio=r["p50_ms"] / bare["p50_ms"],
-                         p99_ratio=r["p99_ms"] / bare["p99_ms"], rps_ratio=r["rps"] / bare["rps"])
-                print(f"{key:<15}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
-                      f"{r['p50_ratio']:8.2f}{r['p99_ratio']:8.2f}{r['rps_ratio']:8.2f}")
+                         p99_ratio=r["p99_ms"] / bare["p99_ms"], rps_ratio=r["rps"] / bare["rps"],
+                         cpu_ratio=bare["cpu_us"] / max(r["cpu_us"], 1e-9))
+                print(f"{key:<18}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
+                      f"{r['p50_ratio']:8.2f}{r['p99_ratio']:8.2f}{r['rps_ratio']:8.2f}"
+                      f"{r['cpu_us']:9.0f}{r['cpu_ratio']:9.2f}")
+            print("cpu us: the server's CPU time per request of the throughput phase; 1/cpu x: "
+                  "the bare endpoint's over it (the throughput ratio of a server with a core "
+                  "of its own)")
 
             for key in ("sh", "sh+normal", "maps"):
                 if f"{key}[seg]" in results:

@@ -32,8 +32,14 @@ SH at points: the SH field
 A store baked with an SH field (:mod:`probegrid.bake.shfield`: radiance SH traced on a lattice
 about twice as fine as the probes' whose outer layers sit just inside the walls) answers
 :meth:`ProbeField.sh_at` from it: trilinear weights on that lattice with the same exact segment
-visibility and quarter-cell extrapolation as the probes' (:meth:`ProbeField.sh_weights`).
-``source="probes"`` (and a store without the field) blends the probes' SH instead.
+visibility and quarter-cell extrapolation as the probes' (:meth:`ProbeField.sh_weights`), and in
+the cells next to the walls the first-order term of the field's limited gradients
+(:mod:`probegrid.core.fieldgradient`). ``source="probes"`` (and a store without the field)
+blends the probes' SH instead.
+
+The segments of a point inside a cell (or the block of cells around it) that no triangle
+touches are not cast: it sees every corner (:meth:`ProbeField.clear_cells`,
+:mod:`probegrid.core.clearcells`; found once per lattice, the weights unchanged).
 
 SH without ringing
 ------------------
