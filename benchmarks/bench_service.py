@@ -35,6 +35,13 @@ Usage::
 
     .venv/bin/python benchmarks/bench_service.py [--store S.probes] [--requests 2000]
         [--connections 4] [--rounds 10] [--rss-requests 20000] [--max-seconds 300]
+        [--in-process]
+
+Besides requests per second it prints the server's CPU time per request of the throughput
+phase and the bare endpoint's over it (on a shared machine requests per second follow the
+machine's load; the CPU time a request costs the server much less), and with
+``--in-process`` the CPU time per request through the app called in this process (no HTTP
+server: what the routes themselves cost).
 
 Loopback only; every phase is bounded in requests and in time.
 """
@@ -156,6 +163,52 @@ def in_process_visibility_cost(plain: Path, seg: Path, lo: np.ndarray, hi: np.nd
             f"segment test {t_seg * 1e6:.1f} us ({t_seg / t_plain:.2f}x); the 8-segment "
             f"Embree query alone {t_cast * 1e6:.1f} us ({len(np.asarray(b.store['scene_triangles']))}"
             " triangles)")
+
+
+def in_process(stores: list[Path], paths: dict[str, list[bytes]], requests: int, rounds: int
+               ) -> dict[str, float]:
+    """CPU microseconds per request of every endpoint through the app itself (ASGI calls in
+    this process, no HTTP server or socket): the best of ``rounds`` rounds of ``requests``,
+    the endpoints interleaved. The HTTP server's own cost per request (the same for every
+    endpoint) is left out, and the CPU time of this process follows the machine's load far
+    less than requests per second do."""
+    from service.main import create_app
+
+    app = create_app(stores)
+
+    async def call(path: bytes) -> None:
+        route, _, query = path.partition(b"?")
+        scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1",
+                 "method": "GET", "scheme": "http", "path": route.decode(), "raw_path": route,
+                 "query_string": query, "root_path": "", "headers": [(b"host", b"bench")],
+                 "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 80), "state": {}}
+        sent: list[dict] = []
+
+        async def receive() -> dict:
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        await app(scope, receive, send)
+        if sent[0]["status"] != 200:
+            raise RuntimeError(f"{path!r}: status {sent[0]['status']}")
+
+    async def run() -> dict[str, float]:
+        best = dict.fromkeys(paths, float("inf"))
+        async with app.router.lifespan_context(app):
+            for key, p in paths.items():  # warm-up
+                for k in range(min(200, requests)):
+                    await call(p[k % len(p)])
+            for _ in range(rounds):
+                for key, p in paths.items():
+                    t0 = time.process_time()
+                    for k in range(requests):
+                        await call(p[k % len(p)])
+                    best[key] = min(best[key], (time.process_time() - t0) / requests * 1e6)
+        return best
+
+    return asyncio.run(run())
 
 
 def free_port() -> int:
@@ -321,6 +374,9 @@ def main() -> None:
     parser.add_argument("--max-seconds", type=float, default=300.0,
                         help="time bound of each phase")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--in-process", action="store_true",
+                        help="also measure the CPU time per request through the app in this "
+                             "process (no HTTP server; see in_process)")
     parser.add_argument("--only", default="",
                         help="endpoints to measure besides bare (comma-separated names)")
     args = parser.parse_args()
@@ -377,6 +433,14 @@ def main() -> None:
                           f"{seg['rps'] / plain['rps']:.2f}x, p50 "
                           f"{(seg['p50_ms'] - plain['p50_ms']) * 1e3:+.0f} us")
 
+            if args.in_process:
+                cost = in_process(stores, paths, max(200, args.requests // args.rounds),
+                                  args.rounds)
+                print("in process (the app's ASGI calls, no HTTP server), CPU us per request, "
+                      "best of the rounds, and the bare endpoint's over it:")
+                for key, us in cost.items():
+                    print(f"  {key:<18}{us:9.1f}{cost['bare'] / us:8.2f}")
+                    results[key]["in_process_cpu_us"] = us
             if len(stores) > 1:
                 print(in_process_visibility_cost(stores[0], stores[1], grid.lo, grid.hi))
 

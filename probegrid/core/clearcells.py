@@ -3,7 +3,7 @@
 A point inside such a box sees every corner of the cell: the segment from the point to a corner
 lies in the box (a box is convex), and no triangle meets the box. The exact visibility test of
 the blending weights (:func:`probegrid.core.ddgi.probe_weights`, ``clear=``) then casts no ray
-for it -- in a room whose lattice stops short of the walls, almost every query.
+for it -- in a room whose lattice ends just inside the walls, almost every query.
 
 Cells
 -----
