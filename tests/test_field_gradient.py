@@ -4,7 +4,6 @@ term the SH field adds in its outer cells (ProbeField.sh_at)."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from test_sh_field import affine_sh, field_store
 
 from probegrid.bake.shfield import field_lattice

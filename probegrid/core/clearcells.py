@@ -41,15 +41,17 @@ from typing import Final
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from probegrid.core.grid import CORNER_OFFSETS, GridSpec
+from probegrid.core.grid import GridSpec
 
-__all__ = ["PAD_FRACTION", "PAIR_CHUNK", "REACH", "ClearCells", "clear_cells", "clear_pad",
-           "triangles_overlap_boxes"]
+__all__ = ["PAD_FRACTION", "PAIR_CHUNK", "REACH", "TRIANGLE_CHUNK", "ClearCells", "clear_cells",
+           "clear_pad", "triangles_overlap_boxes"]
 
 #: Padding of every box, as a fraction of the largest extent of the scene and the lattice.
 PAD_FRACTION: Final = 1e-5
 #: Cells each way a cell's block reaches (:class:`ClearCells`).
 REACH: Final = 1
+#: Triangles whose candidate cells are listed at once (bounds the broad phase's lists).
+TRIANGLE_CHUNK: Final = 4096
 #: Triangle-cell pairs tested at once (bounds the temporaries: about 1 KB a pair).
 PAIR_CHUNK: Final = 1 << 16
 
@@ -160,13 +162,14 @@ def clear_cells(grid: GridSpec, vertices: ArrayLike, triangles: ArrayLike, *,
     for reach in (0, REACH):  # the cell, then its block
         lo, hi = _window_boxes(pos.reshape(*grid.counts, 3), reach)
         touched = np.zeros(grid.n_probes, dtype=bool)
-        if len(tri):
-            cand_tri, cand_cell = _candidates(grid, v, tri, pos, lattice, is_base, pad, reach)
+        for first in range(0, len(tri), TRIANGLE_CHUNK):  # a loop over chunks of triangles
+            part = tri[first:first + TRIANGLE_CHUNK]
+            cand_tri, cand_cell = _candidates(grid, v, part, pos, lattice, is_base, pad, reach)
             for s in range(0, len(cand_tri), PAIR_CHUNK):  # a loop over chunks of pairs
                 t, c = cand_tri[s:s + PAIR_CHUNK], cand_cell[s:s + PAIR_CHUNK]
                 todo = ~touched[c]  # (a cell found touched needs no more tests)
                 t, c = t[todo], c[todo]
-                hit = triangles_overlap_boxes(v[tri[t]], lo[c] - pad, hi[c] + pad)
+                hit = triangles_overlap_boxes(v[part[t]], lo[c] - pad, hi[c] + pad)
                 touched[c[hit]] = True
         boxes.append((lo, hi, is_base & ~touched))
     (lo, hi, clear), (block_lo, block_hi, block_clear) = boxes
