@@ -93,7 +93,7 @@ if TYPE_CHECKING:
     from probegrid.bake.point import PointMaps, PointSettings, PointTracer
     from probegrid.scene import Scene
 
-__all__ = ['MAP_METHODS', 'SH_KINDS', 'SH_SOURCES', 'TRACE_CACHE', 'MapMethod', 'ProbeField',
+__all__ = ['FIELD_GRADIENT', 'MAP_METHODS', 'SH_KINDS', 'SH_SOURCES', 'TRACE_CACHE', 'MapMethod', 'ProbeField',
            'SHKind', 'SHSource']
 
 #: How :meth:`ProbeField.cube_at` makes a map: traced at the point (default) or blended.
@@ -107,6 +107,10 @@ SH_KINDS: Final[tuple[str, ...]] = choices(SHKind)
 
 #: What :meth:`ProbeField.sh_at` interpolates: the SH field (default, where stored) or the probes.
 SH_SOURCES: Final[tuple[str, ...]] = choices(SHSource)
+
+#: Whether :meth:`ProbeField.sh_at` adds the SH field's first-order term in the cells next to
+#: the walls by default (measured in docs/benchmarks.md, "The gradient term near the walls").
+FIELD_GRADIENT: Final = True
 
 #: Length left out at both ends of a visibility segment, in units of the smallest cell size
 #: (a point on a surface or a probe does not hide itself; far below any wall thickness).
@@ -375,15 +379,19 @@ class ProbeField:
                              clear=self.clear_cells("field")), "field"
 
     def sh_at(self, points: ArrayLike, *, normals: ArrayLike | None = None,
-              kind: SHKind = "deringed", source: SHSource = "field", gradient: bool = True
+              kind: SHKind = "deringed", source: SHSource = "field",
+              gradient: bool | None = None
               ) -> tuple[NDArray[np.float64], ProbeWeights, SHSource]:
         """``(n, 9, 3)`` float64 radiance SH at points, the weights used and what they index
         (:meth:`sh_weights`): interpolated on the SH field where the store has one (deringed
         at each lattice point, or ``kind="raw"``), else blended from the probes (:meth:`sh`).
         On the field, a point in a cell next to the walls (and one extrapolated beyond them)
         adds the first-order term of the field's limited gradients
-        (:mod:`probegrid.core.fieldgradient`; ``gradient=False``: the plain interpolation)."""
+        (:mod:`probegrid.core.fieldgradient`; ``gradient=False``: the plain interpolation;
+        None: :data:`FIELD_GRADIENT`)."""
         self._check_sh_kind(kind)
+        if gradient is None:
+            gradient = FIELD_GRADIENT
         w, used = self.sh_weights(points, normals=normals, source=source)
         if used == "probes":
             return self.sh(w, kind=kind), w, used
