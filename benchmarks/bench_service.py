@@ -35,6 +35,13 @@ Usage::
 
     .venv/bin/python benchmarks/bench_service.py [--store S.probes] [--requests 2000]
         [--connections 4] [--rounds 10] [--rss-requests 20000] [--max-seconds 300]
+        [--in-process]
+
+Besides requests per second it prints the server's CPU time per request of the throughput
+phase and the bare endpoint's over it (on a shared machine requests per second follow the
+machine's load; the CPU time a request costs the server much less), and with
+``--in-process`` the CPU time per request through the app called in this process (no HTTP
+server: what the routes themselves cost).
 
 Loopback only; every phase is bounded in requests and in time.
 """
@@ -158,6 +165,52 @@ def in_process_visibility_cost(plain: Path, seg: Path, lo: np.ndarray, hi: np.nd
             " triangles)")
 
 
+def in_process(stores: list[Path], paths: dict[str, list[bytes]], requests: int, rounds: int
+               ) -> dict[str, float]:
+    """CPU microseconds per request of every endpoint through the app itself (ASGI calls in
+    this process, no HTTP server or socket): the best of ``rounds`` rounds of ``requests``,
+    the endpoints interleaved. The HTTP server's own cost per request (the same for every
+    endpoint) is left out, and the CPU time of this process follows the machine's load far
+    less than requests per second do."""
+    from service.main import create_app
+
+    app = create_app(stores)
+
+    async def call(path: bytes) -> None:
+        route, _, query = path.partition(b"?")
+        scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1",
+                 "method": "GET", "scheme": "http", "path": route.decode(), "raw_path": route,
+                 "query_string": query, "root_path": "", "headers": [(b"host", b"bench")],
+                 "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 80), "state": {}}
+        sent: list[dict] = []
+
+        async def receive() -> dict:
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        await app(scope, receive, send)
+        if sent[0]["status"] != 200:
+            raise RuntimeError(f"{path!r}: status {sent[0]['status']}")
+
+    async def run() -> dict[str, float]:
+        best = dict.fromkeys(paths, float("inf"))
+        async with app.router.lifespan_context(app):
+            for key, p in paths.items():  # warm-up
+                for k in range(min(200, requests)):
+                    await call(p[k % len(p)])
+            for _ in range(rounds):
+                for key, p in paths.items():
+                    t0 = time.process_time()
+                    for k in range(requests):
+                        await call(p[k % len(p)])
+                    best[key] = min(best[key], (time.process_time() - t0) / requests * 1e6)
+        return best
+
+    return asyncio.run(run())
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -229,15 +282,28 @@ async def load(port: int, paths: list[bytes], requests: int, connections: int,
     return latencies, wall
 
 
+def _cpu_seconds(server: psutil.Process | None) -> float:
+    """The server process's CPU seconds so far (user + system; 0 without one)."""
+    if server is None:
+        return 0.0
+    t = server.cpu_times()
+    return float(t.user + t.system)
+
+
 def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections: int,
-            rounds: int, max_seconds: float) -> dict[str, dict[str, float]]:
+            rounds: int, max_seconds: float, server: psutil.Process | None = None
+            ) -> dict[str, dict[str, float]]:
     """Latency (1 connection) and throughput (``connections``) of every endpoint, ``requests``
-    of each per endpoint, in ``rounds`` interleaved rounds (module docstring)."""
+    of each per endpoint, in ``rounds`` interleaved rounds (module docstring), and the
+    server's CPU time per request of the throughput phases (``server``'s: on a loaded
+    machine the requests per second follow the machine's load, the CPU time a request costs
+    the server much less)."""
     for p in paths.values():  # warm-up
         asyncio.run(load(port, p, min(300, requests), connections, 30))
     one: dict[str, list[float]] = {k: [] for k in paths}
     many: dict[str, list[float]] = {k: [] for k in paths}
     wall = dict.fromkeys(paths, 0.0)
+    cpu = dict.fromkeys(paths, 0.0)
     deadline = time.monotonic() + max_seconds
     per = -(-requests // rounds)
     for r in range(rounds):
@@ -245,7 +311,9 @@ def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections
             break
         for key, p in paths.items():
             one[key] += asyncio.run(load(port, p, per, 1, max_seconds, r * per))[0]
+            c0 = _cpu_seconds(server)
             lat, w = asyncio.run(load(port, p, per, connections, max_seconds, r * per))
+            cpu[key] += _cpu_seconds(server) - c0
             many[key] += lat
             wall[key] += w
     results = {}
@@ -254,6 +322,7 @@ def measure(port: int, paths: dict[str, list[bytes]], requests: int, connections
         results[key] = {"p50_ms": float(np.percentile(a, 50)),
                         "p99_ms": float(np.percentile(a, 99)),
                         "rps": b.size / wall[key], "requests": float(a.size),
+                        "cpu_us": 1e6 * cpu[key] / max(b.size, 1),
                         "loaded_p50_ms": float(np.percentile(b, 50)),
                         "loaded_p99_ms": float(np.percentile(b, 99))}
     return results
@@ -305,6 +374,9 @@ def main() -> None:
     parser.add_argument("--max-seconds", type=float, default=300.0,
                         help="time bound of each phase")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--in-process", action="store_true",
+                        help="also measure the CPU time per request through the app in this "
+                             "process (no HTTP server; see in_process)")
     parser.add_argument("--only", default="",
                         help="endpoints to measure besides bare (comma-separated names)")
     args = parser.parse_args()
@@ -334,19 +406,24 @@ def main() -> None:
                 keep = {"bare", *args.only.split(",")}
                 paths = {k: v for k, v in paths.items() if k in keep}
             results = measure(port, paths, args.requests, args.connections, args.rounds,
-                              args.max_seconds)
+                              args.max_seconds, psutil.Process(proc.pid))
             print(f"{args.requests} requests per endpoint and measurement in {args.rounds} "
                   f"interleaved rounds, one uvicorn worker ({server_stack()}), store "
                   f"{store.name} ({grid.label}); latency on 1 connection, throughput on "
                   f"{args.connections}")
-            print(f"{'endpoint':<15}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
-                  f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}")
+            print(f"{'endpoint':<18}{'p50 ms':>9}{'p99 ms':>9}{'req/s':>9}"
+                  f"{'p50 x':>8}{'p99 x':>8}{'rps x':>8}{'cpu us':>9}{'1/cpu x':>9}")
             bare = results["bare"]
             for key, r in results.items():
                 r.update(p50_ratio=r["p50_ms"] / bare["p50_ms"],
-                         p99_ratio=r["p99_ms"] / bare["p99_ms"], rps_ratio=r["rps"] / bare["rps"])
-                print(f"{key:<15}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
-                      f"{r['p50_ratio']:8.2f}{r['p99_ratio']:8.2f}{r['rps_ratio']:8.2f}")
+                         p99_ratio=r["p99_ms"] / bare["p99_ms"], rps_ratio=r["rps"] / bare["rps"],
+                         cpu_ratio=bare["cpu_us"] / max(r["cpu_us"], 1e-9))
+                print(f"{key:<18}{r['p50_ms']:9.3f}{r['p99_ms']:9.3f}{r['rps']:9.0f}"
+                      f"{r['p50_ratio']:8.2f}{r['p99_ratio']:8.2f}{r['rps_ratio']:8.2f}"
+                      f"{r['cpu_us']:9.0f}{r['cpu_ratio']:9.2f}")
+            print("cpu us: the server's CPU time per request of the throughput phase; 1/cpu x: "
+                  "the bare endpoint's over it (the throughput ratio of a server with a core "
+                  "of its own)")
 
             for key in ("sh", "sh+normal", "maps"):
                 if f"{key}[seg]" in results:
@@ -356,6 +433,14 @@ def main() -> None:
                           f"{seg['rps'] / plain['rps']:.2f}x, p50 "
                           f"{(seg['p50_ms'] - plain['p50_ms']) * 1e3:+.0f} us")
 
+            if args.in_process:
+                cost = in_process(stores, paths, max(200, args.requests // args.rounds),
+                                  args.rounds)
+                print("in process (the app's ASGI calls, no HTTP server), CPU us per request, "
+                      "best of the rounds, and the bare endpoint's over it:")
+                for key, us in cost.items():
+                    print(f"  {key:<18}{us:9.1f}{cost['bare'] / us:8.2f}")
+                    results[key]["in_process_cpu_us"] = us
             if len(stores) > 1:
                 print(in_process_visibility_cost(stores[0], stores[1], grid.lo, grid.hi))
 

@@ -18,7 +18,9 @@ visibility the service applies:
 
 And the SH field (:mod:`probegrid.bake.shfield`, what ``/sh`` interpolates by default): ``field
 none`` / ``field normal`` (:meth:`probegrid.query.ProbeField.sh_at`, the normal used for the
-visibility segments' start), next to ``at point``: the SH of a probe traced at the point itself
+visibility segments' start; with the first-order term of the field's limited gradients in the
+cells next to the walls, :mod:`probegrid.core.fieldgradient`), ``field plain`` (the same
+without that term), next to ``at point``: the SH of a probe traced at the point itself
 at the bake's face size (the estimator's own error; the interpolation's share is the rest).
 ``--refine 1,2,3`` also traces fields of other densities on the same store (``--field-face``
 texels a face) and prints their error against their cost: CPU seconds over the bake's (the
@@ -141,9 +143,12 @@ def main(argv: list[str] | None = None) -> None:
         if field.sh_field is not None:
             err["field none"] = errors(field.sh_at(pts, source="field")[0])
             err["field normal"] = errors(field.sh_at(pts, normals=nrms, source="field")[0])
+            err["field plain"] = errors(field.sh_at(pts, normals=nrms, source="field",
+                                                    gradient=False)[0])
         tracer = field.point_tracer()
         err["at point"] = errors(np.array([sh.project_cube(c) for c in tracer.incoming(pts)]))
-        columns = [*variants, *(k for k in ("field none", "field normal", "at point")
+        columns = [*variants, *(k for k in ("field none", "field normal", "field plain",
+                                            "at point")
                                 if k in err)]
         quality = open_store(store_path).manifest.quality
         stages = quality.get("stage_seconds", {})
@@ -189,6 +194,13 @@ def main(argv: list[str] | None = None) -> None:
                   f"{100 * err['field normal'].max():.2f} %; better at "
                   f"{int((gained > 0.005).sum())}, worse at {int((gained < -0.005).sum())} of "
                   f"{len(pts)} points; the normal makes it worse at {int(worse.sum())}")
+            g = err["field plain"] - err["field normal"]
+            print(f"the field's gradient term (field normal) against the plain interpolation "
+                  f"(field plain): mean {100 * err['field plain'].mean():.2f} -> "
+                  f"{100 * err['field normal'].mean():.2f} %, worst "
+                  f"{100 * err['field plain'].max():.2f} -> {100 * err['field normal'].max():.2f}"
+                  f" %; better at {int((g > 0.005).sum())}, worse at {int((g < -0.005).sum())} "
+                  f"(by up to {100 * max(0.0, -g.min()):.2f} points) of {len(pts)} points")
             if "sh field" in stages:
                 print(f"its bake stage: {stages['sh field']:.1f} s over the rest of the bake's "
                       f"{bake_s:.1f} s (x{1 + stages['sh field'] / bake_s:.2f} the bake's time)")

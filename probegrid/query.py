@@ -32,8 +32,14 @@ SH at points: the SH field
 A store baked with an SH field (:mod:`probegrid.bake.shfield`: radiance SH traced on a lattice
 about twice as fine as the probes' whose outer layers sit just inside the walls) answers
 :meth:`ProbeField.sh_at` from it: trilinear weights on that lattice with the same exact segment
-visibility and quarter-cell extrapolation as the probes' (:meth:`ProbeField.sh_weights`).
-``source="probes"`` (and a store without the field) blends the probes' SH instead.
+visibility and quarter-cell extrapolation as the probes' (:meth:`ProbeField.sh_weights`), and in
+the cells next to the walls the first-order term of the field's limited gradients
+(:mod:`probegrid.core.fieldgradient`). ``source="probes"`` (and a store without the field)
+blends the probes' SH instead.
+
+The segments of a point inside a cell (or the block of cells around it) that no triangle
+touches are not cast: it sees every corner (:meth:`ProbeField.clear_cells`,
+:mod:`probegrid.core.clearcells`; found once per lattice, the weights unchanged).
 
 SH without ringing
 ------------------
@@ -56,7 +62,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from probegrid._types import MapKind, MapMethod, SHKind, SHSource, choices
+from probegrid.core.clearcells import ClearCells, clear_cells
 from probegrid.core.cubemap import CubeMap
+from probegrid.core.fieldgradient import (
+    first_order_term,
+    gradient_table,
+    limited_gradients,
+    outer_cells,
+)
 from probegrid.core.ddgi import (
     DEFAULT_NORMAL_BIAS,
     MAP_KINDS,
@@ -80,7 +93,7 @@ if TYPE_CHECKING:
     from probegrid.bake.point import PointMaps, PointSettings, PointTracer
     from probegrid.scene import Scene
 
-__all__ = ['MAP_METHODS', 'SH_KINDS', 'SH_SOURCES', 'TRACE_CACHE', 'MapMethod', 'ProbeField',
+__all__ = ['FIELD_GRADIENT', 'MAP_METHODS', 'SH_KINDS', 'SH_SOURCES', 'TRACE_CACHE', 'MapMethod', 'ProbeField',
            'SHKind', 'SHSource']
 
 #: How :meth:`ProbeField.cube_at` makes a map: traced at the point (default) or blended.
@@ -94,6 +107,10 @@ SH_KINDS: Final[tuple[str, ...]] = choices(SHKind)
 
 #: What :meth:`ProbeField.sh_at` interpolates: the SH field (default, where stored) or the probes.
 SH_SOURCES: Final[tuple[str, ...]] = choices(SHSource)
+
+#: Whether :meth:`ProbeField.sh_at` adds the SH field's first-order term in the cells next to
+#: the walls by default (measured in docs/benchmarks.md, "The gradient term near the walls").
+FIELD_GRADIENT: Final = True
 
 #: Length left out at both ends of a visibility segment, in units of the smallest cell size
 #: (a point on a surface or a probe does not hide itself; far below any wall thickness).
@@ -166,6 +183,9 @@ class ProbeField:
                                     store.arrays["scene_triangles"])
             margin = SEGMENT_MARGIN * self.grid.smallest_cell(default=1.0)
             self._occluded = partial(self.tracer.segments_occluded, margin=margin)
+        self._clear: dict[str, ClearCells] = {}
+        self._gradients: dict[str, NDArray[np.float64]] = {}
+        self._clear_lock = threading.Lock()
         self._stored_deringed = "sh_deringed" in extras and "sh" in names
         if self._stored_deringed:
             store.arrays["sh_deringed"]  # mapped now, with the other arrays
@@ -253,6 +273,7 @@ class ProbeField:
             occluded=self._occluded,
             extrapolate=QUERY_EXTRAPOLATION if extrapolate else 0.0,
             facing=QUERY_FACING,
+            clear=self.clear_cells("probes"),
         )
 
     @cached_property
@@ -309,6 +330,29 @@ class ProbeField:
         return self.normal_bias * (self.grid.smallest_cell(default=1.0)
                                    / self.sh_field[0].smallest_cell(default=1.0))
 
+    def clear_cells(self, lattice: SHSource) -> ClearCells | None:
+        """The cells of the probes' grid (``"probes"``) or the SH field's lattice
+        (``"field"``) whose box no triangle of the store's scene touches
+        (:mod:`probegrid.core.clearcells`; None without the scene's triangles or that
+        lattice): a query point inside one casts no visibility segment. Found on first use
+        (a few milliseconds for thousands of cells and triangles) and kept."""
+        if self.tracer is None or (lattice == "field" and self.sh_field is None):
+            return None
+        got = self._clear.get(lattice)
+        if got is None:
+            with self._clear_lock:
+                got = self._clear.get(lattice)
+                if got is None:
+                    if lattice == "field":
+                        assert self.sh_field is not None
+                        grid, positions = self.sh_field[0], self.sh_field[2]
+                    else:
+                        grid, positions = self.grid, self._visibility[1]
+                    got = self._clear[lattice] = clear_cells(
+                        grid, self.store.arrays["scene_vertices"],
+                        self.store.arrays["scene_triangles"], positions=positions)
+        return got
+
     def sh_source(self, kind: SHKind = "deringed") -> str:
         """Where :meth:`sh` takes the ``kind`` coefficients from: ``"store"`` or, for deringed
         SH of a store without them, ``"computed"`` (deringed on first use)."""
@@ -331,20 +375,77 @@ class ProbeField:
         return probe_weights(lattice, points, valid=valid, normals=normals,
                              probe_positions=positions, normal_bias=self._sh_field_bias,
                              occluded=self._occluded,
-                             extrapolate=QUERY_EXTRAPOLATION, facing=False), "field"
+                             extrapolate=QUERY_EXTRAPOLATION, facing=False,
+                             clear=self.clear_cells("field")), "field"
 
     def sh_at(self, points: ArrayLike, *, normals: ArrayLike | None = None,
-              kind: SHKind = "deringed", source: SHSource = "field"
+              kind: SHKind = "deringed", source: SHSource = "field",
+              gradient: bool | None = None
               ) -> tuple[NDArray[np.float64], ProbeWeights, SHSource]:
         """``(n, 9, 3)`` float64 radiance SH at points, the weights used and what they index
         (:meth:`sh_weights`): interpolated on the SH field where the store has one (deringed
-        at each lattice point, or ``kind="raw"``), else blended from the probes (:meth:`sh`)."""
+        at each lattice point, or ``kind="raw"``), else blended from the probes (:meth:`sh`).
+        On the field, a point in a cell next to the walls (and one extrapolated beyond them)
+        adds the first-order term of the field's limited gradients
+        (:mod:`probegrid.core.fieldgradient`; ``gradient=False``: the plain interpolation;
+        None: :data:`FIELD_GRADIENT`)."""
         self._check_sh_kind(kind)
+        if gradient is None:
+            gradient = FIELD_GRADIENT
         w, used = self.sh_weights(points, normals=normals, source=source)
         if used == "probes":
             return self.sh(w, kind=kind), w, used
         name = "sh_field" if kind == "deringed" else "sh_field_raw"
-        return blend(self.store.arrays[name], w), w, used
+        coefficients = blend(self.store.arrays[name], w)
+        if gradient:
+            if len(w) == 1:  # (one point: Python's flags, no array of rows)
+                if self._field_outer[1][int(w.indices[0, 0])] and not w.unlit[0]:
+                    coefficients += first_order_term(
+                        self._gradient_table(kind), w.indices, w.weights,
+                        w.points).reshape(coefficients.shape)
+            else:
+                rows = np.flatnonzero(self._field_outer[0][w.indices[:, 0]] & ~w.unlit)
+                if rows.size:
+                    coefficients[rows] += first_order_term(
+                        self._gradient_table(kind), w.indices[rows], w.weights[rows],
+                        w.points[rows]).reshape(-1, *coefficients.shape[1:])
+        return coefficients, w, used
+
+    @cached_property
+    def _field_outer(self) -> tuple[NDArray[np.bool_], list[bool]]:
+        """Per SH field lattice point, whether its cell is one next to the walls
+        (:func:`probegrid.core.fieldgradient.outer_cells`), as an array and a list."""
+        assert self.sh_field is not None
+        outer = outer_cells(self.sh_field[0])
+        return outer, outer.tolist()
+
+    def _gradient_table(self, kind: SHKind) -> NDArray[np.float64]:
+        """:func:`probegrid.core.fieldgradient.gradient_table` of :meth:`field_gradients`."""
+        got = self._gradients.get(f"table {kind}")
+        if got is None:
+            assert self.sh_field is not None
+            table = gradient_table(self.field_gradients(kind), self.sh_field[2])
+            with self._clear_lock:
+                got = self._gradients.setdefault(f"table {kind}", table)
+        return got
+
+    def field_gradients(self, kind: SHKind = "deringed") -> NDArray[np.float64]:
+        """``(M, 9, 3, 3)`` limited gradients of the SH field's ``kind`` coefficients
+        (:func:`probegrid.core.fieldgradient.limited_gradients`), found on first use and
+        kept."""
+        self._check_sh_kind(kind)
+        if self.sh_field is None:
+            raise ValueError("this store has no SH field.")
+        got = self._gradients.get(kind)
+        if got is None:
+            with self._clear_lock:
+                got = self._gradients.get(kind)
+                if got is None:
+                    lattice, valid, _ = self.sh_field
+                    name = "sh_field" if kind == "deringed" else "sh_field_raw"
+                    got = self._gradients[kind] = limited_gradients(
+                        self.store.arrays[name], lattice, valid=valid)
+        return got
 
     def cube(self, weights: ProbeWeights, kind: MapKind, *, level: int = 0) -> NDArray[np.float32]:
         """``(n, 6, s, s, 3)`` float32 blended cube of one map kind and level."""

@@ -149,6 +149,10 @@ class ServedGrid:
             raise StoreError(f"{path} changed while it was opened")
         check_store(store)
         field = ProbeField(store)
+        for lattice in ("probes", "field"):  # found now, not by the first query
+            field.clear_cells(lattice)
+        if field.sh_field is not None:
+            field._gradient_table("deringed")
         arrays = store.manifest.arrays
         valid = int(np.count_nonzero(store.arrays["valid"])) if "valid" in arrays else None
         grid = store.grid

@@ -47,8 +47,10 @@ def quadratic_sh(p: np.ndarray) -> np.ndarray:
     return affine_sh(p) + (p[:, 0] ** 2)[:, None, None]
 
 
-def field_store(path: Path, sh_of, *, refine: float = 2.0) -> ProbeField:
-    """A store of :data:`GRID` whose probes' SH and SH field are ``sh_of(positions)``."""
+def field_store(path: Path, sh_of, *, refine: float = 2.0,
+                valid: np.ndarray | None = None) -> ProbeField:
+    """A store of :data:`GRID` whose probes' SH and SH field are ``sh_of(positions)`` (the
+    field's points ``valid``, default all)."""
     arrays = linear_arrays(GRID)
     arrays["sh"] = sh_of(GRID.positions()).astype(np.float32)
     specs = {name: ArraySpec(shape=a.shape[1:], dtype=a.dtype.str, description=name)
@@ -63,7 +65,8 @@ def field_store(path: Path, sh_of, *, refine: float = 2.0) -> ProbeField:
                                                    lattice.counts], np.float64))
     writer.add_extra("sh_field", values)
     writer.add_extra("sh_field_raw", values)
-    writer.add_extra("sh_field_valid", np.ones(lattice.n_probes, bool))
+    writer.add_extra("sh_field_valid", np.ones(lattice.n_probes, bool) if valid is None
+                     else np.asarray(valid, bool))
     writer.finish(quality={"invalid_probes": 0})
     return ProbeField(open_store(path))
 

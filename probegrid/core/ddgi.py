@@ -54,7 +54,9 @@ Chebyshev estimate is not used (the exact test replaces it). The weights are the
 except where a segment crosses a silhouette edge of the scene: a probe that becomes visible
 takes its weight at once, which is the price of "no leak through walls" (DDGI's soft test trades
 the other way). :attr:`ProbeWeights.visibility` says which test was used: ``"segments"``,
-``"moments"`` (normal given, moments stored) or ``"none"``.
+``"moments"`` (normal given, moments stored) or ``"none"``. A point whose segments start inside
+a cell whose box no triangle touches (``clear``, :mod:`probegrid.core.clearcells`) sees every
+corner of it: no segment is cast, and the weights are the same.
 
 Outside the box
 ---------------
@@ -114,6 +116,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from probegrid._types import MapKind
+from probegrid.core.clearcells import ClearCells
 from probegrid.core.cubemap import direction_to_face_uv
 from probegrid.core.grid import CORNER_OFFSETS, GridSpec
 from probegrid.core.seams import add_border, border_sources
@@ -246,6 +249,7 @@ def probe_weights(
     occluded: Occlusion | None = None,
     extrapolate: float = 0.0,
     facing: bool = True,
+    clear: ClearCells | None = None,
 ) -> ProbeWeights:
     """Blending weights of the 8 probes around each point (see the module docstring).
 
@@ -279,6 +283,11 @@ def probe_weights(
         Apply DDGI's normal-facing term with ``normals``; ``False`` keeps the trilinear weights
         and uses the normal for the visibility test only (the biased start of the segments,
         the Chebyshev test's biased point).
+    clear : ClearCells, optional
+        The clear cells of ``grid`` among the triangles ``occluded`` tests
+        (:func:`probegrid.core.clearcells.clear_cells`, with ``probe_positions``): a point whose
+        segments start inside its cell's clear box casts none (they cannot meet a triangle).
+        The weights are those of the full test.
 
     Returns
     -------
@@ -321,7 +330,7 @@ def probe_weights(
             joined("indices"), joined("weights"), joined("points"), joined("outside"),
             joined("unlit"))
     if occluded is not None:
-        return _hide_occluded(grid, w, p, n, probe_positions, normal_bias, occluded)
+        return _hide_occluded(grid, w, p, n, probe_positions, normal_bias, occluded, clear)
     if n is not None and moments is not None:
         return dataclasses.replace(w, visibility="moments")
     return w
@@ -355,18 +364,24 @@ def _hide_occluded(
     probe_positions: ArrayLike | None,
     normal_bias: float,
     occluded: Occlusion,
+    clear: ClearCells | None = None,
 ) -> ProbeWeights:
     """``w`` with the weight of every probe hidden from the point set to 0, renormalised.
 
     Only the corners that carry weight are tested: one segment each, from the point (moved
-    ``normal_bias`` cells along the normal when there is one) to the probe's position.
+    ``normal_bias`` cells along the normal when there is one) to the probe's position; none of
+    a point whose start lies in its cell's clear box (``clear``).
     """
     if len(w) == 1:
-        return _hide_occluded_one(grid, w, p, normals, probe_positions, normal_bias, occluded)
-    rows, cols = np.nonzero(w.weights != 0)
+        return _hide_occluded_one(grid, w, p, normals, probe_positions, normal_bias, occluded,
+                                  clear)
+    starts = p if normals is None else p + _test_point_offset(grid, normal_bias) * normals
+    carrying = w.weights != 0
+    if clear is not None:
+        carrying &= ~clear.contains(w.indices[:, 0], starts)[:, None]
+    rows, cols = np.nonzero(carrying)
     weights = w.weights
     if rows.size:
-        starts = p if normals is None else p + _test_point_offset(grid, normal_bias) * normals
         ends = _probe_xyz(grid, w.indices[rows, cols], probe_positions)
         hidden = np.asarray(occluded(starts[rows], ends), dtype=bool)
         if hidden.any():
@@ -447,6 +462,7 @@ def _hide_occluded_one(
     probe_positions: ArrayLike | None,
     normal_bias: float,
     occluded: Occlusion,
+    clear: ClearCells | None = None,
 ) -> ProbeWeights:
     """:func:`_hide_occluded` of a single point, in Python floats around one segment query
     (numpy's per-call overhead is most of a single point's cost); the same weights."""
@@ -455,8 +471,15 @@ def _hide_occluded_one(
     if not used:
         return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")
     il = w.indices[0].tolist()
+    x, y, z = p[0].tolist()
+    if normals is not None:
+        off = _test_point_offset(grid, normal_bias)
+        nx, ny, nz = normals[0].tolist()
+        x, y, z = x + off * nx, y + off * ny, z + off * nz  # p + off * normals, as numpy does
+    if clear is not None and clear.contains_one(il[0], x, y, z):
+        return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")
     ends = _probe_xyz(grid, np.array([il[c] for c in used]), probe_positions)
-    start = p if normals is None else p + _test_point_offset(grid, normal_bias) * normals
+    start = np.array([[x, y, z]])
     hidden = occluded(start, ends).tolist()  # one start row: shared by every segment
     if not any(hidden):
         return ProbeWeights(w.indices, w.weights, w.points, w.outside, w.unlit, "segments")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 from probegrid.core.ddgi import ProbeWeights
@@ -21,14 +22,25 @@ def probes_json(grid: GridSpec, weights: ProbeWeights, row: int = 0, *,
     order, as :class:`service.schemas.ProbeUse` dicts (with their ``position`` on the lattice
     if asked)."""
     _, ny, nz = grid.counts  # linear index (i * ny + j) * nz + k, see probegrid.core.grid
-    out = [{"index": i, "ijk": [i // (ny * nz), i // nz % ny, i % nz], "weight": w}
-           for i, w in _used(weights, row)]
-    if positions and out:  # (lattice point: bounds_min + ijk (bounds_max - bounds_min) / (n - 1))
-        lo, hi, n = grid.bounds_min, grid.bounds_max, grid.counts
-        for p in out:
-            p["position"] = [lo[a] + p["ijk"][a] * (hi[a] - lo[a]) / (n[a] - 1) if n[a] > 1
-                             else lo[a] for a in range(3)]
+    cx, cy, cz = _lattice_coordinates(grid) if positions else ((), (), ())
+    out = []
+    for i, w in _used(weights, row):
+        a, b, c = i // (ny * nz), i // nz % ny, i % nz
+        p = {"index": i, "ijk": [a, b, c], "weight": w}
+        if positions:
+            p["position"] = [cx[a], cy[b], cz[c]]
+        out.append(p)
     return out
+
+
+@lru_cache(maxsize=16)
+def _lattice_coordinates(grid: GridSpec) -> tuple[list[float], list[float], list[float]]:
+    """Per axis the lattice's coordinates ``bounds_min + i (bounds_max - bounds_min) / (n - 1)``
+    (``bounds_min`` on an axis of one point), once a grid."""
+    lo, hi, n = grid.bounds_min, grid.bounds_max, grid.counts
+    x, y, z = ([lo[a] + t * (hi[a] - lo[a]) / (n[a] - 1) if n[a] > 1 else lo[a]
+                for t in range(n[a])] for a in range(3))
+    return x, y, z
 
 
 def flags_json(weights: ProbeWeights, *, visibility: bool, row: int = 0) -> dict[str, Any]:
