@@ -9,23 +9,30 @@
   positions), ``source=probes`` keeps the probes' blend, a bad ``source`` is a 422; the bake's
   options refuse bad values.
 * A real bake (``slow``): the field's lattice is what the bake traced -- SH of probes traced at
-  its points (:class:`probegrid.bake.point.PointTracer`, the ground truth generator) -- and at
+  its points (:class:`probegrid.bake.point.PointTracer`, the ground truth generator) with the
+  preset the field uses, reading the store's surface cache at the rays' hits -- and at
   points near the walls the field is closer to the SH traced at the point than the probes'
   blend; giving the surface normal never makes a point's answer worse.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import asyncio
+import dataclasses
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 from probe_stores import GRID, linear_arrays
 
-from probegrid.bake.shfield import SH_FIELD_EXTRAS, field_lattice, lattice_from_extra
+from probegrid.bake.shfield import (
+    FIELD_QUALITY,
+    SH_FIELD_EXTRAS,
+    field_lattice,
+    field_settings,
+    lattice_from_extra,
+)
 from probegrid.core.conventions import conventions
 from probegrid.core.grid import GridSpec
 from probegrid.query import ProbeField
@@ -235,10 +242,20 @@ def test_baked_field_is_traced_sh_at_its_lattice(baked):
     lattice, valid, _ = f.sh_field
     assert lattice == field_lattice(f.grid, 2.0) and lattice.counts == (5, 5, 5)
     raw = np.asarray(f.store.arrays["sh_field_raw"])
-    tracer = PointTracer.from_store(f.store, scene, settings=PointSettings(face_size=8))
+    # its points are traced as the service's preset traces a point: the rays' hits read the
+    # store's surface cache (no gather)
+    assert {"surface_lattice", "surface_light"} <= set(f.store.manifest.extras)
+    settings = dataclasses.replace(PointSettings.preset(FIELD_QUALITY), face_size=8)
+    assert settings == field_settings(True, 8) and settings.indirect != "gather"
+    tracer = PointTracer.from_store(f.store, scene, settings=settings)
+    assert tracer.cache is not None
     some = np.array([0, 31, 62, 124])
     expected = np.array([project_cube(c) for c in tracer.incoming(lattice.positions()[some])])
     np.testing.assert_allclose(raw[some], expected, rtol=1e-5, atol=1e-6 * np.abs(raw).max())
+    # (the bake's gather at every hit gives other bits)
+    gathered = PointTracer.from_store(f.store, scene, settings=field_settings(False, 8))
+    other = np.array([project_cube(c) for c in gathered.incoming(lattice.positions()[some])])
+    assert np.abs(other - raw[some]).max() > 1e-3 * np.abs(raw).max()
     # the probes' region is stored by the same arrays as before (the field is extras only)
     assert "sh_field" not in f.store.manifest.arrays
 
