@@ -36,7 +36,8 @@ concave corner.
 The cache's random numbers are one counter-based stream per purpose
 (:func:`probegrid.bake.kernels.sampling.stream_uniforms`) keyed by the bake's seed and
 :data:`CACHE_STREAM`, a row per vertex and ray: a bake's cache is the same bits whatever its
-chunks.
+chunks, which are shaded on :data:`THREADS` threads (the cache runs in the bake's own process
+after the probes' passes, which had every core).
 """
 
 from __future__ import annotations
