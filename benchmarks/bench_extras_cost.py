@@ -10,7 +10,7 @@ shared machine changes least; the target is ``(passes + extras) / passes <= 1.5`
 
 Run::
 
-    .venv/bin/python benchmarks/bench_extras_cost.py                        # data/sample_room.glb 8x6x8, faces 32
+    .venv/bin/python benchmarks/bench_extras_cost.py           # data/sample_room.glb 8x6x8, faces 32
     .venv/bin/python benchmarks/bench_extras_cost.py --grid 4x3x4 --face-size 16
 """
 

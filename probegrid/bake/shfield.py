@@ -61,8 +61,8 @@ from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
 
-__all__ = ["FIELD_QUALITY", "INSET", "SH_FIELD_EXTRAS", "field_lattice", "field_settings", "lattice_from_extra", "trace_sh_field",
-           "write_sh_field"]
+__all__ = ["FIELD_QUALITY", "INSET", "SH_FIELD_EXTRAS", "field_lattice", "field_settings",
+           "lattice_from_extra", "trace_sh_field", "write_sh_field"]
 
 #: Distance of the lattice's outer layers from the cells' box (the walls), in lattice steps.
 INSET: Final = 0.1
@@ -145,8 +145,9 @@ def _unpublished(writer: StoreWriter, plan: dict[str, Any], level: int) -> _Unpu
 def write_sh_field(writer: StoreWriter, scene: Scene, *, plan: dict[str, Any], level: int,
                    refine: float, face_size: int, invalid_threshold: float,
                    tracer: Any = None) -> GridSpec:
-    """Trace the SH field of a bake whose probes and point-tracing extras
-    (:func:`probegrid.bake.extras.write_store_extras`) are written, and add its extras
+    """Trace the SH field of a bake whose probes, point-tracing extras and surface cache
+    (:func:`probegrid.bake.extras.write_store_extras`; its points read the cache,
+    :func:`field_settings`) are written, and add its extras
     (module docstring) to ``writer``; returns the lattice. ``plan`` is the manifest's ``bake``
     (settings, render, environment), ``level`` the final pass's bounce level."""
     store = _unpublished(writer, plan, level)
