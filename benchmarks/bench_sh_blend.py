@@ -23,7 +23,8 @@ cells next to the walls, :mod:`probegrid.core.fieldgradient`), ``field plain`` (
 without that term), next to ``at point``: the SH of a probe traced at the point itself
 at the bake's face size (the estimator's own error; the interpolation's share is the rest).
 ``--refine 1,2,3`` also traces fields of other densities on the same store (``--field-face``
-texels a face) and prints their error against their cost: CPU seconds over the bake's (the
+texels a face, ``--field-quality`` the point presets their points are traced with: the surface
+cache read at the rays' hits, or the bake's gather) and prints their error against their cost: CPU seconds over the bake's (the
 store's ``stage_seconds``, and the default field's own stage when the store has one).
 
 Prints a per-point table, per-variant mean / worst, and how many points a normal makes worse
@@ -35,6 +36,7 @@ than no normal (by more than 0.5 %). Run::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -70,7 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     from probegrid.bake import BakeSettings
     from probegrid.core import sh
     from probegrid.bake.point import PointSettings, PointTracer
-    from probegrid.bake.shfield import field_lattice, trace_sh_field
+    from probegrid.bake.shfield import FIELD_QUALITY, field_lattice, trace_sh_field
     from probegrid.core.ddgi import blend, probe_weights
     from probegrid.core.sh.dering import dering
     from probegrid.jobs.bake import load_environment
@@ -94,6 +96,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="their face sizes (comma-separated)")
     ap.add_argument("--field-gather", default="",
                     help="their gather samples and depth, S:D (default: the bake's)")
+    ap.add_argument("--field-quality", default="",
+                    help="how their points are traced: point presets (fast, accurate, "
+                         "reference; comma-separated; default: the bake's field's)")
     ap.add_argument("--cells", default="",
                     help="extra extrapolation limits (cells, comma-separated) to compare, "
                          "with the normal used for visibility only")
@@ -154,13 +159,15 @@ def main(argv: list[str] | None = None) -> None:
         stages = quality.get("stage_seconds", {})
         bake_s = sum(v for k, v in stages.items() if k != "sh field")
         curve = []
-        for face in (int(x) for x in args.field_face.split(",") if args.refine):
+        qualities = args.field_quality.split(",") if args.field_quality else [FIELD_QUALITY]
+        for quality, face in ((q, int(x)) for q in qualities for x in args.field_face.split(",")
+                              if args.refine):
             gs, gd = ((int(x) for x in args.field_gather.split(":")) if args.field_gather
                       else (None, None))
+            ps = dataclasses.replace(PointSettings.preset(quality), face_size=face,
+                                     gather_samples=gs, gather_depth=gd)
             ft = PointTracer.from_store(open_store(store_path), scene, tracer=field.tracer,
-                                        settings=PointSettings(face_size=face,
-                                                               gather_samples=gs,
-                                                               gather_depth=gd))
+                                        settings=ps)
             ft.incoming(pts[:1])  # compiled before timing
             inv = float(open_store(store_path).manifest.bake["settings"]["invalid_threshold"])
             for r in (float(x) for x in args.refine.split(",")):
@@ -174,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
                                    / lattice.smallest_cell(), occluded=field._occluded,
                                    extrapolate=0.25, facing=False)
                 e = errors(blend(der, wf))
-                curve.append((r, face, lattice, cpu, e))
+                curve.append((r, f"{quality}, face {face}", lattice, cpu, e))
         print(f"\n== {label}, grid {grid.label}: {len(pts)} points, {int(outside.sum())} outside "
               f"the probes' box; E(n) error %, per point")
         print(f"{'#':>3s} {'kind':10s} {'out':3s} " + " ".join(f"{v:>19s}" for v in columns))
@@ -206,7 +213,7 @@ def main(argv: list[str] | None = None) -> None:
                       f"{bake_s:.1f} s (x{1 + stages['sh field'] / bake_s:.2f} the bake's time)")
         for r, face, lattice, cpu, e in curve:
             print(f"field refine {r:g} (lattice {lattice.label}, {lattice.n_probes} points, "
-                  f"face {face}): E(n) mean {100 * e.mean():.2f} %, worst "
+                  f"{face}): E(n) mean {100 * e.mean():.2f} %, worst "
                   f"{100 * e.max():.2f} %; traced in {cpu:.1f} CPU s, the store's bake "
                   f"{bake_s:.1f} s wall (x{1 + cpu / bake_s:.2f})")
         for mode in ("extrap", "extrap.25"):

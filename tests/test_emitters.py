@@ -120,3 +120,45 @@ def test_the_sample_rooms_panel_is_one_quad():
     em = Emitters.from_scene(load_gltf(Path(__file__).parents[1] / "data" / "sample_room.glb"))
     assert len(em) == 2 and em.analytic
     assert em.outlines[1].tolist() == [0, 4] and em.outlines[2].tolist() == [0, 1]
+
+
+def _triangle_solid_angle(p: np.ndarray, tri: np.ndarray) -> float:
+    """Van Oosterom & Strackee's solid angle of triangle ``tri (3, 3)`` seen from ``p``."""
+    a, b, c = tri - p
+    la, lb, lc = np.linalg.norm(a), np.linalg.norm(b), np.linalg.norm(c)
+    num = abs(np.dot(a, np.cross(b, c)))
+    den = la * lb * lc + np.dot(a, b) * lc + np.dot(a, c) * lb + np.dot(b, c) * la
+    return 2.0 * np.arctan2(num, den)
+
+
+def test_texel_views_of_many_cubes_are_each_cubes_view(monkeypatch):
+    """Cubes at many points at once (their shadow rays in shared queries, however they are
+    split) give each point's own view bit for bit; unoccluded, a view's radiance times the
+    texels' solid angles is the lamp's radiance times its exact solid angle."""
+    from probegrid.bake import emitters as mod
+    from probegrid.core.cubemap import texel_solid_angles
+
+    scene = _scene(True)
+    em = Emitters.from_scene(scene)
+    tracer = RayTracer(scene.vertices, scene.triangles)
+    rng = np.random.default_rng(5)
+    pts = np.column_stack([rng.uniform(-6, 6, 40), rng.uniform(-0.5, 2.5, 40),
+                           rng.uniform(-6, 6, 40)])
+    n = 8
+    one = [em.texel_view(p, n, tracer, 1e-5) for p in pts]
+    assert sum(len(t) for t, _, _ in one) > 0 and any(len(t) == 0 for t, _, _ in one)
+    for batch in (mod.VIEW_BATCH, 7):  # one query, and many small ones
+        monkeypatch.setattr(mod, "VIEW_BATCH", batch)
+        tex, val, off, rays = em.texel_views(pts, n, tracer, 1e-5)
+        assert off[0] == 0 and off[-1] == len(tex) and rays == sum(r for _, _, r in one)
+        for j, (t, v, _) in enumerate(one):
+            np.testing.assert_array_equal(tex[off[j]:off[j + 1]], t)
+            np.testing.assert_array_equal(val[off[j]:off[j + 1]], v)
+    # above the plate (y = 1.5, nothing between the point and the lamp): exact energy
+    p = np.array([0.1, 1.5, -0.2])
+    tex, val, _ = em.texel_view(p, n, tracer, 1e-5)
+    lamp = np.asarray(scene.vertices)[np.asarray(scene.triangles)[:2]]
+    omega = sum(_triangle_solid_angle(p, t) for t in lamp)
+    sa = texel_solid_angles(n).reshape(-1)
+    np.testing.assert_allclose((val * sa[tex, None]).sum(axis=0), np.array([3.0, 2.0, 1.0])
+                               * omega, rtol=1e-9)

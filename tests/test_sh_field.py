@@ -9,23 +9,30 @@
   positions), ``source=probes`` keeps the probes' blend, a bad ``source`` is a 422; the bake's
   options refuse bad values.
 * A real bake (``slow``): the field's lattice is what the bake traced -- SH of probes traced at
-  its points (:class:`probegrid.bake.point.PointTracer`, the ground truth generator) -- and at
+  its points (:class:`probegrid.bake.point.PointTracer`, the ground truth generator) with the
+  preset the field uses, reading the store's surface cache at the rays' hits -- and at
   points near the walls the field is closer to the SH traced at the point than the probes'
   blend; giving the surface normal never makes a point's answer worse.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import asyncio
+import dataclasses
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 from probe_stores import GRID, linear_arrays
 
-from probegrid.bake.shfield import SH_FIELD_EXTRAS, field_lattice, lattice_from_extra
+from probegrid.bake.shfield import (
+    FIELD_QUALITY,
+    SH_FIELD_EXTRAS,
+    field_lattice,
+    field_settings,
+    lattice_from_extra,
+)
 from probegrid.core.conventions import conventions
 from probegrid.core.grid import GridSpec
 from probegrid.query import ProbeField
@@ -188,6 +195,17 @@ def test_bake_options_are_checked():
 @pytest.fixture(scope="module")
 def baked(tmp_path_factory, real_data):
     """The CornellBox, 2 x 2 x 2 probes, one bounce, with its SH field; the scene too."""
+    return _bake_cornell(tmp_path_factory, real_data, face_size=8)
+
+
+@pytest.fixture(scope="module")
+def baked_cached(tmp_path_factory, real_data):
+    """:func:`baked` at faces 16, whose budget affords a surface cache (faces 8 do not: 70
+    lattice vertices for the box's 72 triangle sides)."""
+    return _bake_cornell(tmp_path_factory, real_data, face_size=16)
+
+
+def _bake_cornell(tmp_path_factory, real_data, *, face_size: int):
     from probegrid.bake import BakeSettings, bake
     from probegrid.bake.placement import grid_for
     from probegrid.scene import load_gltf
@@ -196,7 +214,7 @@ def baked(tmp_path_factory, real_data):
     scene = load_gltf(glb)
     out = tmp_path_factory.mktemp("field") / "cornell.probes"
     bake(scene, grid_for(scene, grid="2x2x2"), out, scene_file=glb,
-         settings=BakeSettings(face_size=8, bounces=1, diffuse_size=4))
+         settings=BakeSettings(face_size=face_size, bounces=1, diffuse_size=4))
     return ProbeField(open_store(out), scene=scene), scene
 
 
@@ -229,17 +247,33 @@ def irradiance_error(a: np.ndarray, ref: np.ndarray, n: np.ndarray) -> np.ndarra
 
 
 @pytest.mark.slow
-def test_baked_field_is_traced_sh_at_its_lattice(baked):
+@pytest.mark.parametrize("store", ["baked", "baked_cached"])
+def test_baked_field_is_traced_sh_at_its_lattice(store, request):
     from probegrid.bake.point import PointSettings, PointTracer
     from probegrid.core.sh.projection import project_cube
 
-    f, scene = baked
+    f, scene = request.getfixturevalue(store)
     assert set(SH_FIELD_EXTRAS) <= set(f.store.manifest.extras)
     lattice, valid, _ = f.sh_field
     assert lattice == field_lattice(f.grid, 2.0) and lattice.counts == (5, 5, 5)
     raw = np.asarray(f.store.arrays["sh_field_raw"])
-    tracer = PointTracer.from_store(f.store, scene, settings=PointSettings(face_size=8))
     some = np.array([0, 31, 62, 124])
+    has_cache = {"surface_lattice", "surface_light"} <= set(f.store.manifest.extras)
+    assert has_cache == (store == "baked_cached")
+    # with a surface cache its points are traced as the service's preset traces a point,
+    # the rays' hits reading the cache (no gather); without one, with the bake's gather
+    settings = field_settings(has_cache, 8)
+    if has_cache:
+        assert settings == dataclasses.replace(PointSettings.preset(FIELD_QUALITY), face_size=8)
+        assert settings.indirect != "gather"
+        # (the bake's gather at every hit gives other numbers)
+        gathered = PointTracer.from_store(f.store, scene, settings=field_settings(False, 8))
+        other = np.array([project_cube(c) for c in gathered.incoming(lattice.positions()[some])])
+        assert np.abs(other - raw[some]).max() > 0.01 * np.abs(raw[some]).max()
+    else:
+        assert settings == PointSettings(indirect="gather", face_size=8)
+    tracer = PointTracer.from_store(f.store, scene, settings=settings)
+    assert (tracer.cache is not None) == has_cache
     expected = np.array([project_cube(c) for c in tracer.incoming(lattice.positions()[some])])
     np.testing.assert_allclose(raw[some], expected, rtol=1e-5, atol=1e-6 * np.abs(raw).max())
     # the probes' region is stored by the same arrays as before (the field is extras only)

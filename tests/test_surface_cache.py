@@ -351,3 +351,43 @@ def test_each_vertex_gathers_its_reflected_light_to_a_few_percent(tmp_path, monk
     assert lit.mean() > 0.5
     err = np.abs(got[lit] / ref[lit] - 1.0)
     assert np.median(err) < 0.03, np.median(err)
+
+
+def test_threads_and_chunks_do_not_change_the_cache(furnace, monkeypatch):
+    """A lit panel over a floor (light that varies over the lattice) gathered against the
+    furnace's grid: its vertices shaded in one chunk on one thread, or in chunks of 37 on two,
+    give the same bits and rays."""
+    from probegrid.bake import surfacecache as sc
+    from probegrid.bake.environment import Environment
+    from probegrid.bake.records import GridData
+    from probegrid.bake.settings import TraceGeometry
+
+    _, store, _, _ = furnace
+    b = SceneBuilder()
+    lamp = b.add_material(Material(base_color=(0.5, 0.5, 0.5, 1.0), emissive=(3.0, 2.0, 1.0)))
+    grey = b.add_material(Material.diffuse(0.5))
+    b.add_quad((-0.3, 0.9, -0.3), (0.6, 0, 0), (0, 0, 0.6), material=lamp)  # faces -Y
+    b.add_quad((-1, -0.9, -1), (0, 0, 2), (2, 0, 0), material=grey)  # the floor, faces +Y
+    b.add_quad((-1, -0.9, -1), (2, 0, 0), (0, 1.8, 0), material=grey)  # a wall, faces +Z
+    scene = b.build()
+    mom = np.asarray(store["moments_bordered"])
+    cubes = np.asarray(store["grid_irradiance"])
+    data = GridData(store.grid, np.asarray(store["valid"], bool),
+                    np.asarray(store["positions"], np.float64), mom.reshape(-1, mom.shape[-1]),
+                    mom.shape[2] - 2, cubes.reshape(-1, 3))
+    geometry = TraceGeometry(ray_offset=1e-4, max_distance=100.0)
+
+    def cache(threads: int, chunk: int):
+        monkeypatch.setattr(sc, "THREADS", threads)
+        monkeypatch.setattr(sc, "CHUNK", chunk)
+        got = sc.bake_surface_cache(scene, Environment(), BakeSettings(**FAST), geometry, data,
+                                    level=2, plan=sc.plan_lattice(scene, 0.15))
+        assert got is not None
+        return got
+
+    lattice, one, rays = cache(1, 4096)
+    lattice2, two, rays2 = cache(2, 37)
+    assert len(one) > 4 * 37 and rays2 == rays
+    assert one[:, 0].std() > 0.05 * one[:, 0].mean() > 0  # (the light varies)
+    np.testing.assert_array_equal(lattice2, lattice)
+    np.testing.assert_array_equal(two, one)

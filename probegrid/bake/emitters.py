@@ -66,6 +66,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -93,6 +94,9 @@ __all__ = ["CLUSTER_ELONGATION", "MAX_ANALYTIC", "MAX_CLUSTERS", "VIEW_SUBDIVISI
 
 #: Sub-texels per texel side whose pieces of the emitters get their own visibility ray.
 VIEW_SUBDIVISION = 4
+#: Emitter pieces whose shadow rays :meth:`Emitters.texel_views` casts in one query (bounds its
+#: memory, about 100 bytes a piece).
+VIEW_BATCH = 1 << 18
 
 #: Edges of the emitters' outlines (:func:`emitter_outlines`) up to which the exact unoccluded
 #: integral is used at every hit (its cost grows with them; above, plain next-event estimation).
@@ -437,9 +441,74 @@ class Emitters:
         sub-texel and triangle piece for visibility, :data:`VIEW_SUBDIVISION`) and the rays
         cast.
         """
-        if len(self) == 0:
-            return np.zeros(0, np.int64), np.zeros((0, 3)), 0
-        o = np.ascontiguousarray(origin, dtype=np.float64)
+        tex, value, _, rays = self.texel_views(np.reshape(origin, (1, 3)), n, tracer, eps)
+        return tex, value, rays
+
+    def texel_views(self, origins: NDArray[np.float64], n: int, tracer: RayTracer, eps: float
+                    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], int]:
+        """:meth:`texel_view` of ``n``-cubes at ``origins (B, 3)``, the shadow rays of many cubes
+        cast in one query (up to :data:`VIEW_BATCH` pieces): the texel indices ``(k,)`` and mean
+        radiance ``(k, 3)`` of every cube, cube ``j``'s rows ``offsets[j]:offsets[j + 1]``
+        (``offsets (B + 1,)``), and the rays cast. Each cube's rows are what
+        :meth:`texel_view` gives at its origin, bit for bit."""
+        org = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
+        b = len(org)
+        if len(self) == 0 or b == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(b + 1, np.int64), 0
+        texs, vals, rows, rays = [], [], np.zeros(b, np.int64), 0
+        j0, parts, pieces = 0, [], 0
+        for j in range(b):  # the coverage kernel per cube (a loop over cubes, not texels)
+            parts.append(self._coverage(org[j], n))
+            pieces += len(parts[-1][0])
+            if pieces >= VIEW_BATCH or j == b - 1:
+                t, v, rows[j0:j + 1], r = self._views(org[j0:j + 1], parts, n, tracer, eps)
+                texs.append(t)
+                vals.append(v)
+                rays += r
+                j0, parts, pieces = j + 1, [], 0
+        offsets = np.concatenate([[0], np.cumsum(rows)]).astype(np.int64)
+        return np.concatenate(texs), np.concatenate(vals), offsets, rays
+
+    def _views(self, org: NDArray[np.float64], parts: list[tuple[NDArray[Any], ...]], n: int,
+               tracer: RayTracer, eps: float
+               ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], int]:
+        """:meth:`texel_views` of the cubes at ``org (b, 3)`` from their pieces ``parts``
+        (:meth:`_coverage`): texels, radiance, rows per cube, rays cast."""
+        b, cube = len(org), 6 * n * n
+        counts = np.array([len(p[0]) for p in parts], np.int64)
+        tex, tri, omega, dirs, dist = (np.concatenate([p[i] for p in parts])
+                                       for i in range(5))
+        owner = np.repeat(np.arange(b), counts)
+        o = org[owner]
+        ok = np.isfinite(dist) & (dist > 2 * eps)
+        visible = np.zeros(len(tex), bool)
+        through = None
+        if ok.any() and tracer.tinted:  # (through tinted panes: their weights)
+            through = np.zeros((len(tex), 3))
+            through[ok] = tracer.occluded_weights(o[ok], dirs[ok],
+                                                  dist[ok] * (1 - 1e-4) - eps, tmin=eps)
+            visible = np.any(through > 0, axis=1)
+        elif ok.any():
+            visible[ok] = ~tracer.occluded(o[ok], dirs[ok], dist[ok] * (1 - 1e-4) - eps,
+                                           tmin=eps)
+        radiance = self.factor[tri].copy()
+        if self.textured.any() or self.covered.any():
+            sel = np.flatnonzero((self.textured[tri] | self.covered[tri]) & visible)
+            if sel.size:
+                radiance[sel] = self._radiance_at(tri[sel], o[sel] + dist[sel, None] * dirs[sel])
+        if through is not None:
+            radiance *= through
+        sa = texel_solid_angles(n).reshape(-1)
+        value = radiance * (omega * visible / sa[tex])[:, None]
+        # keys sorted by cube, then texel: each cube's own unique texels, in its order
+        uniq, inv = np.unique(owner * cube + tex, return_inverse=True)
+        rows = np.bincount(uniq // cube, minlength=b).astype(np.int64)
+        return (uniq % cube).astype(np.int64), sum_rows(inv, value, len(uniq)), rows, \
+            int(ok.sum())
+
+    def _coverage(self, o: NDArray[np.float64], n: int) -> tuple[NDArray[Any], ...]:
+        """The emitters' pieces over the texels of an ``n``-cube at ``o (3,)``: texel, triangle,
+        solid angle, direction and distance of each (sub-texel pieces mapped to their texel)."""
         # pieces of sub-texels (VIEW_SUBDIVISION^2 per texel), each with its own shadow ray:
         # an occluder's edge across a texel is resolved to a sub-texel; the coverage stays exact.
         # Emitters that would need more than 4 rays per texel of the whole cube get 1 per piece.
@@ -455,37 +524,14 @@ class Emitters:
                 cap = count
             if count <= min(cap, limit):
                 break
-        tex, tri, omega, dirs, dist = (tex[:count], tri[:count], omega[:count], dirs[:count],
-                                       dist[:count])
-        if count == 0:
-            return np.zeros(0, np.int64), np.zeros((0, 3)), 0
+        # (copies: the kernel's buffers hold room for 24 n^2 pieces)
+        tex, tri, omega, dirs, dist = (np.array(a[:count]) for a in (tex, tri, omega, dirs, dist))
         if sub > 1:  # sub-texel (face, row, col) of the m-cube -> texel of the n-cube
             face, rest = np.divmod(tex, m * m)
             row, col = np.divmod(rest, m)
             tex = (face * n + row // sub) * n + col // sub
-        ok = np.isfinite(dist) & (dist > 2 * eps)
-        visible = np.zeros(count, bool)
-        through = None
-        if ok.any() and tracer.tinted:  # (through tinted panes: their weights)
-            through = np.zeros((count, 3))
-            through[ok] = tracer.occluded_weights(np.broadcast_to(o, (int(ok.sum()), 3)),
-                                                  dirs[ok], dist[ok] * (1 - 1e-4) - eps,
-                                                  tmin=eps)
-            visible = np.any(through > 0, axis=1)
-        elif ok.any():
-            visible[ok] = ~tracer.occluded(np.broadcast_to(o, (int(ok.sum()), 3)), dirs[ok],
-                                           dist[ok] * (1 - 1e-4) - eps, tmin=eps)
-        radiance = self.factor[tri].copy()
-        if self.textured.any() or self.covered.any():
-            sel = np.flatnonzero((self.textured[tri] | self.covered[tri]) & visible)
-            if sel.size:
-                radiance[sel] = self._radiance_at(tri[sel], o + dist[sel, None] * dirs[sel])
-        if through is not None:
-            radiance *= through
-        sa = texel_solid_angles(n).reshape(-1)
-        value = radiance * (omega * visible / sa[tex])[:, None]
-        uniq, inv = np.unique(tex, return_inverse=True)
-        return uniq, sum_rows(inv, value, len(uniq)), int(ok.sum())
+        return (np.asarray(tex, np.int64), np.asarray(tri, np.int64), omega,
+                np.asarray(dirs, np.float64).reshape(-1, 3), dist)
 
     def _radiance_at(self, e: NDArray[np.int64], points: NDArray[np.float64]
                      ) -> NDArray[np.float64]:

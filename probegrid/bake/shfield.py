@@ -7,15 +7,24 @@ emitter, in a corner). ``/sh`` (:meth:`probegrid.query.ProbeField.sh_at`) interp
 SH-only field baked on a lattice of its own: the box of the grid's cells (the probes' box grown
 by half a cell each side, the scene's box for a default grid), inset by :data:`INSET` of a
 lattice step from each face, with ``refine`` lattice steps per probe cell (``refine * n + 1``
-points along an axis of ``n`` probes). Each lattice point is a probe traced there with the
-bake's own estimator against the converged grid (:class:`probegrid.bake.point.PointTracer`, the
-final pass's sibling) at a low face size -- three SH bands need about 8 (a ``6 x 8^2`` cube
-resolves the clamped-cosine lobe) -- and projected to SH; a point whose rays see too many back
-faces (inside a solid, the bake's ``invalid_threshold``) is invalid, as a probe would be.
+points along an axis of ``n`` probes). Each lattice point is a probe traced there against the
+converged bake (:class:`probegrid.bake.point.PointTracer`, the final pass's sibling) at a low
+face size -- three SH bands need about 8 (a ``6 x 8^2`` cube resolves the clamped-cosine lobe)
+-- and projected to SH; a point whose rays see too many back faces (inside a solid, the bake's
+``invalid_threshold``) is invalid, as a probe would be.
+
+The field is traced after the surface light cache (:mod:`probegrid.bake.surfacecache`) and
+reads it as a traced ``/maps`` answer of :data:`FIELD_QUALITY` does: the point's rays alone
+are cast, the punctual lights' shadow rays and the emitters' exact view stay exact, and every
+hit reads the light reflected at least once and the emitters' and environment's direct light
+from the cache, interpolated over its lattice, instead of gathering it (a bake without a cache
+gathers with the bake's own estimator). Against Mitsuba 3 that is as accurate as the gather
+(the cache averages 64 gather rays where a hit gathers 2) at a sixth of the cost.
 
 Cost: ``(refine n + 1)^3 / n^3`` points (about 8 at ``refine = 2``) of ``6 face^2`` rays where a
-probe traces ``6 face_size^2`` (16 times more at 8 against 32) and passes over its records once
-per bounce: measured in ``docs/benchmarks.md`` (``benchmarks/bench_bake.py``).
+probe traces ``6 face_size^2`` (16 times more at 8 against 32), a shadow ray per punctual light
+and a cache lookup per hit; the probes cast gather rays and light samples at every hit and pass
+over their records once per bounce. Measured in ``docs/benchmarks.md``.
 
 Store extras (memory-mapped as stored; :data:`SH_FIELD_EXTRAS`):
 
@@ -37,6 +46,7 @@ varies; here uniformly, bounded by the bake's cost).
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 from typing import Any, Final
 
@@ -44,14 +54,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.bake.point import PointSettings, PointTracer
+from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA
 from probegrid.core import sh as shlib
 from probegrid.core.grid import GridSpec
 from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
 
-__all__ = ["INSET", "SH_FIELD_EXTRAS", "field_lattice", "lattice_from_extra", "trace_sh_field",
-           "write_sh_field"]
+__all__ = ["FIELD_QUALITY", "INSET", "SH_FIELD_EXTRAS", "field_lattice", "field_settings",
+           "lattice_from_extra", "trace_sh_field", "write_sh_field"]
 
 #: Distance of the lattice's outer layers from the cells' box (the walls), in lattice steps.
 INSET: Final = 0.1
@@ -59,6 +70,16 @@ INSET: Final = 0.1
 SH_FIELD_EXTRAS: Final = ("sh_field_lattice", "sh_field", "sh_field_raw", "sh_field_valid")
 #: Lattice points traced at once (bounds the records' memory: about 6 face^2 hits each).
 BATCH: Final = 256
+#: The point preset (:data:`probegrid.bake.point.POINT_PRESETS`) the field's points are traced
+#: with when the store has a surface cache: their rays' hits read the cache.
+FIELD_QUALITY: Final = "fast"
+
+
+def field_settings(has_cache: bool, face_size: int) -> PointSettings:
+    """How the field's points are traced: :data:`FIELD_QUALITY` at ``face_size`` texels a face
+    with a surface cache, the bake's own gather without one."""
+    ps = PointSettings.preset(FIELD_QUALITY) if has_cache else PointSettings(indirect="gather")
+    return dataclasses.replace(ps, face_size=int(face_size))
 
 
 def field_lattice(grid: GridSpec, refine: float) -> GridSpec:
@@ -109,7 +130,8 @@ class _UnpublishedStore(SimpleNamespace):
 def _unpublished(writer: StoreWriter, plan: dict[str, Any], level: int) -> _UnpublishedStore:
     from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, MOMENTS_EXTRA
 
-    extras = {name for name in (GRID_EXTRA, MOMENTS_EXTRA, ENVIRONMENT_EXTRA)
+    extras = {name for name in (GRID_EXTRA, MOMENTS_EXTRA, ENVIRONMENT_EXTRA, LATTICE_EXTRA,
+                                LIGHT_EXTRA)
               if (writer.partial_path / f"{name}.npy").is_file()}
     arrays = {name: np.load(writer.partial_path / f"{name}.npy", mmap_mode="r")
               for name in extras}
@@ -123,13 +145,15 @@ def _unpublished(writer: StoreWriter, plan: dict[str, Any], level: int) -> _Unpu
 def write_sh_field(writer: StoreWriter, scene: Scene, *, plan: dict[str, Any], level: int,
                    refine: float, face_size: int, invalid_threshold: float,
                    tracer: Any = None) -> GridSpec:
-    """Trace the SH field of a bake whose probes and point-tracing extras
-    (:func:`probegrid.bake.extras.write_store_extras`) are written, and add its extras
+    """Trace the SH field of a bake whose probes, point-tracing extras and surface cache
+    (:func:`probegrid.bake.extras.write_store_extras`; its points read the cache,
+    :func:`field_settings`) are written, and add its extras
     (module docstring) to ``writer``; returns the lattice. ``plan`` is the manifest's ``bake``
     (settings, render, environment), ``level`` the final pass's bounce level."""
     store = _unpublished(writer, plan, level)
+    has_cache = {LATTICE_EXTRA, LIGHT_EXTRA} <= set(store.manifest.extras)
     pt = PointTracer.from_store(store, scene, tracer=tracer,
-                                settings=PointSettings(face_size=face_size))
+                                settings=field_settings(has_cache, face_size))
     lattice = field_lattice(writer.grid, refine)
     raw, valid = trace_sh_field(pt, lattice, invalid_threshold=invalid_threshold)
     deringed, _, _ = dering(raw)

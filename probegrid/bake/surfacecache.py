@@ -45,13 +45,16 @@ concave corner.
 The cache's random numbers are one counter-based stream per purpose
 (:func:`probegrid.bake.kernels.sampling.stream_uniforms`) keyed by the bake's seed and
 :data:`CACHE_STREAM`, a row per vertex and ray: a bake's cache is the same bits whatever its
-chunks.
+chunks, which are shaded on :data:`THREADS` threads (the cache runs in the bake's own process
+after the probes' passes, which had every core).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -111,6 +114,9 @@ INSET = 1e-3
 CACHE_STREAM = np.full((1, 3), -(2.0**62) * STREAM_STEP)
 #: Vertices shaded together.
 CHUNK = 4096
+#: Threads the chunks are shaded on: the machine's cores, at most 2 (the probes' passes run
+#: on every core; the cache runs after them, in the bake's own process).
+THREADS = min(2, os.cpu_count() or 1)
 
 
 def lattice_counts(res: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -323,11 +329,11 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     eps = geometry.ray_offset
     total = len(pos)
     light = np.zeros((total, 2, 3), np.float32)
-    keys: dict[int, NDArray[np.uint64]] = {}
+    # every purpose's stream keys made before the chunks run (on threads: none writes them)
+    keys = {purpose: _stream_keys(settings.seed, CACHE_STREAM, purpose)
+            for purpose in range(1, 3 * max(depth, 1) + 3)}
 
     def draw(purpose: int, per: int, width: int, rows: NDArray[np.int64]) -> NDArray[np.float64]:
-        if purpose not in keys:
-            keys[purpose] = _stream_keys(settings.seed, CACHE_STREAM, purpose)
         u = np.asarray(_draw_rows(keys[purpose], per, rows, width))
         if purpose == 3:  # a vertex's first gather rays: stratified over the unit square
             u = stratified(u, rows % CACHE_GATHER, CACHE_GATHER)
@@ -339,13 +345,18 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     g = irradiance_size(depth > 0)
     grid = data.cubes if data.cubes is not None else np.zeros((0, 3), np.float32)
     empty = np.zeros((0, 3), np.float32)
-    rays = 0
     bias = DEFAULT_NORMAL_BIAS * data.grid.smallest_cell()
-    for v0 in range(0, total, CHUNK):  # loop over chunks of vertices, not vertices
-        v1 = min(v0 + CHUNK, total)
+
+    # at most CHUNK vertices a chunk, at least one chunk per thread
+    chunk = max(1, min(CHUNK, -(-total // THREADS)))
+
+    def shade(v0: int) -> int:
+        """The light of vertices ``v0`` to ``v0 + chunk`` (written to ``light``); rays cast."""
+        v1 = min(v0 + chunk, total)
         k = v1 - v0
         p = pos[v0:v1]
         n = nrm[v0:v1]
+        rays = 0
         # direct light of the emitters and the environment, from just off the surface
         off = p + eps * n
         if ls:
@@ -359,7 +370,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
             light[v0:v1, 1] += (e / np.pi).astype(np.float32)
             rays += r
         if not kg or level < 1:
-            continue
+            return rays
         # the gather: the vertices as front hits seen from straight above
         above = Level(kind=np.ones(k, np.uint8), position=p, normal=n.astype(np.float32))
         arriving = -n
@@ -401,6 +412,16 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
             assert primary is not None
             below = mean_per_parent(*frozen((primary, reflected)), parents)
         light[v0:v1, 0] = below
+        return rays
+
+    # chunks of vertices, not vertices, on THREADS threads (Embree and the kernels release the
+    # GIL; each chunk's numbers depend only on its vertices: the same bits on any thread)
+    starts = range(0, total, chunk)
+    if THREADS > 1 and len(starts) > 1:
+        with ThreadPoolExecutor(THREADS, thread_name_prefix="probegrid-cache") as pool:
+            rays = sum(pool.map(shade, starts))
+    else:
+        rays = sum(shade(v0) for v0 in starts)
     return lattice, light, rays
 
 

@@ -343,9 +343,10 @@ class RecordTracer:
         emission = rec.emission
         assert emission is not None
         view_tex, view_val, view_off = [], [], [0]
+        texs, vals, offs, r = self.emitters.texel_views(pos, n, self.tracer, eps)
+        rays += r
         for j in range(b):  # loop over probes, not rays
-            tex, val, r = self.emitters.texel_view(pos[j], n, self.tracer, eps)
-            rays += r
+            tex, val = texs[offs[j]:offs[j + 1]], vals[offs[j]:offs[j + 1]]
             em = emission[j * nr:(j + 1) * nr]
             seen = em if s == 1 else texel_means(em, wts[j], s)
             delta = -np.asarray(seen, np.float64)
