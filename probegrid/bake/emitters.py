@@ -458,7 +458,7 @@ class Emitters:
         texs, vals, rows, rays = [], [], np.zeros(b, np.int64), 0
         j0, parts, pieces = 0, [], 0
         for j in range(b):  # the coverage kernel per cube (a loop over cubes, not texels)
-            parts.append(self._coverage(org[j], n))
+            parts.append(self._pieces(org[j], n))
             pieces += len(parts[-1][0])
             if pieces >= VIEW_BATCH or j == b - 1:
                 t, v, rows[j0:j + 1], r = self._views(org[j0:j + 1], parts, n, tracer, eps)
@@ -473,7 +473,7 @@ class Emitters:
                tracer: RayTracer, eps: float
                ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], int]:
         """:meth:`texel_views` of the cubes at ``org (b, 3)`` from their pieces ``parts``
-        (:meth:`_coverage`): texels, radiance, rows per cube, rays cast."""
+        (:meth:`_pieces`): texels, radiance, rows per cube, rays cast."""
         b, cube = len(org), 6 * n * n
         counts = np.array([len(p[0]) for p in parts], np.int64)
         tex, tri, omega, dirs, dist = (np.concatenate([p[i] for p in parts])
@@ -506,7 +506,7 @@ class Emitters:
         return (uniq % cube).astype(np.int64), sum_rows(inv, value, len(uniq)), rows, \
             int(ok.sum())
 
-    def _coverage(self, o: NDArray[np.float64], n: int) -> tuple[NDArray[Any], ...]:
+    def _pieces(self, o: NDArray[np.float64], n: int) -> tuple[NDArray[Any], ...]:
         """The emitters' pieces over the texels of an ``n``-cube at ``o (3,)``: texel, triangle,
         solid angle, direction and distance of each (sub-texel pieces mapped to their texel)."""
         # pieces of sub-texels (VIEW_SUBDIVISION^2 per texel), each with its own shadow ray:
