@@ -43,6 +43,7 @@ from probegrid.bake.records import GridData, grid_level_read, irradiance_size
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA, bake_surface_cache, cache_vertices
 from probegrid.core.ddgi import bordered_cubes
+from probegrid.core.grid import GridSpec
 from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
@@ -55,13 +56,16 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                        grid_irradiance: NDArray[np.float32] | None = None,
                        gather: bool = True, face_size: int = 32,
                        settings: BakeSettings | None = None,
-                       geometry: TraceGeometry | None = None, level: int = 0) -> int:
+                       geometry: TraceGeometry | None = None, level: int = 0,
+                       cache: tuple[NDArray[np.int64], NDArray[np.float32], int] | None = None
+                       ) -> int:
     """Add ``sh_deringed``, ``sh_window``, ``scene_vertices`` and ``scene_triangles`` to the
     finished-but-unpublished store of ``writer`` (every probe written), and with an
     ``environment`` the ``grid_irradiance`` (``grid_irradiance``: the cubes the final pass read,
     None for none; ``gather``: the bake traced gather rays) and ``environment`` extras
     (``face_size``: the probes'), and with ``settings`` and ``geometry`` too the surface cache
-    of the final pass at bounce ``level``; see the module docstring. Idempotent: a resumed bake
+    of the final pass at bounce ``level`` (``cache``: the one the final pass already built,
+    :func:`probegrid.bake.finalgather`); see the module docstring. Idempotent: a resumed bake
     writes the same extras again. Returns the rays the surface cache cast."""
     raw = np.asarray(writer.array("sh"), dtype=np.float64)
     deringed, window, _ = dering(raw)
@@ -94,8 +98,11 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                                      "rotation and intensity of the manifest's bake.environment")
     if settings is None or geometry is None:
         return 0
-    got = surface_cache(writer, scene, environment, settings, geometry, bordered=bordered,
-                        level=level)
+    got = cache if cache is not None else surface_cache(
+        scene, environment, settings, geometry, grid=writer.grid,
+        valid=writer.array("valid"), positions=writer.array("positions"),
+        moments=writer.array("moments"), bordered=bordered, level=level,
+        vertices=cache_vertices(settings, writer.n_probes))
     if got is None:  # more triangles than the budget: queries gather (no cache)
         return 0
     lattice, light, rays = got
@@ -110,18 +117,21 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
     return rays
 
 
-def surface_cache(writer: StoreWriter, scene: Scene, environment: Environment,
-                  settings: BakeSettings, geometry: TraceGeometry, *,
-                  bordered: NDArray[np.float32], level: int
-                  ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
-    """The surface cache of a bake (:func:`probegrid.bake.surfacecache.bake_surface_cache`),
-    its vertex budget :data:`~probegrid.bake.surfacecache.CACHE_COST` of the bake's shading
-    points."""
-    moments = bordered_cubes(writer.array("moments"))
+def surface_cache(scene: Scene, environment: Environment, settings: BakeSettings,
+                  geometry: TraceGeometry, *, grid: GridSpec, valid: NDArray[np.bool_],
+                  positions: NDArray[np.float64], moments: NDArray[np.float32],
+                  bordered: NDArray[np.float32], level: int, vertices: int,
+                  iterations: int = 0) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
+    """The surface cache of a bake (:func:`probegrid.bake.surfacecache.bake_surface_cache`)
+    of probes at ``positions`` (``valid``, their distance ``moments``) whose final pass, at
+    bounce ``level``, reads the ``bordered`` irradiance cubes, with at most ``vertices``
+    lattice vertices (:func:`~probegrid.bake.surfacecache.cache_vertices`: its budget
+    :data:`~probegrid.bake.surfacecache.CACHE_COST` of the bake's shading points), its
+    indirect light gathered ``iterations`` more times from the cache itself."""
+    moments = bordered_cubes(moments)
     depth = settings.gather_levels()
-    data = GridData(writer.grid, np.asarray(writer.array("valid"), bool),
-                    np.asarray(writer.array("positions"), np.float64),
+    data = GridData(grid, np.asarray(valid, bool), np.asarray(positions, np.float64),
                     moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
                     bordered.reshape(-1, 3) if grid_level_read(level, depth) >= 0 else None)
     return bake_surface_cache(scene, environment, settings, geometry, data, level=level,
-                              vertices=cache_vertices(settings, writer.n_probes))
+                              vertices=vertices, iterations=iterations)
