@@ -496,6 +496,8 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
     quality["stage_seconds"]["surface cache"] = round(
         time.perf_counter() - t_cache + runner.seconds.get("surface cache", 0.0), 3)
     quality["surface_cache_rays"] = cache_rays
+    if st.final_gather:  # whether the final pass read the cache (none: too many triangles)
+        quality["final_gather"] = cache is not None
     if st.sh_field > 0:  # the SH field /sh interpolates (probegrid.bake.shfield)
         t_field = time.perf_counter()
         write_sh_field(w, scene, plan=plan, level=level, refine=st.sh_field,

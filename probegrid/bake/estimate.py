@@ -32,6 +32,7 @@ from probegrid.bake.records import RECORDS_MEMORY, irradiance_size, record_bytes
 from probegrid.bake.records.tracer import SHADE_CHUNK
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.bake.stages import CLASSIFY_FACE_SIZE
+from probegrid.bake.finalgather import final_gather_vertices
 from probegrid.bake.surfacecache import cache_vertices
 from probegrid.core import probefilter
 from probegrid.core.grid import GridSpec
@@ -169,7 +170,8 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
         e = min(int(environment.faces.shape[1]), max(LIGHT_SIZE, n))
         store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
     # the surface light cache (probegrid.bake.surfacecache): at most its budget's vertices
-    store += 2 * NPY_HEADER_BYTES + 24 * (cache_vertices(st, p) + scene.n_triangles)
+    vertices = final_gather_vertices(st, p) if st.final_gather else cache_vertices(st, p)
+    store += 2 * NPY_HEADER_BYTES + 24 * (vertices + scene.n_triangles)
     if st.sh_field > 0:  # the SH field (probegrid.bake.shfield): SH twice and a validity a point
         from probegrid.bake.shfield import field_lattice
 

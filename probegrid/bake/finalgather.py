@@ -44,7 +44,7 @@ __all__ = ["FINAL_GATHER_COST", "FINAL_GATHER_ITERATIONS", "final_gather_tracer"
 #: With a final gather, the cache's lattice vertices a bake affords, as a multiple of what
 #: :func:`probegrid.bake.surfacecache.cache_vertices` gives a bake of ``final_gather`` rays per
 #: texel (the rays the final view casts).
-FINAL_GATHER_COST = 1.0
+FINAL_GATHER_COST = 2.0
 #: With a final gather, the cache's indirect light is gathered this many more times from the
 #: cache itself (:func:`probegrid.bake.surfacecache.bake_surface_cache`'s ``iterations``).
 FINAL_GATHER_ITERATIONS = 8
