@@ -21,8 +21,9 @@ Wright et al., SIGGRAPH 2022 course).
 
 The cache's lattice must be fine enough for the indirect light's variation (an interpolated
 coarse lattice darkens what lies near a bright patch): the final gather grows the vertex budget
-(:func:`final_gather_vertices`). Figures: docs/benchmarks.md (the sunlit hall). A final
-pass's random streams are the point tracer's (keyed by the bake's seed and the probe's
+(:func:`final_gather_vertices`), and the iteration keeps every vertex's first gather rays'
+hits in memory, which bounds it (65,536 vertices, 300 MB). Figures: docs/benchmarks.md (the
+sunlit hall). A final pass's random streams are the point tracer's (keyed by the bake's seed and the probe's
 position), so a resumed bake draws the same rays.
 """
 
@@ -35,7 +36,12 @@ from probegrid.bake.environment import Environment
 from probegrid.bake.point import PointTracer
 from probegrid.bake.records import GridData
 from probegrid.bake.settings import BakeSettings, TraceGeometry
-from probegrid.bake.surfacecache import SurfaceCache, cache_vertices
+from probegrid.bake.surfacecache import (
+    CACHE_GATHER,
+    ITERATE_MAX_RAYS,
+    SurfaceCache,
+    cache_vertices,
+)
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
@@ -53,10 +59,12 @@ FINAL_GATHER_ITERATIONS = 8
 def final_gather_vertices(settings: BakeSettings, probes: int) -> int:
     """The surface cache's vertex budget of a bake with a final gather: that of a bake of
     ``max(samples, final_gather)`` rays per texel (:func:`cache_vertices`), times
-    :data:`FINAL_GATHER_COST`."""
+    :data:`FINAL_GATHER_COST`, at most the vertices whose first gather rays the iteration
+    keeps (:data:`~probegrid.bake.surfacecache.ITERATE_MAX_RAYS`: 65,536 vertices)."""
     rays = max(settings.samples, settings.final_gather)
     st = settings.model_copy(update={"samples": rays})
-    return int(FINAL_GATHER_COST * cache_vertices(st, probes))
+    return int(min(FINAL_GATHER_COST * cache_vertices(st, probes),
+                   ITERATE_MAX_RAYS // CACHE_GATHER))
 
 
 def final_gather_tracer(scene: Scene, environment: Environment, settings: BakeSettings,

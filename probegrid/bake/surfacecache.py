@@ -278,8 +278,8 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
                                                rows, above, arriving, parent_row, bool(ls),
                                                bool(ks), hits=keep_hits and d == 1)
             rays += cast
-            if keep_hits and d == 1:
-                first.append((lv, v0 + parent_row))
+            if keep_hits and d == 1:  # what _iterate reads of them (73 bytes a ray)
+                first.append((lv.keep(ITERATE_KEYS), v0 + parent_row))
             kept = lv.keep(gather_keys(deepest=d == depth))
             kept.primary = parent_row.astype(np.int32)
             levels.append(kept)
@@ -307,8 +307,11 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
 
 
 #: Most first-level gather rays whose hits :func:`bake_surface_cache` keeps to iterate the
-#: cache (about 100 bytes each).
-ITERATE_MAX_RAYS = 1 << 23
+#: cache (73 bytes each: 300 MB; 65,536 vertices of 64 rays). A larger cache is not iterated.
+ITERATE_MAX_RAYS = 1 << 22
+#: What the iteration keeps of a first gather level's records.
+ITERATE_KEYS = ("kind", "light_punctual", "light_emitters", "albedo", "normal", "primitive",
+                "barycentric")
 
 
 def _iterate(cache: SurfaceCache, light: NDArray[np.float32],
