@@ -223,6 +223,10 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     st = settings.model_copy(update={"gather_samples": CACHE_GATHER if depth else 0,
                                      "gather_depth": max(depth, 1)})
     rt = RecordTracer(scene, environment, st, geometry, tracer=tracer)
+    if iterations:  # (a final gather's finer cache: the bake's workers wait meanwhile)
+        from probegrid.bake.point import shared_pool
+
+        rt.pool = shared_pool(None)  # the rays shaded on two threads, the same bits
     # the gather hits' probes tested for visibility by the scene's tracer, as the bake's are
     data = dataclasses.replace(data, tracer=rt.tracer)
     eps = geometry.ray_offset
