@@ -319,7 +319,7 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, S, "final_gather", help="rays per texel of a final view of each probe whose hits "
             "read the surface light cache (built first, finer, and iterated on itself) instead "
             "of gathering: 16 takes the sunlit hall's error against a path tracer from 6.3 %% "
-            "to 1.0 %% (diffuse) for about 2x the bake's time; 0: none")
+            "to 1.1 %% (diffuse) for 1.3x the bake's time; 0: none")
     _option(p, S, "dtype", help="map arrays (diffuse, specular, incoming) as float32, or as "
             "half floats: half the size, 11 significant bits, values above 65504 (a direct "
             "sun) clamped; the bake prints both sizes")
