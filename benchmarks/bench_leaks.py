@@ -76,15 +76,15 @@ def stats(e: NDArray[np.float64]) -> str:
 
 
 def bake_store(scene: Any, env: Any, grid: Any, out: Path, *, face: int, seed: int = 0,
-               workers: int = 2, bounces: int | str = "converge", relocate: bool = True
-               ) -> tuple[Any, float, Any]:
+               workers: int = 2, bounces: int | str = "converge", relocate: bool = True,
+               cache_spacing: float | None = None) -> tuple[Any, float, Any]:
     """Bake ``grid`` into ``out``; returns the open store, the seconds and the report."""
     from probegrid.bake import BakeSettings, bake
     from probegrid.bake.executors import LocalExecutor
     from probegrid.store import open_store
 
     settings = BakeSettings(face_size=face, seed=seed, store_incoming=True, bounces=bounces,
-                            relocate=relocate)
+                            relocate=relocate, surface_cache_spacing=cache_spacing)
     with LocalExecutor(workers=workers, preload=("probegrid.bake.preload",)) as ex:
         t0 = time.perf_counter()
         report = bake(scene, grid, out, settings=settings, environment=env, executor=ex,
@@ -147,9 +147,11 @@ def two_grids(args: argparse.Namespace, work: Path) -> None:
           f"{'x'.join(map(str, outer.counts))} grid ({outer.n_probes - 36} probes added, "
           f"{args.extend})", flush=True)
     alone, t1, _ = bake_store(scene, env, inner, work / "inner.probes", face=args.face_size,
-                              bounces=args.bounces, relocate=args.relocate)
+                              bounces=args.bounces, relocate=args.relocate,
+                              cache_spacing=args.surface_cache_spacing)
     ext, t2, _ = bake_store(scene, env, outer, work / "outer.probes", face=args.face_size,
-                            bounces=args.bounces, relocate=args.relocate)
+                            bounces=args.bounces, relocate=args.relocate,
+                            cache_spacing=args.surface_cache_spacing)
     print(f"  bounces: {alone.manifest.quality['bounces']} alone, "
           f"{ext.manifest.quality['bounces']} extended", flush=True)
     # (the reference where the probes stand: two interior points on the cabinet's face are
@@ -182,6 +184,26 @@ def two_grids(args: argparse.Namespace, work: Path) -> None:
     print(f"  PointTracer change (extended / alone - 1): mean {100 * r.mean():+.2f} %, range "
           f"{100 * r.min():+.2f} .. {100 * r.max():+.2f} %, |worst| "
           f"{100 * np.abs(r).max():.2f} %", flush=True)
+    print(f"  PointTracer maps, extended against alone (relative L1): "
+          f"{stats(relative_l1(q[1], q[0]))}", flush=True)
+    from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA
+
+    caches = [s.manifest.quality.get("surface_cache", {}) for s in (alone, ext)]
+    same = all(np.array_equal(np.asarray(alone[k]), np.asarray(ext[k]))
+               for k in (LATTICE_EXTRA, LIGHT_EXTRA))
+    light = [np.asarray(s[LIGHT_EXTRA], np.float64) for s in (alone, ext)]
+    lat = np.array_equal(np.asarray(alone[LATTICE_EXTRA]), np.asarray(ext[LATTICE_EXTRA]))
+    diff = (np.abs(light[1] - light[0]).sum() / max(np.abs(light[0]).sum(), 1e-300)
+            if lat else float("nan"))
+    secs = [s.manifest.quality["stage_seconds"] for s in (alone, ext)]
+    print(f"  surface cache: {secs[0].get('surface cache', 0):.1f} s / "
+          f"{secs[1].get('surface cache', 0):.1f} s of the bakes' "
+          f"{sum(secs[0].values()):.1f} s / {sum(secs[1].values()):.1f} s; spacing "
+          f"{caches[0].get('spacing', 0):.4g} / "
+          f"{caches[1].get('spacing', 0):.4g}, vertices {caches[0].get('vertices')} / "
+          f"{caches[1].get('vertices')}; lattice {'the same' if lat else 'differs'}, light "
+          f"{'bit-identical' if same else f'differs by {100 * diff:.3f} % (relative L1)'}",
+          flush=True)
 
 
 def spheres(args: argparse.Namespace, work: Path) -> None:
@@ -214,6 +236,8 @@ def main() -> None:
                    help="bake with --no-relocate (probes in solids invalid, not moved)")
     p.add_argument("--bounces", default="converge",
                    help="the bakes' --bounces (default converge)")
+    p.add_argument("--surface-cache-spacing", type=float, default=None,
+                   help="the bakes' --surface-cache-spacing (default: the scene's)")
     p.add_argument("--cache", type=Path, default=Path("/tmp/leaks-cache"))
     p.add_argument("--only", choices=("building", "spheres"), default=None)
     p.add_argument("--work", type=Path, default=None,

@@ -319,7 +319,12 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, S, "final_gather", help="rays per texel of a final view of each probe whose hits "
             "read the surface light cache (built first, finer, and iterated on itself) instead "
             "of gathering: 16 takes the sunlit hall's error against a path tracer from 6.3 %% "
-            "to 1.1 %% (diffuse) for 1.3x the bake's time; 0: none")
+            "to 1.1 %% (diffuse) for 1.1-1.3x the bake's time; 0: none")
+    _option(p, S, "surface_cache_spacing", metavar="H",
+            help="lattice spacing of the surface light cache traced answers read (scene "
+            "units; 0: no cache). Default: from the scene's surface, the finest spacing with at "
+            "most one vertex a triangle side plus 8 per texel of a face (8192 at faces 32), "
+            "whatever the grid; at most 2^21 vertices (48 MB)")
     _option(p, S, "dtype", help="map arrays (diffuse, specular, incoming) as float32, or as "
             "half floats: half the size, 11 significant bits, values above 65504 (a direct "
             "sun) clamped; the bake prints both sizes")
@@ -340,6 +345,10 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
     _option(p, J, "max_texture_size", metavar="N",
             help="longest side of a texture as the bake samples it: a larger texture is "
             "area-averaged down on load, its mean colour kept (default: 1024)")
+    _option(p, J, "max_environment_pixels", metavar="N",
+            help="most pixels an environment image may have, checked from its header before "
+            "any work (default: 2^28 = 268 M; a larger one than the cube needs is read "
+            "reduced, in bands), as filter's --max-pixels")
     _option(p, J, "progress", "--no-progress", help="no progress bar")
     p.set_defaults(handler=_run_bake)
 

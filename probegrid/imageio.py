@@ -117,6 +117,7 @@ from probegrid.errors import ImageError
 
 __all__ = [
     "BAND_PIXELS",
+    "check_pixels",
     "FACE_NAMES",
     "FACE_ORDER_HELP",
     "FACE_SUFFIXES",
@@ -509,6 +510,8 @@ def read_environment(
     clamp: float | None = None,
     keep_negative: bool = False,
     report: Callable[[str], None] | None = None,
+    max_pixels: int | None = None,
+    option: str | None = None,
 ) -> NDArray[np.float32]:
     """Read an environment as a cube map of linear radiance.
 
@@ -537,6 +540,10 @@ def read_environment(
         negative) and ``report`` is told how many there were.
     report : callable, optional
         Receives one line for what was changed in the source (negative values set to 0).
+    max_pixels : int, optional
+        Most pixels each file may have (default :data:`MAX_PIXELS`), checked from the headers
+        before any pixel is read; ``option`` names the option that raises it in the message
+        (:func:`read_image`).
 
     Returns
     -------
@@ -566,8 +573,9 @@ def read_environment(
         plist = order_face_files(plist)
         fw, fh = image_size(plist[0])
         need = reduced_environment_shape(fh, fw, "faces", face_size(fh, fw, "faces"))
-        images = [_read_checked(p, clamp, shape=need if image_size(p) == (fw, fh) else None)
-                  for p in plist]
+        check_pixels(plist, max_pixels=max_pixels, option=option)
+        images = [_read_checked(p, clamp, shape=need if image_size(p) == (fw, fh) else None,
+                                max_pixels=max_pixels, option=option) for p in plist]
         shapes = {im.shape for im in images}
         first = images[0].shape
         if len(shapes) != 1 or first[0] != first[1]:
@@ -589,7 +597,8 @@ def read_environment(
         else:
             lay = layout
         need = reduced_environment_shape(h, w, lay, face_size(h, w, lay))
-        source = _read_checked(plist[0], clamp, shape=need, equirect=lay == "equirect")
+        source = _read_checked(plist[0], clamp, shape=need, equirect=lay == "equirect",
+                               max_pixels=max_pixels, option=option)
     else:
         raise ValueError(f"give one environment image or six face files, got {len(plist)} paths.")
     negative = int(np.count_nonzero(source < 0))
@@ -608,9 +617,24 @@ def read_environment(
         raise ImageError(f"{plist[0]}: {exc}") from None
 
 
+def check_pixels(paths: Sequence[str | os.PathLike[str]], *, max_pixels: int | None = None,
+                 option: str | None = None) -> None:
+    """Refuse, from the headers alone, a file of ``paths`` with more than ``max_pixels``
+    pixels (default :data:`MAX_PIXELS`): the :class:`ImageError` :func:`read_image` raises,
+    before anything else is read or done."""
+    limit = MAX_PIXELS if max_pixels is None else int(max_pixels)
+    for p in paths:
+        w, h = image_size(p)
+        if w * h > limit:
+            fix = f"{option} N raises it" if option is not None else "downsample it first"
+            raise ImageError(f"{p}: {w}x{h} is {w * h} pixels, over the limit of {limit} an "
+                             f"image may have here; {fix}.")
+
+
 def _read_checked(p: Path, clamp: float | None, *, shape: tuple[int, int] | None = None,
-                  equirect: bool = False) -> NDArray[np.float32]:
-    image = read_image(p, shape=shape, equirect=equirect)
+                  equirect: bool = False, max_pixels: int | None = None,
+                  option: str | None = None) -> NDArray[np.float32]:
+    image = read_image(p, shape=shape, equirect=equirect, max_pixels=max_pixels, option=option)
     if clamp is not None:
         return clamp_radiance(image, clamp)
     bad = count_nonfinite(image)

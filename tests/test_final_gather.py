@@ -16,7 +16,8 @@ from probegrid.bake import BakeSettings, bake
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import InlineExecutor, LocalExecutor
 from probegrid.bake.records import GridData
-from probegrid.bake.surfacecache import bake_surface_cache
+from probegrid.bake.finalgather import FINAL_GATHER_RAYS, final_gather_plan
+from probegrid.bake.surfacecache import bake_surface_cache, plan_lattice
 from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.grid import GridSpec
 from probegrid.core.lights import PointLight
@@ -50,7 +51,8 @@ def test_the_iterated_cache_reaches_the_furnace_limit_from_a_black_grid(iteratio
     data = GridData(grid, np.ones(1, bool), np.zeros((1, 3)),
                     moments.reshape(-1, 2), m, None)  # a black grid
     got = bake_surface_cache(scene, Environment(), st, geometry, data, level=30,
-                             vertices=200, iterations=iterations)
+                             plan=plan_lattice(scene, max_vertices=200),
+                             iterations=iterations, gather=FINAL_GATHER_RAYS)
     assert got is not None
     light = got[1].astype(np.float64)
     want = RHO * LE / (1 - RHO) if iterations else RHO * LE * (1 + RHO)
@@ -65,6 +67,37 @@ def test_a_final_gather_bake_reads_the_furnace_limit(tmp_path):
     store = bake(_furnace(), grid, tmp_path / "f.probes", settings=st).store
     np.testing.assert_allclose(np.asarray(store["incoming"], np.float64), LE / (1 - RHO),
                                rtol=2e-3)
+    # the cache the final pass read, stored and stated: the final gather's lattice
+    lattice = store.manifest.quality["surface_cache"]
+    assert lattice["vertices"] == final_gather_plan(_furnace(), st).vertices
+    assert "final gather of 2" in lattice["reason"]
+    assert len(np.asarray(store.arrays["surface_light"])) == lattice["vertices"]
+
+
+def test_the_final_gather_lattice_grows_with_its_rays_up_to_its_cap(monkeypatch):
+    """The scene's default lattice with ``CACHE_TEXEL_VERTICES`` vertices per texel and per ray
+    of the final view (at most one vertex a triangle side over that), whatever the grid, at
+    most ``FINAL_GATHER_MAX_VERTICES``; an explicit spacing is kept, coarsened to that cap;
+    without a final gather, the bake's own lattice."""
+    from probegrid.bake import finalgather as fg
+    from probegrid.bake.surfacecache import CACHE_TEXEL_VERTICES
+
+    scene = box_scene((0, 0, 0), (10, 4, 8), albedo=0.5, inward=True)  # 12 one-sided sides
+    plain = plan_lattice(scene, face_size=8)
+    budgets = []
+    for k in (1, 4, 16):
+        p = fg.final_gather_plan(scene, BakeSettings(final_gather=k, face_size=8))
+        budget = 12 + CACHE_TEXEL_VERTICES * 8 * 8 * k
+        assert budget / 2 < p.vertices <= budget, k  # (as fine as fits: within one step)
+        budgets.append(p.vertices)
+    assert budgets[0] == plain.vertices and budgets[0] < budgets[1] < budgets[2]
+    assert fg.FINAL_GATHER_MAX_VERTICES == 65536  # 300 MB of kept gather hits
+    monkeypatch.setattr(fg, "FINAL_GATHER_MAX_VERTICES", 500)
+    capped = fg.final_gather_plan(scene, BakeSettings(final_gather=16, face_size=8))
+    assert 250 < capped.vertices <= 500
+    fine = fg.final_gather_plan(scene, BakeSettings(final_gather=16,
+                                                    surface_cache_spacing=0.01))
+    assert fine.vertices <= 500 and "coarsened to at most 500" in fine.reason
 
 
 def _room():

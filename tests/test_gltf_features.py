@@ -751,3 +751,186 @@ def test_encoded_geometry_bakes_bit_for_bit_as_the_plain_file(tmp_path) -> None:
             import shutil
 
             shutil.rmtree(p, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------------------------
+# EXT_mesh_gpu_instancing: every instance is placed
+
+
+def _instanced_document(translation: np.ndarray, rotation: np.ndarray | None = None,
+                        scale: np.ndarray | None = None) -> dict:
+    """:func:`_quad_document` (a 1 m quad at y = 0 facing +Y) under a node at y = 2 whose
+    EXT_mesh_gpu_instancing attributes place it ``len(translation)`` times; rotations as
+    normalized int16 quaternions (what the extension allows besides float)."""
+    doc = _quad_document(size=1.0, material={"doubleSided": True, "pbrMetallicRoughness": {
+        "metallicFactor": 0.0}})
+    parts = {"TRANSLATION": np.asarray(translation, np.float32)}
+    if rotation is not None:
+        parts["ROTATION"] = np.round(np.asarray(rotation) * 32767).astype(np.int16)
+    if scale is not None:
+        parts["SCALE"] = np.asarray(scale, np.float32)
+    blob, attrs = b"", {}
+    for name, a in parts.items():
+        pad = -len(blob) % 4
+        blob += b"\0" * pad
+        doc["bufferViews"].append({"buffer": 1, "byteOffset": len(blob),
+                                   "byteLength": a.nbytes})
+        doc["accessors"].append({"bufferView": len(doc["bufferViews"]) - 1,
+                                 "componentType": 5122 if a.dtype == np.int16 else 5126,
+                                 "count": len(a), "type": f"VEC{a.shape[1]}",
+                                 **({"normalized": True} if a.dtype == np.int16 else {})})
+        attrs[name] = len(doc["accessors"]) - 1
+        blob += a.tobytes()
+    doc["buffers"].append({"byteLength": len(blob), "uri": _data_uri(blob)})
+    doc["nodes"] = [{"mesh": 0, "translation": [0.0, 2.0, 0.0],
+                     "extensions": {"EXT_mesh_gpu_instancing": {"attributes": attrs}}}]
+    doc["extensionsUsed"] = doc["extensionsRequired"] = ["EXT_mesh_gpu_instancing"]
+    return doc
+
+
+def test_gpu_instances_each_cast_their_shadow(tmp_path) -> None:
+    """Three instances of a 1 m quad under a node at y = 2: at x = -3, at x = 0 turned 45
+    degrees about +Y, at x = +3 scaled 2x along x. Sun rays straight up from the floor are
+    blocked exactly over each instance's footprint (the turned one a diamond, the scaled one
+    2 m wide) and nowhere else; the node's own mesh is not placed besides."""
+    s45 = np.sin(np.pi / 8)
+    doc = _instanced_document([[-3, 0, 0], [0, 0, 0], [3, 0, 0]],
+                              rotation=[[0, 0, 0, 1], [0, s45, 0, np.cos(np.pi / 8)],
+                                        [0, 0, 0, 1]],
+                              scale=[[1, 1, 1], [1, 1, 1], [2, 1, 1]])
+    scene = load_gltf(_write(tmp_path, doc))
+    assert scene.n_triangles == 6 and scene.unhonoured == ()
+    np.testing.assert_allclose(scene.vertices[:, 1], 2.0, atol=1e-6)
+    rng = np.random.default_rng(7)
+    o = np.c_[rng.uniform(-5, 5, 20000), np.zeros(20000), rng.uniform(-1.5, 1.5, 20000)]
+    x, z = o[:, 0], o[:, 2]
+    expected = ((np.abs(x + 3) < 0.5) & (np.abs(z) < 0.5)            # plain
+                | (np.abs(x) + np.abs(z) < 0.5 * 2**0.5)             # turned: a diamond
+                | ((np.abs(x - 3) < 1.0) & (np.abs(z) < 0.5)))       # scaled along x
+    edge = np.minimum.reduce([np.abs(np.abs(x + 3) - 0.5), np.abs(np.abs(z) - 0.5),
+                              np.abs(np.abs(x) + np.abs(z) - 0.5 * 2**0.5),
+                              np.abs(np.abs(x - 3) - 1.0)]) < 1e-4
+    shadow = RayTracer.from_scene(scene).occluded(o, np.tile([0.0, 1.0, 0.0], (len(o), 1)),
+                                                  5.0)
+    assert np.array_equal(shadow[~edge], expected[~edge])
+    assert 0.05 < expected.mean() < 0.3
+
+
+def test_bad_gpu_instances_are_one_line_errors(tmp_path) -> None:
+    doc = _instanced_document([[0, 0, 0], [1, 0, 0]], scale=[[1, 1, 1]])
+    with pytest.raises(SceneError, match="different counts") as e:
+        load_gltf(_write(tmp_path, doc))
+    assert "\n" not in str(e.value)
+    doc = _instanced_document([[0, 0, 0]])
+    doc["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]["SCALE"] = 99
+    with pytest.raises(SceneError, match="99 is not an accessor index"):
+        load_gltf(_write(tmp_path, doc))
+    doc = _instanced_document([[0, np.nan, 0]])
+    with pytest.raises(SceneError, match="must be finite"):
+        load_gltf(_write(tmp_path, doc))
+
+
+# --------------------------------------------------------------------------------------------
+# EXT_meshopt_compression's filters: each decodes to the values it encoded
+
+
+def _meshopt_filter(kind: str, values: np.ndarray, stride: int, bits: int) -> np.ndarray:
+    """``values (n, 4)`` (OCTAHEDRAL: xyz + w; QUATERNION: xyzw) or ``(n, k)`` (EXPONENTIAL)
+    encoded by meshoptimizer's own filter encoder (``meshopt_encodeFilter*`` of its library,
+    which the Python wrapper does not expose) into ``(n, stride)`` bytes."""
+    import ctypes
+
+    from meshoptimizer._loader import lib
+
+    data = np.ascontiguousarray(values, np.float32)
+    n = len(data)
+    out = np.zeros((n, stride), np.uint8)
+    args = [out.ctypes.data_as(ctypes.c_void_p), ctypes.c_size_t(n), ctypes.c_size_t(stride),
+            ctypes.c_int(bits), data.ctypes.data_as(ctypes.POINTER(ctypes.c_float))]
+    if kind == "EXPONENTIAL":
+        lib.meshopt_encodeFilterExp(*args, ctypes.c_int(0))  # (mode: separate exponents)
+    else:
+        getattr(lib, {"OCTAHEDRAL": "meshopt_encodeFilterOct",
+                      "QUATERNION": "meshopt_encodeFilterQuat"}[kind])(*args)
+    return out
+
+
+def _meshopt_view(doc: dict, view: int, raw: np.ndarray, kind: str) -> None:
+    """Buffer view ``view`` of ``doc`` replaced by ``raw`` (``(n, stride)`` filtered bytes)
+    meshopt-compressed (ATTRIBUTES mode, filter ``kind``) into a new buffer."""
+    import meshoptimizer
+
+    n, stride = raw.shape
+    blob = bytes(meshoptimizer.encode_vertex_buffer(raw.view(np.float32) if stride % 4 == 0
+                                                    else raw, n, stride))
+    size = len(blob)  # (the codec's own length: its tail ends the stream, padding does not)
+    blob += b"\0" * (-len(blob) % 4)
+    doc["buffers"].append({"byteLength": len(blob), "uri": _data_uri(blob)})
+    doc["bufferViews"][view] = {
+        "buffer": 0, "byteOffset": 0, "byteLength": n * stride, "byteStride": stride,
+        "extensions": {"EXT_meshopt_compression": {
+            "buffer": len(doc["buffers"]) - 1, "byteOffset": 0, "byteLength": size,
+            "byteStride": stride, "count": n, "mode": "ATTRIBUTES", "filter": kind}}}
+    used = set(doc.get("extensionsUsed", [])) | {"EXT_meshopt_compression"}
+    doc["extensionsUsed"] = doc["extensionsRequired"] = sorted(used)
+
+
+def test_meshopt_filters_decode_to_the_values_they_encode(tmp_path) -> None:
+    """EXPONENTIAL positions load as the plain positions (23-bit mantissas: to 2^-23
+    relative); QUATERNION instance rotations (int16, 12 bits) place the instances as the
+    plain float rotations do (to 1e-3 m); OCTAHEDRAL normals (int8 and int16) read back as
+    the plain unit normals to their quantization (2 / 2^bits per component)."""
+    from probegrid.scene.accessors import float_accessor
+
+    pos, idx, uv = _box_geometry()
+    plain = load_gltf(_write(tmp_path, _mesh_document(pos, idx, uv), "plain.gltf"))
+    doc = _mesh_document(pos, idx, uv)
+    _meshopt_view(doc, 0, _meshopt_filter("EXPONENTIAL", pos, 12, 23), "EXPONENTIAL")
+    exp = load_gltf(_write(tmp_path, doc, "exp.gltf"))
+    np.testing.assert_allclose(exp.vertices, plain.vertices, rtol=2**-22, atol=0)
+    assert not np.array_equal(_meshopt_filter("EXPONENTIAL", pos, 12, 23).view(np.float32),
+                              pos)  # (the filter changes the bytes: undone on load)
+
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(6, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    t = np.c_[np.arange(6) * 3.0, np.zeros(6), np.zeros(6)]
+    floats = _instanced_document(t)
+    floats["accessors"].append({"bufferView": len(floats["bufferViews"]),
+                                "componentType": 5126, "count": 6, "type": "VEC4"})
+    blob = q.astype(np.float32).tobytes()
+    floats["buffers"].append({"byteLength": len(blob), "uri": _data_uri(blob)})
+    floats["bufferViews"].append({"buffer": len(floats["buffers"]) - 1, "byteOffset": 0,
+                                  "byteLength": len(blob)})
+    ext = floats["nodes"][0]["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]
+    ext["ROTATION"] = len(floats["accessors"]) - 1
+    reference = load_gltf(_write(tmp_path, floats, "rot.gltf"))
+    coded = json.loads(json.dumps(floats))
+    coded["accessors"][-1].update(componentType=5122, normalized=True)
+    _meshopt_view(coded, len(coded["bufferViews"]) - 1,
+                  _meshopt_filter("QUATERNION", q, 8, 12), "QUATERNION")
+    quat = load_gltf(_write(tmp_path, coded, "quat.gltf"))
+    assert quat.n_triangles == reference.n_triangles == 12
+
+    def by_instance(scene: Scene) -> np.ndarray:  # (instances in the loader's order: sorted)
+        v = scene.vertices.reshape(6, -1, 3)
+        return v[np.argsort(v[:, :, 0].mean(axis=1))]
+
+    err = np.abs(by_instance(quat) - by_instance(reference)).max()
+    assert 0 < err < 1e-3, err
+
+    nrm = rng.normal(size=(50, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    for stride, bits, ctype in ((4, 8, 5120), (8, 16, 5122)):
+        raw = _meshopt_filter("OCTAHEDRAL", np.c_[nrm, np.zeros(50)], stride, bits)
+        d = _mesh_document(pos, idx, uv)
+        d["accessors"].append({"bufferView": 3, "componentType": ctype, "normalized": True,
+                               "count": 50, "type": "VEC3"})
+        d["bufferViews"].append({})
+        _meshopt_view(d, 3, raw, "OCTAHEDRAL")
+        buffers = [base64.b64decode(b["uri"].split(",", 1)[1]) if "uri" in b else b""
+                   for b in d["buffers"]]
+        got = float_accessor(d, buffers, 3, "normals")
+        np.testing.assert_allclose(got, nrm, atol=2.0 / 2 ** (bits - 1))
+        np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=2.0 / 2 ** (bits - 1))
+        load_gltf(_write(tmp_path, d, f"oct{bits}.gltf"))  # (a file with them loads)

@@ -80,3 +80,37 @@ def test_the_filter_refuses_an_input_over_its_pixel_limit_naming_the_option(tmp_
     assert not out.exists()
     with pytest.raises(io.ImageError, match="--max-pixels N raises it"):
         io.read_image(f, max_pixels=100, option="--max-pixels")
+
+
+def test_the_bake_refuses_an_environment_over_its_pixel_limit_and_an_option_raises_it(
+        tmp_path, capsys, monkeypatch):
+    from pathlib import Path
+
+    from probegrid.bake import executors
+    from probegrid.bake.executors import InlineExecutor
+    from probegrid.jobs.bake import load_environment
+
+    monkeypatch.setattr(executors, "make_executor",
+                        lambda **kw: InlineExecutor(check_pickle=False))
+    f = tmp_path / "sky.hdr"
+    sky = _sky(64, 128)
+    io.write_image(f, sky)
+    room = Path(__file__).resolve().parents[1] / "data" / "sample_room.glb"
+    out = tmp_path / "room.probes"
+    args = ["bake", str(room), "--out", str(out), "--grid", "2x2x2", "--environment", str(f),
+            "--no-progress"]
+    assert main([*args, "--max-environment-pixels", "4000"]) == EXIT_BAD_INPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("probegrid: error:") and "128x64 is 8192 pixels" in err[-1]
+    assert "over the limit of 4000" in err[-1] and "--max-environment-pixels N raises it" in err[-1]
+    assert main([*args, "--max-environment-pixels", "0"]) == EXIT_BAD_INPUT
+    assert "max_environment_pixels" in capsys.readouterr().err.replace("-", "_")
+    assert not out.exists()
+    # the default limit refuses the image; the option raises it, and the light read is the same
+    reference = load_environment([f]).faces
+    monkeypatch.setattr(io, "MAX_PIXELS", 4000)
+    with pytest.raises(io.ImageError, match="--max-environment-pixels N raises it"):
+        load_environment([f])
+    raised = load_environment([f], max_pixels=8192).faces
+    np.testing.assert_array_equal(raised, reference)
+    assert float(raised.mean()) > 0

@@ -71,7 +71,11 @@ from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
 from probegrid.bake.extras import surface_cache, write_store_extras
-from probegrid.bake.finalgather import FINAL_GATHER_ITERATIONS, final_gather_vertices
+from probegrid.bake.finalgather import (
+    FINAL_GATHER_ITERATIONS,
+    FINAL_GATHER_RAYS,
+    final_gather_plan,
+)
 from probegrid.bake.shfield import write_sh_field
 from probegrid.bake.inputs import check_bake_inputs
 from probegrid.bake.maps import energy_ratio, incoming_integral_from_sh
@@ -417,17 +421,17 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
 
     # the surface cache, built before the final pass when that pass reads it (a final gather,
     # probegrid.bake.finalgather), else once the probes are written (write_store_extras)
-    cache = None
+    cache = cache_plan = None
     if st.final_gather:
         t_cache = time.perf_counter()
         g = irradiance_size(st.gather_levels() > 0)
         read = (final_grid if final_grid is not None
                 else np.zeros((grid.n_probes, 6, g, g, 3), np.float32))
+        cache_plan = final_gather_plan(scene, st)
         cache = surface_cache(scene, env, st, geometry, grid=grid, valid=valid,
                               positions=positions, moments=tstore["moments"],
-                              bordered=bordered_cubes(read), level=level,
-                              vertices=final_gather_vertices(st, grid.n_probes),
-                              iterations=FINAL_GATHER_ITERATIONS)
+                              bordered=bordered_cubes(read), level=level, plan=cache_plan,
+                              iterations=FINAL_GATHER_ITERATIONS, gather=FINAL_GATHER_RAYS)
         runner.seconds["surface cache"] = time.perf_counter() - t_cache
     cache_files = None
     if cache is not None:
@@ -490,13 +494,18 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
     quality = light_quality(quality, w.array("sh"), valid, allow_black=allow_black)
     # deringed SH, scene triangles, the grid and environment (probegrid.bake.extras)
     t_cache = time.perf_counter()
-    cache_rays = write_store_extras(w, scene, environment=env, grid_irradiance=final_grid,
-                                    gather=st.gather_levels() > 0, face_size=st.face_size,
-                                    settings=st, geometry=geometry, level=level, cache=cache)
+    cache_rays, lattice = write_store_extras(w, scene, environment=env,
+                                             grid_irradiance=final_grid,
+                                             gather=st.gather_levels() > 0,
+                                             face_size=st.face_size, settings=st,
+                                             geometry=geometry, level=level, cache=cache,
+                                             plan=cache_plan)
     quality["stage_seconds"]["surface cache"] = round(
         time.perf_counter() - t_cache + runner.seconds.get("surface cache", 0.0), 3)
     quality["surface_cache_rays"] = cache_rays
-    if st.final_gather:  # whether the final pass read the cache (none: too many triangles)
+    if lattice is not None:  # its spacing and why (the scene's, never the grid's)
+        quality["surface_cache"] = lattice.manifest()
+    if st.final_gather:  # whether the final pass read the cache (none: no lattice)
         quality["final_gather"] = cache is not None
     if st.sh_field > 0:  # the SH field /sh interpolates (probegrid.bake.shfield)
         t_field = time.perf_counter()

@@ -284,6 +284,16 @@ class Emitters:
         return flags[self.scene.material[self.triangles]]
 
     @cached_property
+    def covered(self) -> NDArray[np.bool_]:
+        """(E,) the triangle's material does not stop every ray (alpha MASK or BLEND,
+        transmission): it emits only where, and as much as, a ray hitting it stops
+        (:meth:`probegrid.scene.coverage.Coverage.stop_probability`)."""
+        cov = self.scene.coverage
+        if cov is None:
+            return np.zeros(len(self), bool)
+        return np.asarray(cov.cutout)[self.triangles]
+
+    @cached_property
     def outlines(self) -> EmitterOutlines:
         """The emitters at their uniform radiance (the factor) as :func:`emitter_outlines`."""
         return emitter_outlines(self.vertices, self.normals, self.factor)
@@ -353,14 +363,17 @@ class Emitters:
             return self._cluster_irradiance(points, normals, random, tracer, eps)
         analytic = polygon_irradiance(points, normals, self.outlines)
         accept, alias, inv_pdf = self._selection
-        if self.textured.any():  # the points' radiance through the textures
-            e = alias_draw(accept, alias, random[..., 0])
+        if self.textured.any() or self.covered.any():  # the points' radiance, textures and
+            e = alias_draw(accept, alias, random[..., 0])  # coverage applied
             r1 = np.sqrt(random[..., 1])
             bu, bv = r1 * (1.0 - random[..., 2]), r1 * random[..., 2]
             surf = self.scene.surface_at(self.triangles[e], bu, bv)
+            emission = surf.emission
+            if self.covered.any():
+                emission = emission * self._coverage(e, bu, bv)[..., None]
             rays = emitter_shadow_rays(
                 points, normals, np.ascontiguousarray(surf.position),
-                np.ascontiguousarray(self.normals[e]), np.ascontiguousarray(surf.emission),
+                np.ascontiguousarray(self.normals[e]), np.ascontiguousarray(emission),
                 np.ascontiguousarray(self.control[e]), np.ascontiguousarray(inv_pdf[e]), eps,
                 tracer.centre)
         else:  # the same, in one compiled pass
@@ -369,8 +382,13 @@ class Emitters:
                                    EmitterTriangles(self.vertices, self.normals, self.factor,
                                                     self.control), eps, tracer.centre)
         which, org, dirs, lengths, vis, occ, ok = rays
-        blocked = (tracer.occluded_rays(EmbreeRays(org, dirs, lengths), bool(ok[0]))
-                   if len(which) else np.zeros(0, np.bool_))
+        if len(which) and tracer.tinted:  # through tinted panes: the visible term weighted
+            through = tracer.shadow_weights(EmbreeRays(org, dirs, lengths), bool(ok[0]))
+            blocked = ~np.any(through > 0, axis=1)
+            vis = through * (vis - occ) + occ  # (the estimator adds vis - occ where unblocked)
+        else:
+            blocked = (tracer.occluded_rays(EmbreeRays(org, dirs, lengths), bool(ok[0]))
+                       if len(which) else np.zeros(0, np.bool_))
         # with the exact unoccluded integral: it, scaled by the samples' visible share (ratio
         # estimator); where no sample saw the control (all on the point's own plane, say), the
         # control variate's estimate, A + sum of the contributions
@@ -389,7 +407,11 @@ class Emitters:
         out = np.zeros((len(points), 3))
         if not len(which):
             return out, 0
-        hits = tracer.intersect(org, dirs, tmin=eps)
+        tint = None
+        if tracer.tinted:
+            hits, tint = tracer.intersect_weighted(org, dirs, tmin=eps)
+        else:
+            hits = tracer.intersect(org, dirs, tmin=eps)
         prim = hits.prim_id
         slot = np.where(prim >= 0, self.slot[np.maximum(prim, 0)], -1)
         lit = np.flatnonzero(slot >= 0)
@@ -400,6 +422,9 @@ class Emitters:
         if tex.size:
             radiance[tex] = self.scene.surface_at(self.triangles[e[tex]], hits.u[lit[tex]],
                                                   hits.v[lit[tex]]).emission
+        if tint is not None:
+            radiance *= tint[lit]
+        # (a cut-out or blended emitter: the ray passed where it does not cover, as any ray)
         return sum_rows(which[lit], radiance * weight[lit, None], len(points)), len(which)
 
     # -- what a probe sees -----------------------------------------------------------------
@@ -440,14 +465,23 @@ class Emitters:
             tex = (face * n + row // sub) * n + col // sub
         ok = np.isfinite(dist) & (dist > 2 * eps)
         visible = np.zeros(count, bool)
-        if ok.any():
+        through = None
+        if ok.any() and tracer.tinted:  # (through tinted panes: their weights)
+            through = np.zeros((count, 3))
+            through[ok] = tracer.occluded_weights(np.broadcast_to(o, (int(ok.sum()), 3)),
+                                                  dirs[ok], dist[ok] * (1 - 1e-4) - eps,
+                                                  tmin=eps)
+            visible = np.any(through > 0, axis=1)
+        elif ok.any():
             visible[ok] = ~tracer.occluded(np.broadcast_to(o, (int(ok.sum()), 3)), dirs[ok],
                                            dist[ok] * (1 - 1e-4) - eps, tmin=eps)
         radiance = self.factor[tri].copy()
-        if self.textured.any():
-            sel = np.flatnonzero(self.textured[tri] & visible)
+        if self.textured.any() or self.covered.any():
+            sel = np.flatnonzero((self.textured[tri] | self.covered[tri]) & visible)
             if sel.size:
                 radiance[sel] = self._radiance_at(tri[sel], o + dist[sel, None] * dirs[sel])
+        if through is not None:
+            radiance *= through
         sa = texel_solid_angles(n).reshape(-1)
         value = radiance * (omega * visible / sa[tex])[:, None]
         uniq, inv = np.unique(tex, return_inverse=True)
@@ -467,4 +501,23 @@ class Emitters:
         den = d11 * d22 - d12 * d12
         bu = np.clip((d22 * p1 - d12 * p2) / den, 0.0, 1.0)
         bv = np.clip((d11 * p2 - d12 * p1) / den, 0.0, 1.0)
-        return self.scene.surface_at(self.triangles[e], bu, bv).emission
+        emission = self.scene.surface_at(self.triangles[e], bu, bv).emission
+        if self.covered.any():
+            emission = emission * self._coverage(e, bu, bv)[:, None]
+        return emission
+
+    def _coverage(self, e: NDArray[np.int64], bu: NDArray[np.float64],
+                  bv: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The share of emitters ``e`` (any shape) that emits at barycentrics ``bu, bv``: the
+        coverage's stop probability (what a ray hitting it there sees of its emission; 1 for
+        an emitter that stops every ray)."""
+        shape = np.shape(e)
+        e = np.asarray(e).reshape(-1)
+        out = np.ones(len(e))
+        rows = np.flatnonzero(self.covered[e])
+        cov = self.scene.coverage
+        if rows.size and cov is not None:
+            out[rows] = cov.stop_probability(self.triangles[e[rows]],
+                                             np.asarray(bu, np.float64).reshape(-1)[rows],
+                                             np.asarray(bv, np.float64).reshape(-1)[rows])
+        return out.reshape(shape)

@@ -278,5 +278,9 @@ class EnvironmentLight:
             tracer.centre)
         if not which.size:
             return out, 0
+        if tracer.tinted:  # through tinted panes: each ray's weights
+            through = tracer.shadow_weights(EmbreeRays(org, dirs, lengths), ok)
+            return (sum_unblocked(n, which, ~np.any(through > 0, axis=1), contrib * through),
+                    len(which))
         blocked = tracer.occluded_rays(EmbreeRays(org, dirs, lengths), ok)
         return sum_unblocked(n, which, blocked, contrib), len(which)

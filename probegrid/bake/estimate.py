@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from probegrid.bake.environment import LIGHT_SIZE, Environment
+from probegrid.bake.finalgather import final_gather_plan
 from probegrid.bake.inside import DIRECTIONS
 from probegrid.bake.maps import FILTER_GROUP
 from probegrid.bake.nolight import light_sources
@@ -32,8 +33,7 @@ from probegrid.bake.records import RECORDS_MEMORY, irradiance_size, record_bytes
 from probegrid.bake.records.tracer import SHADE_CHUNK
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.bake.stages import CLASSIFY_FACE_SIZE
-from probegrid.bake.finalgather import final_gather_vertices
-from probegrid.bake.surfacecache import cache_vertices
+from probegrid.bake.surfacecache import plan_lattice
 from probegrid.core import probefilter
 from probegrid.core.grid import GridSpec
 from probegrid.scene import Scene
@@ -169,9 +169,10 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
     if environment is not None and environment.faces is not None:
         e = min(int(environment.faces.shape[1]), max(LIGHT_SIZE, n))
         store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
-    # the surface light cache (probegrid.bake.surfacecache): at most its budget's vertices
-    vertices = final_gather_vertices(st, p) if st.final_gather else cache_vertices(st, p)
-    store += 2 * NPY_HEADER_BYTES + 24 * (vertices + scene.n_triangles)
+    # the surface light cache (probegrid.bake.surfacecache): its lattice's vertices
+    lattice = (final_gather_plan(scene, st) if st.final_gather else
+               plan_lattice(scene, st.surface_cache_spacing, face_size=st.face_size))
+    store += 2 * NPY_HEADER_BYTES + 24 * (lattice.vertices + scene.n_triangles)
     if st.sh_field > 0:  # the SH field (probegrid.bake.shfield): SH twice and a validity a point
         from probegrid.bake.shfield import field_lattice
 

@@ -41,7 +41,14 @@ from probegrid.bake.environment import Environment
 from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, MOMENTS_EXTRA, environment_extra
 from probegrid.bake.records import GridData, grid_level_read, irradiance_size
 from probegrid.bake.settings import BakeSettings, TraceGeometry
-from probegrid.bake.surfacecache import LATTICE_EXTRA, LIGHT_EXTRA, bake_surface_cache, cache_vertices
+from probegrid.bake.surfacecache import (
+    CACHE_GATHER,
+    LATTICE_EXTRA,
+    LIGHT_EXTRA,
+    LatticePlan,
+    bake_surface_cache,
+    plan_lattice,
+)
 from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.grid import GridSpec
 from probegrid.core.sh.dering import dering
@@ -57,16 +64,18 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                        gather: bool = True, face_size: int = 32,
                        settings: BakeSettings | None = None,
                        geometry: TraceGeometry | None = None, level: int = 0,
-                       cache: tuple[NDArray[np.int64], NDArray[np.float32], int] | None = None
-                       ) -> int:
+                       cache: tuple[NDArray[np.int64], NDArray[np.float32], int] | None = None,
+                       plan: LatticePlan | None = None) -> tuple[int, LatticePlan | None]:
     """Add ``sh_deringed``, ``sh_window``, ``scene_vertices`` and ``scene_triangles`` to the
     finished-but-unpublished store of ``writer`` (every probe written), and with an
     ``environment`` the ``grid_irradiance`` (``grid_irradiance``: the cubes the final pass read,
     None for none; ``gather``: the bake traced gather rays) and ``environment`` extras
     (``face_size``: the probes'), and with ``settings`` and ``geometry`` too the surface cache
-    of the final pass at bounce ``level`` (``cache``: the one the final pass already built,
-    :func:`probegrid.bake.finalgather`); see the module docstring. Idempotent: a resumed bake
-    writes the same extras again. Returns the rays the surface cache cast."""
+    of the final pass at bounce ``level`` (with a ``plan``, ``cache`` is the one the final pass
+    already built over its lattice, :mod:`probegrid.bake.finalgather`, None for none); see the
+    module docstring.
+    Idempotent: a resumed bake writes the same extras again. Returns the rays the surface
+    cache cast and its lattice (None: no settings, no cache asked of the bake)."""
     raw = np.asarray(writer.array("sh"), dtype=np.float64)
     deringed, window, _ = dering(raw)
     writer.add_extra("sh_deringed", deringed.astype(np.float32),
@@ -79,7 +88,7 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
     writer.add_extra("scene_triangles", np.asarray(scene.triangles, dtype=np.int32),
                      description="scene triangles: vertex indices into scene_vertices")
     if environment is None:
-        return 0
+        return 0, None
     if grid_irradiance is None:
         g = irradiance_size(gather)
         grid_irradiance = np.zeros((writer.n_probes, 6, g, g, 3), np.float32)
@@ -97,14 +106,17 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                          description="environment cube the rays saw, box-filtered, without the "
                                      "rotation and intensity of the manifest's bake.environment")
     if settings is None or geometry is None:
-        return 0
-    got = cache if cache is not None else surface_cache(
-        scene, environment, settings, geometry, grid=writer.grid,
-        valid=writer.array("valid"), positions=writer.array("positions"),
-        moments=writer.array("moments"), bordered=bordered, level=level,
-        vertices=cache_vertices(settings, writer.n_probes))
-    if got is None:  # more triangles than the budget: queries gather (no cache)
-        return 0
+        return 0, None
+    if plan is None:  # else the final gather's, already built (None: its plan has none)
+        plan = plan_lattice(scene, settings.surface_cache_spacing,
+                            face_size=settings.face_size)
+        cache = surface_cache(scene, environment, settings, geometry, grid=writer.grid,
+                              valid=writer.array("valid"), positions=writer.array("positions"),
+                              moments=writer.array("moments"), bordered=bordered, level=level,
+                              plan=plan)
+    got = cache
+    if got is None:  # no cache (spacing 0, or more triangles than its cap): queries gather
+        return 0, plan
     lattice, light, rays = got
     writer.add_extra(LATTICE_EXTRA, lattice,
                      description="surface light cache: per triangle the first lattice vertex of "
@@ -114,24 +126,24 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                      description="surface light cache: irradiance / pi at each lattice vertex "
                                  "of the light reflected at least once and of the emitters' "
                                  "and environment's direct light (memory-mappable)")
-    return rays
+    return rays, plan
 
 
 def surface_cache(scene: Scene, environment: Environment, settings: BakeSettings,
                   geometry: TraceGeometry, *, grid: GridSpec, valid: NDArray[np.bool_],
                   positions: NDArray[np.float64], moments: NDArray[np.float32],
-                  bordered: NDArray[np.float32], level: int, vertices: int,
-                  iterations: int = 0) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
+                  bordered: NDArray[np.float32], level: int, plan: LatticePlan,
+                  iterations: int = 0, gather: int = CACHE_GATHER
+                  ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
     """The surface cache of a bake (:func:`probegrid.bake.surfacecache.bake_surface_cache`)
     of probes at ``positions`` (``valid``, their distance ``moments``) whose final pass, at
-    bounce ``level``, reads the ``bordered`` irradiance cubes, with at most ``vertices``
-    lattice vertices (:func:`~probegrid.bake.surfacecache.cache_vertices`: its budget
-    :data:`~probegrid.bake.surfacecache.CACHE_COST` of the bake's shading points), its
-    indirect light gathered ``iterations`` more times from the cache itself."""
+    bounce ``level``, reads the ``bordered`` irradiance cubes, over the lattice of ``plan``
+    (the scene's, never the grid's), ``gather`` first gather rays a vertex, its indirect light
+    gathered ``iterations`` more times from the cache itself."""
     moments = bordered_cubes(moments)
     depth = settings.gather_levels()
     data = GridData(grid, np.asarray(valid, bool), np.asarray(positions, np.float64),
                     moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
                     bordered.reshape(-1, 3) if grid_level_read(level, depth) >= 0 else None)
     return bake_surface_cache(scene, environment, settings, geometry, data, level=level,
-                              vertices=vertices, iterations=iterations)
+                              plan=plan, iterations=iterations, gather=gather)

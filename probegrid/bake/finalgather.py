@@ -20,11 +20,18 @@ lattice vertex, which the hits of every probe share (Jensen's final gather over 
 Wright et al., SIGGRAPH 2022 course).
 
 The cache's lattice must be fine enough for the indirect light's variation (an interpolated
-coarse lattice darkens what lies near a bright patch): the final gather grows the vertex budget
-(:func:`final_gather_vertices`), and the iteration keeps every vertex's first gather rays'
-hits in memory, which bounds it (65,536 vertices, 300 MB). Figures: docs/benchmarks.md (the
-sunlit hall). A final pass's random streams are the point tracer's (keyed by the bake's seed and the probe's
-position), so a resumed bake draws the same rays.
+coarse lattice darkens what lies near a bright patch): the final gather's lattice
+(:func:`final_gather_plan`, :func:`probegrid.bake.surfacecache.plan_lattice`) has
+:data:`~probegrid.bake.surfacecache.CACHE_TEXEL_VERTICES` vertices per texel of a face *and
+ray* of the final view instead of per texel (in the sunlit hall at faces 16 and ``k = 16``,
+32,848 vertices, 0.35 m apart), each vertex gathering :data:`FINAL_GATHER_RAYS` rays
+(the hits of every probe's ``k`` rays a texel average the vertices' noise, which a traced
+point a few centimetres off a wall sees whole: the bake's own cache gathers
+:data:`~probegrid.bake.surfacecache.CACHE_GATHER`); the iteration keeps every vertex's first
+gather rays' hits in memory, which bounds it (:data:`FINAL_GATHER_MAX_VERTICES`, 300 MB).
+Figures: docs/benchmarks.md (the sunlit hall). A final pass's random streams are the point
+tracer's (keyed by the bake's seed and the probe's position), so a resumed bake draws the same
+rays.
 """
 
 from __future__ import annotations
@@ -37,34 +44,35 @@ from probegrid.bake.point import PointTracer
 from probegrid.bake.records import GridData
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.bake.surfacecache import (
-    CACHE_GATHER,
     ITERATE_MAX_RAYS,
+    LatticePlan,
     SurfaceCache,
-    cache_vertices,
+    plan_lattice,
 )
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
-__all__ = ["FINAL_GATHER_COST", "FINAL_GATHER_ITERATIONS", "final_gather_tracer", "final_gather_vertices"]
+__all__ = ["FINAL_GATHER_ITERATIONS", "FINAL_GATHER_MAX_VERTICES", "FINAL_GATHER_RAYS",
+           "final_gather_plan", "final_gather_tracer"]
 
-#: With a final gather, the cache's lattice vertices a bake affords, as a multiple of what
-#: :func:`probegrid.bake.surfacecache.cache_vertices` gives a bake of ``final_gather`` rays per
-#: texel (the rays the final view casts).
-FINAL_GATHER_COST = 2.0
+#: With a final gather, the cache's first gather rays a lattice vertex (stratified 8 x 8).
+FINAL_GATHER_RAYS = 64
 #: With a final gather, the cache's indirect light is gathered this many more times from the
 #: cache itself (:func:`probegrid.bake.surfacecache.bake_surface_cache`'s ``iterations``).
 FINAL_GATHER_ITERATIONS = 8
+#: Most lattice vertices of a final gather's cache: those whose first gather rays the
+#: iteration keeps (:data:`~probegrid.bake.surfacecache.ITERATE_MAX_RAYS`).
+FINAL_GATHER_MAX_VERTICES = ITERATE_MAX_RAYS // FINAL_GATHER_RAYS
 
 
-def final_gather_vertices(settings: BakeSettings, probes: int) -> int:
-    """The surface cache's vertex budget of a bake with a final gather: that of a bake of
-    ``max(samples, final_gather)`` rays per texel (:func:`cache_vertices`), times
-    :data:`FINAL_GATHER_COST`, at most the vertices whose first gather rays the iteration
-    keeps (:data:`~probegrid.bake.surfacecache.ITERATE_MAX_RAYS`: 65,536 vertices)."""
-    rays = max(settings.samples, settings.final_gather)
-    st = settings.model_copy(update={"samples": rays})
-    return int(min(FINAL_GATHER_COST * cache_vertices(st, probes),
-                   ITERATE_MAX_RAYS // CACHE_GATHER))
+def final_gather_plan(scene: Scene, settings: BakeSettings) -> LatticePlan:
+    """The surface cache's lattice of a bake with a final gather
+    (:func:`probegrid.bake.surfacecache.plan_lattice`): by default that of a view of
+    ``final_gather`` rays per texel, or the bake's ``surface_cache_spacing``, at most
+    :data:`FINAL_GATHER_MAX_VERTICES` vertices."""
+    return plan_lattice(scene, settings.surface_cache_spacing, face_size=settings.face_size,
+                        rays=max(1, settings.final_gather),
+                        max_vertices=FINAL_GATHER_MAX_VERTICES)
 
 
 def final_gather_tracer(scene: Scene, environment: Environment, settings: BakeSettings,

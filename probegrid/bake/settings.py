@@ -86,6 +86,9 @@ class BakeSettings(BaseModel):
     # rays per texel of the final view that reads the surface cache at its hits
     # (probegrid.bake.finalgather; 0: the probes keep the final pass's own view)
     final_gather: int = Field(default=0, ge=0, le=64)
+    # the surface light cache's lattice spacing, scene units (probegrid.bake.surfacecache;
+    # None: from the scene's surface, 0: no cache); never from the grid
+    surface_cache_spacing: float | None = Field(default=None, ge=0, allow_inf_nan=False)
 
     @field_validator("bounces", mode="before")
     @classmethod

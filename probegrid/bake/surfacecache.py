@@ -17,19 +17,30 @@ double-sided triangle. Each vertex holds
 * ``indirect``: the light reflected at least once, gathered exactly as the bake gathers it at a
   probe's hit -- :data:`CACHE_GATHER` cosine rays instead of ``gather_samples``, each lit as the
   bake lights gather rays, the same gather levels below, the converged grid read at the deepest
-  hits (:func:`bake_surface_cache`); so a query reading it computes the bake's estimator with
-  the hit's gather averaged over many more rays and interpolated over the lattice;
+  hits (:func:`bake_surface_cache`; a deepest hit that sees none of its cell's probes reads
+  the probe its vertex sees, nothing where it sees none, as a probe's hit reads the probe
+  itself); so a query reading it computes the bake's estimator with the hit's gather
+  averaged over many more rays and interpolated over the lattice;
 * ``direct``: the emitters' and the environment's direct light, :data:`CACHE_LIGHT_SAMPLES`
   samples each, read by a query at the hits where a lattice cell looks smaller than a mirror texel, or
   everywhere (``PointSettings.direct="cache"``); the punctual lights' is always exact at the
   hits (one shadow ray per light).
 
 The lattice's spacing is the same on every triangle (each triangle's resolution is its longest
-edge over the spacing rounded down, 0 -- the centroid alone -- to :data:`MAX_RESOLUTION`), the
-finest whose vertices cost at most :data:`CACHE_COST` of the bake's shading points
-(:func:`cache_vertices`, :func:`lattice_resolutions`; measured 1.20-1.24x the bake's time),
-and the bake's outputs are unchanged (the cache is an extra of the store). A scene with more
-triangle sides than that budget stores no cache (its queries gather). Lattice vertices stand a
+edge over the spacing rounded down, 0 -- the centroid alone -- to :data:`MAX_RESOLUTION`) and
+depends on the scene and the probes' face size, never on the grid (:func:`plan_lattice`): the
+bake's ``surface_cache_spacing`` (scene units; 0: no cache), or by default the finest spacing whose
+lattice has at most one vertex a triangle side plus :data:`CACHE_TEXEL_VERTICES` per texel of
+a probe's face (``8 n^2``: about ``sqrt(A) / 2n`` over a surface of area ``A`` made of
+triangles longer than the spacing, a lattice cell seen from across a room about a mirror
+texel). So probes added anywhere leave the lattice as it was, and its light changes only as
+the grid its deepest gather hits read does (probes added outside the walls: 0.02 % on the
+sunlit hall's traced points, ``benchmarks/bench_leaks.py``). Either way at
+most :data:`MAX_VERTICES` (48 MB in the store): a finer spacing is coarsened to fit, and a
+scene with more triangle sides than that stores no cache (its queries gather). A bake's final
+gather (:mod:`probegrid.bake.finalgather`) plans a finer lattice, those vertices per texel and
+per ray of its view, and iterates its light on itself (:func:`_iterate`). The manifest
+states the spacing, the vertices and why (``quality.surface_cache``). Lattice vertices stand a
 hair inside their triangle (:data:`INSET`), so that no gather ray starts on the edge of a
 concave corner.
 
@@ -52,16 +63,23 @@ from probegrid._jit import frozen
 from probegrid.bake.environment import Environment
 from probegrid.bake.kernels.grid import mean_per_parent
 from probegrid.bake.kernels.surfacecache import cache_lookup
-from probegrid.bake.records.replay import GridData, _level_weights, _replay_level, irradiance_size
+from probegrid.bake.records.replay import (
+    GridData,
+    _level_weights,
+    _replay_level,
+    irradiance_size,
+    visible_probe,
+)
 from probegrid.bake.records.schema import Level, gather_keys
 from probegrid.bake.records.tracer import STREAM_STEP, RecordTracer, _stream_keys
 from probegrid.bake.settings import BakeSettings, TraceGeometry
+from probegrid.core.ddgi import DEFAULT_NORMAL_BIAS
 from probegrid.raytrace import RayTracer
 from probegrid.scene import Scene
 
-__all__ = ["CACHE_COST", "CACHE_GATHER", "CACHE_LIGHT_SAMPLES", "LATTICE_EXTRA", "LIGHT_EXTRA",
-           "SurfaceCache", "bake_surface_cache", "cache_vertices", "lattice_positions",
-           "lattice_resolutions"]
+__all__ = ["CACHE_GATHER", "CACHE_LIGHT_SAMPLES", "CACHE_TEXEL_VERTICES", "LATTICE_EXTRA",
+           "LIGHT_EXTRA", "LatticePlan", "SurfaceCache", "bake_surface_cache", "lattice_positions",
+           "lattice_resolutions", "plan_lattice"]
 
 #: The store extra of the lattice: per triangle its front's first vertex, its back's (-1 for a
 #: one-sided triangle) and its resolution, ``(T, 3) int64``.
@@ -71,13 +89,18 @@ LATTICE_EXTRA = "surface_lattice"
 #: direct light (``[:, 1]``).
 LIGHT_EXTRA = "surface_light"
 
-#: Cosine-weighted gather rays per lattice vertex (the bake's hits cast ``gather_samples``).
-CACHE_GATHER = 64
+#: Cosine-weighted gather rays per lattice vertex (the bake's hits cast ``gather_samples``),
+#: stratified 16 x 16: a vertex's reflected light within 3-4 % (median; 7 % with 8 x 8 strata),
+#: whose noise a point traced a few centimetres off a wall sees as patches of its rough GGX
+#: levels (docs/benchmarks.md).
+CACHE_GATHER = 256
 #: Emitter and environment samples per lattice vertex for its direct light.
 CACHE_LIGHT_SAMPLES = 16
-#: The cache's shading points (vertices and their gather hits) as a fraction of the bake's
-#: (its probes' rays and their gather hits).
-CACHE_COST = 0.55
+#: The default lattice's vertices beyond one a triangle side, per texel of a probe's face
+#: (:func:`plan_lattice`): ``8 n^2`` spread over a surface of area ``A`` are a spacing of about
+#: ``sqrt(A) / 2n``, in a cube room of side ``L`` (``A = 6 L^2``) ``1.2 L / n``: a cell seen
+#: from across the room about a mirror texel (``pi L / 2n``). 8 192 vertices at faces 32.
+CACHE_TEXEL_VERTICES = 8
 #: Largest lattice resolution of a triangle (edges over the spacing).
 MAX_RESOLUTION = 64
 #: Largest number of lattice vertices (24 bytes each in the store).
@@ -99,19 +122,6 @@ def lattice_counts(res: NDArray[np.int64]) -> NDArray[np.int64]:
     return (r + 1) * (r + 2) // 2
 
 
-def cache_vertices(settings: BakeSettings, probes: int) -> int:
-    """The lattice vertices a bake of ``settings`` and ``probes`` probes affords: its shading
-    points (each probe's rays and their gather hits) times :data:`CACHE_COST` over a vertex's
-    (its gather hits, and its direct light's samples counted as one hit per bake light
-    sample's worth), at least 64 and at most :data:`MAX_VERTICES`."""
-    depth = settings.gather_levels()
-    kg = settings.gather_samples if depth else 0
-    rays = 6 * settings.face_size ** 2 * settings.samples
-    bake_points = probes * rays * (1 + kg * depth)
-    vertex = (CACHE_GATHER * depth if kg else 0) + CACHE_LIGHT_SAMPLES / settings.light_samples
-    return int(min(MAX_VERTICES, max(64, CACHE_COST * bake_points / vertex)))
-
-
 def longest_edges(scene: Scene) -> NDArray[np.float64]:
     """Each triangle's longest edge."""
     v = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles)]
@@ -128,7 +138,7 @@ def lattice_resolutions(scene: Scene, vertices: int) -> NDArray[np.int64] | None
     sides = 1 + np.asarray(scene.double_sided, np.int64)
 
     def res(h: float) -> NDArray[np.int64]:
-        return np.clip(np.floor(edge / h), 0, MAX_RESOLUTION).astype(np.int64)
+        return _resolutions(edge, h)
 
     if int(np.sum(sides)) > vertices:
         return None
@@ -140,6 +150,97 @@ def lattice_resolutions(scene: Scene, vertices: int) -> NDArray[np.int64] | None
         else:
             hi = h
     return res(hi)
+
+
+@dataclasses.dataclass(frozen=True)
+class LatticePlan:
+    """The lattice of a scene's surface cache (:func:`plan_lattice`).
+
+    Attributes
+    ----------
+    resolutions : (T,) int64 array or None
+        Each triangle's resolution (None: no cache).
+    spacing : float
+        The lattice's spacing, scene units (0: no cache).
+    vertices : int
+        Its vertices, both sides of double-sided triangles counted.
+    reason : str
+        Why this spacing (one sentence, for the manifest).
+    """
+
+    resolutions: NDArray[np.int64] | None
+    spacing: float
+    vertices: int
+    reason: str
+
+    def manifest(self) -> dict[str, Any]:
+        """What the manifest's ``quality.surface_cache`` states."""
+        coarser = 0 if self.resolutions is None else int(np.sum(self.resolutions
+                                                                == MAX_RESOLUTION))
+        return {"spacing": self.spacing, "vertices": self.vertices,
+                "triangles_at_max_resolution": coarser, "reason": self.reason}
+
+
+def _resolutions(edge: NDArray[np.float64], h: float) -> NDArray[np.int64]:
+    return np.clip(np.floor(edge / h), 0, MAX_RESOLUTION).astype(np.int64)
+
+
+def _spacing_of(scene: Scene, res: NDArray[np.int64]) -> float:
+    """The spacing a lattice of resolutions ``res`` states: the coarsest it is the lattice of
+    (the least longest edge over its resolution; with the centroids alone, the longest
+    edge)."""
+    edge = longest_edges(scene)
+    on = res > 0
+    return float(np.min(edge[on] / res[on])) if on.any() else float(np.max(edge, initial=0.0))
+
+
+def plan_lattice(scene: Scene, spacing: float | None = None, *, face_size: int = 32,
+                 rays: int = 1, max_vertices: int | None = None) -> LatticePlan:
+    """The surface cache's lattice of ``scene`` at ``spacing`` (scene units; 0: none; None: the
+    default, the finest with at most one vertex a triangle side plus
+    :data:`CACHE_TEXEL_VERTICES` per texel of a probe's face, ``face_size`` texels a side, and
+    per ray a texel of the view that reads the cache, ``rays``: a final gather's,
+    :mod:`probegrid.bake.finalgather`), at most ``max_vertices`` vertices (None:
+    :data:`MAX_VERTICES`; a finer spacing coarsened to fit; a scene of more triangle sides than
+    that: none). The scene, the probes' texels and the rays that read it decide it, never the
+    grid."""
+    sides = 1 + np.asarray(scene.double_sided, np.int64)
+    n_sides = int(np.sum(sides))
+    area = float(np.sum(triangle_areas(scene) * sides))
+    max_vertices = MAX_VERTICES if max_vertices is None else int(max_vertices)
+    if spacing is not None and spacing <= 0:
+        return LatticePlan(None, 0.0, 0, "surface_cache_spacing 0: no surface cache")
+    if n_sides > max_vertices:
+        return LatticePlan(None, 0.0, 0, f"{n_sides} triangle sides, more than the cache's "
+                           f"{max_vertices} vertices: no surface cache")
+    cap = f"at most {max_vertices} vertices ({max_vertices * 24 >> 20} MB)"
+    if spacing is None:
+        extra = CACHE_TEXEL_VERTICES * int(face_size) ** 2 * int(rays)
+        res = lattice_resolutions(scene, min(max_vertices, n_sides + extra))
+        assert res is not None
+        per = "" if rays == 1 else f" and per ray of a final gather of {rays}"
+        why = (f"the default: the finest spacing with at most one vertex a triangle side plus "
+               f"{CACHE_TEXEL_VERTICES} per texel of a face of {face_size}^2{per} ({extra}) over "
+               f"the scene's {area:.6g} square units of surface ({n_sides} triangle sides), "
+               f"whatever the grid")
+        h = _spacing_of(scene, res)
+    else:
+        res = _resolutions(longest_edges(scene), float(spacing))
+        why = f"surface_cache_spacing {spacing:g}"
+        h = float(spacing)
+        if int(np.sum(sides * lattice_counts(res))) > max_vertices:
+            res = lattice_resolutions(scene, max_vertices)
+            assert res is not None
+            h = _spacing_of(scene, res)
+            why += f", coarsened to {cap}"
+    vertices = int(np.sum(sides * lattice_counts(res)))
+    return LatticePlan(res, h, vertices, why)
+
+
+def triangle_areas(scene: Scene) -> NDArray[np.float64]:
+    """Each triangle's area."""
+    v = np.asarray(scene.vertices, np.float64)[np.asarray(scene.triangles)]
+    return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
 
 def lattice_layout(scene: Scene, res: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -204,23 +305,28 @@ class SurfaceCache:
 
 
 def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSettings,
-                       geometry: TraceGeometry, data: GridData, *, level: int, vertices: int,
-                       tracer: RayTracer | None = None, iterations: int = 0
+                       geometry: TraceGeometry, data: GridData, *, level: int,
+                       plan: LatticePlan | None = None, tracer: RayTracer | None = None,
+                       iterations: int = 0, gather: int = CACHE_GATHER
                        ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
     """The lattice table, the light at its vertices (module docstring) and the rays cast, for
     a bake of ``settings`` whose final pass, at bounce ``level``, read ``data`` (``cubes`` the
-    grid's bordered irradiance, None for none), with at most ``vertices`` lattice vertices
-    (None: the scene has more triangle sides than that, :func:`lattice_resolutions`).
-    ``iterations``: that indirect light then gathered again that many times by the same first
-    gather rays, their hits reading the cache itself instead of the levels below and the grid
-    (:func:`_iterate`; when the rays' hits fit in :data:`ITERATE_MAX_RAYS`)."""
-    res = lattice_resolutions(scene, vertices)
+    grid's bordered irradiance, None for none), over the lattice of ``plan`` (None: the
+    settings', :func:`plan_lattice`; None returned: no cache), ``gather`` first gather rays a
+    vertex (stratified over a square grid when a square). ``iterations``: that indirect light
+    then gathered again that many times by the same first gather rays, their hits reading the
+    cache itself instead of the levels below and the grid (:func:`_iterate`; when the rays'
+    hits fit in :data:`ITERATE_MAX_RAYS`)."""
+    if plan is None:
+        plan = plan_lattice(scene, settings.surface_cache_spacing,
+                            face_size=settings.face_size)
+    res = plan.resolutions
     if res is None:
         return None
     lattice = lattice_layout(scene, res)
     pos, nrm = lattice_positions(scene, lattice)
     depth = settings.gather_levels()
-    st = settings.model_copy(update={"gather_samples": CACHE_GATHER if depth else 0,
+    st = settings.model_copy(update={"gather_samples": gather if depth else 0,
                                      "gather_depth": max(depth, 1)})
     rt = RecordTracer(scene, environment, st, geometry, tracer=tracer)
     if iterations:  # (a final gather's finer cache: the bake's workers wait meanwhile)
@@ -239,7 +345,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
             keys[purpose] = _stream_keys(settings.seed, CACHE_STREAM, purpose)
         u = np.asarray(_draw_rows(keys[purpose], per, rows, width))
         if purpose == 3:  # a vertex's first gather rays: stratified over the unit square
-            u = stratified(u, rows % CACHE_GATHER, CACHE_GATHER)
+            u = stratified(u, rows % gather, gather)
         return u
 
     ls = CACHE_LIGHT_SAMPLES if len(rt.emitters) else 0
@@ -251,6 +357,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     rays = 0
     keep_hits = iterations > 0 and kg > 0 and level >= 1 and total * kg <= ITERATE_MAX_RAYS
     first: list[tuple[Level, NDArray[np.int64]]] = []  # the first gather level, when iterated
+    bias = DEFAULT_NORMAL_BIAS * data.grid.smallest_cell()
     for v0 in range(0, total, CHUNK):  # loop over chunks of vertices, not vertices
         v1 = min(v0 + CHUNK, total)
         k = v1 - v0
@@ -276,6 +383,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
         front = np.arange(k)
         rows = (v0 + np.repeat(front, kg)) * kg + np.tile(np.arange(kg), k)
         parent_row = np.repeat(front, kg)
+        owner = parent_row  # each record's vertex
         levels: list[Level] = [above]
         for d in range(1, depth + 1):
             lv, g_dir, cast = rt._gather_level(draw, total, (3 * d, 3 * d + 1, 3 * d + 2),
@@ -288,11 +396,18 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
             kept.primary = parent_row.astype(np.int32)
             levels.append(kept)
             hit = np.flatnonzero(lv.kind == 1)
-            rows, parent_row = rows[hit], hit
+            if d < depth:
+                rows, parent_row, owner = rows[hit], hit, owner[hit]
             above, arriving = lv, g_dir
         deepest = levels[depth]
         if grid.shape[0]:
-            deepest.weight_index, deepest.weight = _level_weights(deepest, data)
+            # a deepest hit that sees none of its cell's probes reads the probe its vertex
+            # sees (nothing where it sees none), as a probe's hits read the probe: never the
+            # moments' soft weights, which can favour a probe beyond a wall (with probes
+            # added there, the light behind a cabinet changed 4x)
+            seen = visible_probe(p + bias * n, data.grid, data.valid, data.positions,
+                                 rt.tracer)
+            deepest.weight_index, deepest.weight = _level_weights(deepest, data, seen[owner])
         below = empty
         for d in range(depth, 0, -1):  # deepest first, as the bake's replay
             parents = len(levels[d - 1].kind)

@@ -78,7 +78,8 @@ class ProbeView:
         ``normals (p, 3)`` are given, the light in front of the surface), starting
         ``ray_offset`` off the point (along the normal when given). Through glass or partly
         covering surfaces, ``e_perp`` is scaled by the ray's expected transmittance
-        (:meth:`probegrid.raytrace.RayTracer.transmittance`).
+        (:meth:`probegrid.raytrace.RayTracer.transmittance`, per channel through a tinted
+        pane).
 
         Returns
         -------
@@ -96,10 +97,17 @@ class ProbeView:
         if pi.size and self.tracer.coverage is not None:
             # through glass or a partly covering surface: the expected share (one ray would
             # give a probe all of a sun or none of it), folded into e_perp
-            share = self.tracer.transmittance(origins, dirs[pi, li], tmax, tmin=eps)
-            visible[pi, li] = share > 0
-            e_perp = e_perp.copy()
-            e_perp[pi, li] *= share[:, None]
+            if self.tracer.tinted:  # (per channel: a tinted pane passes its tint)
+                share = self.tracer.transmittance(origins, dirs[pi, li], tmax, tmin=eps,
+                                                  rgb=True)
+                visible[pi, li] = share.max(axis=1) > 0
+                e_perp = e_perp.copy()
+                e_perp[pi, li] *= share
+            else:
+                share = self.tracer.transmittance(origins, dirs[pi, li], tmax, tmin=eps)
+                visible[pi, li] = share > 0
+                e_perp = e_perp.copy()
+                e_perp[pi, li] *= share[:, None]
         elif pi.size:
             visible[pi, li] = ~self.tracer.occluded(origins, dirs[pi, li], tmax, tmin=eps)
         return dirs, e_perp, visible, len(pi)

@@ -87,6 +87,7 @@ class BakeJob(BaseModel):
     ignore_extensions: list[str] = []
     max_texture_pixels: int | None = Field(default=None, ge=1)  # (None: the loader's)
     max_texture_size: int | None = Field(default=None, ge=1)
+    max_environment_pixels: int | None = Field(default=None, ge=1)  # (None: imageio's 2^28)
 
 
 #: Largest default face size of a bake's environment cube (each worker holds a copy).
@@ -95,10 +96,12 @@ MAX_ENVIRONMENT_SIZE = 256
 
 def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
                      color: str | None = None, intensity: float = 1.0,
-                     rotation_deg: float = 0.0) -> Environment:
+                     rotation_deg: float = 0.0, max_pixels: int | None = None) -> Environment:
     """The bake's environment from the CLI's options (default black).
 
-    ``path`` is one image in any layout :mod:`probegrid.core.layouts` reads, or six face files.
+    ``path`` is one image in any layout :mod:`probegrid.core.layouts` reads, or six face files,
+    each of at most ``max_pixels`` pixels (default :data:`probegrid.imageio.MAX_PIXELS`;
+    ``--max-environment-pixels``).
     """
     if path is not None and color is not None:
         raise ValueError("give either --environment or --environment-color, not both")
@@ -120,7 +123,8 @@ def load_environment(path: Path | list[Path] | None, *, layout: str = "auto",
     from probegrid.imageio import read_environment
 
     faces = read_environment(path, layout=layout, max_size=MAX_ENVIRONMENT_SIZE,
-                             report=lambda line: print(line, file=sys.stderr))
+                             report=lambda line: print(line, file=sys.stderr),
+                             max_pixels=max_pixels, option="--max-environment-pixels")
     return Environment(faces=faces, intensity=intensity, rotation=rotation)
 
 
@@ -211,6 +215,11 @@ def run_bake(job: BakeJob) -> BakeReport:
     bar = BakeProgress(enabled=job.progress)  # a bar on a terminal, else plain lines
     try:
         volume = probe_volume(job)  # (the glTF JSON only: refused before the scene loads)
+        if job.environment is not None:  # (the headers only: refused before the scene loads)
+            from probegrid.imageio import check_pixels
+
+            check_pixels(list(job.environment), max_pixels=job.max_environment_pixels,
+                         option="--max-environment-pixels")
         limits = {k: v for k, v in (("max_pixels", job.max_texture_pixels),
                                     ("max_size", job.max_texture_size)) if v is not None}
         scene = load_gltf(job.scene, allow_paths=job.allow_paths,
@@ -219,7 +228,8 @@ def run_bake(job: BakeJob) -> BakeReport:
         env = load_environment(job.environment, layout=job.environment_layout,
                                color=job.environment_color,
                                intensity=job.environment_intensity,
-                               rotation_deg=job.environment_rotation)
+                               rotation_deg=job.environment_rotation,
+                               max_pixels=job.max_environment_pixels)
         require_light(scene, env, allow_black=job.allow_black)
         notes: list[str] = []  # printed once every check passed: an error stays one line
         if scene.unhonoured:

@@ -198,14 +198,9 @@ def run_filter(
         from probegrid.imageio import detect_file_layout
 
         detect_file_layout(paths[0], option="--layout")
-    from probegrid.imageio import MAX_PIXELS, ImageError, image_size
+    from probegrid.imageio import check_pixels
 
-    limit = MAX_PIXELS if max_pixels is None else max_pixels
-    for path in paths:  # (from the headers: refused before any work)
-        w, h = image_size(path)
-        if w * h > limit:
-            raise ImageError(f"{path}: {w}x{h} is {w * h} pixels, over the limit of {limit} an "
-                             "image may have here; --max-pixels N raises it.")
+    check_pixels(paths, max_pixels=max_pixels, option="--max-pixels")  # (before any work)
     with staged_output(out, lambda final: prepare_output_dir(final, FILTER_FORMAT,
                                                              create=False)) as stage:
         manifest, files = _filter_into(stage, paths, settings, progress,

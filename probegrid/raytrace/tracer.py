@@ -269,8 +269,11 @@ class RayTracer:
         *,
         tmin: ArrayLike = 0.0,
         tmax: ArrayLike = np.inf,
+        weights: NDArray[np.float64] | None = None,
     ) -> Hits:
-        """Closest hit of each ray ``origin + t direction``, ``tmin <= t <= tmax``.
+        """Closest hit of each ray ``origin + t direction``, ``tmin <= t <= tmax``
+        (``weights``, ``(n, 3)`` for the ``n`` rays flattened: multiplied in place by what the
+        rays pass, :meth:`intersect_weighted`).
 
         Parameters
         ----------
@@ -301,8 +304,28 @@ class RayTracer:
             embree_hits((res["primID"], res["tfar"], res["u"], res["v"]),
                         lo.reshape(1) if lo.ndim == 0 else lo, s, out)
         if self.coverage is not None:
-            self._pass_through(o, d, hi, out)
+            self._pass_through(o, d, hi, out, weights)
         return Hits(prim.reshape(shape), t.reshape(shape), u.reshape(shape), v.reshape(shape))
+
+    @property
+    def tinted(self) -> bool:
+        """Whether a ray that passes a surface may carry a weight other than 1 (a tinted
+        transmission: the ``tinted`` flag of :class:`probegrid.scene.coverage.Coverage`): the
+        weighted queries (:meth:`intersect_weighted`, :meth:`shadow_weights`,
+        :meth:`transmittance` with ``rgb``) then differ from the plain ones."""
+        return bool(getattr(self.coverage, "tinted", False))
+
+    def intersect_weighted(self, origins: ArrayLike, directions: ArrayLike, *,
+                           tmin: ArrayLike = 0.0, tmax: ArrayLike = np.inf
+                           ) -> tuple[Hits, NDArray[np.float64]]:
+        """:meth:`intersect`, and the ``(..., 3)`` weight each ray carries to its hit (or
+        miss): the product of the coverage's ``pass_weight`` over the surfaces it passed (1
+        for none; module docstring of :mod:`probegrid.scene.coverage`)."""
+        shape = np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1],
+                                    np.shape(tmin), np.shape(tmax))
+        weights = np.ones((math.prod(shape), 3))
+        hits = self.intersect(origins, directions, tmin=tmin, tmax=tmax, weights=weights)
+        return hits, weights.reshape(*shape, 3)
 
     def _cast(self, scene: object, o: NDArray, d: NDArray, lo: NDArray, hi: NDArray,
               centre: NDArray[np.float64]) -> Hits:
@@ -333,9 +356,11 @@ class RayTracer:
         stops = self.coverage.stops  # type: ignore[union-attr]
         return np.asarray(stops(prim, hits.u[rows], hits.v[rows], xi), dtype=bool)
 
-    def _pass_through(self, o: NDArray, d: NDArray, hi: NDArray, out: Hits) -> None:
+    def _pass_through(self, o: NDArray, d: NDArray, hi: NDArray, out: Hits,
+                      weights: NDArray[np.float64] | None = None) -> None:
         """Carry the closest hits ``out`` (of rays ``o + t d``, ``t <= hi``) past the cut-out
-        surfaces the rays pass (module docstring), in place."""
+        surfaces the rays pass (module docstring), in place; ``weights (n, 3)`` multiplied by
+        the weights of the surfaces passed."""
         n = len(d)
         his = np.broadcast_to(hi, (n,))
         cut = self._cut
@@ -347,6 +372,9 @@ class RayTracer:
             go = active[~self._stops(out.prim_id[active], out, active, o, d)]
             if not go.size:
                 return
+            if weights is not None:
+                weights[go] *= self.coverage.pass_weight(  # type: ignore[union-attr]
+                    out.prim_id[go], out.u[go], out.v[go])
             og = o if len(o) == 1 else o[go]
             dg = d[go]
             lo = out.t[go] + self.skip / np.linalg.norm(dg, axis=1)
@@ -358,10 +386,11 @@ class RayTracer:
             active = active[cut[out.prim_id[active]]]
 
     def _occluded_embree(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
-                         far: NDArray[np.float32]) -> NDArray[np.bool_]:
+                         far: NDArray[np.float32], weights: NDArray[np.float64] | None = None
+                         ) -> NDArray[np.bool_]:
         """Occlusion of rays as Embree takes them, through the surfaces they may pass (module
         docstring): the opaque triangles' any-hit query, then the cut-out triangles nearest
-        first."""
+        first (``weights (n, 3)`` multiplied by the weights of the surfaces passed)."""
         n = len(far)
         if self._opaque_scene is not None:
             blocked = self._opaque_scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0
@@ -386,6 +415,9 @@ class RayTracer:
             stop = self._stops(prim, local, hit, o[alive], d[alive])
             blocked[rows[alive[hit[stop]]]] = True
             go = hit[~stop]
+            if weights is not None and go.size:
+                weights[rows[alive[go]]] *= self.coverage.pass_weight(  # type: ignore[union-attr]
+                    prim[~stop], hits.u[go], hits.v[go])
             lo[alive[go]] = hits.t[go] + self.skip / np.linalg.norm(d[alive[go]], axis=1)
             alive = alive[go]
             if not alive.size:
@@ -443,37 +475,73 @@ class RayTracer:
                                        query="OCCLUDED") >= 0
         return out
 
+    def shadow_weights(self, rays: EmbreeRays, ok: bool = True) -> NDArray[np.float64]:
+        """The ``(k, 3)`` light each shadow ray of :meth:`occluded_rays` lets through: 0 where
+        it is occluded, else the product of the weights of the surfaces it passed (one draw
+        per surface, as :meth:`occluded_rays`; 1 without a tinted coverage)."""
+        if not ok:
+            raise ValueError("ray origins and directions must be finite (and within float32).")
+        org, dirs, far = rays
+        if not self.tinted:
+            return np.repeat((~self.occluded_rays(rays, ok)).astype(np.float64)[:, None], 3, 1)
+        out = np.ones((len(far), 3))
+        for s in range(0, len(far), self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, len(far))
+            blocked = self._occluded_embree(org[s:e], dirs[s:e], far[s:e], out[s:e])
+            out[s:e][blocked] = 0.0
+        return out
+
+    def occluded_weights(self, origins: ArrayLike, directions: ArrayLike, tmax: ArrayLike, *,
+                         tmin: ArrayLike = 0.0) -> NDArray[np.float64]:
+        """:meth:`shadow_weights` of the segments of :meth:`occluded`, ``(..., 3)``."""
+        if not self.tinted:
+            free = ~self.occluded(origins, directions, tmax, tmin=tmin)
+            return np.repeat(free.astype(np.float64)[..., None], 3, -1)
+        shape, o, d, lo, hi = self._rays(origins, directions, tmin, tmax)
+        out = np.ones((len(d), 3))
+        for s in range(0, len(d), self.chunk_size):  # loop over chunks of rays, not rays
+            e = min(s + self.chunk_size, len(d))
+            org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
+            blocked = self._occluded_embree(org, dirs, far, out[s:e])
+            out[s:e][blocked] = 0.0
+        return out.reshape(*shape, 3)
+
     def transmittance(self, origins: ArrayLike, directions: ArrayLike, tmax: ArrayLike, *,
-                      tmin: ArrayLike = 0.0) -> NDArray[np.float64]:
+                      tmin: ArrayLike = 0.0, rgb: bool = False) -> NDArray[np.float64]:
         """The expected share of light that gets through each segment ``origin + t direction``,
         ``tmin <= t <= tmax``: 0 when an opaque triangle lies on it, else the product of
         ``1 - p`` over the surfaces it may pass (``p`` their stop probabilities, module
         docstring; 0 past :data:`MAX_LAYERS` of them). Without a coverage: ``1 - occluded``.
         For a probe's view of a punctual light: one ray would give all or nothing.
 
+        With ``rgb``, ``(..., 3)``: each surface passes ``(1 - p) w`` per channel (its
+        ``pass_weight`` ``w``: the light through a tinted pane takes its tint).
+
         Returns
         -------
-        (...) float64 in [0, 1]
+        (...) float64 in [0, 1], or (..., 3) with ``rgb``
         """
-        if self.coverage is None:
-            return (~self.occluded(origins, directions, tmax, tmin=tmin)).astype(np.float64)
+        if self.coverage is None or (rgb and not self.tinted):
+            plain = self.transmittance(origins, directions, tmax, tmin=tmin)
+            return np.repeat(plain[..., None], 3, -1) if rgb else plain
         shape, o, d, lo, hi = self._rays(origins, directions, tmin, tmax)
         n = len(d)
-        out = np.empty(n)
+        out = np.empty((n, 3) if rgb else n)
         for s in range(0, n, self.chunk_size):  # loop over chunks of rays, not rays
             e = min(s + self.chunk_size, n)
             org, dirs, far = self._embree_rays(o, d, lo, hi, s, e)
-            out[s:e] = self._transmittance_embree(org, dirs, far)
-        return out.reshape(shape)
+            out[s:e] = self._transmittance_embree(org, dirs, far, rgb)
+        return out.reshape(*shape, 3) if rgb else out.reshape(shape)
 
     def _transmittance_embree(self, org: NDArray[np.float32], dirs: NDArray[np.float32],
-                              far: NDArray[np.float32]) -> NDArray[np.float64]:
+                              far: NDArray[np.float32], rgb: bool = False
+                              ) -> NDArray[np.float64]:
         """:meth:`transmittance` of rays as Embree takes them."""
         n = len(far)
-        out = np.ones(n)
+        out = np.ones((n, 3) if rgb else n)
         if self._opaque_scene is not None:
             out[self._opaque_scene.run(org, dirs, dists=far, query="OCCLUDED") >= 0] = 0.0
-        rows = np.flatnonzero((out > 0) & (far > 0))
+        rows = np.flatnonzero((out.reshape(n, -1)[:, 0] > 0) & (far > 0))
         o = org[rows].astype(np.float64)
         d = dirs[rows].astype(np.float64)
         hi = far[rows].astype(np.float64)
@@ -485,9 +553,14 @@ class RayTracer:
                 return out
             hits = self._cast(self._cut_scene, o[alive], d[alive], lo[alive], hi[alive], zero)
             hit = np.flatnonzero(hits.prim_id >= 0)
+            prim = self._cut_ids[hits.prim_id[hit]]
             p = self.coverage.stop_probability(  # type: ignore[union-attr]
-                self._cut_ids[hits.prim_id[hit]], hits.u[hit], hits.v[hit])
-            out[rows[alive[hit]]] *= 1.0 - p
+                prim, hits.u[hit], hits.v[hit])
+            if rgb:
+                out[rows[alive[hit]]] *= (1.0 - p)[:, None] * self.coverage.pass_weight(
+                    prim, hits.u[hit], hits.v[hit])  # type: ignore[union-attr]
+            else:
+                out[rows[alive[hit]]] *= 1.0 - p
             go = hit[p < 1.0]
             lo[alive[go]] = hits.t[go] + self.skip / np.linalg.norm(d[alive[go]], axis=1)
             alive = alive[go]

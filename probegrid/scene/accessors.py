@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from probegrid.errors import SceneError
 
-__all__ = ["DECODED_URI", "plain_geometry", "read_accessor"]
+__all__ = ["DECODED_URI", "float_accessor", "plain_geometry", "read_accessor", "view_bytes"]
 
 #: The URI under which the decoded data are handed to the mesh reader.
 DECODED_URI: Final[str] = "probegrid-decoded.bin"
@@ -58,7 +58,7 @@ _MESHOPT: Final[str] = "EXT_meshopt_compression"
 _DRACO: Final[str] = "KHR_draco_mesh_compression"
 
 
-def _view_bytes(header: dict, buffers: Sequence[bytes], i: int, label: str) -> bytes:
+def view_bytes(header: dict, buffers: Sequence[bytes], i: int, label: str) -> bytes:
     """The bytes of buffer view ``i`` (decoded first when meshopt-compressed)."""
     view = header["bufferViews"][i]
     ext = view.get("extensions", {}).get(_MESHOPT)
@@ -130,7 +130,7 @@ def read_accessor(header: dict, buffers: Sequence[bytes], index: int, label: str
         raise SceneError(f"{label}: accessor {index} declares {count} elements.")
     if "bufferView" in acc:
         vi = int(acc["bufferView"])
-        data = _view_bytes(header, buffers, vi, label)
+        data = view_bytes(header, buffers, vi, label)
         stride = int(header["bufferViews"][vi].get("byteStride", 0)) or item
         start = int(acc.get("byteOffset", 0))
         if count and (start < 0 or start + (count - 1) * stride + item > len(data)):
@@ -147,8 +147,8 @@ def read_accessor(header: dict, buffers: Sequence[bytes], index: int, label: str
         k = int(sparse["count"])
         ind, val = sparse["indices"], sparse["values"]
         idt = np.dtype(_DTYPES[int(ind["componentType"])])
-        ib = _view_bytes(header, buffers, int(ind["bufferView"]), label)
-        vb = _view_bytes(header, buffers, int(val["bufferView"]), label)
+        ib = view_bytes(header, buffers, int(ind["bufferView"]), label)
+        vb = view_bytes(header, buffers, int(val["bufferView"]), label)
         io, vo = int(ind.get("byteOffset", 0)), int(val.get("byteOffset", 0))
         if io + k * idt.itemsize > len(ib) or vo + k * item > len(vb):
             raise SceneError(f"{label}: the sparse data of accessor {index} run past their "
@@ -158,6 +158,20 @@ def read_accessor(header: dict, buffers: Sequence[bytes], index: int, label: str
             raise SceneError(f"{label}: accessor {index} has sparse indices out of range.")
         out[idx] = np.frombuffer(vb, dtype, count=k * width, offset=vo).reshape(k, width)
     return out
+
+
+def float_accessor(header: dict, buffers: Sequence[bytes], index: object, label: str
+                   ) -> NDArray[np.float64]:
+    """Accessor ``index`` as ``(count, width)`` float64 values (normalized integers by
+    glTF's rule, :func:`_as_float`); a :class:`SceneError` for an index that is not one."""
+    accs = header.get("accessors", [])
+    if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(accs):
+        raise SceneError(f"{label}: {index!r} is not an accessor index.")
+    try:
+        raw = read_accessor(header, buffers, index, label)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise SceneError(f"{label}: accessor {index} cannot be read ({exc}).") from None
+    return _as_float(raw, bool(accs[index].get("normalized", False))).astype(np.float64)
 
 
 def _as_float(a: NDArray, normalized: bool) -> NDArray[np.float32]:
@@ -268,7 +282,7 @@ def plain_geometry(header: dict, buffers: Sequence[bytes], label: str
     # meshopt views the reader may still read (normals, images...): plain bytes
     for i in meshopt_views:
         view = out["bufferViews"][i]
-        raw = _view_bytes(header, buffers, i, label)
+        raw = view_bytes(header, buffers, i, label)
         j = append(raw, int(view["byteStride"]) if "byteStride" in view else None)
         out["bufferViews"][i] = out["bufferViews"][j]
     out.setdefault("buffers", []).append({"byteLength": size, "uri": DECODED_URI})
@@ -288,7 +302,7 @@ def _decode_draco(header: dict, buffers: Sequence[bytes], prim: dict, out: dict,
         raise SceneError(f"{label}: a primitive is Draco-compressed and the DracoPy package is "
                          "missing (pip install DracoPy).") from None
     ext = prim["extensions"][_DRACO]
-    blob = _view_bytes(header, buffers, int(ext["bufferView"]), label)
+    blob = view_bytes(header, buffers, int(ext["bufferView"]), label)
     try:
         mesh = DracoPy.decode(blob)
     except Exception as exc:  # noqa: BLE001 -- DracoPy raises its own types

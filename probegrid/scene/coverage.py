@@ -11,11 +11,19 @@ bake follows, primary, shadow and gather rays alike; the tracer draws it,
   share of the surface that covers the pixel, so the expected light through it is
   ``(1 - alpha)`` times what lies behind, and the expected light it reflects ``alpha`` times
   its own;
-* ``KHR_materials_transmission`` (thin: no volume, no refraction): ``p`` is multiplied by
-  ``1 - transmission``. A pane of factor ``T`` passes ``T`` of the light behind it,
-  straight and untinted (the extension's tint by the base colour and its specular lobe are
-  not modelled), and reflects ``1 - T`` of its diffuse light, as the extension's
-  ``mix(diffuse, transmission, T)`` does.
+* ``KHR_materials_transmission`` (thin-walled: no volume, no refraction): ``p`` is multiplied
+  by ``1 - T``, ``T = transmissionFactor * transmissionTexture.r`` (the texture linear, read
+  through its own coordinates). The extension's thin-walled surface is
+  ``mix(diffuse, specular_btdf * baseColor, T)``: it reflects ``1 - T`` of its diffuse light
+  and passes ``T`` of the light behind it straight, **multiplied by the base colour**
+  ``c = baseColorFactor.rgb * baseColorTexture.rgb * COLOR_0.rgb`` per channel. A ray that
+  passes a surface therefore carries the weight ``w = ((1 - a) + a T c) / ((1 - a) + a T)``
+  (``a`` the alpha share above: the light through the holes is untinted, through the glass
+  tinted), so that the expected light through is ``(1 - a) + a T c`` per channel
+  (:meth:`Coverage.pass_weight`; the tracer multiplies a ray's weights along it,
+  ``RayTracer.intersect(weights=...)``, ``shadow_weights``, ``transmittance(rgb=True)``).
+  The specular lobe (the btdf's roughness, the Fresnel term) is not modelled: a pane of
+  ``T = 1`` and white base colour passes everything.
 
 Alpha is ``baseColorFactor.a * baseColorTexture.a * COLOR_0.a`` (glTF 2.0), the texture read
 through its :class:`~probegrid.scene.textures.TexCoord` with its sampler's wrap modes.
@@ -61,6 +69,10 @@ class Coverage:
     key : str
         A hash of what decides coverage (materials' modes, factors, alpha textures and their
         coordinates, the vertex alphas): two scenes with the same key pass the same rays.
+    tinted : bool
+        Whether a ray that passes some surface may carry a weight other than 1 (a transmitting
+        material whose base colour is not white, or is textured, or vertex colours): else the
+        weights need not be kept.
     """
 
     def __init__(self, scene: Scene) -> None:
@@ -72,6 +84,9 @@ class Coverage:
         self.stochastic = any(m.alpha_mode == "BLEND" or m.transmission > 0 for m in mats)
         self.cutout: NDArray[np.bool_] = flags[scene.material]
         self.cutout.setflags(write=False)
+        self.tinted = any(m.transmission > 0 and (
+            np.any(m.base_color[:3] != 1.0) or m.base_color_texture is not None
+            or scene.colors is not None) for m in mats)
         h = hashlib.sha256(b"probegrid-coverage-v1;")
         h.update(np.ascontiguousarray(scene.material, "<i8").tobytes())
         for m in mats:
@@ -84,6 +99,17 @@ class Coverage:
         for a in (scene.uvs, *scene.extra_uvs):
             if a is not None:
                 h.update(np.ascontiguousarray(a, "<f8").tobytes())
+        for m in mats:  # (a scene without transmission textures keys as before)
+            if m.transmission_texture is not None:
+                h.update(repr((tuple(m.transmission_uv), m.transmission_wrap)).encode())
+                h.update(np.ascontiguousarray(m.transmission_texture, "<f4").tobytes())
+        if self.tinted:
+            for m in mats:
+                h.update(np.ascontiguousarray(m.base_color[:3], "<f8").tobytes())
+                if m.base_color_texture is not None:
+                    h.update(np.ascontiguousarray(m.base_color_texture[..., :3], "<f4").tobytes())
+            if scene.colors is not None:
+                h.update(np.ascontiguousarray(scene.colors[:, :3], "<f8").tobytes())
         self.key = h.hexdigest()
 
     def alpha(self, prim: NDArray[np.int64], u: NDArray[np.float64],
@@ -115,23 +141,66 @@ class Coverage:
                     frozen(xform), 3)
         return out
 
+    def transmission(self, prim: NDArray[np.int64], u: NDArray[np.float64],
+                     v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``T = transmissionFactor * transmissionTexture.r`` at barycentric points of
+        triangles ``prim`` (each ``(k,)``)."""
+        sc = self._scene
+        prim = np.ascontiguousarray(prim, np.int64)
+        mat = sc.material[prim]
+        out = np.array([m.transmission for m in sc.materials])[mat]
+        textured = [i for i, m in enumerate(sc.materials)
+                    if m.transmission_texture is not None and m.transmission > 0]
+        if textured:
+            u = np.ascontiguousarray(u, np.float64)
+            v = np.ascontiguousarray(v, np.float64)
+            tris = np.ascontiguousarray(sc.triangles, np.int64)
+            for i in textured:  # loop over the transmitting materials, not over hits
+                rows = np.flatnonzero(mat == i)
+                if not rows.size:
+                    continue
+                m = sc.materials[i]
+                uvs, xform = sc.kernel_texcoords(m.transmission_uv)
+                multiply_texture(out.reshape(-1, 1), rows, *frozen((
+                    (prim, u, v), tris, uvs, np.asarray(m.transmission_texture, np.float32))),
+                    (_WRAPS.index(m.transmission_wrap[0]), _WRAPS.index(m.transmission_wrap[1])),
+                    frozen(xform), 0)
+        return out
+
+    def _shares(self, prim: NDArray[np.int64], u: NDArray[np.float64], v: NDArray[np.float64]
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(a, T)``: the alpha share that covers (1 opaque, 0 or 1 MASK, alpha BLEND) and the
+        transmission, at the hits."""
+        sc = self._scene
+        mat = sc.material[np.asarray(prim, np.int64)]
+        modes = np.array([("OPAQUE", "MASK", "BLEND").index(m) for m in self._modes])[mat]
+        a = np.ones(len(mat))
+        alpha_rows = modes != 0
+        if alpha_rows.any():
+            al = self.alpha(np.asarray(prim)[alpha_rows], np.asarray(u)[alpha_rows],
+                            np.asarray(v)[alpha_rows])
+            cutoff = np.array([m.alpha_cutoff for m in sc.materials])[mat[alpha_rows]]
+            a[alpha_rows] = np.where(modes[alpha_rows] == 1, (al >= cutoff).astype(np.float64),
+                                     np.clip(al, 0.0, 1.0))
+        return a, self.transmission(prim, u, v)
+
     def stop_probability(self, prim: NDArray[np.int64], u: NDArray[np.float64],
                          v: NDArray[np.float64]) -> NDArray[np.float64]:
         """``p``, the probability that a ray hitting triangle ``prim`` at ``(u, v)`` stops
         there (module docstring), ``(k,)`` in [0, 1]."""
-        sc = self._scene
-        mat = sc.material[np.asarray(prim, np.int64)]
-        modes = np.array([("OPAQUE", "MASK", "BLEND").index(m) for m in self._modes])[mat]
-        p = np.ones(len(mat))
-        alpha_rows = modes != 0
-        if alpha_rows.any():
-            a = self.alpha(np.asarray(prim)[alpha_rows], np.asarray(u)[alpha_rows],
-                           np.asarray(v)[alpha_rows])
-            cutoff = np.array([m.alpha_cutoff for m in sc.materials])[mat[alpha_rows]]
-            p[alpha_rows] = np.where(modes[alpha_rows] == 1, (a >= cutoff).astype(np.float64),
-                                     np.clip(a, 0.0, 1.0))
-        transmission = np.array([m.transmission for m in sc.materials])[mat]
-        return p * (1.0 - transmission)
+        a, t = self._shares(prim, u, v)
+        return a * (1.0 - t)
+
+    def pass_weight(self, prim: NDArray[np.int64], u: NDArray[np.float64],
+                    v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``w (k, 3)``, the weight a ray that passes triangle ``prim`` at ``(u, v)`` carries
+        on: ``((1 - a) + a T c) / ((1 - a) + a T)`` (module docstring; 1 where nothing
+        passes)."""
+        a, t = self._shares(prim, u, v)
+        c = self._scene.surface_at(np.asarray(prim, np.int64), u, v).albedo
+        q = (1.0 - a) + a * t
+        through = (1.0 - a)[:, None] + (a * t)[:, None] * c
+        return np.divide(through, q[:, None], out=np.ones_like(through), where=q[:, None] > 0)
 
     def stops(self, prim: NDArray[np.int64], u: NDArray[np.float64], v: NDArray[np.float64],
               xi: NDArray[np.float64]) -> NDArray[np.bool_]:

@@ -31,20 +31,23 @@ Conventions
 * Each texture reads its ``texCoord`` set through its ``KHR_texture_transform`` (offset,
   rotation, scale, and the transform's ``texCoord`` override), :class:`TexCoord`.
 * What stops a ray: ``alphaMode`` (``MASK`` with ``alphaCutoff``, ``BLEND`` as stochastic
-  coverage) and ``KHR_materials_transmission``'s factor (thin, untinted), see
-  :mod:`probegrid.scene.coverage`.
+  coverage) and ``KHR_materials_transmission`` (thin: ``transmissionFactor`` times
+  ``transmissionTexture``'s R, linear, read through its own ``texCoord`` and transform; the
+  light through tinted by the base colour), see :mod:`probegrid.scene.coverage`.
 * Geometry: ``KHR_mesh_quantization``, normalized and sparse accessors,
   ``EXT_meshopt_compression`` and ``KHR_draco_mesh_compression`` are decoded into plain
   arrays first (:mod:`probegrid.scene.accessors`); images: ``EXT_texture_webp`` is read (Pillow
   decodes WebP), ``KHR_texture_basisu`` through the fallback image its texture names (a KTX2
   texture without one is refused, or dropped with ``--ignore-extension KHR_texture_basisu``).
+* ``EXT_mesh_gpu_instancing``: each instance (``TRANSLATION``, ``ROTATION``, ``SCALE``)
+  places its node's mesh, in the node's frame.
 * The default scene (``scene``, else the first) of a file with several is loaded.
 
 Not honoured, and named in :attr:`Scene.unhonoured` (the bake prints them and the store's
 manifest keeps them): metallic-roughness (every surface is Lambertian), normal and occlusion
-textures, ``transmissionTexture``, the material extensions of other lobes (sheen, clearcoat,
+textures, the material extensions of other lobes (sheen, clearcoat,
 specular, anisotropy, iridescence, volume, ior, dispersion, diffuse transmission...),
-``EXT_mesh_gpu_instancing``, and any other extension a file uses; morph targets and skins
+and any other extension a file uses; morph targets and skins
 (the bind pose is used), points and lines (skipped). A file whose ``extensionsRequired`` names
 an extension outside :data:`HONOURED_EXTENSIONS` is refused, as the glTF specification asks of
 a loader, with the option that loads it anyway with the extension ignored
@@ -73,7 +76,7 @@ import re
 import signal
 import struct
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Final
@@ -83,7 +86,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from probegrid.core.lights import DirectionalLight, Light, PointLight, SpotLight
-from probegrid.scene.accessors import DECODED_URI, plain_geometry
+from probegrid.scene.accessors import DECODED_URI, float_accessor, plain_geometry, view_bytes
 from probegrid.scene.model import Material, Scene, SceneError
 from probegrid.scene.texels import TextureLimits, decode_texture, texture_limits
 from probegrid.scene.textures import TexCoord, texture_transform
@@ -102,6 +105,7 @@ HONOURED_EXTENSIONS: Final[frozenset[str]] = frozenset({
     "KHR_lights_punctual", "KHR_materials_emissive_strength", "KHR_texture_transform",
     "KHR_materials_transmission", "KHR_mesh_quantization", "EXT_meshopt_compression",
     "KHR_draco_mesh_compression", "EXT_texture_webp", "KHR_texture_basisu",
+    "EXT_mesh_gpu_instancing",
 })
 
 #: What an extension of another lobe or feature would change, for the list of what is not
@@ -109,7 +113,6 @@ HONOURED_EXTENSIONS: Final[frozenset[str]] = frozenset({
 _NOT_HONOURED_NOTES: Final[dict[str, str]] = {
     "KHR_materials_pbrSpecularGlossiness": "specular-glossiness (read as base colour only)",
     "KHR_materials_unlit": "unlit (shaded as Lambertian)",
-    "EXT_mesh_gpu_instancing": "its instances (each mesh is placed once, at its node)",
     "KHR_materials_variants": "variants (the default materials are used)",
 }
 
@@ -415,8 +418,11 @@ def _texture_info(
 
 
 def _material_from_json(header: dict, index: int, tm_material: object | None,
-                        ignore: frozenset[str] = frozenset()) -> Material:
-    """Material ``index`` of the glTF JSON; texture pixels come from trimesh's decoded images."""
+                        ignore: frozenset[str] = frozenset(),
+                        image_of: Callable[[int], object] | None = None) -> Material:
+    """Material ``index`` of the glTF JSON; texture pixels come from trimesh's decoded images,
+    the transmission texture's (which trimesh does not keep) from ``image_of(source)``, a
+    Pillow image of the file's image ``source``."""
     mj = header["materials"][index]
     mname = str(mj.get("name", f"#{index}"))
     pbr = mj.get("pbrMetallicRoughness", {})
@@ -424,7 +430,17 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
     strength = ext.get("KHR_materials_emissive_strength", {})
     emissive = np.array(mj.get("emissiveFactor", [0.0, 0.0, 0.0]), dtype=np.float64)
     emissive = emissive * float(strength.get("emissiveStrength", 1.0))
-    transmission = float(ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0))
+    tx = ext.get("KHR_materials_transmission", {})
+    transmission = float(tx.get("transmissionFactor", 0.0))
+    tx_texture, tx_wrap, tx_uv = None, ("repeat", "repeat"), TexCoord()
+    found = (_texture_info(header, tx.get("transmissionTexture"), mname, "transmissionTexture",
+                           ignore) if transmission > 0 else None)
+    if found is not None and image_of is not None:
+        what, tx_wrap, tx_uv = found
+        source = _texture_source(header["textures"][int(tx["transmissionTexture"]["index"])])
+        if source is not None:  # (R: linear data, not colour)
+            tx_texture = np.ascontiguousarray(decode_texture(
+                image_of(int(source)), 3, what, linear=True)[..., :1])
     alpha_mode = str(mj.get("alphaMode", "OPAQUE"))
     alpha_cutoff = float(mj.get("alphaCutoff", 0.5))
     textures: dict[str, NDArray[np.float32] | None] = {}
@@ -473,6 +489,9 @@ def _material_from_json(header: dict, index: int, tm_material: object | None,
             transmission=transmission,
             base_color_uv=coords["baseColorTexture"],
             emissive_uv=coords["emissiveTexture"],
+            transmission_texture=tx_texture,
+            transmission_wrap=tx_wrap,  # type: ignore[arg-type]
+            transmission_uv=tx_uv,
         )
     except ValueError as exc:
         raise SceneError(f"material {mname!r} is invalid: {exc}") from None
@@ -576,6 +595,84 @@ def gltf_mesh_count(path: str | Path) -> int | None:
     return len(meshes) if isinstance(meshes, list) else 0
 
 
+#: Most instances ``EXT_mesh_gpu_instancing`` may place in one file (each is a copy of its
+#: mesh's triangles in the scene).
+MAX_INSTANCES: Final[int] = 1 << 20
+#: Most triangles the instances of a file may add.
+MAX_INSTANCED_TRIANGLES: Final[int] = 1 << 26
+
+_INSTANCING: Final[str] = "EXT_mesh_gpu_instancing"
+
+
+def _mesh_triangles(header: dict, mesh: object) -> int:
+    """About how many triangles mesh ``mesh`` holds (its index or position counts / 3), from
+    the JSON alone; 0 for what is not a mesh (the reader refuses it later)."""
+    meshes, accs = header.get("meshes", []), header.get("accessors", [])
+    if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
+        return 0
+    total = 0
+    for prim in meshes[mesh].get("primitives", []):
+        a = prim.get("indices", prim.get("attributes", {}).get("POSITION"))
+        if isinstance(a, int) and 0 <= a < len(accs):
+            total += int(accs[a].get("count", 0)) // 3
+    return total
+
+
+def _expand_instances(tagged: dict, header: dict, buffers: Sequence[bytes], label: str) -> None:
+    """``EXT_mesh_gpu_instancing`` made plain, in ``tagged`` (a copy of ``header``): the mesh
+    of a node with instances moves to one new child node per instance, whose ``translation``,
+    ``rotation`` (a unit quaternion, normalized integers allowed) and ``scale`` are the
+    instance's (the extension: an instance's transform applies in the node's frame, before the
+    node's own, as a child's does). Attributes other than these three (``_ID`` and the like)
+    are not read."""
+    nodes = tagged.get("nodes", [])
+    placed = triangles = 0
+    for i, node in enumerate(header.get("nodes", [])):
+        ext = node.get("extensions", {}).get(_INSTANCING)
+        if ext is None or "mesh" not in node:
+            continue
+        attrs = ext.get("attributes", {})
+        what = f"{label}: node {i}'s {_INSTANCING}"
+        cols: dict[str, NDArray[np.float64]] = {}
+        for name, width in (("TRANSLATION", 3), ("ROTATION", 4), ("SCALE", 3)):
+            if name in attrs:
+                a = float_accessor(header, buffers, attrs[name], what)
+                if a.shape[1] != width or not np.all(np.isfinite(a)):
+                    raise SceneError(f"{what} {name} must be finite VEC{width}, got "
+                                     f"{a.shape[1]} components per instance.")
+                cols[name] = a
+        if not cols:
+            raise SceneError(f"{what} has none of TRANSLATION, ROTATION, SCALE.")
+        counts = {len(a) for a in cols.values()}
+        if len(counts) != 1:
+            raise SceneError(f"{what} attributes have different counts "
+                             f"({', '.join(f'{k} {len(a)}' for k, a in cols.items())}).")
+        n = counts.pop()
+        placed += n
+        triangles += n * _mesh_triangles(header, node["mesh"])
+        if placed > MAX_INSTANCES or triangles > MAX_INSTANCED_TRIANGLES:
+            raise SceneError(f"{label}: {_INSTANCING} places over {MAX_INSTANCES} instances or "
+                             f"{MAX_INSTANCED_TRIANGLES} triangles; bake fewer.")
+        if "ROTATION" in cols:
+            q = cols["ROTATION"]
+            norm = np.linalg.norm(q, axis=1, keepdims=True)
+            if np.any(norm == 0):
+                raise SceneError(f"{what} ROTATION has a zero quaternion.")
+            cols["ROTATION"] = q / norm
+        first = len(nodes)
+        for k in range(n):  # loop over instances (scene-graph nodes, not rays or pixels)
+            child = {"mesh": node["mesh"], "name": f"{node.get('name', i)}#instance{k}"}
+            for name, key in (("TRANSLATION", "translation"), ("ROTATION", "rotation"),
+                              ("SCALE", "scale")):
+                if name in cols:
+                    child[key] = [float(x) for x in cols[name][k]]
+            nodes.append(child)
+        target = tagged["nodes"][i]
+        target.pop("mesh")
+        target.get("extensions", {}).pop(_INSTANCING, None)
+        target["children"] = list(target.get("children", [])) + list(range(first, first + n))
+
+
 def _required(header: dict, label: str, ignore: frozenset[str]) -> None:
     """Refuse a file that requires an extension the loader does not honour (and that
     ``ignore`` does not name), with the option that loads it anyway."""
@@ -600,20 +697,12 @@ def unhonoured_features(header: dict) -> tuple[str, ...]:
     for key in ("normalTexture", "occlusionTexture"):
         if any(key in m for m in mats):
             found.append(key)
-    if any("transmissionTexture" in m.get("extensions", {}).get("KHR_materials_transmission", {})
-           for m in mats):
-            found.append("transmissionTexture (the factor is used)")
     used = set(header.get("extensionsUsed", [])) | set(header.get("extensionsRequired", []))
     for m in mats:
         used |= set(m.get("extensions", {}))
     for name in sorted(used - HONOURED_EXTENSIONS):
         found.append(f"{name}" + (f": {_NOT_HONOURED_NOTES[name]}" if name in _NOT_HONOURED_NOTES
                                   else ""))
-    if any(any(float(c) > 0 for c in m.get("emissiveFactor", [])) and (
-            m.get("alphaMode", "OPAQUE") != "OPAQUE"
-            or "KHR_materials_transmission" in m.get("extensions", {})) for m in mats):
-        found.append("the alpha and transmission of emissive materials in light sampling "
-                     "(their whole area is sampled)")
     prims = [p for m in header.get("meshes", []) for p in m.get("primitives", [])]
     if header.get("skins"):
         found.append("skins (the bind pose is used)")
@@ -625,12 +714,14 @@ def unhonoured_features(header: dict) -> tuple[str, ...]:
 
 
 def _texcoord_sets(header: dict, ignore: frozenset[str]) -> dict[int, int]:
-    """The highest TEXCOORD set the base colour or emissive texture of each material reads
-    (materials reading only the first are left out)."""
+    """The highest TEXCOORD set the base colour, emissive or transmission texture of each
+    material reads (materials reading only the first are left out)."""
     top: dict[int, int] = {}
     for i, m in enumerate(header.get("materials", [])):
         for info in (m.get("pbrMetallicRoughness", {}).get("baseColorTexture"),
-                     m.get("emissiveTexture")):
+                     m.get("emissiveTexture"),
+                     m.get("extensions", {}).get("KHR_materials_transmission", {}).get(
+                         "transmissionTexture")):
             found = _texture_info(header, info, str(m.get("name", f"#{i}")), "texture", ignore)
             if found is not None and found[2].index > 0:
                 top[i] = max(top.get(i, 0), found[2].index)
@@ -683,6 +774,7 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = (),
                 files[buf["uri"]] = buffers[i] if i < len(buffers) else b""
                 buf["byteLength"] = len(files[buf["uri"]])
         as_glb, binary = False, None
+    _expand_instances(tagged, header, buffers, label)
     for i, m in enumerate(tagged.get("materials", [])):
         m["name"] = f"{_TAG}{i}"
     if n_sets:
@@ -757,7 +849,24 @@ def _load_gltf_data(p: Path, data: bytes, allow: Sequence[Path] = (),
     if not tris:
         raise SceneError(f"{label} has no triangles in its default scene.")
 
-    materials = [_material_from_json(header, i, tm_materials.get(i), ignore)
+    def image_of(source: int) -> object:
+        import PIL.Image
+
+        try:
+            img = header["images"][source]
+            if "uri" in img:
+                uri = str(img["uri"])
+                data = files[uri] if uri in files else _uri_bytes(
+                    uri, p.parent, f"{label}: image {source}", allow)
+            else:
+                data = view_bytes(header, buffers, int(img["bufferView"]), label)
+            return PIL.Image.open(io.BytesIO(data))
+        except (KeyError, IndexError, TypeError, ValueError, OSError) as exc:
+            raise SceneError(f"{label}: image {source} cannot be read "
+                             f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})."
+                             ) from None
+
+    materials = [_material_from_json(header, i, tm_materials.get(i), ignore, image_of)
                  for i in range(n_json_mats)]
     material = np.concatenate(mats)
     if np.any(material == n_json_mats):

@@ -22,7 +22,8 @@ Conventions
   (:class:`~probegrid.scene.textures.TexCoord`: glTF ``texCoord`` and ``KHR_texture_transform``).
 * What stops a ray (:mod:`probegrid.scene.coverage`): glTF's alpha modes (``MASK`` with its
   cutoff: a hole; ``BLEND``: alpha is the probability that a ray stops) and thin transmission
-  (``KHR_materials_transmission``: a ray passes with probability ``transmission``). Alpha is
+  (``KHR_materials_transmission``: a ray passes with probability ``transmission`` (times its
+  texture's R), carrying the base colour's tint). Alpha is
   ``baseColorFactor.a * baseColorTexture.a * COLOR_0.a``.
 """
 
@@ -84,10 +85,14 @@ class Material:
     alpha_cutoff : float
         glTF ``alphaCutoff`` of ``MASK`` (default 0.5): alpha below it is a hole.
     transmission : float in [0, 1]
-        ``KHR_materials_transmission``'s ``transmissionFactor`` (thin: a ray passes with this
-        probability, unbent and untinted).
-    base_color_uv, emissive_uv : TexCoord
+        ``KHR_materials_transmission``'s ``transmissionFactor`` (thin: a ray passes with
+        probability ``transmission`` times the texture's, unbent, tinted by the base colour,
+        :mod:`probegrid.scene.coverage`).
+    transmission_texture : (H, W, 1) float32 or None
+        ``transmissionTexture``'s R channel (linear, in [0, 1]), multiplying ``transmission``.
+    base_color_uv, emissive_uv, transmission_uv : TexCoord
         The coordinates each texture reads (set and ``KHR_texture_transform``).
+    transmission_wrap : (2,) of {"repeat", "clamp", "mirror"}
     """
 
     base_color: NDArray[np.float64] = field(default_factory=lambda: np.ones(4))
@@ -103,6 +108,9 @@ class Material:
     transmission: float = 0.0
     base_color_uv: TexCoord = TexCoord()
     emissive_uv: TexCoord = TexCoord()
+    transmission_texture: NDArray[np.float32] | None = None
+    transmission_wrap: tuple[Wrap, Wrap] = ("repeat", "repeat")
+    transmission_uv: TexCoord = TexCoord()
 
     def __post_init__(self) -> None:
         bc = np.array(self.base_color, dtype=np.float64).reshape(-1)
@@ -121,7 +129,8 @@ class Material:
             )
         object.__setattr__(self, "base_color", _readonly(bc))
         object.__setattr__(self, "emissive", _readonly(em))
-        for name, channels in (("base_color_texture", 4), ("emissive_texture", 3)):
+        for name, channels in (("base_color_texture", 4), ("emissive_texture", 3),
+                               ("transmission_texture", 1)):
             tex = getattr(self, name)
             if tex is None:
                 continue
@@ -134,6 +143,7 @@ class Material:
         object.__setattr__(self, "double_sided", bool(self.double_sided))
         object.__setattr__(self, "base_color_wrap", _check_wrap(self.base_color_wrap))
         object.__setattr__(self, "emissive_wrap", _check_wrap(self.emissive_wrap))
+        object.__setattr__(self, "transmission_wrap", _check_wrap(self.transmission_wrap))
         if self.alpha_mode not in ALPHA_MODES:
             raise ValueError(f"alpha_mode must be one of {', '.join(ALPHA_MODES)}, got "
                              f"{self.alpha_mode!r}.")
@@ -146,6 +156,10 @@ class Material:
             object.__setattr__(self, name, x)
         object.__setattr__(self, "base_color_uv", _check_texcoord(self.base_color_uv))
         object.__setattr__(self, "emissive_uv", _check_texcoord(self.emissive_uv))
+        object.__setattr__(self, "transmission_uv", _check_texcoord(self.transmission_uv))
+        if self.transmission_texture is not None and (
+                self.transmission_texture.min() < 0 or self.transmission_texture.max() > 1):
+            raise ValueError("transmission_texture must be in [0, 1].")
 
     @property
     def stops_every_ray(self) -> bool:
@@ -171,6 +185,9 @@ class Material:
                  list(self.base_color_uv), list(self.emissive_uv)]
         if extra != ["OPAQUE", 0.5, 0.0, list(TexCoord()), list(TexCoord())]:
             h.update(json.dumps(extra).encode())  # (a scene without them hashes as before)
+        if self.transmission_texture is not None:
+            _hash_array(h, self.transmission_texture, "<f4")
+            h.update(json.dumps([self.transmission_wrap, list(self.transmission_uv)]).encode())
 
 
 def _hash_array(h: hashlib._Hash, a: NDArray | None, dtype: str) -> None:
@@ -288,6 +305,7 @@ class Scene:
         object.__setattr__(self, "unhonoured", tuple(str(x) for x in self.unhonoured))
         used = {m.base_color_uv.index for m in mats if m.base_color_texture is not None}
         used |= {m.emissive_uv.index for m in mats if m.emissive_texture is not None}
+        used |= {m.transmission_uv.index for m in mats if m.transmission_texture is not None}
         if used and max(used) > len(extra):
             raise SceneError(f"a texture reads TEXCOORD_{max(used)}, which the scene does not "
                              "have.")

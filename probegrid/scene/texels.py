@@ -117,21 +117,22 @@ _SRGB8: Final = srgb_to_linear(np.arange(256, dtype=np.float64) / 255.0)
 _UNIT8: Final = (np.arange(256, dtype=np.float64) / 255.0).astype(np.float32)
 
 
-def _band(image: object, y0: int, y1: int, channels: int, cutoff: float | None
-          ) -> NDArray[np.float32]:
-    """Rows ``y0..y1`` of a Pillow image as ``(rows, W, channels)`` linear float32."""
+def _band(image: object, y0: int, y1: int, channels: int, cutoff: float | None,
+          linear: bool = False) -> NDArray[np.float32]:
+    """Rows ``y0..y1`` of a Pillow image as ``(rows, W, channels)`` linear float32 (``linear``:
+    the codes are data, ``code / max``, not sRGB colour)."""
     w = image.size[0]  # type: ignore[attr-defined]
     crop = image.crop((0, y0, w, y1))  # type: ignore[attr-defined]
     if crop.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit greyscale PNG modes
         a = np.clip(np.asarray(crop).astype(np.float64) / 65535.0, 0.0, 1.0)
         out = np.empty((*a.shape, channels), dtype=np.float32)
-        out[..., :3] = srgb_to_linear(a)[..., None]
+        out[..., :3] = (a if linear else srgb_to_linear(a))[..., None]
         if channels == 4:
             out[..., 3] = 1.0
     else:
         codes = np.asarray(crop.convert("RGBA" if channels == 4 else "RGB"))
         out = np.empty(codes.shape[:2] + (channels,), dtype=np.float32)
-        out[..., :3] = _SRGB8[codes[..., :3]]
+        out[..., :3] = (_UNIT8 if linear else _SRGB8)[codes[..., :3]]
         if channels == 4:
             out[..., 3] = _UNIT8[codes[..., 3]]
     if cutoff is not None and channels == 4:
@@ -160,11 +161,13 @@ def _own_copy(image: object) -> object:
 
 
 def decode_texture(image: object, channels: int, what: str, *,
-                   alpha_cutoff: float | None = None) -> NDArray[np.float32]:
+                   alpha_cutoff: float | None = None, linear: bool = False
+                   ) -> NDArray[np.float32]:
     """A Pillow image (opened, maybe not yet decoded) -> ``(H', W', channels)`` float32 linear
     RGB(A), reduced to the current :class:`TextureLimits` (module docstring). Colour is
     decoded from sRGB, alpha kept linear (thresholded at ``alpha_cutoff`` per source texel
-    when given); a 16-bit greyscale image is repeated into RGB with alpha 1.
+    when given; ``linear``: colour channels are data, ``code / max``, as a transmission
+    texture's); a 16-bit greyscale image is repeated into RGB with alpha 1.
 
     Raises :class:`SceneError` for an image over the pixel limit (from its header) or one
     Pillow cannot decode.
@@ -181,11 +184,11 @@ def decode_texture(image: object, channels: int, what: str, *,
             rows = max(1, BAND_PIXELS // w)
             for y0 in range(0, h, rows):
                 out[y0:y0 + rows] = _band(image, y0, min(h, y0 + rows), channels,
-                                          alpha_cutoff)
+                                          alpha_cutoff, linear)
             return out
         ex, ey = area_edges(w, ow), area_edges(h, oh)
         for j0, j1, s0, s1 in row_bands(h, oh, max(1, BAND_PIXELS // w)):
-            band = _band(image, s0, s1, channels, alpha_cutoff)
+            band = _band(image, s0, s1, channels, alpha_cutoff, linear)
             rows = area_average(band, 0, ey[j0:j1 + 1], offset=s0)  # (contiguous sums first)
             del band
             out[j0:j1] = area_average(rows, 1, ex)

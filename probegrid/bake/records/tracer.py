@@ -69,6 +69,19 @@ MIN_SPLIT = 1024
 Draw = Callable[[NDArray[np.int64]], NDArray[np.float64]]
 
 
+def _tint_rows(rec: Level, tint: NDArray[np.float64], rows: NDArray[np.int64],
+               misses: NDArray[np.int64]) -> None:
+    """Records of rays that passed tinted panes (``tint (k, 3)``, their weights): what a hit
+    sends back (its emission and, through its albedo, what it reflects) and what a miss sees
+    of the environment, multiplied by the weight; the punctual and emitted light a hit
+    receives is reflected through the albedo, so it takes the weight there."""
+    assert rec.albedo is not None and rec.emission is not None
+    rec.albedo[rows] *= tint[rows]
+    rec.emission[rows] *= tint[rows]
+    if misses.size and rec.light_punctual is not None:
+        rec.light_punctual[misses] *= tint[misses]
+
+
 def _light_draw(draw: Callable[[int, int, int, NDArray[np.int64]], NDArray[np.float64]],
                 purpose: int, per: int, samples: int) -> Draw | None:
     """The random numbers of ``samples`` light samples per ray (3 each:
@@ -148,7 +161,11 @@ class RecordTracer:
         rd = self.view
         eps = geo.ray_offset
         k = len(dirs)
-        hits = self.tracer.intersect(origins, dirs)
+        tint = None
+        if self.tracer.tinted:  # the weights of the tinted panes the rays passed
+            hits, tint = self.tracer.intersect_weighted(origins, dirs)
+        else:
+            hits = self.tracer.intersect(origins, dirs)
         rays = k
         sc = self.scene
         assert rec.light_punctual is not None and rec.light_emitters is not None
@@ -168,11 +185,19 @@ class RecordTracer:
             miss = np.flatnonzero(rec.kind == 0)
             if miss.size:
                 rec.light_punctual[miss] = rd.environment_view.radiance(sky_at_misses[miss])
+        if tint is not None:  # what the ray brings back through the panes it passed
+            _tint_rows(rec, tint, rows, np.flatnonzero(rec.kind == 0))
         if not rows.size:
             return rays
         which, s_org, s_dir, s_len, s_irr, ok = light_rays(p, nrm, rd.punctual_lights, eps,
                                                            self.tracer.centre)
-        if len(which):
+        if len(which) and self.tracer.tinted:
+            through = self.tracer.shadow_weights(EmbreeRays(s_org, s_dir, s_len), ok)
+            rays += len(which)
+            scatter_divided(rec.light_punctual, rows,
+                            sum_unblocked(len(rows), which, ~np.any(through > 0, axis=1),
+                                          s_irr * through), np.pi, False)
+        elif len(which):
             occluded = self.tracer.occluded_rays(EmbreeRays(s_org, s_dir, s_len), ok)
             rays += len(which)
             scatter_divided(rec.light_punctual, rows,
