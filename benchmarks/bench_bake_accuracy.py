@@ -108,6 +108,8 @@ def _bake_main(spec_file: str) -> None:
         extra = {"gather_depth": spec["gather_depth"]} if spec.get("gather_depth") else {}
         if spec.get("seed") is not None:
             extra["seed"] = spec["seed"]
+        if spec.get("final_gather"):
+            extra["final_gather"] = spec["final_gather"]
         settings = BakeSettings(face_size=spec["face_size"], bounces=bounces,
                                 samples=spec["samples"], store_incoming=True, **extra)
     except ValueError:
@@ -239,6 +241,8 @@ def bench_scene(label: str, path: Path, sky: Path | None, args: argparse.Namespa
             "face_size": n, "samples": args.samples, "workers": args.workers,
             "fallback_bounces": args.fallback_bounces, "gather_depth": args.gather_depth,
             "seed": args.seed, "no_punctual": args.no_punctual}
+    if args.final_gather:  # (older checkouts have no final gather)
+        spec["final_gather"] = args.final_gather
     print(f"\n== {label}: {path.name}" + (f" + {sky.name}" if sky else "") +
           f", grid {args.grid}, faces {n}^2, {args.samples} ray(s) per texel")
     info, baked = run_bake(args.repo, work, f"{label}-conv", bounces=args.bounces, **spec)
@@ -381,6 +385,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="Mitsuba max depth matching probegrid's --bounces 0 (1: emitters seen)")
     p.add_argument("--no-direct", dest="direct", action="store_false")
     p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--final-gather", type=int, default=None,
+                   help="BakeSettings.final_gather: rays per texel read from the surface cache")
     p.add_argument("--scene", choices=["cornell", "room", "both"], default="both")
     p.add_argument("--no-punctual", action="store_true",
                    help="leave the scenes' punctual lights out (the room lit by its sky and "

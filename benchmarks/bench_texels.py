@@ -129,7 +129,9 @@ def _bake(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             "incoming": np.asarray(store["incoming"], np.float32),
             "diffuse": np.asarray(store["diffuse"], np.float32),
             "specular": [np.asarray(store[f"specular_{k}"], np.float32) for k in range(levels)],
-            "bounces": report.quality.get("bounces")}
+            "bounces": report.quality.get("bounces"),
+            "cache_seconds": report.quality.get("stage_seconds", {}).get("surface cache"),
+            "cache": report.quality.get("surface_cache", {})}
 
 
 def _reference(args: argparse.Namespace, positions: NDArray[np.float64], n: int
@@ -195,6 +197,10 @@ def main(argv: list[str] | None = None) -> None:
           f"{st.gather_samples} x {st.gather_levels()}, light samples {st.light_samples}; "
           f"bake {baked['seconds']:.1f} s ({len(baked['valid']) / baked['seconds']:.2f} "
           f"probes/s, {baked['rays'] / 1e6:.1f} M rays), bounces {baked['bounces']}")
+    if baked["cache_seconds"] is not None:  # (older checkouts state no surface cache)
+        print(f"surface cache: {baked['cache'].get('vertices', '?')} vertices, spacing "
+              f"{baked['cache'].get('spacing', float('nan')):.3f}, "
+              f"{baked['cache_seconds']:.1f} s of the bake")
     print(f"reference: Mitsuba path, depth {2 if args.sun_only else 64}, {args.ref_spp} spp (2 x {args.ref_spp // 2}, "
           f"seeds 1 and 7000001), {ref_seconds:.0f} s when rendered")
     ref = 0.5 * (a.astype(np.float64) + b)

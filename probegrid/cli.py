@@ -316,6 +316,10 @@ def _add_bake(sub: argparse._SubParsersAction) -> None:
             "interpolates: radiance SH traced on a lattice finer than the probes' whose outer "
             "layers sit just inside the walls (0: none, /sh blends the probes)")
     _option(p, S, "sh_field_face_size", help="face size the SH field's points are traced at")
+    _option(p, S, "final_gather", help="rays per texel of a final view of each probe whose hits "
+            "read the surface light cache (built first, finer, and iterated on itself) instead "
+            "of gathering: 16 takes the sunlit hall's error against a path tracer from 6.3 %% "
+            "to 1.1 %% (diffuse) for 1.1-1.3x the bake's time; 0: none")
     _option(p, S, "surface_cache_spacing", metavar="H",
             help="lattice spacing of the surface light cache traced answers read (scene "
             "units; 0: no cache). Default: from the scene's surface, the finest spacing with at "

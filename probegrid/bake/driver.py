@@ -70,12 +70,17 @@ from probegrid._fs import atomic_write_text, recover_publish, remove_path
 from probegrid.bake.emitters import Emitters
 from probegrid.bake.environment import Environment
 from probegrid.bake.executors import Executor, InlineExecutor, Progress, make_batches
-from probegrid.bake.extras import write_store_extras
+from probegrid.bake.extras import surface_cache, write_store_extras
+from probegrid.bake.finalgather import (
+    FINAL_GATHER_ITERATIONS,
+    FINAL_GATHER_RAYS,
+    final_gather_plan,
+)
 from probegrid.bake.shfield import write_sh_field
 from probegrid.bake.inputs import check_bake_inputs
 from probegrid.bake.maps import energy_ratio, incoming_integral_from_sh
 from probegrid.bake.nolight import light_quality, printable
-from probegrid.bake.records import resolve_directory
+from probegrid.bake.records import irradiance_size, resolve_directory
 from probegrid.bake.schedule import BounceSchedule
 from probegrid.bake.settings import BakeSettings, store_arrays
 from probegrid.bake.stages import (
@@ -414,6 +419,26 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
         final_cubes = (str(_save_npy(work / "irradiance_limit.npy", cubes)) if files
                        else cubes)
 
+    # the surface cache, built before the final pass when that pass reads it (a final gather,
+    # probegrid.bake.finalgather), else once the probes are written (write_store_extras)
+    cache = cache_plan = None
+    if st.final_gather:
+        t_cache = time.perf_counter()
+        g = irradiance_size(st.gather_levels() > 0)
+        read = (final_grid if final_grid is not None
+                else np.zeros((grid.n_probes, 6, g, g, 3), np.float32))
+        cache_plan = final_gather_plan(scene, st)
+        cache = surface_cache(scene, env, st, geometry, grid=grid, valid=valid,
+                              positions=positions, moments=tstore["moments"],
+                              bordered=bordered_cubes(read), level=level, plan=cache_plan,
+                              iterations=FINAL_GATHER_ITERATIONS, gather=FINAL_GATHER_RAYS)
+        runner.seconds["surface cache"] = time.perf_counter() - t_cache
+    cache_files = None
+    if cache is not None:
+        cache_files = ((str(_save_npy(work / "surface_lattice.npy", cache[0])),
+                        str(_save_npy(work / "surface_light.npy", cache[1]))) if files
+                       else (cache[0], cache[1]))
+
     # 4. final
     energy = np.full(grid.n_probes, np.nan)
     seam = np.full(grid.n_probes, np.nan)
@@ -424,7 +449,8 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
 
     ctx = dataclasses.replace(base, positions=probe_pos, valid=probe_valid,
                               records=records, level=level, moments_bordered=moments_b,
-                              cubes=final_cubes, moments=moments_all)
+                              cubes=final_cubes, moments=moments_all,
+                              surface_cache=cache_files)
     w, resumed = runner.run(schedule.label(level, final=True), out, store_arrays(st),
                             final_task, ctx, overwrite=overwrite, intermediate=False,
                             extra=keep)
@@ -472,11 +498,15 @@ def _bake_locked(scene: Scene, grid: GridSpec, out: Path, work: Path, st: BakeSe
                                              grid_irradiance=final_grid,
                                              gather=st.gather_levels() > 0,
                                              face_size=st.face_size, settings=st,
-                                             geometry=geometry, level=level)
-    quality["stage_seconds"]["surface cache"] = round(time.perf_counter() - t_cache, 3)
+                                             geometry=geometry, level=level, cache=cache,
+                                             plan=cache_plan)
+    quality["stage_seconds"]["surface cache"] = round(
+        time.perf_counter() - t_cache + runner.seconds.get("surface cache", 0.0), 3)
     quality["surface_cache_rays"] = cache_rays
     if lattice is not None:  # its spacing and why (the scene's, never the grid's)
         quality["surface_cache"] = lattice.manifest()
+    if st.final_gather:  # whether the final pass read the cache (none: no lattice)
+        quality["final_gather"] = cache is not None
     if st.sh_field > 0:  # the SH field /sh interpolates (probegrid.bake.shfield)
         t_field = time.perf_counter()
         write_sh_field(w, scene, plan=plan, level=level, refine=st.sh_field,

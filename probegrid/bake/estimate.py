@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from probegrid.bake.environment import LIGHT_SIZE, Environment
+from probegrid.bake.finalgather import final_gather_plan
 from probegrid.bake.inside import DIRECTIONS
 from probegrid.bake.maps import FILTER_GROUP
 from probegrid.bake.nolight import light_sources
@@ -169,9 +170,9 @@ def estimate(settings: BakeSettings, grid: GridSpec, scene: Scene,
         e = min(int(environment.faces.shape[1]), max(LIGHT_SIZE, n))
         store += NPY_HEADER_BYTES + 6 * e * e * 3 * 4
     # the surface light cache (probegrid.bake.surfacecache): its lattice's vertices
-    store += 2 * NPY_HEADER_BYTES + 24 * (plan_lattice(scene, st.surface_cache_spacing,
-                                                       face_size=st.face_size).vertices
-                                          + scene.n_triangles)
+    lattice = (final_gather_plan(scene, st) if st.final_gather else
+               plan_lattice(scene, st.surface_cache_spacing, face_size=st.face_size))
+    store += 2 * NPY_HEADER_BYTES + 24 * (lattice.vertices + scene.n_triangles)
     if st.sh_field > 0:  # the SH field (probegrid.bake.shfield): SH twice and a validity a point
         from probegrid.bake.shfield import field_lattice
 

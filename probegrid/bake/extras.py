@@ -42,6 +42,7 @@ from probegrid.bake.point import ENVIRONMENT_EXTRA, GRID_EXTRA, MOMENTS_EXTRA, e
 from probegrid.bake.records import GridData, grid_level_read, irradiance_size
 from probegrid.bake.settings import BakeSettings, TraceGeometry
 from probegrid.bake.surfacecache import (
+    CACHE_GATHER,
     LATTICE_EXTRA,
     LIGHT_EXTRA,
     LatticePlan,
@@ -49,6 +50,7 @@ from probegrid.bake.surfacecache import (
     plan_lattice,
 )
 from probegrid.core.ddgi import bordered_cubes
+from probegrid.core.grid import GridSpec
 from probegrid.core.sh.dering import dering
 from probegrid.scene import Scene
 from probegrid.store import StoreWriter
@@ -61,16 +63,19 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                        grid_irradiance: NDArray[np.float32] | None = None,
                        gather: bool = True, face_size: int = 32,
                        settings: BakeSettings | None = None,
-                       geometry: TraceGeometry | None = None, level: int = 0
-                       ) -> tuple[int, LatticePlan | None]:
+                       geometry: TraceGeometry | None = None, level: int = 0,
+                       cache: tuple[NDArray[np.int64], NDArray[np.float32], int] | None = None,
+                       plan: LatticePlan | None = None) -> tuple[int, LatticePlan | None]:
     """Add ``sh_deringed``, ``sh_window``, ``scene_vertices`` and ``scene_triangles`` to the
     finished-but-unpublished store of ``writer`` (every probe written), and with an
     ``environment`` the ``grid_irradiance`` (``grid_irradiance``: the cubes the final pass read,
     None for none; ``gather``: the bake traced gather rays) and ``environment`` extras
     (``face_size``: the probes'), and with ``settings`` and ``geometry`` too the surface cache
-    of the final pass at bounce ``level``; see the module docstring. Idempotent: a resumed bake
-    writes the same extras again. Returns the rays the surface cache cast and its lattice
-    (None: no settings, no cache asked of the bake)."""
+    of the final pass at bounce ``level`` (with a ``plan``, ``cache`` is the one the final pass
+    already built over its lattice, :mod:`probegrid.bake.finalgather`, None for none); see the
+    module docstring.
+    Idempotent: a resumed bake writes the same extras again. Returns the rays the surface
+    cache cast and its lattice (None: no settings, no cache asked of the bake)."""
     raw = np.asarray(writer.array("sh"), dtype=np.float64)
     deringed, window, _ = dering(raw)
     writer.add_extra("sh_deringed", deringed.astype(np.float32),
@@ -102,10 +107,14 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
                                      "rotation and intensity of the manifest's bake.environment")
     if settings is None or geometry is None:
         return 0, None
-    plan = plan_lattice(scene, settings.surface_cache_spacing,
-                        face_size=settings.face_size)
-    got = surface_cache(writer, scene, environment, settings, geometry, bordered=bordered,
-                        level=level, plan=plan)
+    if plan is None:  # else the final gather's, already built (None: its plan has none)
+        plan = plan_lattice(scene, settings.surface_cache_spacing,
+                            face_size=settings.face_size)
+        cache = surface_cache(scene, environment, settings, geometry, grid=writer.grid,
+                              valid=writer.array("valid"), positions=writer.array("positions"),
+                              moments=writer.array("moments"), bordered=bordered, level=level,
+                              plan=plan)
+    got = cache
     if got is None:  # no cache (spacing 0, or more triangles than its cap): queries gather
         return 0, plan
     lattice, light, rays = got
@@ -120,17 +129,21 @@ def write_store_extras(writer: StoreWriter, scene: Scene, *,
     return rays, plan
 
 
-def surface_cache(writer: StoreWriter, scene: Scene, environment: Environment,
-                  settings: BakeSettings, geometry: TraceGeometry, *,
-                  bordered: NDArray[np.float32], level: int, plan: LatticePlan
+def surface_cache(scene: Scene, environment: Environment, settings: BakeSettings,
+                  geometry: TraceGeometry, *, grid: GridSpec, valid: NDArray[np.bool_],
+                  positions: NDArray[np.float64], moments: NDArray[np.float32],
+                  bordered: NDArray[np.float32], level: int, plan: LatticePlan,
+                  iterations: int = 0, gather: int = CACHE_GATHER
                   ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
     """The surface cache of a bake (:func:`probegrid.bake.surfacecache.bake_surface_cache`)
-    over the lattice of ``plan`` (the scene's, never the grid's)."""
-    moments = bordered_cubes(writer.array("moments"))
+    of probes at ``positions`` (``valid``, their distance ``moments``) whose final pass, at
+    bounce ``level``, reads the ``bordered`` irradiance cubes, over the lattice of ``plan``
+    (the scene's, never the grid's), ``gather`` first gather rays a vertex, its indirect light
+    gathered ``iterations`` more times from the cache itself."""
+    moments = bordered_cubes(moments)
     depth = settings.gather_levels()
-    data = GridData(writer.grid, np.asarray(writer.array("valid"), bool),
-                    np.asarray(writer.array("positions"), np.float64),
+    data = GridData(grid, np.asarray(valid, bool), np.asarray(positions, np.float64),
                     moments.reshape(-1, moments.shape[-1]), moments.shape[2] - 2,
                     bordered.reshape(-1, 3) if grid_level_read(level, depth) >= 0 else None)
     return bake_surface_cache(scene, environment, settings, geometry, data, level=level,
-                              plan=plan)
+                              plan=plan, iterations=iterations, gather=gather)

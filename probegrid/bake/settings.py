@@ -83,6 +83,9 @@ class BakeSettings(BaseModel):
     # (0: none) and the face size its points are traced at
     sh_field: float = Field(default=2.0, ge=0, le=4)
     sh_field_face_size: int = Field(default=8, ge=2, le=64)
+    # rays per texel of the final view that reads the surface cache at its hits
+    # (probegrid.bake.finalgather; 0: the probes keep the final pass's own view)
+    final_gather: int = Field(default=0, ge=0, le=64)
     # the surface light cache's lattice spacing, scene units (probegrid.bake.surfacecache;
     # None: from the scene's surface, 0: no cache); never from the grid
     surface_cache_spacing: float | None = Field(default=None, ge=0, allow_inf_nan=False)

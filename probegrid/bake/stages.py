@@ -100,6 +100,8 @@ class StageContext:
     moments_bordered: NDArray[np.float32] | str | None = None
     cubes: NDArray[np.float32] | str | None = None
     moments: NDArray[np.float32] | str | None = None
+    # the surface cache's lattice and light the final pass reads (BakeSettings.final_gather)
+    surface_cache: tuple[NDArray[Any] | str, NDArray[Any] | str] | None = None
     key: str = ""  # the bake's fingerprint (scene, environment, plan): what the tracer depends on
 
     @property
@@ -304,6 +306,29 @@ def bounce_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     return out
 
 
+#: The final gather's point tracer of the bake a process last worked for (by its key).
+_FINAL_TRACERS: dict[str, Any] = {}
+
+
+def _final_gather_tracer(state: StageState) -> Any:
+    """The final gather's point tracer (:func:`probegrid.bake.finalgather.final_gather_tracer`)
+    of the stage, built once per process and bake."""
+    from probegrid.bake.finalgather import final_gather_tracer
+
+    ctx = state.ctx
+    assert ctx.surface_cache is not None and state.data is not None
+    pt = _FINAL_TRACERS.get(ctx.key)
+    if pt is None or not ctx.key:
+        lattice, light = (np.asarray(_array(a)) for a in ctx.surface_cache)
+        pt = final_gather_tracer(ctx.scene, ctx.environment, ctx.settings, ctx.geometry,
+                                 state.data, level=ctx.level, lattice=lattice, light=light,
+                                 tracer=state.tracer.tracer)
+        _FINAL_TRACERS.clear()
+        if ctx.key:
+            _FINAL_TRACERS[ctx.key] = pt
+    return pt
+
+
 def final_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     """What each probe of the batch sees at the final level, and the maps the store keeps
     (:func:`probegrid.bake.settings.store_arrays`)."""
@@ -313,7 +338,12 @@ def final_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     st = ctx.settings
     assert state.positions is not None and state.valid is not None
     assert state.moments is not None
-    if ctx.level > 0:
+    if ctx.surface_cache is not None:  # the final gather (probegrid.bake.finalgather)
+        rec, path, rays = _block_records(state, batch)
+        pt = _final_gather_tracer(state)
+        incoming = pt.incoming(state.positions[batch])
+        rays += int(incoming[..., 0].size) * st.final_gather
+    elif ctx.level > 0:
         rec, path, rays = _weighted_records(state, batch, keep=False)
         cubes = None if state.data is None else state.data.cubes
         if gather_depth(rec) and ctx.level >= 2 and state.data is not None:
@@ -324,8 +354,9 @@ def final_task(state: StageState, batch: NDArray[np.int64]) -> dict[str, Any]:
     else:
         rec, path, rays = _block_records(state, batch)
         cubes = None
-    incoming, _ = replay(rec, ctx.settings, ctx.level, cubes, final=True,
-                         positions=state.positions[batch])
+    if ctx.surface_cache is None:
+        incoming, _ = replay(rec, ctx.settings, ctx.level, cubes, final=True,
+                             positions=state.positions[batch])
     if path is not None:  # the block's last use: its records go (a retry traces them again)
         remove_records(path)
     levels = st.levels()

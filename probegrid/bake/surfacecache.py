@@ -37,7 +37,9 @@ texel). So probes added anywhere leave the lattice as it was, and its light chan
 the grid its deepest gather hits read does (probes added outside the walls: 0.02 % on the
 sunlit hall's traced points, ``benchmarks/bench_leaks.py``). Either way at
 most :data:`MAX_VERTICES` (48 MB in the store): a finer spacing is coarsened to fit, and a
-scene with more triangle sides than that stores no cache (its queries gather). The manifest
+scene with more triangle sides than that stores no cache (its queries gather). A bake's final
+gather (:mod:`probegrid.bake.finalgather`) plans a finer lattice, those vertices per texel and
+per ray of its view, and iterates its light on itself (:func:`_iterate`). The manifest
 states the spacing, the vertices and why (``quality.surface_cache``). Lattice vertices stand a
 hair inside their triangle (:data:`INSET`), so that no gather ray starts on the edge of a
 concave corner.
@@ -198,29 +200,33 @@ def _spacing_of(scene: Scene, res: NDArray[np.int64]) -> float:
     return float(np.min(edge[on] / res[on])) if on.any() else float(np.max(edge, initial=0.0))
 
 
-def plan_lattice(scene: Scene, spacing: float | None = None, *, face_size: int = 32
-                 ) -> LatticePlan:
+def plan_lattice(scene: Scene, spacing: float | None = None, *, face_size: int = 32,
+                 rays: int = 1, max_vertices: int | None = None) -> LatticePlan:
     """The surface cache's lattice of ``scene`` at ``spacing`` (scene units; 0: none; None: the
     default, the finest with at most one vertex a triangle side plus
-    :data:`CACHE_TEXEL_VERTICES` per texel of a probe's face, ``face_size`` texels a side), at
-    most :data:`MAX_VERTICES` vertices (a finer spacing coarsened to fit; a scene of more
-    triangle sides than that: none). The scene and the probes' texels decide it, never the
+    :data:`CACHE_TEXEL_VERTICES` per texel of a probe's face, ``face_size`` texels a side, and
+    per ray a texel of the view that reads the cache, ``rays``: a final gather's,
+    :mod:`probegrid.bake.finalgather`), at most ``max_vertices`` vertices (None:
+    :data:`MAX_VERTICES`; a finer spacing coarsened to fit; a scene of more triangle sides than
+    that: none). The scene, the probes' texels and the rays that read it decide it, never the
     grid."""
     sides = 1 + np.asarray(scene.double_sided, np.int64)
     n_sides = int(np.sum(sides))
     area = float(np.sum(triangle_areas(scene) * sides))
+    max_vertices = MAX_VERTICES if max_vertices is None else int(max_vertices)
     if spacing is not None and spacing <= 0:
         return LatticePlan(None, 0.0, 0, "surface_cache_spacing 0: no surface cache")
-    if n_sides > MAX_VERTICES:
+    if n_sides > max_vertices:
         return LatticePlan(None, 0.0, 0, f"{n_sides} triangle sides, more than the cache's "
-                           f"{MAX_VERTICES} vertices: no surface cache")
-    cap = f"at most {MAX_VERTICES} vertices ({MAX_VERTICES * 24 >> 20} MB)"
+                           f"{max_vertices} vertices: no surface cache")
+    cap = f"at most {max_vertices} vertices ({max_vertices * 24 >> 20} MB)"
     if spacing is None:
-        extra = CACHE_TEXEL_VERTICES * int(face_size) ** 2
-        res = lattice_resolutions(scene, min(MAX_VERTICES, n_sides + extra))
+        extra = CACHE_TEXEL_VERTICES * int(face_size) ** 2 * int(rays)
+        res = lattice_resolutions(scene, min(max_vertices, n_sides + extra))
         assert res is not None
+        per = "" if rays == 1 else f" and per ray of a final gather of {rays}"
         why = (f"the default: the finest spacing with at most one vertex a triangle side plus "
-               f"{CACHE_TEXEL_VERTICES} per texel of a face of {face_size}^2 ({extra}) over "
+               f"{CACHE_TEXEL_VERTICES} per texel of a face of {face_size}^2{per} ({extra}) over "
                f"the scene's {area:.6g} square units of surface ({n_sides} triangle sides), "
                f"whatever the grid")
         h = _spacing_of(scene, res)
@@ -228,8 +234,8 @@ def plan_lattice(scene: Scene, spacing: float | None = None, *, face_size: int =
         res = _resolutions(longest_edges(scene), float(spacing))
         why = f"surface_cache_spacing {spacing:g}"
         h = float(spacing)
-        if int(np.sum(sides * lattice_counts(res))) > MAX_VERTICES:
-            res = lattice_resolutions(scene, MAX_VERTICES)
+        if int(np.sum(sides * lattice_counts(res))) > max_vertices:
+            res = lattice_resolutions(scene, max_vertices)
             assert res is not None
             h = _spacing_of(scene, res)
             why += f", coarsened to {cap}"
@@ -306,12 +312,17 @@ class SurfaceCache:
 
 def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSettings,
                        geometry: TraceGeometry, data: GridData, *, level: int,
-                       plan: LatticePlan | None = None, tracer: RayTracer | None = None
+                       plan: LatticePlan | None = None, tracer: RayTracer | None = None,
+                       iterations: int = 0, gather: int = CACHE_GATHER
                        ) -> tuple[NDArray[np.int64], NDArray[np.float32], int] | None:
     """The lattice table, the light at its vertices (module docstring) and the rays cast, for
     a bake of ``settings`` whose final pass, at bounce ``level``, read ``data`` (``cubes`` the
     grid's bordered irradiance, None for none), over the lattice of ``plan`` (None: the
-    settings', :func:`plan_lattice`; None returned: no cache)."""
+    settings', :func:`plan_lattice`; None returned: no cache), ``gather`` first gather rays a
+    vertex (stratified over a square grid when a square). ``iterations``: that indirect light
+    then gathered again that many times by the same first gather rays, their hits reading the
+    cache itself instead of the levels below and the grid (:func:`_iterate`; when the rays'
+    hits fit in :data:`ITERATE_MAX_RAYS`)."""
     if plan is None:
         plan = plan_lattice(scene, settings.surface_cache_spacing,
                             face_size=settings.face_size)
@@ -321,9 +332,13 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     lattice = lattice_layout(scene, res)
     pos, nrm = lattice_positions(scene, lattice)
     depth = settings.gather_levels()
-    st = settings.model_copy(update={"gather_samples": CACHE_GATHER if depth else 0,
+    st = settings.model_copy(update={"gather_samples": gather if depth else 0,
                                      "gather_depth": max(depth, 1)})
     rt = RecordTracer(scene, environment, st, geometry, tracer=tracer)
+    if iterations:  # (a final gather's finer cache: the bake's workers wait meanwhile)
+        from probegrid.bake.point import shared_pool
+
+        rt.pool = shared_pool(None)  # the rays shaded on two threads, the same bits
     # the gather hits' probes tested for visibility by the scene's tracer, as the bake's are
     data = dataclasses.replace(data, tracer=rt.tracer)
     eps = geometry.ray_offset
@@ -336,7 +351,7 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     def draw(purpose: int, per: int, width: int, rows: NDArray[np.int64]) -> NDArray[np.float64]:
         u = np.asarray(_draw_rows(keys[purpose], per, rows, width))
         if purpose == 3:  # a vertex's first gather rays: stratified over the unit square
-            u = stratified(u, rows % CACHE_GATHER, CACHE_GATHER)
+            u = stratified(u, rows % gather, gather)
         return u
 
     ls = CACHE_LIGHT_SAMPLES if len(rt.emitters) else 0
@@ -345,6 +360,10 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
     g = irradiance_size(depth > 0)
     grid = data.cubes if data.cubes is not None else np.zeros((0, 3), np.float32)
     empty = np.zeros((0, 3), np.float32)
+    keep_hits = iterations > 0 and kg > 0 and level >= 1 and total * kg <= ITERATE_MAX_RAYS
+    # the first gather level, when iterated: each chunk's (appended by any thread; each chunk
+    # writes its own vertices in _iterate, so their order does not matter)
+    first: list[tuple[Level, NDArray[np.int64]]] = []
     bias = DEFAULT_NORMAL_BIAS * data.grid.smallest_cell()
 
     # at most CHUNK vertices a chunk, at least one chunk per thread
@@ -382,8 +401,10 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
         for d in range(1, depth + 1):
             lv, g_dir, cast = rt._gather_level(draw, total, (3 * d, 3 * d + 1, 3 * d + 2),
                                                rows, above, arriving, parent_row, bool(ls),
-                                               bool(ks))
+                                               bool(ks), hits=keep_hits and d == 1)
             rays += cast
+            if keep_hits and d == 1:  # what _iterate reads of them (73 bytes a ray)
+                first.append((lv.keep(ITERATE_KEYS), v0 + parent_row))
             kept = lv.keep(gather_keys(deepest=d == depth))
             kept.primary = parent_row.astype(np.int32)
             levels.append(kept)
@@ -422,7 +443,51 @@ def bake_surface_cache(scene: Scene, environment: Environment, settings: BakeSet
             rays = sum(pool.map(shade, starts))
     else:
         rays = sum(shade(v0) for v0 in starts)
+    if keep_hits:
+        _iterate(SurfaceCache(scene, lattice, light), light, first, level - 1, g, iterations)
     return lattice, light, rays
+
+
+#: Most first-level gather rays whose hits :func:`bake_surface_cache` keeps to iterate the
+#: cache (73 bytes each: 300 MB; 65,536 vertices of 64 rays). A larger cache is not iterated.
+ITERATE_MAX_RAYS = 1 << 22
+#: What the iteration keeps of a first gather level's records.
+ITERATE_KEYS = ("kind", "light_punctual", "light_emitters", "albedo", "normal", "primitive",
+                "barycentric")
+
+
+def _iterate(cache: SurfaceCache, light: NDArray[np.float32],
+             first: list[tuple[Level, NDArray[np.int64]]], level: int, g: int,
+             iterations: int) -> None:
+    """Gather the cache's indirect light (``light[:, 0]`` of ``light (V, 2, 3)``, which
+    ``cache`` reads, in place) ``iterations``
+    times more from the kept first gather level ``first`` (each chunk's records, with their
+    triangles and barycentrics, and each ray's vertex): a ray's hit reflects its own direct
+    light (punctual, emitters and environment, as sampled when it was traced) and the cache's
+    indirect light there, at bounce ``level``, and a vertex takes the mean over its rays.
+
+    A fixed point of the gather on the lattice (a radiosity iteration): the light reflected
+    more than ``gather_depth`` times comes from the surfaces themselves instead of the probes'
+    irradiance read at the deepest hits, which is biased where the probes stand in open space
+    and the hits by walls (the sunlit hall of ``benchmarks/scenes.py``: 3-8 % bright). Each
+    iteration leaves the previous error times about the scene's albedo; the first starts from
+    the gathered (grid-read) estimate."""
+    total = len(light)
+    empty = np.zeros((0, 3), np.float32)
+    for _ in range(iterations):  # loop over iterations, each a pass over every kept ray
+        new = np.zeros((total, 3), np.float32)
+        for lv, vertex in first:  # loop over chunks of vertices
+            assert lv.primitive is not None and lv.barycentric is not None
+            assert lv.normal is not None
+            # the side a ray sees: its normal is turned toward it
+            below = cache.lookup(lv.primitive, lv.barycentric[:, 0], lv.barycentric[:, 1],
+                                 -np.asarray(lv.normal, np.float64))[:, 0]
+            _, reflected = _replay_level(lv.keep(gather_keys(deepest=False)), 1, level, empty,
+                                         np.ascontiguousarray(below, np.float32), g)
+            lo, hi = int(vertex.min()), int(vertex.max()) + 1
+            new[lo:hi] = mean_per_parent(*frozen(((vertex - lo).astype(np.int32), reflected)),
+                                         hi - lo)
+        light[:, 0] = new
 
 
 def stratified(u: NDArray[np.float64], k: NDArray[np.int64], count: int) -> NDArray[np.float64]:

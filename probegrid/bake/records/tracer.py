@@ -250,15 +250,16 @@ class RecordTracer:
 
     def _gather_level(self, draw: Any, rays_per_probe: int, purposes: tuple[int, int, int],
                       rows: NDArray[np.int64], above: Level, arriving: NDArray[np.float64],
-                      parents: NDArray[np.int64], emitters: bool, sky: bool
-                      ) -> tuple[Level, NDArray[np.float64], int]:
+                      parents: NDArray[np.int64], emitters: bool, sky: bool, *,
+                      hits: bool = False) -> tuple[Level, NDArray[np.float64], int]:
         """One gather level: a cosine-weighted ray from each hit ``parents`` of the level
         ``above`` (records with ``position`` and ``normal``, the normal facing the side the ray
         ``arriving`` came from), lit as a probe's rays are (one emitter and one environment
         sample; misses and emission count 0). Its random numbers are rows ``rows`` of the
         probes' streams of ``purposes`` (directions, emitters, environment; ``rays_per_probe``
-        primary rays of K gather rays each per probe, :meth:`trace`'s ``draw``). Returns the
-        records, the directions and the rays cast."""
+        primary rays of K gather rays each per probe, :meth:`trace`'s ``draw``; with ``hits``
+        the records keep each ray's triangle and barycentrics). Returns the records, the
+        directions and the rays cast."""
         eps = self.geometry.ray_offset
         kg = self.gather_samples
         per = rays_per_probe * kg
@@ -268,7 +269,7 @@ class RecordTracer:
         rec, _, rays = self._shade_all(org, dirs, rows,
                                        _light_draw(draw, purposes[1], per, int(emitters)),
                                        _light_draw(draw, purposes[2], per, int(sky)),
-                                       sky_at_misses=None)
+                                       sky_at_misses=None, hits=hits)
         return rec, dirs, rays
 
     def trace(self, positions: NDArray[np.float64], indices: NDArray[np.int64], *,
