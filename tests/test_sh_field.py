@@ -194,18 +194,19 @@ def test_bake_options_are_checked():
 # ---------------------------------------------------------------------------- a real bake
 @pytest.fixture(scope="module")
 def baked(tmp_path_factory, real_data):
-    """The CornellBox, 2 x 2 x 2 probes, one bounce, with its SH field; the scene too."""
-    return _bake_cornell(tmp_path_factory, real_data, face_size=8)
+    """The CornellBox, 2 x 2 x 2 probes, one bounce, with its SH field and no surface cache
+    (``surface_cache_spacing=0``); the scene too."""
+    return _bake_cornell(tmp_path_factory, real_data, face_size=8, surface_cache_spacing=0.0)
 
 
 @pytest.fixture(scope="module")
 def baked_cached(tmp_path_factory, real_data):
-    """:func:`baked` at faces 16, whose budget affords a surface cache (faces 8 do not: 70
-    lattice vertices for the box's 72 triangle sides)."""
+    """:func:`baked` at faces 16 with the default surface cache."""
     return _bake_cornell(tmp_path_factory, real_data, face_size=16)
 
 
-def _bake_cornell(tmp_path_factory, real_data, *, face_size: int):
+def _bake_cornell(tmp_path_factory, real_data, *, face_size: int,
+                  surface_cache_spacing: float | None = None):
     from probegrid.bake import BakeSettings, bake
     from probegrid.bake.placement import grid_for
     from probegrid.scene import load_gltf
@@ -214,7 +215,8 @@ def _bake_cornell(tmp_path_factory, real_data, *, face_size: int):
     scene = load_gltf(glb)
     out = tmp_path_factory.mktemp("field") / "cornell.probes"
     bake(scene, grid_for(scene, grid="2x2x2"), out, scene_file=glb,
-         settings=BakeSettings(face_size=face_size, bounces=1, diffuse_size=4))
+         settings=BakeSettings(face_size=face_size, bounces=1, diffuse_size=4,
+                               surface_cache_spacing=surface_cache_spacing))
     return ProbeField(open_store(out), scene=scene), scene
 
 
@@ -266,10 +268,11 @@ def test_baked_field_is_traced_sh_at_its_lattice(store, request):
     if has_cache:
         assert settings == dataclasses.replace(PointSettings.preset(FIELD_QUALITY), face_size=8)
         assert settings.indirect != "gather"
-        # (the bake's gather at every hit gives other numbers)
+        # (the bake's gather at every hit gives other numbers: 100x beyond the tolerance of
+        # the match below)
         gathered = PointTracer.from_store(f.store, scene, settings=field_settings(False, 8))
         other = np.array([project_cube(c) for c in gathered.incoming(lattice.positions()[some])])
-        assert np.abs(other - raw[some]).max() > 0.01 * np.abs(raw[some]).max()
+        assert np.abs(other - raw[some]).max() > 1e-3 * np.abs(raw[some]).max()
     else:
         assert settings == PointSettings(indirect="gather", face_size=8)
     tracer = PointTracer.from_store(f.store, scene, settings=settings)
