@@ -150,8 +150,9 @@ def test_transmittance_is_the_expected_share_along_a_segment() -> None:
 
 @pytest.mark.slow
 def test_a_probe_behind_glass_sees_the_sun_at_the_transmission_factor(tmp_path) -> None:
-    """A probe under a (black) glass pane of transmission 0.6 gets exactly 0.6 of the sun's
-    irradiance (its view of a punctual light is the expected transmittance, not one draw)."""
+    """A probe under a clear (white: untinted) glass pane of transmission 0.6 gets exactly 0.6
+    of the sun's irradiance (its view of a punctual light is the expected transmittance, not
+    one draw)."""
     from probegrid.core.sh import K0
 
     def sh0(pane: Material, name: str) -> float:
@@ -165,7 +166,7 @@ def test_a_probe_behind_glass_sees_the_sun_at_the_transmission_factor(tmp_path) 
         return float(bake(b.build(), grid, tmp_path / f"{name}.probes",
                           settings=st).store["sh"][0, 0, 0])
 
-    assert sh0(Material(base_color=(0, 0, 0, 1), transmission=0.6), "glass") == pytest.approx(
+    assert sh0(Material(base_color=(1, 1, 1, 1), transmission=0.6), "glass") == pytest.approx(
         0.6 * K0 * 3.0, rel=1e-5)
 
 
@@ -223,7 +224,7 @@ def _floor_light(tmp_path: Path, name: str, scene: Scene) -> float:
 @pytest.mark.parametrize("roof,passing", [
     (Material(base_color=(0, 0, 0, 1), base_color_texture=_holes(256), alpha_mode="MASK"),
      0.5),
-    (Material(base_color=(0, 0, 0, 1), transmission=0.6), 0.6),
+    (Material(base_color=(1, 1, 1, 1), transmission=0.6), 0.6),  # clear: untinted
     (Material(base_color=(0, 0, 0, 0.25), alpha_mode="BLEND"), 0.75),
 ], ids=["cutout", "glass", "blend"])
 def test_the_sun_reaches_the_floor_through_holes_and_glass(tmp_path, roof, passing) -> None:
