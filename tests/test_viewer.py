@@ -324,7 +324,7 @@ def test_side_by_side_three_lightprobegrid_is_fed_by_the_export(viewer, server):
     blended = shlib.irradiance(np.array(plain["coefficients"]), normals)
     assert np.abs(at_centre - blended).max() <= 2e-3 * np.abs(blended).max()
     page.evaluate("window.probegrid.setCompare(false)")
-    assert page.locator("#split").is_hidden()
+    page.locator("#split").wait_for(state="hidden", timeout=10_000)  # (raises if it stays)
     assert watch.problems == []
 
 
