@@ -22,6 +22,7 @@ from probegrid.core.ddgi import bordered_cubes
 from probegrid.core.grid import GridSpec
 from probegrid.core.lights import PointLight
 from probegrid.scene import box_scene
+from test_bake import _StopInMap  # (Ctrl-C after a map's first batch)
 
 FAST = {"face_size": 8, "diffuse_size": 4, "moments_size": 4, "batch_size": 4}
 RHO, LE = 0.5, 2.0
@@ -103,23 +104,6 @@ def test_the_final_gather_lattice_grows_with_its_rays_up_to_its_cap(monkeypatch)
 def _room():
     return box_scene((-2, 0, -2), (2, 3, 2), albedo=0.5, emission=0.0, inward=True,
                      lights=(PointLight((0.3, 2.0, 0.2), (1.0, 0.9, 0.8), 20.0),))
-
-
-class _StopInMap(InlineExecutor):
-    """Runs the bake in this process and raises KeyboardInterrupt after the first batch of
-    its ``stop``-th map, as a Ctrl-C would."""
-
-    def __init__(self, stop: int) -> None:
-        super().__init__(check_pickle=False)
-        self.stop = stop
-        self.maps = 0
-
-    def map(self, fn, context, batches, *, progress=None):
-        self.maps += 1
-        for k, item in enumerate(super().map(fn, context, batches, progress=progress)):
-            yield item
-            if self.maps == self.stop and k == 0:
-                raise KeyboardInterrupt
 
 
 @pytest.mark.slow

@@ -33,7 +33,8 @@ from probegrid.bake.surfacecache import (
 )
 from probegrid.core.grid import GridSpec
 from probegrid.query import ProbeField
-from probegrid.scene import SceneBuilder, Material, box_scene, load_gltf
+from probegrid.scene import SceneBuilder, Material, box_scene
+from test_point_maps import room_store  # noqa: F401  (the sample room, its glTF kept)
 
 FAST = {"face_size": 8, "diffuse_size": 4, "moments_size": 4, "batch_size": 4}
 
@@ -206,19 +207,6 @@ def test_threads_do_not_change_a_traced_point(furnace):
 
 
 # ------------------------------------------------------------------------------ the service
-@pytest.fixture(scope="module")
-def room_store(tmp_path_factory):
-    """The sample room baked with its glTF kept in the store, without incoming cubes."""
-    from probegrid.jobs.samples import sample_room_glb_bytes
-
-    root = tmp_path_factory.mktemp("room")
-    glb = root / "room.glb"
-    glb.write_bytes(sample_room_glb_bytes())
-    st = BakeSettings(face_size=8, diffuse_size=4, moments_size=4, bounces=1, batch_size=4)
-    grid = GridSpec.from_counts((-1.0, 1.0, -1.0), (1.0, 1.0, 1.0), (2, 1, 2))
-    return bake(load_gltf(glb), grid, root / "room.probes", settings=st, scene_file=glb).store
-
-
 def test_the_service_answers_each_preset_and_refuses_a_bad_one(room_store):
     from service.main import create_app
 

@@ -52,6 +52,7 @@ from probegrid.scene.textures import _WRAPS
 
 if TYPE_CHECKING:
     from probegrid.scene.model import Scene
+    from probegrid.scene.textures import TexCoord
 
 __all__ = ["Coverage"]
 
@@ -78,12 +79,19 @@ class Coverage:
     def __init__(self, scene: Scene) -> None:
         self._scene = scene
         mats = scene.materials
-        self._modes = [m.alpha_mode for m in mats]
         flags = np.array([not m.stops_every_ray for m in mats], dtype=bool)
         #: Whether a hit may need a draw (BLEND or transmission); else ``p`` is 0 or 1.
         self.stochastic = any(m.alpha_mode == "BLEND" or m.transmission > 0 for m in mats)
         self.cutout: NDArray[np.bool_] = flags[scene.material]
         self.cutout.setflags(write=False)
+        # per material, what every hit reads (indexed by the hits' materials)
+        self._alpha = np.array([m.base_color[3] for m in mats])
+        self._mode = np.array([("OPAQUE", "MASK", "BLEND").index(m.alpha_mode) for m in mats])
+        self._cutoff = np.array([m.alpha_cutoff for m in mats])
+        self._transmission = np.array([m.transmission for m in mats])
+        self._transmission_textured = [i for i, m in enumerate(mats)
+                                       if m.transmission_texture is not None
+                                       and m.transmission > 0]
         self.tinted = any(m.transmission > 0 and (
             np.any(m.base_color[:3] != 1.0) or m.base_color_texture is not None
             or scene.colors is not None) for m in mats)
@@ -121,24 +129,17 @@ class Coverage:
         u = np.ascontiguousarray(u, np.float64)
         v = np.ascontiguousarray(v, np.float64)
         mat = sc.material[prim]
-        out = np.array([m.base_color[3] for m in sc.materials])[mat]
+        out = self._alpha[mat]
         if sc.colors is not None:
             tri = sc.triangles[prim]
             col = sc.colors[:, 3]
             out *= (1.0 - u - v) * col[tri[:, 0]] + u * col[tri[:, 1]] + v * col[tri[:, 2]]
-        tris = np.ascontiguousarray(sc.triangles, np.int64)
         hit = np.flatnonzero(np.bincount(mat, minlength=len(sc.materials)))
         for i in hit:  # loop over the materials hit, not over hits
             m = sc.materials[int(i)]
-            if m.base_color_texture is None or m.alpha_mode == "OPAQUE":
-                continue
-            rows = np.flatnonzero(mat == i)
-            if rows.size:
-                uvs, xform = sc.kernel_texcoords(m.base_color_uv)
-                multiply_texture(out.reshape(-1, 1), rows, *frozen((
-                    (prim, u, v), tris, uvs, np.asarray(m.base_color_texture, np.float32))),
-                    (_WRAPS.index(m.base_color_wrap[0]), _WRAPS.index(m.base_color_wrap[1])),
-                    frozen(xform), 3)
+            if m.base_color_texture is not None and m.alpha_mode != "OPAQUE":
+                self._multiply(out, prim, u, v, mat == i, m.base_color_texture,
+                               m.base_color_uv, m.base_color_wrap, 3)
         return out
 
     def transmission(self, prim: NDArray[np.int64], u: NDArray[np.float64],
@@ -148,24 +149,32 @@ class Coverage:
         sc = self._scene
         prim = np.ascontiguousarray(prim, np.int64)
         mat = sc.material[prim]
-        out = np.array([m.transmission for m in sc.materials])[mat]
-        textured = [i for i, m in enumerate(sc.materials)
-                    if m.transmission_texture is not None and m.transmission > 0]
-        if textured:
+        out = self._transmission[mat]
+        if self._transmission_textured:
             u = np.ascontiguousarray(u, np.float64)
             v = np.ascontiguousarray(v, np.float64)
-            tris = np.ascontiguousarray(sc.triangles, np.int64)
-            for i in textured:  # loop over the transmitting materials, not over hits
-                rows = np.flatnonzero(mat == i)
-                if not rows.size:
-                    continue
+            for i in self._transmission_textured:  # loop over transmitting materials, not hits
                 m = sc.materials[i]
-                uvs, xform = sc.kernel_texcoords(m.transmission_uv)
-                multiply_texture(out.reshape(-1, 1), rows, *frozen((
-                    (prim, u, v), tris, uvs, np.asarray(m.transmission_texture, np.float32))),
-                    (_WRAPS.index(m.transmission_wrap[0]), _WRAPS.index(m.transmission_wrap[1])),
-                    frozen(xform), 0)
+                self._multiply(out, prim, u, v, mat == i, m.transmission_texture,
+                               m.transmission_uv, m.transmission_wrap, 0)
         return out
+
+    def _multiply(self, out: NDArray[np.float64], prim: NDArray[np.int64],
+                  u: NDArray[np.float64], v: NDArray[np.float64], rows: NDArray[np.bool_],
+                  texture: NDArray[np.float32], texcoord: TexCoord, wrap: tuple[str, str],
+                  channel: int) -> None:
+        """``out (k,)`` at the hits ``rows`` (a mask) multiplied in place by ``channel`` of a
+        material's ``texture``, read through its texture coordinates ``texcoord`` (set and
+        transform) with its ``wrap`` modes."""
+        at = np.flatnonzero(rows)
+        if not at.size:
+            return
+        sc = self._scene
+        uvs, xform = sc.kernel_texcoords(texcoord)
+        multiply_texture(out.reshape(-1, 1), at, *frozen((
+            (prim, u, v), np.ascontiguousarray(sc.triangles, np.int64), uvs,
+            np.asarray(texture, np.float32))),
+            (_WRAPS.index(wrap[0]), _WRAPS.index(wrap[1])), frozen(xform), channel)
 
     def _shares(self, prim: NDArray[np.int64], u: NDArray[np.float64], v: NDArray[np.float64]
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -173,13 +182,13 @@ class Coverage:
         transmission, at the hits."""
         sc = self._scene
         mat = sc.material[np.asarray(prim, np.int64)]
-        modes = np.array([("OPAQUE", "MASK", "BLEND").index(m) for m in self._modes])[mat]
+        modes = self._mode[mat]
         a = np.ones(len(mat))
         alpha_rows = modes != 0
         if alpha_rows.any():
             al = self.alpha(np.asarray(prim)[alpha_rows], np.asarray(u)[alpha_rows],
                             np.asarray(v)[alpha_rows])
-            cutoff = np.array([m.alpha_cutoff for m in sc.materials])[mat[alpha_rows]]
+            cutoff = self._cutoff[mat[alpha_rows]]
             a[alpha_rows] = np.where(modes[alpha_rows] == 1, (al >= cutoff).astype(np.float64),
                                      np.clip(al, 0.0, 1.0))
         return a, self.transmission(prim, u, v)
